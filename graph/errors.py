@@ -1,0 +1,21 @@
+"""Errors a user can act on.
+
+:class:`InputError` carries one line naming the file and what is wrong with it. The CLI prints it
+and exits with status 2; the service answers 422 with it as ``detail``. Never raise it with a
+multi-line message or a traceback in the text.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class InputError(ValueError):
+    """Bad user input: a file that cannot be read, or data that do not fit together."""
+
+    def __init__(self, message: str, path: str | Path | None = None):
+        text = " ".join(str(message).split())
+        if path is not None:
+            text = f"{Path(path).name}: {text}"
+        super().__init__(text)
+        self.path = None if path is None else str(path)
