@@ -1,0 +1,1 @@
+"""Skeleton spec files shipped with acinoset (``<name>.toml``)."""
