@@ -3,13 +3,54 @@
 Readers: DeepLabCut CSV (single-animal 3-row header, multi-animal 4-row header) and DeepLabCut H5,
 read with h5py only: the PyTables attributes in those files are pickles, and an uploaded file must
 never execute code, so nothing here unpickles.
+
+Layouts (what ``DataFrame.to_csv`` / ``to_hdf`` write for DeepLabCut's column MultiIndex):
+
+* CSV, single animal::
+
+      scorer,DLC_resnet50_...,DLC_resnet50_...,DLC_resnet50_...,...
+      bodyparts,nose,nose,nose,...
+      coords,x,y,likelihood,...
+      0,812.3,433.9,0.998,...
+
+  Multi-animal files add an ``individuals`` row after ``scorer``; the pseudo-individual
+  ``single`` holds the unique bodyparts. Labelled-data files (``CollectedData_*.csv``) have a
+  3-column row index (``labeled-data,video,img.png``: the header rows then start with two empty
+  cells) and only ``x, y``: their likelihood is 1 where labelled.
+
+* H5 written with ``format="table"`` (what ``deeplabcut.analyze_videos`` writes): a compound
+  dataset ``/<key>/table`` with fields ``index`` and ``values_block_k`` (N, C_k); the column labels
+  exist only in the table attribute ``values_block_k_kind``, a pickled list of label tuples.
+  We read that pickle with :func:`_literal_unpickle`, which walks the opcodes with
+  ``pickletools.genops`` (a parser that never executes anything) and builds lists, tuples, dicts,
+  strings and numbers only: any opcode that would import or call something is refused.
+
+* H5 written in the default "fixed" format: ``/<key>/block0_values`` (N, C) plus plain arrays
+  ``axis0_level<i>`` (the level's labels) and ``axis0_label<i>`` (codes into it) for the column
+  MultiIndex, and the same ``block<k>_items_*`` per block. No pickle is needed there.
+
+Missing data: x, y may be NaN (DeepLabCut writes empty cells for them); a NaN likelihood reads as
+0, and a missing point always gets likelihood 0. Likelihoods are clipped to [0, 1].
 """
 
 from __future__ import annotations
 
+import csv
+import io
+import pickletools
+import warnings
 from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
+
+from graph.errors import InputError
+
+SINGLE = "single"  # DeepLabCut's pseudo-individual holding the unique bodyparts
+_LEVELS_SINGLE = ("scorer", "bodyparts", "coords")
+_LEVELS_MULTI = ("scorer", "individuals", "bodyparts", "coords")
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 
 
 @dataclass
@@ -32,3 +73,460 @@ class Keypoints:
     @property
     def frames(self) -> int:
         return self.xy.shape[0]
+
+
+# ------------------------------------------------------------------------------------- reading
+
+
+def read_keypoints(path: str | Path, individual: str | None = None) -> Keypoints:
+    """Read a DeepLabCut CSV or H5 file (chosen by content, not extension).
+
+    ``individual`` picks one animal from a multi-animal file; by default the first one (not
+    counting ``single``), with a warning naming the others. Single-animal files ignore it.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except FileNotFoundError:
+        raise InputError("no such file", path) from None
+    except IsADirectoryError:
+        raise InputError("is a directory, not a keypoint file", path) from None
+    except OSError as e:
+        raise InputError(f"cannot read: {e.strerror}", path) from None
+    if not head:
+        raise InputError("file is empty", path)
+    if head.startswith(_HDF5_MAGIC):
+        return _read_h5(path, individual)
+    return _read_csv(path, individual)
+
+
+def _read_csv(path: Path, individual: str | None) -> Keypoints:
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise InputError("not a DeepLabCut CSV or H5 file (binary, not UTF-8 text)", path) from None
+    try:
+        rows = list(csv.reader(io.StringIO(text, newline="")))
+    except csv.Error as e:
+        raise InputError(f"not a valid CSV file ({e})", path) from None
+    while rows and not any(cell.strip() for cell in rows[-1]):
+        rows.pop()  # trailing blank lines
+    if not rows:
+        raise InputError("file is empty", path)
+    first = rows[0][0].strip() if rows[0] else ""
+    if first != "scorer":
+        raise InputError(f"not a DeepLabCut CSV: the first row must start with 'scorer', not {first[:40]!r}", path)
+    levels = []
+    for row in rows[:4]:
+        levels.append(row[0].strip() if row else "")
+        if levels[-1] == "coords":
+            break
+    if tuple(levels) not in (_LEVELS_SINGLE, _LEVELS_MULTI):
+        raise InputError("not a DeepLabCut CSV: header rows must be scorer, bodyparts, coords "
+                         "(or scorer, individuals, bodyparts, coords), found " + ", ".join(levels), path)
+    header = rows[: len(levels)]
+    width = len(header[0])
+    for h in header[1:]:
+        if len(h) != width:
+            raise InputError(f"ragged header: row '{h[0]}' has {len(h)} cells, 'scorer' has {width}", path)
+    coords_row = header[-1]
+    n_index = 1
+    while n_index < width and coords_row[n_index].strip() == "":
+        n_index += 1
+    if n_index >= width:
+        raise InputError("not a DeepLabCut CSV: no data columns", path)
+    columns = [tuple(h[j].strip() for h in header) for j in range(n_index, width)]
+    body = rows[len(levels):]
+    if not body:
+        raise InputError("no data rows after the header", path)
+    values = np.empty((len(body), width - n_index))
+    for i, row in enumerate(body):
+        line = len(levels) + i + 1
+        if len(row) != width:
+            raise InputError(f"line {line} has {len(row)} cells, the header has {width} "
+                             "(truncated or ragged file)", path)
+        for j in range(n_index, width):
+            cell = row[j].strip()
+            if cell == "":
+                values[i, j - n_index] = np.nan
+                continue
+            try:
+                values[i, j - n_index] = float(cell)
+            except ValueError:
+                raise InputError(f"line {line}, column {j + 1}: not a number: {cell[:40]!r}", path) from None
+    return _from_columns(columns, values, path, individual)
+
+
+def _read_h5(path: Path, individual: str | None) -> Keypoints:
+    import h5py
+
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise InputError(f"not a readable HDF5 file ({' '.join(str(e).split())[:120]})", path) from None
+    with f:
+        group = _dlc_group(f, path)
+        kind = _text(group.attrs.get("pandas_type", b""))
+        if kind == "frame_table":
+            columns, values = _h5_table(group, path)
+        elif kind == "frame":
+            columns, values = _h5_fixed(group, path)
+        else:
+            raise InputError(f"not a DeepLabCut H5 file: group '{group.name}' is not a pandas "
+                             f"DataFrame (pandas_type {kind!r})", path)
+    if values.ndim != 2 or values.shape[1] != len(columns):
+        raise InputError(f"H5 data have shape {values.shape} for {len(columns)} column labels", path)
+    if values.shape[0] == 0:
+        raise InputError("no data rows", path)
+    return _from_columns(columns, values, path, individual)
+
+
+def _dlc_group(f, path: Path):
+    """The DataFrame's group: ``df_with_missing`` (analyze_videos), ``keypoints`` (labelled data),
+    or the only top-level group that pandas wrote."""
+    import h5py
+
+    for key in ("df_with_missing", "keypoints"):
+        if isinstance(f.get(key), h5py.Group):
+            return f[key]
+    groups = [g for g in f.values() if isinstance(g, h5py.Group) and "pandas_type" in g.attrs]
+    if len(groups) == 1:
+        return groups[0]
+    if not groups:
+        raise InputError("not a DeepLabCut H5 file: no pandas DataFrame in it", path)
+    raise InputError("H5 file holds several DataFrames (" + ", ".join(g.name for g in groups)
+                     + "); expected one", path)
+
+
+def _h5_table(group, path: Path) -> tuple[list[tuple], np.ndarray]:
+    """``format="table"``: values from ``table['values_block_k']``, labels from the
+    ``values_block_k_kind`` attribute (a pickled list of label tuples, read as literals only)."""
+    if "table" not in group:
+        raise InputError(f"H5 group '{group.name}' has no 'table' dataset", path)
+    table = group["table"]
+    names = table.dtype.names or ()
+    blocks = [n for n in names if n.startswith("values_block_")]
+    if not blocks:
+        raise InputError("H5 table has no values_block columns", path)
+    data = table[()]
+    columns: list[tuple] = []
+    parts = []
+    for b in blocks:
+        raw = table.attrs.get(f"{b}_kind")
+        if raw is None:
+            raise InputError(f"H5 table has no column labels for {b}", path)
+        labels = _literal_unpickle(_attr_bytes(raw), path, f"{b}_kind")
+        if not isinstance(labels, list) or not all(isinstance(t, tuple) for t in labels):
+            raise InputError(f"H5 column labels of {b} are not a MultiIndex", path)
+        block = np.asarray(data[b], dtype=np.float64)
+        block = block.reshape(block.shape[0], -1)
+        if block.shape[1] != len(labels):
+            raise InputError(f"H5 {b} has {block.shape[1]} columns but {len(labels)} labels", path)
+        columns += [tuple(str(x) for x in t) for t in labels]
+        parts.append(block)
+    return columns, np.concatenate(parts, axis=1)
+
+
+def _h5_fixed(group, path: Path) -> tuple[list[tuple], np.ndarray]:
+    """Default "fixed" format: plain arrays for the column MultiIndex of the frame and each block."""
+    axis0 = _fixed_index(group, "axis0", path)
+    nblocks = int(group.attrs.get("nblocks", 0))
+    if nblocks < 1:
+        raise InputError("H5 DataFrame has no data blocks", path)
+    position = {label: j for j, label in enumerate(axis0)}
+    values = None
+    for k in range(nblocks):
+        if f"block{k}_values" not in group:
+            raise InputError(f"H5 DataFrame has no block{k}_values", path)
+        block = group[f"block{k}_values"][()]
+        if block.dtype.kind not in "fiub":
+            raise InputError(f"H5 block{k}_values are not numbers", path)
+        items = _fixed_index(group, f"block{k}_items", path)
+        block = np.asarray(block, dtype=np.float64).reshape(block.shape[0], -1)
+        if values is None:
+            values = np.full((block.shape[0], len(axis0)), np.nan)
+        if block.shape != (values.shape[0], len(items)):
+            raise InputError(f"H5 block{k}_values has shape {block.shape}, expected "
+                             f"({values.shape[0]}, {len(items)})", path)
+        for j, label in enumerate(items):
+            if label not in position:
+                raise InputError(f"H5 block{k} column {label} is not among the frame's columns", path)
+            values[:, position[label]] = block[:, j]
+    return axis0, values
+
+
+def _fixed_index(group, prefix: str, path: Path) -> list[tuple]:
+    """A pandas MultiIndex stored as ``<prefix>_level<i>`` (labels) + ``<prefix>_label<i>`` (codes)."""
+    nlevels = int(group.attrs.get(f"{prefix}_nlevels", 0))
+    if _text(group.attrs.get(f"{prefix}_variety", b"")) != "multi" or nlevels < 1:
+        raise InputError("H5 columns are not a DeepLabCut MultiIndex (scorer, bodyparts, coords)", path)
+    level_values = []
+    for i in range(nlevels):
+        try:
+            levels = [_text(x) for x in group[f"{prefix}_level{i}"][()]]
+            codes = np.asarray(group[f"{prefix}_label{i}"][()], dtype=np.int64)
+        except KeyError:
+            raise InputError(f"H5 file lacks {prefix}_level{i}/{prefix}_label{i}", path) from None
+        if codes.size and (codes.min() < -1 or codes.max() >= len(levels)):
+            raise InputError(f"H5 {prefix}_label{i} codes out of range", path)
+        level_values.append(["" if c < 0 else levels[c] for c in codes])
+    n = len(level_values[0])
+    if any(len(v) != n for v in level_values):
+        raise InputError(f"H5 {prefix} levels differ in length", path)
+    return [tuple(v[j] for v in level_values) for j in range(n)]
+
+
+def _attr_bytes(value) -> bytes:
+    if isinstance(value, (bytes, np.bytes_)):
+        return bytes(value)
+    if isinstance(value, np.void):
+        return value.tobytes()
+    if isinstance(value, np.ndarray):
+        return value.tobytes()
+    if isinstance(value, str):
+        return value.encode("latin-1")
+    return bytes(value)
+
+
+def _text(value) -> str:
+    if isinstance(value, (bytes, np.bytes_)):
+        return bytes(value).decode("utf-8", errors="replace")
+    return str(value)
+
+
+# Opcodes that only build literals. Everything else (GLOBAL, STACK_GLOBAL, REDUCE, BUILD, INST,
+# OBJ, NEWOBJ, EXT*, PERSID, ...) imports or calls something and is refused.
+_PUSH_ARG = {"UNICODE", "BINUNICODE", "SHORT_BINUNICODE", "BINUNICODE8", "STRING", "BINSTRING",
+             "SHORT_BINSTRING", "BINBYTES", "SHORT_BINBYTES", "BINBYTES8", "INT", "BININT", "BININT1",
+             "BININT2", "LONG", "LONG1", "LONG4", "FLOAT", "BINFLOAT"}
+
+
+class _RefusedPickle(Exception):
+    pass
+
+
+def _literal_unpickle(data: bytes, path: Path, what: str):
+    """Rebuild a pickle made only of literals (str, bytes, numbers, bool, None, list, tuple, dict).
+
+    Walks ``pickletools.genops(data)``, which decodes opcodes without running any, and emulates
+    the unpickler's stack for the literal opcodes. Nothing is imported or called: a pickle that
+    needs a class or function raises :class:`InputError`.
+    """
+    stack: list = []
+    marks: list[int] = []
+    memo: dict = {}
+
+    def pop_mark() -> list:
+        k = marks.pop()
+        items = stack[k:]
+        del stack[k:]
+        return items
+
+    try:
+        for op, arg, _pos in pickletools.genops(data):
+            name = op.name
+            if name in ("PROTO", "FRAME"):
+                continue
+            if name == "STOP":
+                break
+            if name in _PUSH_ARG:
+                stack.append(arg)
+            elif name == "NONE":
+                stack.append(None)
+            elif name in ("NEWTRUE", "NEWFALSE"):
+                stack.append(name == "NEWTRUE")
+            elif name == "MARK":
+                marks.append(len(stack))
+            elif name == "EMPTY_LIST":
+                stack.append([])
+            elif name == "LIST":
+                stack.append(pop_mark())
+            elif name == "EMPTY_TUPLE":
+                stack.append(())
+            elif name == "TUPLE":
+                stack.append(tuple(pop_mark()))
+            elif name in ("TUPLE1", "TUPLE2", "TUPLE3"):
+                n = int(name[-1])
+                items = tuple(stack[-n:])
+                del stack[-n:]
+                stack.append(items)
+            elif name == "EMPTY_DICT":
+                stack.append({})
+            elif name == "DICT":
+                items = pop_mark()
+                stack.append(dict(zip(items[::2], items[1::2])))
+            elif name == "APPEND":
+                value = stack.pop()
+                stack[-1].append(value)
+            elif name == "APPENDS":
+                items = pop_mark()
+                stack[-1].extend(items)
+            elif name == "SETITEM":
+                value = stack.pop()
+                key = stack.pop()
+                stack[-1][key] = value
+            elif name == "SETITEMS":
+                items = pop_mark()
+                stack[-1].update(zip(items[::2], items[1::2]))
+            elif name in ("PUT", "BINPUT", "LONG_BINPUT"):
+                memo[arg] = stack[-1]
+            elif name == "MEMOIZE":
+                memo[len(memo)] = stack[-1]
+            elif name in ("GET", "BINGET", "LONG_BINGET"):
+                stack.append(memo[arg])
+            elif name == "POP":
+                stack.pop()
+            elif name == "POP_MARK":
+                pop_mark()
+            elif name == "DUP":
+                stack.append(stack[-1])
+            else:
+                raise _RefusedPickle(name)
+    except _RefusedPickle as e:
+        raise InputError(f"H5 attribute {what} is a pickle that would run code ({e}); refusing to read it",
+                         path) from None
+    except Exception as e:  # malformed pickle bytes: genops raises ValueError and friends
+        raise InputError(f"H5 attribute {what} is not a readable pickle ({type(e).__name__})", path) from None
+    if len(stack) != 1:
+        raise InputError(f"H5 attribute {what} is not a readable pickle", path)
+    return stack[0]
+
+
+# ------------------------------------------------------------------------- columns to Keypoints
+
+
+def _from_columns(columns: list[tuple], values: np.ndarray, path: Path, individual: str | None) -> Keypoints:
+    """Turn DeepLabCut columns ``(scorer, [individual,] bodypart, coord)`` and values (N, C)
+    into :class:`Keypoints` for one individual."""
+    if not columns:
+        raise InputError("no data columns", path)
+    nlev = len(columns[0])
+    if nlev not in (3, 4) or any(len(c) != nlev for c in columns):
+        raise InputError("columns are not DeepLabCut's (scorer, bodyparts, coords) "
+                         "or (scorer, individuals, bodyparts, coords)", path)
+    scorers = list(dict.fromkeys(c[0] for c in columns))
+    if len(scorers) > 1:
+        raise InputError("several scorers in one file (" + ", ".join(scorers[:4]) + ")", path)
+    if nlev == 4:
+        names = list(dict.fromkeys(c[1] for c in columns))
+        animals = [n for n in names if n != SINGLE] or names
+        if individual is None:
+            chosen = animals[0]
+            if len(animals) > 1:
+                warnings.warn(f"{path.name}: {len(animals)} individuals ({', '.join(animals)}); "
+                              f"using '{chosen}' (choose another with --individual)", stacklevel=4)
+        elif individual in names:
+            chosen = individual
+        else:
+            raise InputError(f"no individual '{individual}' (the file has {', '.join(names)})", path)
+        keep = [j for j, c in enumerate(columns) if c[1] == chosen]
+        columns = [(c[0], c[2], c[3]) for c in (columns[j] for j in keep)]
+        values = values[:, keep]
+    bodyparts = list(dict.fromkeys(c[1] for c in columns))
+    where: dict[tuple[str, str], int] = {}
+    for j, (_, bp, coord) in enumerate(columns):
+        if coord not in ("x", "y", "likelihood"):
+            raise InputError(f"bodypart '{bp}': unknown coordinate '{coord}' (expected x, y, likelihood)", path)
+        if (bp, coord) in where:
+            raise InputError(f"bodypart '{bp}' has two '{coord}' columns", path)
+        where[(bp, coord)] = j
+    n = values.shape[0]
+    xy = np.empty((n, len(bodyparts), 2))
+    lik = np.empty((n, len(bodyparts)))
+    for m, bp in enumerate(bodyparts):
+        for a, coord in enumerate(("x", "y")):
+            if (bp, coord) not in where:
+                raise InputError(f"bodypart '{bp}' has no '{coord}' column", path)
+            xy[:, m, a] = values[:, where[(bp, coord)]]
+        lik[:, m] = values[:, where[(bp, "likelihood")]] if (bp, "likelihood") in where else 1.0
+    if np.isinf(xy).any():
+        raise InputError("infinite pixel coordinates", path)
+    missing = ~np.isfinite(xy).all(axis=-1)
+    xy[missing] = np.nan
+    lik = np.clip(np.nan_to_num(lik, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    lik[missing] = 0.0
+    return Keypoints(bodyparts=bodyparts, xy=xy, likelihood=lik, scorer=scorers[0], source=str(path))
+
+
+# ------------------------------------------------------------------------------------- writing
+
+
+def write_dlc_csv(path: str | Path, keypoints: Keypoints) -> None:
+    """Write the single-animal DeepLabCut CSV layout, byte for byte what
+    ``DataFrame.to_csv`` writes for DeepLabCut's (scorer, bodyparts, coords) columns: floats as
+    ``repr``, empty cells for NaN, the frame number as the index."""
+    n, m = keypoints.xy.shape[:2]
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(["scorer"] + [keypoints.scorer] * (3 * m))
+        w.writerow(["bodyparts"] + [bp for bp in keypoints.bodyparts for _ in range(3)])
+        w.writerow(["coords"] + ["x", "y", "likelihood"] * m)
+        block = np.concatenate([keypoints.xy, keypoints.likelihood[..., None]], axis=-1).reshape(n, 3 * m)
+        for i in range(n):
+            w.writerow([str(i)] + [_cell(v) for v in block[i]])
+
+
+def _cell(v: float) -> str:
+    return "" if np.isnan(v) else repr(float(v))
+
+
+# ------------------------------------------------------------------------- bodyparts to markers
+
+
+class BodypartMatch(NamedTuple):
+    """How one file's bodyparts map onto a skeleton's markers.
+
+    ``index[k]`` is the bodypart column of marker ``k`` (-1: the file lacks it); ``unknown`` are
+    bodyparts no marker uses (ignored), ``missing`` markers the file lacks (unobserved).
+    """
+
+    index: np.ndarray
+    unknown: list[str]
+    missing: list[str]
+
+
+def _normal(name: str) -> str:
+    return "_".join(name.strip().lower().replace("-", " ").split())
+
+
+def match_bodyparts(keypoints: Keypoints, marker_names: list[str]) -> BodypartMatch:
+    """Map bodyparts to markers by name: exact match first, then ignoring case, spaces and
+    hyphens (``"Left Eye"`` = ``"left_eye"``). Pure: the caller decides what to warn about."""
+    exact = {bp: j for j, bp in enumerate(keypoints.bodyparts)}
+    loose: dict[str, int] = {}
+    for j, bp in enumerate(keypoints.bodyparts):
+        loose.setdefault(_normal(bp), j)
+    index = np.full(len(marker_names), -1, dtype=np.int64)
+    for k, name in enumerate(marker_names):
+        index[k] = exact.get(name, loose.get(_normal(name), -1))
+    used = set(index[index >= 0].tolist())
+    unknown = [bp for j, bp in enumerate(keypoints.bodyparts) if j not in used]
+    missing = [name for k, name in enumerate(marker_names) if index[k] < 0]
+    return BodypartMatch(index=index, unknown=unknown, missing=missing)
+
+
+def select_markers(keypoints: Keypoints, marker_names: list[str]) -> Keypoints:
+    """The detections in marker order (N, len(marker_names)): missing markers NaN with likelihood 0."""
+    match = match_bodyparts(keypoints, marker_names)
+    n = keypoints.frames
+    xy = np.full((n, len(marker_names), 2), np.nan)
+    lik = np.zeros((n, len(marker_names)))
+    have = match.index >= 0
+    xy[:, have] = keypoints.xy[:, match.index[have]]
+    lik[:, have] = keypoints.likelihood[:, match.index[have]]
+    return Keypoints(bodyparts=list(marker_names), xy=xy, likelihood=lik,
+                     scorer=keypoints.scorer, source=keypoints.source)
+
+
+def check_same_frames(keypoints: list[Keypoints]) -> int:
+    """The common frame count; :class:`InputError` naming the first file whose count differs."""
+    if not keypoints:
+        raise InputError("no keypoint files given")
+    n = keypoints[0].frames
+    for k in keypoints[1:]:
+        if k.frames != n:
+            first = Path(keypoints[0].source).name or "camera 1"
+            raise InputError(f"has {k.frames} frames but {first} has {n}; all cameras must have "
+                             "the same frames", k.source or None)
+    return n

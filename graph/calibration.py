@@ -1,0 +1,313 @@
+"""Camera calibration files: read and write AcinoSet scene JSON and Anipose ``calibration.toml``.
+
+Both describe the same thing, a rig of cameras in one world frame with ``X_c = R X_w + t``:
+
+* AcinoSet scene JSON (``scene_sba.json``), OpenCV fisheye cameras only::
+
+      {"camera_resolution": [W, H],
+       "cameras": [{"k": 3x3, "d": 4x1, "r": 3x3, "t": 3x1}, ...]}
+
+* Anipose / aniposelib ``calibration.toml`` (``CameraGroup.dump``): one table per camera,
+  ``[cam_0]``, ``[cam_1]``, ... with ``name``, ``size = [W, H]``, ``matrix`` (3x3), ``distortions``
+  (4 fisheye coefficients, or 1..5 pinhole ones k1, k2, p1, p2, k3), ``rotation`` (a Rodrigues
+  vector ``r``: ``R = exp([r]_x)``, rotation by ``|r|`` about ``r/|r|``), ``translation`` (3) and
+  ``fisheye = true`` for fisheye cameras; plus a ``[metadata]`` table. Cameras are taken in the
+  numeric order of their ``cam_N`` keys (aniposelib itself sorts the keys as text, which puts
+  ``cam_10`` before ``cam_2``; with fewer than 11 cameras both orders agree).
+
+Units are those of the file (AcinoSet: metres). Everything read is validated: a bad file raises
+:class:`graph.errors.InputError` with one line naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from graph.camera import FISHEYE, PINHOLE, Calibration, Camera
+from graph.errors import InputError
+
+ROTATION_TOLERANCE = 1e-5  # max |R^T R - I| and |det R - 1| accepted (files rounded to ~6 digits pass)
+
+_CAM_KEY = re.compile(r"^cam_(\d+)$")
+
+
+def default_rig_path() -> Path:
+    """The packaged real AcinoSet 2019 rig: six 2704x1520 GoPro cameras, fisheye, metres."""
+    return Path(str(resources.files("graph.data").joinpath("acinoset_2019_rig.json")))
+
+
+# --------------------------------------------------------------------------------------- reading
+
+
+def load_calibration(path: str | Path) -> Calibration:
+    """Read an AcinoSet scene JSON or an Anipose ``calibration.toml``, chosen by content.
+
+    A file whose first non-blank character is ``{`` is JSON; anything else is tried as TOML.
+    """
+    path = Path(path)
+    text = _read_text(path)
+    if not text.strip():
+        raise InputError("calibration file is empty", path)
+    if text.lstrip().startswith("{"):
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise InputError(f"not valid JSON (line {e.lineno}: {e.msg})", path) from None
+        return _from_acinoset(doc, path)
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        kind = "JSON or TOML" if path.suffix.lower() not in (".toml", ".json") else path.suffix[1:].upper()
+        raise InputError(f"not a calibration file: not valid {kind} ({e})", path) from None
+    return _from_anipose(doc, path)
+
+
+def _read_text(path: Path) -> str:
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError("no such file", path) from None
+    except IsADirectoryError:
+        raise InputError("is a directory, not a calibration file", path) from None
+    except OSError as e:
+        raise InputError(f"cannot read: {e.strerror}", path) from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise InputError("not a calibration file (binary, not UTF-8 text)", path) from None
+
+
+def _from_acinoset(doc, path: Path) -> Calibration:
+    if not isinstance(doc, dict) or "cameras" not in doc:
+        raise InputError('not an AcinoSet scene file: no "cameras" list', path)
+    cams = doc["cameras"]
+    if not isinstance(cams, list) or not cams:
+        raise InputError('"cameras" must be a non-empty list', path)
+    size = (0, 0)
+    if "camera_resolution" in doc:
+        size = _size(doc["camera_resolution"], "camera_resolution", path)
+    cameras = []
+    for i, c in enumerate(cams):
+        where = f"camera {i + 1}"
+        if not isinstance(c, dict):
+            raise InputError(f"{where}: expected an object with k, d, r, t", path)
+        for key, what in (("k", "camera matrix"), ("d", "distortion"), ("r", "rotation"), ("t", "translation")):
+            if key not in c:
+                raise InputError(f'{where}: missing "{key}" ({what})', path)
+        K = _intrinsic_matrix(c["k"], f"{where} k", path)
+        d = _array(c["d"], f"{where} d", path).ravel()
+        if d.size != 4:
+            raise InputError(f"{where} d: fisheye distortion needs 4 coefficients, got {d.size}", path)
+        R = _rotation_matrix(c["r"], f"{where} r", path)
+        t = _vector3(c["t"], f"{where} t", path)
+        cameras.append(Camera(K=K, dist=d, R=R, t=t, model=FISHEYE, size=size, name=f"cam{i + 1}"))
+    meta = {k: v for k, v in doc.items() if k not in ("cameras", "camera_resolution")
+            and isinstance(v, (str, int, float, bool))}
+    return Calibration(cameras=cameras, source=str(path), metadata=meta)
+
+
+def _from_anipose(doc: dict, path: Path) -> Calibration:
+    keys = [(int(m.group(1)), k) for k in doc if (m := _CAM_KEY.match(k))]
+    if not keys:
+        raise InputError("not a calibration file: no [cam_0] ... tables (Anipose) and not JSON (AcinoSet)", path)
+    cameras = []
+    for _, key in sorted(keys):
+        c = doc[key]
+        where = f"[{key}]"
+        if not isinstance(c, dict):
+            raise InputError(f"{where} must be a table", path)
+        for field, what in (("matrix", "camera matrix"), ("distortions", "distortion"),
+                            ("rotation", "Rodrigues rotation"), ("translation", "translation"),
+                            ("size", "image size")):
+            if field not in c:
+                raise InputError(f"{where}: missing {field} ({what})", path)
+        fisheye = c.get("fisheye", False)
+        if not isinstance(fisheye, bool):
+            raise InputError(f"{where} fisheye: must be true or false", path)
+        K = _intrinsic_matrix(c["matrix"], f"{where} matrix", path)
+        d = _array(c["distortions"], f"{where} distortions", path).ravel()
+        if fisheye and d.size != 4:
+            raise InputError(f"{where} distortions: fisheye needs 4 coefficients, got {d.size}", path)
+        if not fisheye and not 0 <= d.size <= 5:
+            raise InputError(f"{where} distortions: pinhole takes up to 5 coefficients "
+                             f"(k1, k2, p1, p2, k3), got {d.size}", path)
+        rvec = _vector3(c["rotation"], f"{where} rotation", path)
+        t = _vector3(c["translation"], f"{where} translation", path)
+        name = c.get("name", key)
+        if not isinstance(name, (str, int)):
+            raise InputError(f"{where} name: must be a string", path)
+        cameras.append(Camera(K=K, dist=d, R=rodrigues_to_matrix(rvec), t=t,
+                              model=FISHEYE if fisheye else PINHOLE,
+                              size=_size(c["size"], f"{where} size", path), name=str(name)))
+    meta = doc.get("metadata", {})
+    return Calibration(cameras=cameras, source=str(path), metadata=dict(meta) if isinstance(meta, dict) else {})
+
+
+def _array(value, what: str, path: Path) -> np.ndarray:
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{what}: expected numbers in a regular array", path) from None
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"{what}: contains NaN or infinite values", path)
+    return a
+
+
+def _intrinsic_matrix(value, what: str, path: Path) -> np.ndarray:
+    """``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` with ``fx, fy > 0``; the camera models here
+    have no skew, so ``s`` must be (numerically) zero."""
+    K = _array(value, what, path)
+    if K.shape != (3, 3):
+        raise InputError(f"{what}: camera matrix must be 3x3, got shape {_shape(K)}", path)
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise InputError(f"{what}: focal lengths must be positive (fx={K[0, 0]:g}, fy={K[1, 1]:g})", path)
+    if not np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9) or abs(K[1, 0]) > 1e-9:
+        raise InputError(f"{what}: not a camera matrix (last row must be [0, 0, 1])", path)
+    if abs(K[0, 1]) > 1e-6 * K[0, 0]:
+        raise InputError(f"{what}: skew {K[0, 1]:g} is not supported (OpenCV models have none)", path)
+    return K
+
+
+def _rotation_matrix(value, what: str, path: Path) -> np.ndarray:
+    """Accept ``R`` when ``|R^T R - I| <= tol`` and ``|det R - 1| <= tol``; return the nearest
+    rotation ``U V^T`` (from ``R = U S V^T``) so rounding in the file does not leak into the solver."""
+    R = _array(value, what, path)
+    if R.shape != (3, 3):
+        raise InputError(f"{what}: rotation must be 3x3, got shape {_shape(R)}", path)
+    ortho = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if ortho > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
+        raise InputError(f"{what}: not a rotation matrix (max |R^T R - I| = {ortho:.2g}, det = {det:.6g})", path)
+    if ortho > 1e-12:
+        U, _, Vt = np.linalg.svd(R)
+        R = U @ Vt
+    return R
+
+
+def _vector3(value, what: str, path: Path) -> np.ndarray:
+    v = _array(value, what, path)
+    if v.size != 3 or v.ndim > 2:
+        raise InputError(f"{what}: expected 3 numbers, got shape {_shape(v)}", path)
+    return v.ravel()
+
+
+def _size(value, what: str, path: Path) -> tuple[int, int]:
+    s = _array(value, what, path).ravel()
+    if s.size != 2 or not np.all(s > 0) or not np.all(s == np.round(s)):
+        raise InputError(f"{what}: expected [width, height] in whole pixels, got {value!r}", path)
+    return int(s[0]), int(s[1])
+
+
+def _shape(a: np.ndarray) -> str:
+    return "x".join(str(n) for n in a.shape) or "scalar"
+
+
+# ----------------------------------------------------------------------------------- rotations
+
+
+def rodrigues_to_matrix(rvec: np.ndarray) -> np.ndarray:
+    """Rodrigues vector to rotation matrix (as ``cv2.Rodrigues``), with ``theta = |r|, k = r/theta``::
+
+        R = cos(theta) I + sin(theta) [k]_x + (1 - cos(theta)) k k^T
+    """
+    r = np.asarray(rvec, dtype=np.float64).reshape(3)
+    theta = float(np.linalg.norm(r))
+    if theta < 1e-15:
+        return np.eye(3)
+    k = r / theta
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return math.cos(theta) * np.eye(3) + math.sin(theta) * kx + (1.0 - math.cos(theta)) * np.outer(k, k)
+
+
+def matrix_to_rodrigues(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix to Rodrigues vector, the inverse of :func:`rodrigues_to_matrix` (``cv2.Rodrigues``)."""
+    import cv2
+
+    rvec, _ = cv2.Rodrigues(np.asarray(R, dtype=np.float64).reshape(3, 3))
+    return rvec.ravel()
+
+
+# --------------------------------------------------------------------------------------- writing
+
+
+def save_calibration(path: str | Path, calibration: Calibration) -> None:
+    """Write ``.json`` as AcinoSet scene JSON, anything else as Anipose TOML."""
+    if Path(path).suffix.lower() == ".json":
+        write_acinoset_json(path, calibration)
+    else:
+        write_anipose_toml(path, calibration)
+
+
+def write_acinoset_json(path: str | Path, calibration: Calibration) -> None:
+    """AcinoSet scene JSON. The format holds fisheye cameras of one resolution only."""
+    cams = calibration.cameras
+    if any(c.model != FISHEYE for c in cams):
+        raise ValueError("AcinoSet scene JSON holds fisheye cameras only; write Anipose TOML instead")
+    sizes = {tuple(c.size) for c in cams}
+    if len(sizes) > 1:
+        raise ValueError(f"AcinoSet scene JSON has one camera_resolution, the cameras have {sorted(sizes)}")
+    doc: dict = {k: v for k, v in calibration.metadata.items() if isinstance(v, (str, int, float, bool))}
+    doc["camera_resolution"] = list(sizes.pop()) if sizes else [0, 0]
+    doc["cameras"] = [{"k": c.K.tolist(), "d": c.dist.reshape(4, 1).tolist(),
+                       "r": c.R.tolist(), "t": c.t.reshape(3, 1).tolist()} for c in cams]
+    Path(path).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+
+
+def write_anipose_toml(path: str | Path, calibration: Calibration) -> None:
+    """Anipose ``calibration.toml`` with the tables and keys ``aniposelib.CameraGroup.dump`` writes."""
+    lines: list[str] = []
+    for i, (c, name) in enumerate(zip(calibration.cameras, calibration.names)):
+        lines.append(f"[cam_{i}]")
+        lines.append(f"name = {_toml_value(name)}")
+        lines.append(f"size = {_toml_value([int(c.size[0]), int(c.size[1])])}")
+        lines.append(f"matrix = {_toml_value(c.K.tolist())}")
+        dist = c.dist[:4] if c.model == FISHEYE else c.dist
+        lines.append(f"distortions = {_toml_value(dist.tolist())}")
+        lines.append(f"rotation = {_toml_value(matrix_to_rodrigues(c.R).tolist())}")
+        lines.append(f"translation = {_toml_value(c.t.tolist())}")
+        if c.model == FISHEYE:
+            lines.append("fisheye = true")
+        lines.append("")
+    lines.append("[metadata]")
+    for key, value in calibration.metadata.items():
+        try:
+            lines.append(f"{_toml_key(key)} = {_toml_value(value)}")
+        except TypeError:
+            continue  # not representable in TOML: left out
+    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def _toml_key(key) -> str:
+    key = str(key)
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else _toml_value(key)
+
+
+def _toml_value(v) -> str:
+    """A TOML value: bool, int, float (``repr``, which TOML reads back exactly), string, array,
+    inline table."""
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        f = float(v)
+        if math.isnan(f):
+            return "nan"
+        if math.isinf(f):
+            return "inf" if f > 0 else "-inf"
+        return repr(f)
+    if isinstance(v, str):
+        # JSON escapes control characters as TOML basic strings do; DEL must be escaped too
+        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write {type(v).__name__} as TOML")

@@ -1,0 +1,213 @@
+"""The ``acinoset`` command line.
+
+``acinoset solve CAM1.csv CAM2.csv ... --calibration FILE --method tri|ekf|fte --out OUT.csv``
+lives here; other subcommands live next to the code they drive and register themselves.
+
+Subcommand contract. A module listed in :data:`SUBCOMMAND_MODULES` may define::
+
+    def register(subparsers: argparse._SubParsersAction) -> None:
+        p = subparsers.add_parser("name", help="one line")
+        p.add_argument(...)
+        p.set_defaults(func=run)       # run(args: argparse.Namespace) -> int (exit status)
+
+A module that does not exist (yet) is skipped; an ImportError raised *inside* an existing module
+is a real error and propagates. Parsers made by ``add_parser`` share this module's one-line error
+handling. Exit statuses: 0 success, 2 bad input (one line on stderr:
+``acinoset: error: <file>: <problem>``), anything else from the subcommand itself. A
+:class:`graph.errors.InputError` raised by ``func`` is printed the same way.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+from graph.errors import InputError
+
+PROG = "acinoset"
+SUBCOMMAND_MODULES = ("graph.simulate", "graph.demo", "graph.plot", "service.cli")
+
+
+class UsageError(Exception):
+    """A command-line mistake; printed as one line, exit status 2."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse that reports mistakes as one line (the caller prints it) instead of usage + exit."""
+
+    def error(self, message: str):  # noqa: D401 - argparse API
+        raise UsageError(" ".join(message.split()))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(prog=PROG, description="Markerless 3D animal pose from calibrated cameras "
+                           "and DeepLabCut keypoints.")
+    from graph import __version__
+
+    parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    _register_solve(sub)
+    for name in SUBCOMMAND_MODULES:
+        module = _optional_module(name)
+        if module is not None and hasattr(module, "register"):
+            module.register(sub)
+    return parser
+
+
+def _optional_module(name: str):
+    """Import ``name``; None if it (or its package) does not exist. Errors inside it propagate."""
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as e:
+        if e.name is not None and (name == e.name or name.startswith(e.name + ".")):
+            return None
+        raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return int(args.func(args) or 0)
+    except UsageError as e:
+        return _fail(str(e))
+    except InputError as e:
+        return _fail(str(e))
+    except OSError as e:  # an output path that cannot be written, a disk that is full, ...
+        where = f"{Path(e.filename).name}: " if e.filename else ""
+        return _fail(f"{where}{e.strerror or e}")
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"{PROG}: warning: {' '.join(str(message).split())}", file=sys.stderr)
+
+
+def _fail(message: str) -> int:
+    print(f"{PROG}: error: {' '.join(message.split())}", file=sys.stderr)
+    return 2
+
+
+# ------------------------------------------------------------------------------------------ solve
+
+
+def _register_solve(sub) -> None:
+    from graph.api import METHODS, SolveOptions
+
+    defaults = SolveOptions()
+    p = sub.add_parser("solve", help="3D trajectories from DeepLabCut files of calibrated cameras",
+                       description="Estimate 3D trajectories from one DeepLabCut CSV/H5 file per camera, "
+                       "given in the calibration's camera order.")
+    p.add_argument("keypoints", nargs="+", metavar="CAM.csv", help="DeepLabCut CSV or H5, one per camera")
+    p.add_argument("--calibration", required=True, metavar="FILE",
+                   help="Anipose calibration.toml or AcinoSet scene JSON")
+    p.add_argument("--method", choices=METHODS, default=defaults.method)
+    p.add_argument("--fps", type=float, default=defaults.fps, help=f"frame rate (default {defaults.fps:g})")
+    p.add_argument("--skeleton", default=defaults.skeleton, metavar="cheetah|points|PATH",
+                   help="skeleton: the AcinoSet cheetah, free points, or a skeleton TOML file")
+    p.add_argument("--likelihood-threshold", type=float, default=defaults.likelihood_threshold, metavar="P",
+                   help=f"ignore detections below this likelihood (default {defaults.likelihood_threshold:g})")
+    p.add_argument("--individual", default=None, metavar="NAME", help="multi-animal files: which individual")
+    p.add_argument("--out", required=True, metavar="OUT.csv", help="3D result in Anipose's CSV layout")
+    p.add_argument("--h5", default=None, metavar="OUT.h5", help="also write everything as HDF5")
+    p.add_argument("--report", default=None, metavar="REPORT.json", help="also write the solver report")
+    p.add_argument("--reprojections", default=None, metavar="DIR",
+                   help="also write the estimate reprojected into each camera as DeepLabCut CSVs")
+    p.set_defaults(func=run_solve)
+
+
+def run_solve(args: argparse.Namespace) -> int:
+    from graph import api
+    from graph.calibration import load_calibration
+    from graph.keypoints import check_same_frames, read_keypoints
+
+    try:
+        options = api.SolveOptions(method=args.method, fps=args.fps, skeleton=args.skeleton,
+                                   likelihood_threshold=args.likelihood_threshold, individual=args.individual)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    if options.skeleton not in ("cheetah", "points") and not Path(options.skeleton).is_file():
+        raise InputError("no such skeleton file (use cheetah, points or a skeleton TOML path)", options.skeleton)
+    for out in (args.out, args.h5, args.report):
+        if out is not None and not Path(out).parent.is_dir():
+            raise InputError("the output folder does not exist", out)
+
+    calibration = load_calibration(args.calibration)
+    if len(args.keypoints) != len(calibration):
+        raise InputError(f"has {len(calibration)} cameras but {len(args.keypoints)} keypoint files "
+                         "were given (one per camera, in the calibration's order)", args.calibration)
+    keypoints = [read_keypoints(path, individual=args.individual) for path in args.keypoints]
+    check_same_frames(keypoints)
+
+    bar = ProgressBar(sys.stderr) if sys.stderr.isatty() else None
+    try:
+        result = api.solve(keypoints, calibration, options, progress=bar)
+    finally:
+        if bar is not None:
+            bar.close()
+
+    from graph import io
+
+    written = [args.out]
+    io.write_anipose_csv(args.out, result)
+    if args.h5:
+        io.write_h5(args.h5, result)
+        written.append(args.h5)
+    if args.report:
+        Path(args.report).write_text(json.dumps(result.report.to_dict(), indent=2) + "\n", encoding="utf-8")
+        written.append(args.report)
+    if args.reprojections:
+        stems = [f"{Path(p).stem}_reprojected" for p in args.keypoints]
+        io.write_reprojections_dlc(args.reprojections, result, stems=stems)
+        written.append(args.reprojections)
+    rep = result.report
+    rmse = "n/a" if rep.reprojection_rmse_px != rep.reprojection_rmse_px else f"{rep.reprojection_rmse_px:.2f} px"
+    print(f"{rep.method}: {rep.frames} frames, {rep.cameras} cameras, {rep.markers} markers, "
+          f"reprojection RMSE {rmse}, {rep.seconds.get('total', 0.0):.2f} s -> {', '.join(map(str, written))}")
+    return 0
+
+
+class ProgressBar:
+    """A plain one-line progress bar on a terminal: ``[#####-----]  50% solve it 12 cost 3.1e+03``."""
+
+    def __init__(self, stream, width: int = 30, min_interval: float = 0.1):
+        self.stream = stream
+        self.width = width
+        self.min_interval = min_interval
+        self._last = 0.0
+        self._shown = False
+
+    def __call__(self, p) -> None:
+        now = time.monotonic()
+        if now - self._last < self.min_interval and p.fraction < 1.0:
+            return
+        self._last = now
+        frac = min(max(float(p.fraction), 0.0), 1.0)
+        filled = int(round(frac * self.width))
+        text = f"\r[{'#' * filled}{'-' * (self.width - filled)}] {frac * 100:3.0f}% {p.stage}"
+        if p.iteration:
+            text += f" it {p.iteration}"
+        if p.cost == p.cost:  # not NaN
+            text += f" cost {p.cost:.3g}"
+        self.stream.write(text.ljust(self.width + 40))
+        self.stream.flush()
+        self._shown = True
+
+    def close(self) -> None:
+        if self._shown:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

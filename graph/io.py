@@ -1,0 +1,286 @@
+"""Result files: Anipose 3D CSV, a complete HDF5 archive, and reprojections as DeepLabCut CSVs.
+
+* :func:`write_anipose_csv` writes the table ``anipose triangulate`` writes (``to_csv(index=False)``):
+  for each marker ``<m>_x, <m>_y, <m>_z, <m>_error, <m>_ncams, <m>_score``, then ``M_00 .. M_22``
+  and ``center_0 .. center_2`` (the frame Anipose rotated into: here identity and zero, the
+  positions are in the calibration's world frame), then ``fnum``. Empty cells where there is no
+  estimate. ``error`` is the mean reprojection error in pixels over the cameras whose detection
+  was used, ``ncams`` those cameras' count, ``score`` their mean likelihood.
+* :func:`write_h5` / :func:`read_result`: everything in a :class:`graph.api.Result`, as plain
+  HDF5 datasets (no pickles): arrays under their field names, names as UTF-8 string datasets,
+  options and report as JSON attributes.
+* :func:`write_reprojections_dlc`: the estimate drawn into each camera, one DeepLabCut CSV per
+  camera (likelihood 1 where there is an estimate), to overlay on the videos with DLC's tools.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from graph.api import Result, SolveOptions, SolveReport
+from graph.errors import InputError
+from graph.keypoints import Keypoints, write_dlc_csv
+
+RESULT_FORMAT = "acinoset.result"
+RESULT_FORMAT_VERSION = 1
+_AXES = ("x", "y", "z")
+_MARKER_FIELDS = ("x", "y", "z", "error", "ncams", "score")
+
+# Arrays of a Result written as datasets of the same name; the optional ones may be None.
+_ARRAYS = ("positions", "std", "reprojections", "residuals", "ncams", "score", "outlier")
+_OPTIONAL_ARRAYS = ("params", "rates", "params_std", "causal_positions", "camera_centers")
+
+
+# ------------------------------------------------------------------------------ Anipose 3D CSV
+
+
+@dataclass
+class Points3D:
+    """An Anipose 3D table: N frames, M markers."""
+
+    markers: list[str]
+    positions: np.ndarray  # (N, M, 3)
+    error: np.ndarray  # (N, M) pixels
+    ncams: np.ndarray  # (N, M)
+    score: np.ndarray  # (N, M)
+    fnum: np.ndarray  # (N,)
+    M: np.ndarray  # (3, 3) rotation Anipose applied (identity for acinoset output)
+    center: np.ndarray  # (3,)
+
+
+def write_anipose_csv(path: str | Path, result: Result) -> None:
+    """Anipose's ``pose-3d`` CSV (column order as ``anipose triangulate``), floats as ``repr``."""
+    pos = np.asarray(result.positions, dtype=np.float64)
+    n, m = pos.shape[:2]
+    has = np.isfinite(pos).all(axis=-1)
+    error = np.where(has, result.error, np.nan)
+    ncams = np.where(has, np.asarray(result.ncams, dtype=np.float64), np.nan)
+    score = np.where(has, np.asarray(result.score, dtype=np.float64), np.nan)
+    header = [f"{name}_{f}" for name in result.markers for f in _MARKER_FIELDS]
+    header += [f"M_{i}{j}" for i in range(3) for j in range(3)] + [f"center_{i}" for i in range(3)] + ["fnum"]
+    frame_const = [_cell(v) for v in np.eye(3).ravel()] + [_cell(0.0)] * 3
+    per_marker = np.concatenate([pos, error[..., None], ncams[..., None], score[..., None]], axis=-1)
+    per_marker = per_marker.reshape(n, 6 * m)
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(header)
+        for i in range(n):
+            w.writerow([_cell(v) for v in per_marker[i]] + frame_const + [str(i)])
+
+
+def read_anipose_csv(path: str | Path) -> Points3D:
+    """Read an Anipose 3D CSV (ours or ``anipose triangulate``'s). Markers are the ``<m>_x``
+    columns that have ``<m>_y`` and ``<m>_z``; absent error/ncams/score columns read as NaN."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise InputError("no such file", path) from None
+    except UnicodeDecodeError:
+        raise InputError("not an Anipose CSV (binary, not UTF-8 text)", path) from None
+    except OSError as e:
+        raise InputError(f"cannot read: {e.strerror}", path) from None
+    rows = [r for r in csv.reader(text.splitlines()) if any(c.strip() for c in r)]
+    if not rows:
+        raise InputError("file is empty", path)
+    header = [h.strip() for h in rows[0]]
+    col = {h: j for j, h in enumerate(header)}
+    markers = [h[:-2] for h in header if h.endswith("_x") and f"{h[:-2]}_y" in col and f"{h[:-2]}_z" in col]
+    if not markers:
+        raise InputError("not an Anipose 3D CSV: no <marker>_x, _y, _z columns", path)
+    body = rows[1:]
+    values = np.full((len(body), len(header)), np.nan)
+    for i, row in enumerate(body):
+        if len(row) != len(header):
+            raise InputError(f"line {i + 2} has {len(row)} cells, the header has {len(header)}", path)
+        for j, cell in enumerate(row):
+            cell = cell.strip()
+            if cell:
+                try:
+                    values[i, j] = float(cell)
+                except ValueError:
+                    raise InputError(f"line {i + 2}, column {header[j]}: not a number: {cell[:40]!r}",
+                                     path) from None
+
+    def column(name: str) -> np.ndarray:
+        return values[:, col[name]] if name in col else np.full(len(body), np.nan)
+
+    positions = np.stack([np.stack([column(f"{mk}_{a}") for a in _AXES], -1) for mk in markers], 1)
+    M = np.array([[column(f"M_{i}{j}")[0] if body and f"M_{i}{j}" in col else float(i == j)
+                   for j in range(3)] for i in range(3)])
+    center = np.array([column(f"center_{i}")[0] if body and f"center_{i}" in col else 0.0 for i in range(3)])
+    fnum = column("fnum") if "fnum" in col else np.arange(len(body), dtype=np.float64)
+    return Points3D(markers=markers, positions=positions.reshape(len(body), len(markers), 3),
+                    error=np.stack([column(f"{mk}_error") for mk in markers], 1).reshape(len(body), -1),
+                    ncams=np.stack([column(f"{mk}_ncams") for mk in markers], 1).reshape(len(body), -1),
+                    score=np.stack([column(f"{mk}_score") for mk in markers], 1).reshape(len(body), -1),
+                    fnum=fnum.astype(np.int64) if np.isfinite(fnum).all() else fnum, M=M, center=center)
+
+
+def _cell(v: float) -> str:
+    return "" if not np.isfinite(v) else repr(float(v))
+
+
+# ------------------------------------------------------------------------------------ HDF5 archive
+
+
+def write_h5(path: str | Path, result: Result) -> None:
+    """Everything in ``result`` as plain HDF5 (readable from any language; no pickles)."""
+    import h5py
+
+    from graph import __version__
+
+    with h5py.File(path, "w") as f:
+        f.attrs["format"] = RESULT_FORMAT
+        f.attrs["format_version"] = RESULT_FORMAT_VERSION
+        f.attrs["version"] = __version__
+        f.attrs["method"] = result.method
+        f.attrs["skeleton"] = result.skeleton
+        f.attrs["fps"] = float(result.fps)
+        f.attrs["options"] = json.dumps(_jsonable(result.options.to_dict()))
+        f.attrs["report"] = json.dumps(result.report.to_dict())
+        _strings(f, "markers", result.markers)
+        _strings(f, "camera_names", result.camera_names)
+        _strings(f, "param_names", result.param_names)
+        bones = np.array([[str(a), str(b)] for a, b in result.bones], dtype=object).reshape(-1, 2)
+        f.create_dataset("bones", data=bones, dtype=h5py.string_dtype("utf-8"))
+        for name in _ARRAYS + _OPTIONAL_ARRAYS:
+            value = getattr(result, name, None)
+            if value is None:
+                continue
+            a = np.asarray(value)
+            kw = {"compression": "gzip", "compression_opts": 4, "shuffle": True} if a.size > 4096 else {}
+            f.create_dataset(name, data=a.astype(np.uint8) if a.dtype == bool else a, **kw)
+            if a.dtype == bool:
+                f[name].attrs["dtype"] = "bool"
+
+
+def read_result(path: str | Path) -> Result:
+    """Read a file written by :func:`write_h5` back into a :class:`Result`."""
+    import h5py
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError("no such file", path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise InputError("not an HDF5 file", path) from None
+    with f:
+        if _attr(f, "format") != RESULT_FORMAT:
+            raise InputError("not an acinoset result file (no format attribute 'acinoset.result')", path)
+        try:
+            arrays = {}
+            for name in _ARRAYS + _OPTIONAL_ARRAYS:
+                if name in f:
+                    a = f[name][()]
+                    arrays[name] = a.astype(bool) if _attr(f[name], "dtype") == "bool" else a
+                elif name in _ARRAYS:
+                    raise InputError(f"result file lacks the dataset '{name}'", path)
+            bones = [(_text(a), _text(b)) for a, b in f["bones"][()]] if "bones" in f else []
+            fields = {
+                "method": _attr(f, "method"),
+                "skeleton": _attr(f, "skeleton"),
+                "fps": float(f.attrs["fps"]),
+                "markers": _read_strings(f, "markers"),
+                "camera_names": _read_strings(f, "camera_names"),
+                "param_names": _read_strings(f, "param_names"),
+                "bones": bones,
+                "options": _options(json.loads(_attr(f, "options"))),
+                "report": _report(json.loads(_attr(f, "report"))),
+            }
+        except (KeyError, ValueError, TypeError) as e:
+            if isinstance(e, InputError):
+                raise
+            raise InputError(f"damaged acinoset result file ({type(e).__name__}: {e})", path) from None
+    known = {fld.name for fld in dataclasses.fields(Result)}
+    return Result(**fields, **{k: v for k, v in arrays.items() if k in known})
+
+
+def _strings(f, name: str, values: list[str]) -> None:
+    import h5py
+
+    f.create_dataset(name, data=np.array([str(v) for v in values], dtype=object),
+                     dtype=h5py.string_dtype("utf-8"))
+
+
+def _read_strings(f, name: str) -> list[str]:
+    return [_text(v) for v in f[name][()]] if name in f else []
+
+
+def _text(v) -> str:
+    return v.decode("utf-8") if isinstance(v, bytes) else str(v)
+
+
+def _attr(obj, name: str) -> str | None:
+    v = obj.attrs.get(name)
+    return None if v is None else _text(v)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+def _options(d: dict) -> SolveOptions:
+    known = {fld.name for fld in dataclasses.fields(SolveOptions)}
+    d = {k: v for k, v in d.items() if k in known}
+    if d.get("bone_lengths") is not None:
+        d["bone_lengths"] = [tuple(b) for b in d["bone_lengths"]]
+    return SolveOptions(**d)
+
+
+def _report(d: dict) -> SolveReport:
+    """Inverse of ``SolveReport.to_dict``: JSON ``null`` back to NaN in the float fields."""
+    known = {fld.name: fld for fld in dataclasses.fields(SolveReport)}
+    d = {k: v for k, v in d.items() if k in known}
+    for k in ("cost", "reprojection_rmse_px"):
+        if k in d and d[k] is None:
+            d[k] = float("nan")
+    for k in ("seconds", "per_frame_ms"):
+        if isinstance(d.get(k), dict):
+            d[k] = {a: float("nan") if b is None else b for a, b in d[k].items()}
+    return SolveReport(**d)
+
+
+# ------------------------------------------------------------------- reprojections for DeepLabCut
+
+
+def write_reprojections_dlc(directory: str | Path, result: Result, stems: list[str] | None = None) -> list[Path]:
+    """One DeepLabCut single-animal CSV per camera with the estimate reprojected into it.
+
+    Files are ``<directory>/<stem>.csv`` with ``stems`` (default: the camera names); the scorer is
+    ``acinoset_<method>``, likelihood 1 where the marker has an estimate, empty cells elsewhere.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    reproj = np.asarray(result.reprojections, dtype=np.float64)
+    stems = list(stems) if stems is not None else [_safe_name(c) for c in result.camera_names]
+    if len(stems) != reproj.shape[0]:
+        raise ValueError(f"{len(stems)} file names for {reproj.shape[0]} cameras")
+    paths = []
+    for c, stem in enumerate(stems):
+        xy = reproj[c]
+        seen = np.isfinite(xy).all(axis=-1)
+        kp = Keypoints(bodyparts=list(result.markers), xy=np.where(seen[..., None], xy, np.nan),
+                       likelihood=seen.astype(np.float64), scorer=f"acinoset_{result.method}")
+        p = directory / f"{stem}.csv"
+        write_dlc_csv(p, kp)
+        paths.append(p)
+    return paths
+
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("._") or "camera"
