@@ -1,0 +1,242 @@
+"""How good is an estimate: 3D error against the truth, reprojection error, NRMSE and PCK.
+
+C cameras, N frames, M markers. Missing values are NaN and are left out of every statistic (each
+result says how many values it used).
+
+* 3D error of marker m in frame n: ``e_nm = |X_nm - X*_nm|`` (Euclidean, metres; reported in mm).
+* Reprojection RMSE over the set S of observed (camera, frame, marker)::
+
+      RMSE = sqrt( (1/|S|) sum_S |u_cnm - z_cnm|^2 )        (pixels)
+
+* NRMSE (the AcinoSet paper's normalised reprojection error): each residual is divided by the
+  square root of the area ``A_cn = (max u - min u)(max v - min v)`` of the bounding box of the
+  reference points of camera c in frame n, so that near and far cameras count alike::
+
+      NRMSE = sqrt( (1/|S|) sum_S |u_cnm - z_cnm|^2 / A_cn )
+
+* PCK (percentage of correct keypoints, as AcinoSet's ``residual_error``): a reprojected marker is
+  correct when ``|u_cnm - z_cnm| < s * d_cn``, where ``d_cn`` is the nose-to-eye distance in the
+  reference points of camera c, frame n (``l_eye``, or ``r_eye`` where ``l_eye`` is missing) and
+  ``s`` a scale (1 by default).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class PositionError:
+    """3D error against the truth. ``per_frame`` is (N, M) in metres, NaN where either is missing."""
+
+    markers: list[str]
+    per_frame: np.ndarray
+    mean_mm: float
+    median_mm: float
+    rmse_mm: float
+    p90_mm: float
+    max_mm: float
+    per_marker_mean_mm: dict[str, float]
+    per_marker_median_mm: dict[str, float]
+    coverage: float  # share of true (frame, marker) values that have an estimate
+    count: int
+
+    def to_dict(self) -> dict:
+        return {"mean_mm": self.mean_mm, "median_mm": self.median_mm, "rmse_mm": self.rmse_mm,
+                "p90_mm": self.p90_mm, "max_mm": self.max_mm, "coverage": self.coverage, "count": self.count,
+                "per_marker_mean_mm": self.per_marker_mean_mm, "per_marker_median_mm": self.per_marker_median_mm}
+
+
+@dataclass
+class ReprojectionError:
+    """Reprojection error against reference 2D points."""
+
+    rmse_px: float
+    nrmse: float
+    median_px: float
+    per_camera_rmse_px: list[float]
+    per_marker_rmse_px: dict[str, float]
+    count: int
+
+
+@dataclass
+class PCK:
+    """Share of reprojected markers within ``scale`` nose-to-eye lengths of the reference."""
+
+    overall: float
+    per_marker: dict[str, float]
+    per_camera: list[float]
+    table: np.ndarray  # (C, M): share correct per camera and marker, NaN where nothing to judge
+    scale: float
+    count: int
+
+
+@dataclass
+class Evaluation:
+    """One solved run judged against a simulated one's truth (see :func:`evaluate`)."""
+
+    method: str
+    position: PositionError
+    reprojection_truth: ReprojectionError  # against the true projections: accuracy in pixels
+    reprojection_detections: ReprojectionError  # against the inlier detections: fit to the data
+    pck: PCK
+    seconds: float
+    notes: list[str] = field(default_factory=list)
+
+    def row(self) -> dict:
+        """The numbers a summary table shows."""
+        return {"method": self.method, "mean_mm": self.position.mean_mm, "median_mm": self.position.median_mm,
+                "p90_mm": self.position.p90_mm, "coverage": self.position.coverage,
+                "reproj_rmse_px": self.reprojection_detections.rmse_px,
+                "reproj_rmse_truth_px": self.reprojection_truth.rmse_px,
+                "nrmse": self.reprojection_truth.nrmse, "pck": self.pck.overall, "seconds": self.seconds}
+
+
+def _stat(values: np.ndarray, fn) -> float:
+    values = values[np.isfinite(values)]
+    return float(fn(values)) if values.size else float("nan")
+
+
+def position_error(estimate: np.ndarray, truth: np.ndarray, markers: list[str]) -> PositionError:
+    """3D error of ``estimate`` (N, M, 3) against ``truth`` (N, M, 3), both metres."""
+    estimate = np.asarray(estimate, dtype=np.float64)
+    truth = np.asarray(truth, dtype=np.float64)
+    if estimate.shape != truth.shape:
+        raise ValueError(f"estimate {estimate.shape} and truth {truth.shape} differ in shape")
+    e = np.linalg.norm(estimate - truth, axis=-1)  # NaN where either is missing
+    mm = e * 1000.0
+    have_truth = np.isfinite(truth).all(axis=-1)
+    count = int(np.isfinite(e).sum())
+    return PositionError(
+        markers=list(markers), per_frame=e,
+        mean_mm=_stat(mm, np.mean), median_mm=_stat(mm, np.median),
+        rmse_mm=_stat(mm, lambda v: np.sqrt(np.mean(v**2))), p90_mm=_stat(mm, lambda v: np.percentile(v, 90)),
+        max_mm=_stat(mm, np.max),
+        per_marker_mean_mm={m: _stat(mm[:, k], np.mean) for k, m in enumerate(markers)},
+        per_marker_median_mm={m: _stat(mm[:, k], np.median) for k, m in enumerate(markers)},
+        coverage=count / max(int(have_truth.sum()), 1), count=count)
+
+
+def bounding_box_area(points: np.ndarray) -> np.ndarray:
+    """Area (px^2) of the bounding box of the finite points (..., M, 2) over M; NaN if none."""
+    p = np.asarray(points, dtype=np.float64)
+    with warnings.catch_warnings():  # all-NaN slices give NaN, which is the answer
+        warnings.simplefilter("ignore", RuntimeWarning)
+        w = np.nanmax(p[..., 0], axis=-1) - np.nanmin(p[..., 0], axis=-1)
+        h = np.nanmax(p[..., 1], axis=-1) - np.nanmin(p[..., 1], axis=-1)
+    return w * h
+
+
+def reprojection_error(reprojections: np.ndarray, reference: np.ndarray, markers: list[str],
+                       mask: np.ndarray | None = None, box_reference: np.ndarray | None = None) -> ReprojectionError:
+    """Reprojection RMSE and NRMSE of ``reprojections`` (C, N, M, 2) against ``reference`` (C, N, M, 2).
+
+    ``mask`` (C, N, M) limits the set S (default: where both are finite). The NRMSE boxes come
+    from ``box_reference`` (default ``reference``), over all its finite markers in that frame.
+    """
+    u = np.asarray(reprojections, dtype=np.float64)
+    z = np.asarray(reference, dtype=np.float64)
+    if u.shape != z.shape:
+        raise ValueError(f"reprojections {u.shape} and reference {z.shape} differ in shape")
+    r2 = ((u - z) ** 2).sum(axis=-1)  # (C, N, M)
+    use = np.isfinite(r2)
+    if mask is not None:
+        use &= np.asarray(mask, dtype=bool)
+    area = bounding_box_area(z if box_reference is None else box_reference)  # (C, N)
+    norm = r2 / np.where(area > 0, area, np.nan)[..., None]
+    count = int(use.sum())
+
+    def rms(x, m):
+        return float(np.sqrt(np.mean(x[m]))) if m.any() else float("nan")
+
+    nuse = use & np.isfinite(norm)
+    return ReprojectionError(
+        rmse_px=rms(r2, use), nrmse=rms(norm, nuse),
+        median_px=float(np.median(np.sqrt(r2[use]))) if count else float("nan"),
+        per_camera_rmse_px=[rms(r2[c], use[c]) for c in range(r2.shape[0])],
+        per_marker_rmse_px={m: rms(r2[:, :, k], use[:, :, k]) for k, m in enumerate(markers)},
+        count=count)
+
+
+def nose_to_eye_px(points: np.ndarray, markers: list[str]) -> np.ndarray:
+    """The PCK length ``d_cn`` (C, N): nose to ``l_eye`` (``r_eye`` where ``l_eye`` is missing) in
+    ``points`` (C, N, M, 2). Raises ValueError if the markers lack a nose or both eyes."""
+    idx = {m: k for k, m in enumerate(markers)}
+    if "nose" not in idx or not ({"l_eye", "r_eye"} & idx.keys()):
+        raise ValueError("PCK needs the markers nose and l_eye or r_eye")
+    p = np.asarray(points, dtype=np.float64)
+    nose = p[..., idx["nose"], :]
+    eye = p[..., idx["l_eye"], :] if "l_eye" in idx else np.full_like(nose, np.nan)
+    if "r_eye" in idx:
+        eye = np.where(np.isfinite(eye).all(axis=-1, keepdims=True), eye, p[..., idx["r_eye"], :])
+    return np.linalg.norm(nose - eye, axis=-1)
+
+
+def pck(reprojections: np.ndarray, reference: np.ndarray, markers: list[str], scale: float = 1.0,
+        mask: np.ndarray | None = None) -> PCK:
+    """PCK of ``reprojections`` (C, N, M, 2) against ``reference`` (C, N, M, 2), threshold ``scale``
+    times the reference's nose-to-eye length in that camera and frame. Cases where the threshold,
+    the reference or the reprojection is missing are not judged."""
+    u = np.asarray(reprojections, dtype=np.float64)
+    z = np.asarray(reference, dtype=np.float64)
+    d = np.linalg.norm(u - z, axis=-1)  # (C, N, M)
+    thr = scale * nose_to_eye_px(z, markers)  # (C, N)
+    judged = np.isfinite(d) & np.isfinite(thr)[..., None] & (thr[..., None] > 0)
+    if mask is not None:
+        judged &= np.asarray(mask, dtype=bool)
+    correct = judged & (d < thr[..., None])
+
+    def share(c, j):
+        n = int(j.sum())
+        return float(c.sum() / n) if n else float("nan")
+
+    C, _, M = d.shape
+    table = np.array([[share(correct[c, :, k], judged[c, :, k]) for k in range(M)] for c in range(C)])
+    return PCK(overall=share(correct, judged),
+               per_marker={m: share(correct[:, :, k], judged[:, :, k]) for k, m in enumerate(markers)},
+               per_camera=[share(correct[c], judged[c]) for c in range(C)], table=table, scale=scale,
+               count=int(judged.sum()))
+
+
+def align_markers(names: list[str], positions: np.ndarray, want: list[str]) -> np.ndarray:
+    """``positions`` (N, len(names), 3) reordered to ``want``; NaN for names it lacks."""
+    idx = {m: k for k, m in enumerate(names)}
+    out = np.full(positions.shape[:1] + (len(want),) + positions.shape[2:], np.nan)
+    for k, m in enumerate(want):
+        if m in idx:
+            out[:, k] = positions[:, idx[m]]
+    return out
+
+
+def evaluate(result, run, likelihood_threshold: float | None = None) -> Evaluation:
+    """Judge a :class:`graph.api.Result` against the :class:`graph.simulate.SimulatedRun` it solved.
+
+    The 3D error and PCK use the run's markers (matched by name). The reprojection error against
+    the detections counts the inlier detections (no simulated outlier, swap or dropout) above the
+    likelihood threshold (default: the one the solve used), the same set for every method.
+    """
+    markers = list(run.markers)
+    est = align_markers(list(result.markers), np.asarray(result.positions), markers)
+    pos = position_error(est, run.positions, markers)
+    C = len(run.keypoints)
+    reproj = np.stack([align_markers(list(result.markers), np.asarray(result.reprojections[c]), markers)
+                       for c in range(C)])
+    truth_uv = run.projections
+    thr = result.options.likelihood_threshold if likelihood_threshold is None else likelihood_threshold
+    det = np.stack([k.xy for k in run.keypoints])
+    lik = np.stack([k.likelihood for k in run.keypoints])
+    inlier = (lik >= thr) & ~run.outlier & ~run.swapped & ~run.dropout & np.isfinite(det).all(axis=-1)
+    notes = []
+    try:
+        score = pck(reproj, truth_uv, markers)
+    except ValueError as e:
+        score = PCK(float("nan"), {}, [], np.zeros((0, 0)), 1.0, 0)
+        notes.append(str(e))
+    return Evaluation(
+        method=result.method, position=pos,
+        reprojection_truth=reprojection_error(reproj, truth_uv, markers),
+        reprojection_detections=reprojection_error(reproj, det, markers, mask=inlier, box_reference=truth_uv),
+        pck=score, seconds=float(result.report.seconds.get("total", float("nan"))), notes=notes)
