@@ -49,18 +49,19 @@ def default_rig_path() -> Path:
 def load_calibration(path: str | Path) -> Calibration:
     """Read an AcinoSet scene JSON or an Anipose ``calibration.toml``, chosen by content.
 
-    A file whose first non-blank character is ``{`` is JSON; anything else is tried as TOML.
+    Text that parses as JSON is AcinoSet JSON; anything else is tried as Anipose TOML.
     """
     path = Path(path)
     text = _read_text(path)
     if not text.strip():
         raise InputError("calibration file is empty", path)
-    if text.lstrip().startswith("{"):
+    start = text.lstrip()[:1]
+    if start in ("{", "["):  # JSON, or a TOML file that starts with a [table]
         try:
-            doc = json.loads(text)
+            return _from_acinoset(json.loads(text), path)
         except json.JSONDecodeError as e:
-            raise InputError(f"not valid JSON (line {e.lineno}: {e.msg})", path) from None
-        return _from_acinoset(doc, path)
+            if start == "{":
+                raise InputError(f"not valid JSON (line {e.lineno}: {e.msg})", path) from None
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
