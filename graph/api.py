@@ -118,6 +118,7 @@ class Result:
     params_std: np.ndarray | None = None  # (N, P)
     causal_positions: np.ndarray | None = None  # "ekf": the per-frame causal estimate (N, M, 3)
     bones: list[tuple[str, str]] = field(default_factory=list)  # for drawing
+    camera_centers: np.ndarray | None = None  # (C, 3) world positions of the cameras, for drawing
 
     @property
     def error(self) -> np.ndarray:

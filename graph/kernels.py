@@ -16,7 +16,7 @@ see :meth:`graph.camera.Camera.packed`; the maths is documented in :mod:`graph.c
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 
 @njit(cache=True)
@@ -55,11 +55,20 @@ def _drot(axis, a):
     return D
 
 
+@njit(cache=True, inline="always")
+def _mul3(A, B, out):
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+
+
 @njit(cache=True)
-def fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point):
+def fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
+                marker_dep):
     """Marker positions (M, 3) and their Jacobian d p / d q (M, 3, P) for one pose ``q`` (P,).
 
-    ``d RI_k / d q_j = d Rloc_k / d q_j RI_parent + Rloc_k d RI_parent / d q_j``;
+    ``d RI_k / d q_j = d Rloc_k / d q_j RI_parent`` for the segment's own parameters and
+    ``Rloc_k d RI_parent / d q_j`` for its ancestors';
     ``d p / d q_j = d p_base / d q_j + (d RI_seg / d q_j)^T offset``.
     """
     P = q.shape[0]
@@ -67,39 +76,50 @@ def fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt
     K = pt_base.shape[0]
     RI = np.zeros((S, 3, 3))
     dRI = np.zeros((S, P, 3, 3))
+    has = np.zeros((S, P), dtype=np.bool_)
+    facs = np.zeros((3, 3, 3))
+    dfacs = np.zeros((3, 3, 3))
+    Rloc = np.zeros((3, 3))
+    T1 = np.zeros((3, 3))
+    T2 = np.zeros((3, 3))
     for k in range(S):
-        # local rotation and its derivative for each of its (up to 3) axes
-        Rloc = np.eye(3)
         n_ax = 0
         for j in range(3):
             if seg_axis[k, j] >= 0:
+                facs[n_ax] = _rot(seg_axis[k, j], q[seg_param[k, j]])
+                dfacs[n_ax] = _drot(seg_axis[k, j], q[seg_param[k, j]])
                 n_ax += 1
-        facs = np.zeros((3, 3, 3))
-        dfacs = np.zeros((3, 3, 3))
+        # Rloc = facs[0] facs[1] ...
+        Rloc[:] = 0.0
+        for i in range(3):
+            Rloc[i, i] = 1.0
         for j in range(n_ax):
-            facs[j] = _rot(seg_axis[k, j], q[seg_param[k, j]])
-            dfacs[j] = _drot(seg_axis[k, j], q[seg_param[k, j]])
-            Rloc = Rloc @ facs[j]
+            _mul3(Rloc, facs[j], T1)
+            Rloc[:] = T1
         par = seg_parent[k]
         if par < 0:
             RI[k] = Rloc
         else:
-            RI[k] = Rloc @ RI[par]
+            _mul3(Rloc, RI[par], RI[k])
             for p in range(P):
-                any_nz = False
-                for a in range(3):
-                    for b in range(3):
-                        if dRI[par, p, a, b] != 0.0:
-                            any_nz = True
-                if any_nz:
-                    dRI[k, p] = Rloc @ dRI[par, p]
+                if has[par, p]:
+                    _mul3(Rloc, dRI[par, p], dRI[k, p])
+                    has[k, p] = True
         for j in range(n_ax):
-            D = np.eye(3)
+            T1[:] = 0.0
+            for i in range(3):
+                T1[i, i] = 1.0
             for i in range(n_ax):
-                D = D @ (dfacs[i] if i == j else facs[i])
+                _mul3(T1, dfacs[i] if i == j else facs[i], T2)
+                T1[:] = T2
             if par >= 0:
-                D = D @ RI[par]
-            dRI[k, seg_param[k, j]] += D
+                _mul3(T1, RI[par], T2)
+                T1[:] = T2
+            p = seg_param[k, j]
+            for a in range(3):
+                for b in range(3):
+                    dRI[k, p, a, b] += T1[a, b]
+            has[k, p] = True
     pos = np.zeros((K, 3))
     dpos = np.zeros((K, 3, P))
     for k in range(K):
@@ -112,16 +132,13 @@ def fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt
             s = pt_seg[k]
             off = pt_offset[k]
             for c in range(3):
-                acc = pos[b, c]
-                for r in range(3):
-                    acc += RI[s, r, c] * off[r]
-                pos[k, c] = acc
+                pos[k, c] = pos[b, c] + RI[s, 0, c] * off[0] + RI[s, 1, c] * off[1] + RI[s, 2, c] * off[2]
             for p in range(P):
                 for c in range(3):
-                    acc = dpos[b, c, p]
-                    for r in range(3):
-                        acc += dRI[s, p, r, c] * off[r]
-                    dpos[k, c, p] = acc
+                    dpos[k, c, p] = dpos[b, c, p]
+                if has[s, p]:
+                    for c in range(3):
+                        dpos[k, c, p] += dRI[s, p, 0, c] * off[0] + dRI[s, p, 1, c] * off[1] + dRI[s, p, 2, c] * off[2]
     M = marker_point.shape[0]
     out = np.zeros((M, 3))
     dout = np.zeros((M, 3, P))
@@ -132,16 +149,32 @@ def fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt
 
 
 @njit(cache=True)
-def fk_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point):
+def fk_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point, marker_dep):
     """Marker positions (N, M, 3) for poses (N, P)."""
     N = Q.shape[0]
     M = marker_point.shape[0]
     out = np.empty((N, M, 3))
     for n in range(N):
         p, _ = fk_jacobian(Q[n], seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
-                           marker_point)
+                           marker_point, marker_dep)
         out[n] = p
     return out
+
+
+@njit(cache=True)
+def fk_jacobian_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
+                      marker_dep):
+    """Marker positions (N, M, 3) and Jacobians (N, M, 3, P) for poses (N, P)."""
+    N, P = Q.shape
+    M = marker_point.shape[0]
+    pos = np.empty((N, M, 3))
+    dpos = np.empty((N, M, 3, P))
+    for n in range(N):
+        p, dp = fk_jacobian(Q[n], seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
+                            marker_point, marker_dep)
+        pos[n] = p
+        dpos[n] = dp
+    return pos, dpos
 
 
 @njit(cache=True)
@@ -219,40 +252,45 @@ def redescending(s, a, b, c):
 
 
 @njit(cache=True)
-def frame_block(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
-                seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
-                bones, bone_len, bone_sigma, J, r, uv_out, s_out, w_out):
-    """Fill one frame's whitened, robustly weighted residual r (2CM + B,) and Jacobian J (2CM + B, P).
+def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
+                 seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point, marker_dep,
+                 bones, bone_len, bone_sigma, H, g, uv_out, s_out, w_out):
+    """One frame's Gauss-Newton normal equations of the robust reprojection cost.
 
-    Row pair (c, m): ``sqrt(w) (uv_cm(q) - z_cm) / sigma`` with w the IRLS weight of
-    ``s = |uv - z| / sigma``; rows of invalid detections are zero. Bone rows (points skeleton):
-    ``(|p_a - p_b| - L) / sigma_L``. Returns the frame's robust cost sum(rho) + sum(bone^2)/2.
+    For each valid detection (c, m) with whitened residual ``e = (uv_cm(q) - z_cm) / sigma``,
+    ``s = |e|`` and IRLS weight ``w(s)`` (:func:`redescending`)::
+
+        H += w J^T J,   g += w J^T e,   cost += rho(s),   J = d e / d q = (1/sigma) d uv/dX dp_m/dq
+
+    only over the parameters that move marker m (``marker_dep``). Bone rows (points skeleton):
+    ``e = (|p_a - p_b| - L) / sigma_L`` with weight 1. ``H`` (P, P) and ``g`` (P,) are overwritten.
+    Returns the frame's cost.
     """
     C = meas.shape[0]
     M = meas.shape[1]
-    pos, dpos = fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
-                            marker_point)
     P = q.shape[0]
+    D = marker_dep.shape[1]
+    pos, dpos = fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
+                            marker_point, marker_dep)
+    H[:, :] = 0.0
+    g[:] = 0.0
+    Jr = np.zeros((2, D))
     cost = 0.0
+    flat = 0.5 * ra * ra
     for c in range(C):
         for m in range(M):
-            row = 2 * (c * M + m)
             uv, Jx, ok = project_point(intr[c], Rc[c], tc[c], pos[m])
             uv_out[c, m, 0] = uv[0]
             uv_out[c, m, 1] = uv[1]
             s_out[c, m] = np.nan
             w_out[c, m] = 0.0
-            for p in range(P):
-                J[row, p] = 0.0
-                J[row + 1, p] = 0.0
-            r[row] = 0.0
-            r[row + 1] = 0.0
             if not valid[c, m]:
                 continue
             if not ok:
-                # a detection of a point behind the camera: counts as a rejected outlier
-                rho, _ = redescending(1e9, ra, rb, rc)
-                cost += rho if robust else 0.0
+                # a detection of a point behind the camera: counts as a fully rejected outlier
+                if robust:
+                    rho, _ = redescending(1e9, ra, rb, rc)
+                    cost += rho
                 continue
             ex = (uv[0] - meas[c, m, 0]) / sigma
             ey = (uv[1] - meas[c, m, 1]) / sigma
@@ -266,61 +304,118 @@ def frame_block(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
             w_out[c, m] = w
             if w <= 0.0:
                 continue
-            sw = np.sqrt(w) / sigma
-            r[row] = sw * (uv[0] - meas[c, m, 0])
-            r[row + 1] = sw * (uv[1] - meas[c, m, 1])
-            for p in range(P):
-                g0 = 0.0
-                g1 = 0.0
-                for k in range(3):
-                    g0 += Jx[0, k] * dpos[m, k, p]
-                    g1 += Jx[1, k] * dpos[m, k, p]
-                J[row, p] = sw * g0
-                J[row + 1, p] = sw * g1
-    base = 2 * C * M
+            nd = 0
+            for d in range(D):
+                p = marker_dep[m, d]
+                if p < 0:
+                    break
+                g0 = Jx[0, 0] * dpos[m, 0, p] + Jx[0, 1] * dpos[m, 1, p] + Jx[0, 2] * dpos[m, 2, p]
+                g1 = Jx[1, 0] * dpos[m, 0, p] + Jx[1, 1] * dpos[m, 1, p] + Jx[1, 2] * dpos[m, 2, p]
+                Jr[0, d] = g0 / sigma
+                Jr[1, d] = g1 / sigma
+                nd += 1
+            for i in range(nd):
+                pi = marker_dep[m, i]
+                g[pi] += w * (Jr[0, i] * ex + Jr[1, i] * ey)
+                for j in range(i, nd):
+                    pj = marker_dep[m, j]
+                    h = w * (Jr[0, i] * Jr[0, j] + Jr[1, i] * Jr[1, j])
+                    H[pi, pj] += h
+                    if j != i:
+                        H[pj, pi] += h
     for i in range(bones.shape[0]):
-        a = bones[i, 0]
-        b = bones[i, 1]
-        row = base + i
-        for p in range(P):
-            J[row, p] = 0.0
-        r[row] = 0.0
         if not (bone_len[i] > 0):
             continue
-        d = pos[a] - pos[b]
-        L = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        a = bones[i, 0]
+        b = bones[i, 1]
+        dx = pos[a, 0] - pos[b, 0]
+        dy = pos[a, 1] - pos[b, 1]
+        dz = pos[a, 2] - pos[b, 2]
+        L = np.sqrt(dx * dx + dy * dy + dz * dz)
         if L < 1e-12:
             continue
-        r[row] = (L - bone_len[i]) / bone_sigma[i]
-        cost += 0.5 * r[row] * r[row]
+        e = (L - bone_len[i]) / bone_sigma[i]
+        cost += 0.5 * e * e
+        jb = np.zeros(P)
         for p in range(P):
-            g = 0.0
-            for k in range(3):
-                g += d[k] / L * (dpos[a, k, p] - dpos[b, k, p])
-            J[row, p] = g / bone_sigma[i]
+            jb[p] = (dx * (dpos[a, 0, p] - dpos[b, 0, p]) + dy * (dpos[a, 1, p] - dpos[b, 1, p])
+                     + dz * (dpos[a, 2, p] - dpos[b, 2, p])) / (L * bone_sigma[i])
+        for p in range(P):
+            if jb[p] == 0.0:
+                continue
+            g[p] += jb[p] * e
+            for p2 in range(P):
+                H[p, p2] += jb[p] * jb[p2]
     return cost
 
 
-@njit(cache=True)
-def all_frames(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
-               seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
-               bones, bone_len, bone_sigma):
-    """:func:`frame_block` for every frame: J (N, R, P), r (N, R), uv (N, C, M, 2), s, w (N, C, M), cost (N,).
-
-    ``meas`` (N, C, M, 2) and ``valid`` (N, C, M).
-    """
+@njit(cache=True, parallel=True)
+def all_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
+                seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point, marker_dep,
+                bones, bone_len, bone_sigma):
+    """:func:`frame_normal` for every frame (in parallel): H (N, P, P), g (N, P), reprojections
+    uv (N, C, M, 2), normalised residuals s and weights w (N, C, M), cost (N,).
+    ``meas`` (N, C, M, 2), ``valid`` (N, C, M)."""
     N, P = Q.shape
     C = meas.shape[1]
     M = meas.shape[2]
-    R = 2 * C * M + bones.shape[0]
-    J = np.zeros((N, R, P))
-    r = np.zeros((N, R))
+    H = np.zeros((N, P, P))
+    g = np.zeros((N, P))
     uv = np.zeros((N, C, M, 2))
     s = np.zeros((N, C, M))
     w = np.zeros((N, C, M))
     cost = np.zeros(N)
+    for n in prange(N):
+        cost[n] = frame_normal(Q[n], meas[n], valid[n], intr, Rc, tc, sigma, robust, ra, rb, rc,
+                               seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
+                               marker_point, marker_dep, bones, bone_len, bone_sigma, H[n], g[n], uv[n], s[n],
+                               w[n])
+    return H, g, uv, s, w, cost
+
+
+@njit(cache=True)
+def inverse_kinematics(Q0, X, anchor_w, lower, upper, huber, iterations,
+                       seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
+                       marker_dep):
+    """Per-frame pose from 3D points: minimise, frame by frame,
+
+        sum_m huber(|p_m(q) - X_m|) + sum_i (anchor_w_i (q_i - q0_i))^2 / 2
+
+    by damped Gauss-Newton with IRLS Huber weights, clipped to the bounds. Frame n starts from the
+    solution of frame n-1 for the parameters without an anchor, and from ``Q0[n]`` for the others.
+    ``X`` (N, M, 3) may hold NaN (unobserved).
+    """
+    N, P = Q0.shape
+    M = marker_point.shape[0]
+    Q = Q0.copy()
     for n in range(N):
-        cost[n] = frame_block(Q[n], meas[n], valid[n], intr, Rc, tc, sigma, robust, ra, rb, rc,
-                              seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
-                              marker_point, bones, bone_len, bone_sigma, J[n], r[n], uv[n], s[n], w[n])
-    return J, r, uv, s, w, cost
+        q = Q0[n].copy()
+        if n > 0:
+            for i in range(P):
+                if anchor_w[i] == 0.0:
+                    q[i] = Q[n - 1, i]
+        for it in range(iterations):
+            pos, dpos = fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
+                                    marker_point, marker_dep)
+            H = np.zeros((P, P))
+            g = np.zeros(P)
+            for m in range(M):
+                if not (np.isfinite(X[n, m, 0]) and np.isfinite(X[n, m, 1]) and np.isfinite(X[n, m, 2])):
+                    continue
+                e = pos[m] - X[n, m]
+                d = np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+                w = 1.0 if d <= huber else huber / d
+                Jm = dpos[m]
+                H += w * (Jm.T @ Jm)
+                g += w * (Jm.T @ e)
+            for i in range(P):
+                H[i, i] += anchor_w[i] ** 2 + 1e-3
+                g[i] += anchor_w[i] ** 2 * (q[i] - Q0[n, i])
+            step = np.linalg.solve(H, g)
+            q = q - step
+            for i in range(P):
+                q[i] = min(max(q[i], lower[i]), upper[i])
+            if np.max(np.abs(step)) < 1e-6:
+                break
+        Q[n] = q
+    return Q

@@ -47,6 +47,36 @@ class SkeletonArrays:
     pt_root: np.ndarray  # (K, 3) parameter indices of a root point's x, y, z
     pt_offset: np.ndarray  # (K, 3)
     marker_point: np.ndarray  # (M,) point index of each marker
+    marker_dep: np.ndarray = None  # (M, D) parameters each marker depends on, padded with -1
+
+    def __post_init__(self) -> None:
+        if self.marker_dep is None:
+            self.marker_dep = _marker_dependencies(self)
+
+    def kernel_args(self) -> tuple:
+        """The arrays in the order the kernels in :mod:`graph.kernels` take them."""
+        return (self.seg_parent, self.seg_axis, self.seg_param, self.pt_base, self.pt_seg, self.pt_root,
+                self.pt_offset, self.marker_point, self.marker_dep)
+
+
+def _marker_dependencies(a: "SkeletonArrays") -> np.ndarray:
+    """Which parameters move each marker: its root's, and every rotation on its chain."""
+    seg_dep: list[set[int]] = []
+    for k in range(len(a.seg_parent)):
+        own = {int(p) for p, ax in zip(a.seg_param[k], a.seg_axis[k]) if ax >= 0}
+        seg_dep.append(own | (seg_dep[a.seg_parent[k]] if a.seg_parent[k] >= 0 else set()))
+    pt_dep: list[set[int]] = []
+    for k in range(len(a.pt_base)):
+        if a.pt_base[k] < 0:
+            pt_dep.append({int(p) for p in a.pt_root[k]})
+        else:
+            pt_dep.append(pt_dep[a.pt_base[k]] | seg_dep[a.pt_seg[k]])
+    deps = [sorted(pt_dep[p]) for p in a.marker_point]
+    D = max((len(d) for d in deps), default=0)
+    out = np.full((len(deps), max(D, 1)), -1, dtype=np.int64)
+    for m, d in enumerate(deps):
+        out[m, : len(d)] = d
+    return out
 
 
 @dataclass
@@ -88,19 +118,14 @@ class Skeleton:
 
         q = np.asarray(q, dtype=np.float64)
         flat = q.reshape(-1, q.shape[-1])
-        pos = fk_batch(flat, *_kernel_args(self.arrays, self.n_params))
+        pos = fk_batch(flat, *self.arrays.kernel_args())
         return pos.reshape(q.shape[:-1] + (len(self.markers), 3))
 
     def positions_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Marker positions (M, 3) and ``d p / d q`` (M, 3, P) for one pose."""
         from graph.kernels import fk_jacobian
 
-        return fk_jacobian(np.asarray(q, dtype=np.float64), *_kernel_args(self.arrays, self.n_params))
-
-
-def _kernel_args(a: SkeletonArrays, n_params: int):
-    return (a.seg_parent, a.seg_axis, a.seg_param, a.pt_base, a.pt_seg, a.pt_root, a.pt_offset,
-            a.marker_point)
+        return fk_jacobian(np.asarray(q, dtype=np.float64), *self.arrays.kernel_args())
 
 
 _ANGLE = re.compile(r"^\s*(-?)\s*(?:(\d*\.?\d*)\s*\*?\s*)?pi\s*(?:/\s*(\d*\.?\d+))?\s*$")

@@ -1,0 +1,221 @@
+"""Full Trajectory Estimation (``--method fte``): the whole run as one GTSAM factor graph.
+
+Variables: the pose ``q_n`` (P,) of every frame n (GTSAM key n). The cost is
+
+    F(q) = sum_n sum_{c,m} rho(|pi_c(p_m(q_n)) - z_ncm| / sigma)             kinematic projection
+         + 1/2 sum_n || (q_{n+3} - 3 q_{n+2} + 3 q_{n+1} - q_n) / sigma_3 ||^2  constant acceleration
+         + 1/2 sum_n || (q_n - q0_n) / sigma_prior ||^2                      a weak anchor (sigma 10)
+
+subject to the joint bounds. ``rho`` is the AcinoSet redescending loss (:mod:`graph.robust`).
+The third difference is the constant-acceleration model with white jerk: with the paper's
+discretisation ``q_{n+1} = q_n + h qdot_n + h^2/2 qddot_n``, ``qddot_{n+1} = qddot_n + w_n``, the third
+difference of q is ``h^2/2 (w_{n+1} + w_n)``, so ``sigma_3 = h^2 sigma_w`` with ``sigma_w`` the
+skeleton's per-parameter process noise.
+
+Solver: Levenberg-Marquardt driven from Python. Each iteration linearises the measurement part
+of all frames in one compiled call (:func:`graph.kernels.all_frames`: IRLS-weighted residuals and
+Jacobians), and builds a :class:`gtsam.GaussianFactorGraph` of
+
+* one ``JacobianFactor`` per frame: the frame's stacked camera/marker rows, the anchor and the
+  Marquardt damping ``sqrt(lambda) I``;
+* one 4-key linear motion factor per window of four frames (a ``GaussianConditional`` over
+  ``q_{n+3} | q_n, q_{n+1}, q_{n+2}`` turned into a ``JacobianFactor``: the Python constructors stop
+  at three keys);
+
+which GTSAM eliminates (banded, natural ordering). Steps are clipped to the bounds. Graduated
+robustness: the first iterations use the loss with its knots a, b, c stretched by 4, so that
+detections far from a rough start are not rejected before the pose comes to them.
+
+Uncertainty: the marginal covariance ``Sigma_n`` of each ``q_n`` from the Bayes tree of the final
+(undamped) linearisation, and per-marker ``Sigma_p = J_p Sigma_n J_p^T``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import gtsam
+import numpy as np
+
+from graph import kernels
+from graph.api import Progress
+from graph.initial import initial_poses
+from graph.robust import A as RA, B as RB, C as RC, OUTLIER_S
+from graph.triangulate import triangulate
+
+PRIOR_SIGMA = 10.0
+BONE_SIGMA_FRACTION = 0.05
+
+
+class TrajectoryProblem:
+    """The FTE cost for one :class:`graph.problem.Problem`, and its Gauss-Newton systems.
+
+    The linear systems are written in absolute form, for the new trajectory ``Q'`` rather than
+    the step: the motion factors ``D3 Q' = 0`` are then constant and built once, and only the
+    per-frame factors change between iterations. For frame n with normal equations ``H, g``
+    (gradient of the robust cost, see :func:`graph.kernels.frame_normal`) the frame's quadratic
+    model ``1/2 d^T H d + g^T d`` with ``d = q' - q`` becomes the ``HessianFactor``
+
+        G = H + I/sigma_prior^2 + lambda I,    gvec = H q - g + q0/sigma_prior^2 + lambda q
+
+    (GTSAM's Hessian factor is ``1/2 x^T G x - x^T gvec + f/2``).
+    """
+
+    def __init__(self, prob, Q0: np.ndarray, bone_len: np.ndarray | None = None):
+        self.prob = prob
+        sk = prob.skeleton
+        self.sk_args = sk.arrays.kernel_args()
+        self.intr, self.Rc, self.tc = prob.packed_cameras()
+        self.meas = np.nan_to_num(prob.meas)
+        self.valid = prob.valid
+        self.Q0 = Q0
+        N, P = Q0.shape
+        self.N, self.P = N, P
+        self.sigma3 = sk.process_noise * prob.options.motion_scale * prob.dt**2
+        self.bones = sk.bone_index if sk.kind == "points" else np.zeros((0, 2), dtype=np.int64)
+        if bone_len is None:
+            bone_len = np.zeros(len(self.bones))
+        self.bone_len = bone_len
+        self.bone_sigma = np.maximum(BONE_SIGMA_FRACTION * bone_len, 1e-3)
+        self._motion = self._motion_factors()
+        self._ordering = gtsam.Ordering()
+        for n in range(N):
+            self._ordering.push_back(n)
+
+    def _motion_factors(self) -> list:
+        """``(q_{n+3} - 3 q_{n+2} + 3 q_{n+1} - q_n) / sigma_3 = 0``: a GaussianConditional on
+        ``q_{n+3}`` given the three before it, as a 4-key JacobianFactor."""
+        P = self.P
+        eye = np.eye(P)
+        model = gtsam.noiseModel.Diagonal.Sigmas(self.sigma3)
+        zero = np.zeros(P)
+        return [gtsam.JacobianFactor(gtsam.GaussianConditional(
+                    [(n + 3, eye), (n, -eye), (n + 1, 3 * eye), (n + 2, -3 * eye)], 1, zero, model))
+                for n in range(self.N - 3)]
+
+    def normals(self, Q, stretch=1.0):
+        """Per-frame H (N, P, P), g (N, P), reprojections, s, w (N, C, M), data cost (N,)."""
+        return kernels.all_normals(Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.prob.sigma_px,
+                                   self.prob.options.robust, RA * stretch, RB * stretch, RC * stretch,
+                                   *self.sk_args, self.bones, self.bone_len, self.bone_sigma)
+
+    def motion_residual(self, Q):
+        """Whitened third differences (N-3, P)."""
+        d3 = Q[3:] - 3 * Q[2:-1] + 3 * Q[1:-2] - Q[:-3]
+        return d3 / self.sigma3
+
+    def cost(self, Q, data_cost):
+        m = self.motion_residual(Q)
+        pr = (Q - self.Q0) / PRIOR_SIGMA
+        return float(data_cost.sum() + 0.5 * np.sum(m * m) + 0.5 * np.sum(pr * pr))
+
+    def linear_graph(self, Q, H, g, lam: float) -> gtsam.GaussianFactorGraph:
+        """The damped Gauss-Newton system at Q over the new trajectory Q'."""
+        graph = gtsam.GaussianFactorGraph()
+        for f in self._motion:
+            graph.push_back(f)
+        w = 1.0 / PRIOR_SIGMA**2
+        G = H + (w + lam) * np.eye(self.P)
+        gv = np.einsum("npq,nq->np", H, Q) - g + w * self.Q0 + lam * Q
+        for n in range(self.N):
+            graph.add(gtsam.HessianFactor(n, G[n], gv[n], 0.0))
+        return graph
+
+    def solve_linear(self, Q, H, g, lam: float) -> np.ndarray:
+        vv = self.linear_graph(Q, H, g, lam).optimize(self._ordering)
+        return np.stack([vv.at(n) for n in range(self.N)])
+
+    def marginal_covariances(self, Q: np.ndarray) -> np.ndarray:
+        """Marginal covariance of each frame's pose (N, P, P) from the undamped Bayes tree."""
+        H, g, _, _, _, _ = self.normals(Q, 1.0)
+        bt = self.linear_graph(Q, H, g, 0.0).eliminateMultifrontal(self._ordering)
+        return np.stack([bt.marginalCovariance(n) for n in range(self.N)])
+
+
+def optimise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int = 50, progress=None,
+             stretches=(4.0, 1.0), tol: float = 1e-5):
+    """Levenberg-Marquardt with bound clipping and graduated robustness. Returns (Q, iterations, cost)."""
+    sk = tp.prob.skeleton
+    lower, upper = sk.lower, sk.upper
+    it_total = 0
+    cost = np.inf
+    budget = [max(2, max_iterations // 10)] * (len(stretches) - 1) + [max_iterations]
+    total_budget = sum(budget)
+    for stretch, iters in zip(stretches, budget):
+        lam = 1e-3
+        H, g, _, _, _, dc = tp.normals(Q, stretch)
+        cost = tp.cost(Q, dc)
+        for _ in range(iters):
+            it_total += 1
+            improved = False
+            for _try in range(10):
+                Qn = np.clip(tp.solve_linear(Q, H, g, lam), lower, upper)
+                Hn, gn, _, _, _, dcn = tp.normals(Qn, stretch)
+                new_cost = tp.cost(Qn, dcn)
+                if new_cost <= cost:
+                    improved = True
+                    break
+                lam *= 10.0
+            if not improved:
+                break
+            step = np.max(np.abs(Qn - Q))
+            rel = (cost - new_cost) / max(cost, 1e-12)
+            Q, H, g, cost = Qn, Hn, gn, new_cost
+            lam = max(lam / 10.0, 1e-6)
+            if progress:
+                progress(Progress(stage="optimise", fraction=0.1 + 0.85 * min(1.0, it_total / total_budget),
+                                  iteration=it_total, cost=cost))
+            if rel < tol or step < 1e-6:
+                break
+    return Q, it_total, cost
+
+
+def bone_lengths(prob, X: np.ndarray) -> np.ndarray:
+    """Median length of each bone over the triangulated frames (0 where never seen)."""
+    bones = prob.skeleton.bone_index
+    if len(bones) == 0:
+        return np.zeros(0)
+    d = np.linalg.norm(X[:, bones[:, 0]] - X[:, bones[:, 1]], axis=-1)
+    with np.errstate(invalid="ignore"):
+        L = np.nanmedian(np.where(np.isfinite(d), d, np.nan), axis=0) if np.isfinite(d).any() else np.zeros(len(bones))
+    return np.nan_to_num(L)
+
+
+def solve_fte(prob, progress=None):
+    """``--method fte``: triangulate, initialise, then optimise the whole trajectory."""
+    from graph.result import build_result
+
+    t0 = time.perf_counter()
+    if progress:
+        progress(Progress(stage="initialise", fraction=0.0))
+    X, _, _, _ = triangulate(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
+    Q0 = initial_poses(prob, X)
+    bl = bone_lengths(prob, X) if prob.skeleton.kind == "points" else None
+    tp = TrajectoryProblem(prob, Q0, bl)
+    t_init = time.perf_counter() - t0
+    if progress:
+        progress(Progress(stage="optimise", fraction=0.1))
+    Q, iterations, cost = optimise(tp, Q0.copy(), prob.options.max_iterations, progress,
+                                   stretches=(4.0, 1.0) if prob.options.robust else (1.0,))
+    t_solve = time.perf_counter() - t0 - t_init
+    if progress:
+        progress(Progress(stage="uncertainty", fraction=0.95, iteration=iterations, cost=cost))
+    Sigma = tp.marginal_covariances(Q)
+    pos, dpos = kernels.fk_jacobian_batch(Q, *tp.sk_args)
+    cov = np.einsum("nmip,npq,nmjq->nmij", dpos, Sigma, dpos)
+    std = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
+    params_std = np.sqrt(np.maximum(np.diagonal(Sigma, axis1=-2, axis2=-1), 0.0))
+    _, _, uv, s, _, _ = tp.normals(Q, 1.0)
+    if prob.skeleton.kind == "points":
+        # a free point never seen by two cameras has no 3D estimate
+        never = prob.views().max(axis=0) < 2
+        pos[:, never] = np.nan
+        std[:, never] = np.nan
+    tol = 1e-3
+    active = int(np.sum((Q <= prob.skeleton.lower + tol) | (Q >= prob.skeleton.upper - tol)))
+    if progress:
+        progress(Progress(stage="done", fraction=1.0, iteration=iterations, cost=cost))
+    return build_result(prob, "fte", positions=pos, std=std, reprojections=uv.transpose(1, 0, 2, 3), s=s,
+                        outlier=s >= OUTLIER_S, seconds={"init": t_init, "solve": t_solve},
+                        iterations=iterations, cost=cost, params=Q, params_std=params_std,
+                        bounds_active=active)

@@ -1,0 +1,110 @@
+"""Initial trajectories for the smoothers: good starts matter more than the solver.
+
+From robust triangulation ``X`` (N, M, 3):
+
+* **Root path.** For a kinematic skeleton the root point (the cheetah's head) is not a marker; it is
+  estimated as the mean of the markers hanging directly off it (eyes and nose). Gaps are filled by
+  linear interpolation, then the path is smoothed with a running median (outlier-proof) followed by
+  a short moving average.
+* **Yaw from heading.** The forward direction is taken from the markers' centroid to the root
+  (the head leads the body), falling back to the direction of travel; ``psi = atan2(f_y, f_x)``
+  because a passive ``rot_z(psi)`` maps the body's x axis to ``(cos psi, sin psi, 0)``. Unwrapped and
+  median-filtered over time.
+* **Joint angles** by per-frame inverse kinematics on the triangulated points (Huber loss, bounds),
+  each frame started from the previous one (:func:`graph.kernels.inverse_kinematics`).
+* A *points* skeleton starts from the triangulated points themselves, gaps interpolated.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import median_filter, uniform_filter1d
+
+from graph import kernels
+
+
+def fill_gaps(x: np.ndarray) -> np.ndarray:
+    """Linear interpolation over NaN along axis 0 (constant beyond the ends); all-NaN columns stay NaN."""
+    x = np.array(x, dtype=np.float64, copy=True)
+    flat = x.reshape(x.shape[0], -1)
+    t = np.arange(x.shape[0])
+    for j in range(flat.shape[1]):
+        ok = np.isfinite(flat[:, j])
+        if ok.any() and not ok.all():
+            flat[:, j] = np.interp(t, t[ok], flat[ok, j])
+    return flat.reshape(x.shape)
+
+
+def smooth_path(x: np.ndarray, median: int = 9, mean: int = 5) -> np.ndarray:
+    """Robust smoothing along time: running median then moving average (axis 0)."""
+    x = fill_gaps(x)
+    if x.shape[0] >= median:
+        x = median_filter(x, size=(median,) + (1,) * (x.ndim - 1), mode="nearest")
+    if x.shape[0] >= mean:
+        x = uniform_filter1d(x, mean, axis=0, mode="nearest")
+    return x
+
+
+def initial_poses(prob, X: np.ndarray) -> np.ndarray:
+    """Initial pose parameters (N, P) from triangulated markers ``X`` (N, M, 3)."""
+    sk = prob.skeleton
+    a = sk.arrays
+    N, M = X.shape[:2]
+    P = sk.n_params
+    if sk.kind == "points":
+        Xf = fill_gaps(X)
+        centroid = np.nanmean(Xf.reshape(-1, 3), axis=0) if np.isfinite(Xf).any() else np.zeros(3)
+        Xf = np.where(np.isfinite(Xf), Xf, centroid)
+        return Xf.reshape(N, 3 * M)
+
+    q0 = np.zeros((N, P))
+    lower, upper = sk.lower, sk.upper
+    # start every angle at 0, or at the middle of its range when 0 is outside or on the edge
+    mid = np.where(np.isfinite(lower) & np.isfinite(upper), 0.5 * (lower + upper), 0.0)
+    edge = (lower >= -1e-9) | (upper <= 1e-9)
+    q0[:] = np.where(edge, mid, 0.0)
+
+    root_pt = int(np.flatnonzero(a.pt_base < 0)[0])
+    marker_of_point = {int(p): m for m, p in enumerate(a.marker_point)}
+    if root_pt in marker_of_point:
+        root = X[:, marker_of_point[root_pt]]
+    else:
+        kids = [marker_of_point[k] for k in np.flatnonzero(a.pt_base == root_pt) if int(k) in marker_of_point]
+        with np.errstate(invalid="ignore"):
+            root = np.nanmean(X[:, kids], axis=1) if kids else np.full((N, 3), np.nan)
+    if not np.isfinite(root).any():  # the root's markers never seen: use the centroid of everything
+        with np.errstate(invalid="ignore"):
+            root = np.nanmean(X, axis=1)
+    if not np.isfinite(root).any():
+        root = np.zeros((N, 3))
+    root = smooth_path(root)
+    q0[:, a.pt_root[root_pt]] = root
+
+    yaw_param = _root_yaw_param(sk)
+    if yaw_param is not None:
+        with np.errstate(invalid="ignore"):
+            centroid = np.nanmean(X, axis=1)
+        fwd = root - fill_gaps(centroid)
+        travel = np.gradient(root, axis=0)
+        fwd = np.where(np.isfinite(fwd).all(-1, keepdims=True) & (np.linalg.norm(fwd[:, :2], axis=-1, keepdims=True) > 0.05),
+                       fwd, travel)
+        psi = np.unwrap(np.arctan2(fwd[:, 1], fwd[:, 0]))
+        if N >= 9:
+            psi = median_filter(psi, size=9, mode="nearest")
+        q0[:, yaw_param] = psi
+
+    anchor = np.zeros(P)
+    anchor[a.pt_root[root_pt]] = 10.0  # ~0.1 m of slack against the smoothed path
+    Xn = np.where(np.isfinite(X), X, np.nan)
+    return kernels.inverse_kinematics(q0, Xn, anchor, lower, upper, 0.05, 15, *a.kernel_args())
+
+
+def _root_yaw_param(sk) -> int | None:
+    """The parameter of the z rotation of the first segment hanging from the world, if any."""
+    a = sk.arrays
+    for k in range(len(a.seg_parent)):
+        if a.seg_parent[k] < 0:
+            for j in range(3):
+                if a.seg_axis[k, j] == 2:
+                    return int(a.seg_param[k, j])
+    return None

@@ -1,0 +1,122 @@
+"""One estimation problem: detections of every camera stacked against one skeleton's markers.
+
+Checks that the inputs fit together (camera count, frame counts), maps bodyparts to markers by
+name (unknown bodyparts are ignored with a warning, missing markers are unobserved), applies the
+likelihood threshold, and packs the cameras for the kernels.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from graph.api import SolveOptions
+from graph.camera import Calibration
+from graph.errors import InputError
+from graph.keypoints import Keypoints
+from graph.skeleton import Skeleton, load_skeleton
+
+
+@dataclass
+class Problem:
+    """N frames, C cameras, M markers."""
+
+    skeleton: Skeleton
+    calibration: Calibration
+    options: SolveOptions
+    meas: np.ndarray  # (N, C, M, 2) pixels, NaN where missing
+    likelihood: np.ndarray  # (N, C, M), 0 where missing
+    valid: np.ndarray  # (N, C, M) finite and at or above the likelihood threshold
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def frames(self) -> int:
+        return self.meas.shape[0]
+
+    @property
+    def cameras(self) -> int:
+        return self.meas.shape[1]
+
+    @property
+    def markers(self) -> list[str]:
+        return self.skeleton.markers
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.options.fps
+
+    @property
+    def sigma_px(self) -> float:
+        return self.options.measurement_std_px
+
+    def packed_cameras(self):
+        return self.calibration.packed()
+
+    def views(self) -> np.ndarray:
+        """Cameras that saw each marker in each frame (N, M)."""
+        return self.valid.sum(axis=1)
+
+    def unconstrained(self) -> tuple[list[str], list[int]]:
+        """Markers never seen by two cameras; frames in which no marker is seen by two cameras."""
+        two = self.views() >= 2
+        markers = [m for j, m in enumerate(self.markers) if not two[:, j].any()]
+        frames = [int(n) for n in np.flatnonzero(~two.any(axis=1))]
+        return markers, frames
+
+
+def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOptions) -> Problem:
+    """Stack per-camera keypoints into a :class:`Problem`, or raise :class:`InputError`."""
+    C = len(calibration)
+    if len(keypoints) != C:
+        raise InputError(f"{len(keypoints)} keypoint file(s) given for a calibration of {C} camera(s) "
+                         f"({calibration.source or 'calibration'})")
+    if C < 2:
+        raise InputError("at least two cameras are needed for 3D")
+    frames = {kp.frames for kp in keypoints}
+    if len(frames) != 1:
+        detail = ", ".join(f"{kp.source or f'camera {i + 1}'}: {kp.frames}" for i, kp in enumerate(keypoints))
+        raise InputError(f"the keypoint files have different frame counts ({detail})")
+    N = frames.pop()
+    if N == 0:
+        raise InputError(f"{keypoints[0].source or 'keypoints'}: no frames")
+
+    notes: list[str] = []
+    if options.skeleton == "points":
+        names: list[str] = []
+        for kp in keypoints:
+            names += [b for b in kp.bodyparts if b not in names]
+        skeleton = load_skeleton("points", bodyparts=names, bone_pairs=options.bone_lengths)
+    else:
+        skeleton = load_skeleton(options.skeleton)
+    M = len(skeleton.markers)
+    midx = {m: j for j, m in enumerate(skeleton.markers)}
+    meas = np.full((N, C, M, 2), np.nan)
+    lik = np.zeros((N, C, M))
+    seen_any = np.zeros(M, dtype=bool)
+    for c, kp in enumerate(keypoints):
+        unknown = [b for b in kp.bodyparts if b not in midx]
+        if unknown:
+            msg = (f"{kp.source or f'camera {c + 1}'}: bodyparts not in the {skeleton.name} skeleton are "
+                   f"ignored: {', '.join(unknown)}")
+            notes.append(msg)
+            warnings.warn(msg, stacklevel=2)
+        for i, b in enumerate(kp.bodyparts):
+            j = midx.get(b)
+            if j is None:
+                continue
+            meas[:, c, j] = kp.xy[:, i]
+            lik[:, c, j] = np.nan_to_num(kp.likelihood[:, i], nan=0.0)
+            seen_any[j] = True
+    if not seen_any.any():
+        raise InputError(f"no bodypart in the keypoint files matches a marker of the {skeleton.name} skeleton "
+                         f"(markers: {', '.join(skeleton.markers[:6])}, ...)")
+    missing = [m for j, m in enumerate(skeleton.markers) if not seen_any[j]]
+    if missing:
+        notes.append(f"markers missing from every keypoint file (unobserved): {', '.join(missing)}")
+    valid = np.isfinite(meas).all(axis=-1) & (lik >= options.likelihood_threshold)
+    if not valid.any():
+        raise InputError(f"no detection reaches the likelihood threshold {options.likelihood_threshold}")
+    return Problem(skeleton=skeleton, calibration=calibration, options=options, meas=meas, likelihood=lik,
+                   valid=valid, warnings=notes)
