@@ -22,7 +22,7 @@ so the middle frame of a run crosses the centre at speed ``v``; a run longer tha
 ``2 pi / w0``) goes round again and never leaves the stage. ``a`` is 75-85 % of the distance from
 the centre to the edge of the commonly seen floor along the track, ``b`` 25-45 % of ``a``. The head
 yaw ``psi_0 = atan2(dy, dx)`` follows the heading; its height is ``ground + h`` with ``h`` in
-0.58-0.66 m plus a small bob. The legs swing periodically (a rotary gallop at ``f`` strides per
+0.60-0.66 m plus a small bob. The legs swing periodically (a rotary gallop at ``f`` strides per
 second; front knees in ``[-pi, 0]``, back knees in ``[0, pi]``), the neck, torso and tail move
 slowly and smoothly, the neck yaw leans into turns. Every angle is a sum of sinusoids, so the run is
 smooth (constant acceleration over a frame is a good model) and stays strictly inside the joint
@@ -243,7 +243,7 @@ def cheetah_motion(skeleton: Skeleton, stage: Stage, frames: int, fps: float, rn
 
     f = stride_hz * rng.uniform(0.9, 1.1)
     gait = 2 * math.pi * f * t + rng.uniform(0, 2 * math.pi)
-    height = rng.uniform(0.58, 0.66)
+    height = rng.uniform(0.6, 0.66)
 
     def slow(amp: float, hz: float) -> np.ndarray:
         """A smooth small motion: two sinusoids of random phase around ``hz``."""
@@ -259,9 +259,10 @@ def cheetah_motion(skeleton: Skeleton, stage: Stage, frames: int, fps: float, rn
     q["phi_1"] = slow(0.04, 0.5)
     q["theta_1"] = 0.12 + 0.04 * np.sin(gait + 1.5)
     q["psi_1"] = np.clip(-0.12 * yaw_rate, -0.35, 0.35) + slow(0.04, 0.4)
-    q["theta_2"] = -0.12 + 0.10 * np.sin(gait)
+    # the front torso's pitch (the sum of head, neck and torso pitch) stays level but for the flex
+    q["theta_2"] = -(q["theta_0"] + q["theta_1"]) + 0.08 * np.sin(gait)
     q["phi_3"] = slow(0.03, 0.7)
-    q["theta_3"] = 0.12 * np.sin(gait + math.pi)
+    q["theta_3"] = 0.10 * np.sin(gait + math.pi)
     q["psi_3"] = np.clip(-0.08 * yaw_rate, -0.3, 0.3) + slow(0.03, 0.5)
     q["theta_4"] = -0.5 + 0.15 * np.sin(gait + 2.0) + slow(0.05, 0.4)
     q["psi_4"] = slow(0.25, 0.5)

@@ -1,0 +1,114 @@
+"""Metrics on hand-checked numbers, and an evaluation of the exact answer on a simulated run."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from graph.api import Result, SolveOptions, SolveReport
+from graph.calibration import default_rig_path, load_calibration
+from graph.metrics import (bounding_box_area, evaluate, nose_to_eye_px, pck, position_error,
+                           reprojection_error)
+from graph.simulate import simulate_run
+
+NAN = float("nan")
+
+
+def test_position_error_by_hand():
+    truth = np.zeros((2, 2, 3))
+    est = np.array([[[0.003, 0.004, 0.0], [0.0, 0.0, 0.001]],  # 5 mm, 1 mm
+                    [[NAN, NAN, NAN], [0.0, 0.0, -0.002]]])  # missing, 2 mm
+    e = position_error(est, truth, ["a", "b"])
+    assert e.count == 3 and e.coverage == pytest.approx(0.75)
+    assert e.mean_mm == pytest.approx(8 / 3)
+    assert e.median_mm == pytest.approx(2.0)
+    assert e.rmse_mm == pytest.approx(math.sqrt(10.0))  # sqrt((25 + 1 + 4) / 3)
+    assert e.max_mm == pytest.approx(5.0)
+    assert e.per_marker_mean_mm == pytest.approx({"a": 5.0, "b": 1.5})
+    assert e.per_marker_median_mm == pytest.approx({"a": 5.0, "b": 1.5})
+    np.testing.assert_allclose(e.per_frame, [[0.005, 0.001], [NAN, 0.002]])
+    with pytest.raises(ValueError, match="shape"):
+        position_error(est[:1], truth, ["a", "b"])
+
+
+def test_reprojection_rmse_and_nrmse_by_hand():
+    ref = np.array([[[[0.0, 0.0], [4.0, 0.0], [0.0, 3.0]]]])  # one camera, one frame: box 4 x 3 = 12 px^2
+    est = ref + np.array([[[[3.0, 4.0], [0.0, 0.0], [1.0, 0.0]]]])  # residuals 5, 0, 1 px
+    assert bounding_box_area(ref)[0, 0] == pytest.approx(12.0)
+    r = reprojection_error(est, ref, ["a", "b", "c"])
+    assert r.count == 3
+    assert r.rmse_px == pytest.approx(math.sqrt(26 / 3))
+    assert r.nrmse == pytest.approx(math.sqrt(26 / 3 / 12))
+    assert r.median_px == pytest.approx(1.0)
+    assert r.per_marker_rmse_px == pytest.approx({"a": 5.0, "b": 0.0, "c": 1.0})
+    # a mask leaves the 5 px residual out; the box still comes from all reference points
+    m = reprojection_error(est, ref, ["a", "b", "c"], mask=np.array([[[False, True, True]]]))
+    assert m.count == 2 and m.rmse_px == pytest.approx(math.sqrt(0.5))
+    assert m.nrmse == pytest.approx(math.sqrt(0.5 / 12))
+    # a missing reprojection is not counted
+    est[0, 0, 2] = NAN
+    assert reprojection_error(est, ref, ["a", "b", "c"]).rmse_px == pytest.approx(math.sqrt(25 / 2))
+
+
+def test_pck_with_the_nose_to_eye_length_by_hand():
+    markers = ["nose", "l_eye", "r_eye", "spine"]
+    # camera 0, frame 0: nose (0, 0), l_eye (10, 0): threshold 10 px
+    ref = np.array([[[[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [50.0, 50.0]]]])
+    est = ref + np.array([[[[5.0, 0.0], [0.0, 10.0], [12.0, 0.0], [0.0, 0.0]]]])  # 5, 10, 12, 0 px
+    assert nose_to_eye_px(ref, markers)[0, 0] == pytest.approx(10.0)
+    p = pck(est, ref, markers)
+    assert p.count == 4
+    assert p.overall == pytest.approx(0.5)  # 5 and 0 are inside, 10 is not (strictly less), 12 is not
+    assert p.per_marker == {"nose": 1.0, "l_eye": 0.0, "r_eye": 0.0, "spine": 1.0}
+    assert p.per_camera == [0.5]
+    assert pck(est, ref, markers, scale=1.25).overall == 1.0
+    # without l_eye the threshold falls back to r_eye (also 10 px away)
+    ref2 = ref.copy()
+    ref2[0, 0, 1] = NAN
+    assert nose_to_eye_px(ref2, markers)[0, 0] == pytest.approx(10.0)
+    q = pck(est, ref2, markers)
+    assert q.count == 3 and q.overall == pytest.approx(2 / 3)
+    with pytest.raises(ValueError, match="nose"):
+        pck(est, ref, ["a", "b", "c", "d"])
+
+
+def _result_from(run, positions, reprojections) -> Result:
+    C, N, M = len(run.keypoints), run.frames, len(run.markers)
+    opts = SolveOptions(method="tri")
+    rep = SolveReport(method="tri", skeleton="cheetah", frames=N, cameras=C, markers=M,
+                      seconds={"total": 0.25, "init": 0.0, "solve": 0.25})
+    return Result(method="tri", skeleton="cheetah", markers=list(run.markers), positions=positions,
+                  std=np.zeros((N, M, 3)), reprojections=reprojections, residuals=np.zeros((C, N, M)),
+                  ncams=np.full((N, M), C), score=np.ones((N, M)), outlier=np.zeros((C, N, M), bool),
+                  camera_names=run.calibration.names, fps=run.fps, report=rep, options=opts)
+
+
+def test_evaluate_the_exact_answer_on_a_simulated_run():
+    rig = load_calibration(default_rig_path())
+    run = simulate_run(rig, frames=60, noise=5.0, outliers=0.2, outlier_std=100.0, swaps=0.02, dropouts=1, seed=3)
+    ev = evaluate(_result_from(run, run.positions.copy(), run.projections.copy()), run)
+    assert ev.position.mean_mm == 0.0 and ev.position.coverage == 1.0
+    assert ev.reprojection_truth.rmse_px == 0.0 and ev.reprojection_truth.nrmse == 0.0
+    assert ev.pck.overall == 1.0
+    # against the inlier detections the exact answer leaves just the noise: sqrt(2) * 5 px
+    assert ev.reprojection_detections.rmse_px == pytest.approx(math.sqrt(2) * 5.0, rel=0.03)
+    assert ev.seconds == 0.25
+    assert ev.row()["method"] == "tri"
+
+
+def test_evaluate_a_shifted_answer_and_markers_by_name():
+    rig = load_calibration(default_rig_path())
+    run = simulate_run(rig, frames=20, noise=0.0, outliers=0.0, seed=1)
+    shifted = run.positions + np.array([0.0, 0.0, 0.01])  # 10 mm up
+    order = list(reversed(range(len(run.markers))))
+    res = _result_from(run, shifted[:, order], rig.project(shifted)[:, :, order])
+    res.markers = [run.markers[k] for k in order]
+    ev = evaluate(res, run)
+    assert ev.position.mean_mm == pytest.approx(10.0)
+    assert ev.position.median_mm == pytest.approx(10.0)
+    assert set(ev.position.per_marker_mean_mm) == set(run.markers)
+    # 10 mm at 4-10 m from a 1240 px focal length is 1-3 px: every marker within nose-to-eye
+    assert 0.5 < ev.reprojection_truth.rmse_px < 4.0
+    assert ev.pck.overall == 1.0
