@@ -90,7 +90,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"{PROG}: warning: {' '.join(str(message).split())}", file=sys.stderr)
+    """Warnings meant for the user (``UserWarning``) as one line; numerical noise from inside
+    the solvers (``RuntimeWarning`` and the like) is not shown."""
+    if issubclass(category, UserWarning):
+        print(f"{PROG}: warning: {' '.join(str(message).split())}", file=sys.stderr)
 
 
 def _fail(message: str) -> int:
@@ -136,8 +139,6 @@ def run_solve(args: argparse.Namespace) -> int:
                                    likelihood_threshold=args.likelihood_threshold, individual=args.individual)
     except ValueError as e:
         raise UsageError(str(e)) from None
-    if options.skeleton not in ("cheetah", "points") and not Path(options.skeleton).is_file():
-        raise InputError("no such skeleton file (use cheetah, points or a skeleton TOML path)", options.skeleton)
     for out in (args.out, args.h5, args.report):
         if out is not None and not Path(out).parent.is_dir():
             raise InputError("the output folder does not exist", out)

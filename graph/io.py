@@ -87,7 +87,7 @@ def read_anipose_csv(path: str | Path) -> Points3D:
         raise InputError("not an Anipose CSV (binary, not UTF-8 text)", path) from None
     except OSError as e:
         raise InputError(f"cannot read: {e.strerror}", path) from None
-    rows = [r for r in csv.reader(text.splitlines()) if any(c.strip() for c in r)]
+    rows = [r for r in csv.reader(text.splitlines()) if r]  # blank lines only; ",,," is a row
     if not rows:
         raise InputError("file is empty", path)
     header = [h.strip() for h in rows[0]]

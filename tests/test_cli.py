@@ -1,0 +1,240 @@
+"""The ``acinoset`` command line, run as a user runs it: a separate process, real files.
+
+Every bad input must end with exit status 2 and exactly one stderr line
+``acinoset: error: <file>: <problem>``, never a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from graph.calibration import default_rig_path, load_calibration, write_anipose_toml
+from graph.camera import Calibration
+from graph.io import read_anipose_csv, read_result
+from graph.keypoints import Keypoints, read_keypoints, write_dlc_csv
+
+ROOT = Path(__file__).resolve().parents[1]
+MARKERS = ["nose", "l_eye", "r_eye", "neck_base", "spine"]
+FRAMES = 40
+FPS = 90.0
+
+
+def run_cli(*args: str | Path, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, "-m", "graph.cli", *map(str, args)], capture_output=True, text=True,
+                          env=env, cwd=cwd, timeout=300)
+
+
+def assert_user_error(proc: subprocess.CompletedProcess, filename: str, *fragments: str) -> str:
+    lines = proc.stderr.splitlines()
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith(f"acinoset: error: {filename}: "), lines[0]
+    for f in fragments:
+        assert f in lines[0], lines[0]
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory) -> Path:
+    """Three cameras of the AcinoSet rig watching five points move on smooth paths, 1 px noise,
+    written as a user brings them: DeepLabCut CSVs and an Anipose calibration.toml."""
+    out = tmp_path_factory.mktemp("run")
+    rig = load_calibration(default_rig_path())
+    cal = Calibration(rig.cameras[:3])
+    write_anipose_toml(out / "calibration.toml", cal)
+    t = np.arange(FRAMES) / FPS
+    rng = np.random.default_rng(11)
+    base = np.array([0.0, 5.0, 0.5]) + rng.normal(0, 0.15, (len(MARKERS), 3))
+    truth = base[None] + np.stack([np.sin(2 * t), 0.5 * np.cos(3 * t), 0.1 * np.sin(5 * t)], -1)[:, None]
+    np.save(out / "truth.npy", truth)
+    for c, cam in enumerate(cal.cameras):
+        uv = cam.project(truth) + rng.normal(0, 1.0, (FRAMES, len(MARKERS), 2))
+        lik = rng.uniform(0.8, 1.0, (FRAMES, len(MARKERS)))
+        uv[5, 2] = np.nan  # one detection missing
+        lik[5, 2] = 0.0
+        write_dlc_csv(out / f"cam{c + 1}.csv", Keypoints(bodyparts=MARKERS, xy=uv, likelihood=lik,
+                                                        scorer="DLC_resnet50_testJan1shuffle1_1000"))
+    return out
+
+
+def cams(run_dir: Path) -> list[Path]:
+    return [run_dir / f"cam{i}.csv" for i in (1, 2, 3)]
+
+
+def solve_args(run_dir: Path, tmp_path: Path, files=None, calibration=None) -> list:
+    return ["solve", *(files or cams(run_dir)), "--calibration", calibration or run_dir / "calibration.toml",
+            "--method", "tri", "--skeleton", "points", "--fps", FPS, "--out", tmp_path / "out.csv"]
+
+
+# ------------------------------------------------------------------------------- bad inputs
+
+
+def test_missing_keypoint_file(run_dir, tmp_path):
+    files = cams(run_dir)
+    files[1] = tmp_path / "cam2_missing.csv"
+    assert_user_error(run_cli(*solve_args(run_dir, tmp_path, files)), "cam2_missing.csv", "no such file")
+
+
+def test_missing_calibration_file(run_dir, tmp_path):
+    proc = run_cli(*solve_args(run_dir, tmp_path, calibration=tmp_path / "nocal.toml"))
+    assert_user_error(proc, "nocal.toml", "no such file")
+
+
+@pytest.mark.parametrize("name,content,fragment", [
+    ("truncated.csv", None, "truncated"),
+    ("nonsense.csv", "hello,world\n1,2,3\n", "not a DeepLabCut CSV"),
+    ("empty.csv", "", "file is empty"),
+    ("words.csv", "\x00\x01\x02 binary junk \xff", "not a DeepLabCut CSV"),
+])
+def test_bad_keypoint_files(run_dir, tmp_path, name, content, fragment):
+    path = tmp_path / name
+    if content is None:  # a real file cut off in the middle of a row
+        text = (run_dir / "cam2.csv").read_text()
+        path.write_text(text[: len(text) // 2])
+    else:
+        path.write_text(content)
+    files = cams(run_dir)
+    files[1] = path
+    assert_user_error(run_cli(*solve_args(run_dir, tmp_path, files)), name, fragment)
+
+
+def test_calibration_without_camera_matrix(run_dir, tmp_path):
+    text = (run_dir / "calibration.toml").read_text()
+    lines = [ln for ln in text.splitlines() if not ln.startswith("matrix")]
+    bad = tmp_path / "no_matrix.toml"
+    bad.write_text("\n".join(lines) + "\n")
+    assert_user_error(run_cli(*solve_args(run_dir, tmp_path, calibration=bad)), "no_matrix.toml", "missing matrix")
+
+
+def test_calibration_with_non_rotation(run_dir, tmp_path):
+    doc = json.loads(default_rig_path().read_text())
+    doc["cameras"] = doc["cameras"][:3]
+    doc["cameras"][1]["r"] = [[1.0, 0.2, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    bad = tmp_path / "sheared.json"
+    bad.write_text(json.dumps(doc))
+    assert_user_error(run_cli(*solve_args(run_dir, tmp_path, calibration=bad)), "sheared.json",
+                      "camera 2 r: not a rotation matrix")
+
+
+def test_camera_count_mismatch(run_dir, tmp_path):
+    proc = run_cli(*solve_args(run_dir, tmp_path, calibration=default_rig_path()))
+    assert_user_error(proc, "acinoset_2019_rig.json", "has 6 cameras but 3 keypoint files")
+
+
+def test_frame_count_mismatch(run_dir, tmp_path):
+    kp = read_keypoints(run_dir / "cam3.csv")
+    short = tmp_path / "cam3_short.csv"
+    write_dlc_csv(short, Keypoints(kp.bodyparts, kp.xy[:-5], kp.likelihood[:-5], kp.scorer))
+    files = cams(run_dir)
+    files[2] = short
+    assert_user_error(run_cli(*solve_args(run_dir, tmp_path, files)), "cam3_short.csv",
+                      f"has {FRAMES - 5} frames but cam1.csv has {FRAMES}")
+
+
+def test_usage_errors_are_one_line(run_dir, tmp_path):
+    for args, fragment in [(["solve", *cams(run_dir)], "required: --calibration, --out"),
+                           (solve_args(run_dir, tmp_path)[:-2] + ["--method", "magic", "--out", "x.csv"],
+                            "invalid choice: 'magic'"),
+                           (solve_args(run_dir, tmp_path) + ["--fps", "-3"], "fps must be positive"),
+                           (["frobnicate"], "invalid choice: 'frobnicate'"),
+                           ([], "required: COMMAND")]:
+        proc = run_cli(*args)
+        lines = proc.stderr.splitlines()
+        assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+        assert lines[0].startswith("acinoset: error: ") and fragment in lines[0], lines[0]
+
+
+def test_output_folder_must_exist(run_dir, tmp_path):
+    args = solve_args(run_dir, tmp_path)
+    args[-1] = tmp_path / "no" / "such" / "dir" / "out.csv"
+    assert_user_error(run_cli(*args), "out.csv", "output folder does not exist")
+
+
+def test_help_and_version(tmp_path):
+    proc = run_cli("--help")
+    assert proc.returncode == 0 and "solve" in proc.stdout
+    proc = run_cli("solve", "--help")
+    assert proc.returncode == 0 and "--calibration" in proc.stdout and "--reprojections" in proc.stdout
+    proc = run_cli("--version")
+    assert proc.returncode == 0 and proc.stdout.startswith("acinoset ")
+
+
+def test_registered_subcommands_follow_the_contract():
+    """Every registered subcommand sets ``func``; modules that do not exist are skipped."""
+    from graph.cli import _optional_module, build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    assert "solve" in sub.choices
+    for name, p in sub.choices.items():
+        assert callable(p.get_default("func")), name
+    assert _optional_module("graph.no_such_module") is None
+    assert _optional_module("no_such_package.cli") is None
+
+
+# --------------------------------------------------------------------------------- full solves
+
+
+@pytest.mark.parametrize("method", ["tri", "fte"])
+def test_solve_writes_every_output(run_dir, tmp_path, method):
+    out, h5, report, reproj = tmp_path / "run.csv", tmp_path / "run.h5", tmp_path / "report.json", tmp_path / "reproj"
+    proc = run_cli("solve", *cams(run_dir), "--calibration", run_dir / "calibration.toml", "--method", method,
+                   "--skeleton", "points", "--fps", FPS, "--out", out, "--h5", h5, "--report", report,
+                   "--reprojections", reproj)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr and "\r" not in proc.stderr  # no progress bar when not a terminal
+    truth = np.load(run_dir / "truth.npy")
+
+    table = read_anipose_csv(out)
+    assert table.markers == MARKERS and table.positions.shape == truth.shape
+    err = np.linalg.norm(table.positions - truth, axis=-1)
+    assert np.nanmedian(err) < 0.02, np.nanmedian(err)  # metres; 1 px noise at ~5 m
+    assert np.isfinite(table.error).mean() > 0.9 and np.nanmax(table.ncams) == 3
+
+    result = read_result(h5)
+    assert result.method == method and result.camera_names == ["cam1", "cam2", "cam3"]
+    np.testing.assert_array_equal(result.positions, table.positions)
+
+    rep = json.loads(report.read_text())
+    assert rep["method"] == method and rep["frames"] == FRAMES and rep["cameras"] == 3
+    assert set(rep["seconds"]) >= {"total", "init", "solve"} and rep["seconds"]["total"] > 0
+    assert rep["reprojection_rmse_px"] < 5
+
+    files = sorted(p.name for p in reproj.iterdir())
+    assert files == ["cam1_reprojected.csv", "cam2_reprojected.csv", "cam3_reprojected.csv"]
+    kp = read_keypoints(reproj / "cam2_reprojected.csv")
+    np.testing.assert_allclose(kp.xy, result.reprojections[1], equal_nan=True)
+
+
+def test_progress_bar_on_a_terminal(run_dir, tmp_path):
+    """With stderr on a terminal the solve draws a one-line bar that ends at 100%."""
+    import pty
+
+    leader, follower = pty.openpty()
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "graph.cli", *map(str, solve_args(run_dir, tmp_path))],
+                            stdout=subprocess.PIPE, stderr=follower, env=env)
+    os.close(follower)
+    chunks = []
+    while True:
+        try:
+            data = os.read(leader, 4096)
+        except OSError:  # the child closed the terminal
+            break
+        if not data:
+            break
+        chunks.append(data)
+    proc.wait(timeout=300)
+    os.close(leader)
+    shown = b"".join(chunks).decode(errors="replace")
+    assert proc.returncode == 0, shown
+    assert "\r[" in shown and "100%" in shown, shown
