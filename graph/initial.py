@@ -60,7 +60,8 @@ def initial_poses(prob, X: np.ndarray) -> np.ndarray:
     q0 = np.zeros((N, P))
     lower, upper = sk.lower, sk.upper
     # start every angle at 0, or at the middle of its range when 0 is outside or on the edge
-    mid = np.where(np.isfinite(lower) & np.isfinite(upper), 0.5 * (lower + upper), 0.0)
+    bounded = np.isfinite(lower) & np.isfinite(upper)
+    mid = np.where(bounded, 0.5 * (np.where(bounded, lower, 0.0) + np.where(bounded, upper, 0.0)), 0.0)
     edge = (lower >= -1e-9) | (upper <= 1e-9)
     q0[:] = np.where(edge, mid, 0.0)
 
@@ -70,11 +71,9 @@ def initial_poses(prob, X: np.ndarray) -> np.ndarray:
         root = X[:, marker_of_point[root_pt]]
     else:
         kids = [marker_of_point[k] for k in np.flatnonzero(a.pt_base == root_pt) if int(k) in marker_of_point]
-        with np.errstate(invalid="ignore"):
-            root = np.nanmean(X[:, kids], axis=1) if kids else np.full((N, 3), np.nan)
+        root = _nanmean(X[:, kids], axis=1) if kids else np.full((N, 3), np.nan)
     if not np.isfinite(root).any():  # the root's markers never seen: use the centroid of everything
-        with np.errstate(invalid="ignore"):
-            root = np.nanmean(X, axis=1)
+        root = _nanmean(X, axis=1)
     if not np.isfinite(root).any():
         root = np.zeros((N, 3))
     root = smooth_path(root)
@@ -82,8 +81,7 @@ def initial_poses(prob, X: np.ndarray) -> np.ndarray:
 
     yaw_param = _root_yaw_param(sk)
     if yaw_param is not None:
-        with np.errstate(invalid="ignore"):
-            centroid = np.nanmean(X, axis=1)
+        centroid = _nanmean(X, axis=1)
         fwd = root - fill_gaps(centroid)
         travel = np.gradient(root, axis=0)
         fwd = np.where(np.isfinite(fwd).all(-1, keepdims=True) & (np.linalg.norm(fwd[:, :2], axis=-1, keepdims=True) > 0.05),
@@ -97,6 +95,14 @@ def initial_poses(prob, X: np.ndarray) -> np.ndarray:
     anchor[a.pt_root[root_pt]] = 10.0  # ~0.1 m of slack against the smoothed path
     Xn = np.where(np.isfinite(X), X, np.nan)
     return kernels.inverse_kinematics(q0, Xn, anchor, lower, upper, 0.05, 15, *a.kernel_args())
+
+
+def _nanmean(x: np.ndarray, axis: int) -> np.ndarray:
+    """Mean over finite values; NaN where there are none (without numpy's warning)."""
+    ok = np.isfinite(x)
+    n = ok.sum(axis=axis)
+    total = np.where(ok, x, 0.0).sum(axis=axis)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
 def _root_yaw_param(sk) -> int | None:

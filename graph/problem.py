@@ -15,7 +15,7 @@ import numpy as np
 from graph.api import SolveOptions
 from graph.camera import Calibration
 from graph.errors import InputError
-from graph.keypoints import Keypoints
+from graph.keypoints import Keypoints, check_same_frames, match_bodyparts
 from graph.skeleton import Skeleton, load_skeleton
 
 
@@ -74,13 +74,9 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
                          f"({calibration.source or 'calibration'})")
     if C < 2:
         raise InputError("at least two cameras are needed for 3D")
-    frames = {kp.frames for kp in keypoints}
-    if len(frames) != 1:
-        detail = ", ".join(f"{kp.source or f'camera {i + 1}'}: {kp.frames}" for i, kp in enumerate(keypoints))
-        raise InputError(f"the keypoint files have different frame counts ({detail})")
-    N = frames.pop()
+    N = check_same_frames(keypoints)
     if N == 0:
-        raise InputError(f"{keypoints[0].source or 'keypoints'}: no frames")
+        raise InputError("no frames", keypoints[0].source or None)
 
     notes: list[str] = []
     if options.skeleton == "points":
@@ -91,24 +87,20 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
     else:
         skeleton = load_skeleton(options.skeleton)
     M = len(skeleton.markers)
-    midx = {m: j for j, m in enumerate(skeleton.markers)}
     meas = np.full((N, C, M, 2), np.nan)
     lik = np.zeros((N, C, M))
     seen_any = np.zeros(M, dtype=bool)
     for c, kp in enumerate(keypoints):
-        unknown = [b for b in kp.bodyparts if b not in midx]
-        if unknown:
+        match = match_bodyparts(kp, skeleton.markers)
+        if match.unknown:
             msg = (f"{kp.source or f'camera {c + 1}'}: bodyparts not in the {skeleton.name} skeleton are "
-                   f"ignored: {', '.join(unknown)}")
+                   f"ignored: {', '.join(match.unknown)}")
             notes.append(msg)
             warnings.warn(msg, stacklevel=2)
-        for i, b in enumerate(kp.bodyparts):
-            j = midx.get(b)
-            if j is None:
-                continue
-            meas[:, c, j] = kp.xy[:, i]
-            lik[:, c, j] = np.nan_to_num(kp.likelihood[:, i], nan=0.0)
-            seen_any[j] = True
+        have = match.index >= 0
+        meas[:, c, have] = kp.xy[:, match.index[have]]
+        lik[:, c, have] = np.nan_to_num(kp.likelihood[:, match.index[have]], nan=0.0)
+        seen_any |= have
     if not seen_any.any():
         raise InputError(f"no bodypart in the keypoint files matches a marker of the {skeleton.name} skeleton "
                          f"(markers: {', '.join(skeleton.markers[:6])}, ...)")

@@ -1,0 +1,126 @@
+"""The solvers' own guarantees: gradients of the compiled cost, joint bounds at the solution,
+degenerate data reported rather than crashing, and the report's fields."""
+
+import numpy as np
+import pytest
+
+from graph.api import SolveOptions, solve
+from graph.calibration import default_rig_path, load_calibration
+from graph.fte import TrajectoryProblem
+from graph.problem import build
+from graph.robust import redescending
+from graph.simulate import simulate_run
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return load_calibration(default_rig_path())
+
+
+@pytest.fixture(scope="module")
+def run(rig):
+    return simulate_run(rig, frames=90, fps=120, noise=3.0, outliers=0.1, outlier_std=100, seed=11)
+
+
+def test_redescending_loss_pieces():
+    s = np.array([0.0, 2.0, 3.0, 5.0, 10.0, 15.0, 20.0, 50.0])
+    rho, w = redescending(s)
+    assert rho[1] == pytest.approx(2.0)  # s^2/2
+    assert rho[3] == pytest.approx(3 * 5 - 4.5)  # a s - a^2/2
+    assert rho[-1] == pytest.approx(40.5) and rho[-2] == pytest.approx(40.5)
+    assert w[1] == 1.0 and w[3] == pytest.approx(3 / 5) and w[-1] == 0.0
+    # continuous, with a continuous derivative (w s) at the knots
+    eps = 1e-7
+    for knot in (3.0, 10.0, 20.0):
+        lo, hi = redescending(np.array([knot - eps, knot + eps]))
+        assert abs(lo[1] - lo[0]) < 1e-5
+        assert abs(hi[0] * (knot - eps) - hi[1] * (knot + eps)) < 1e-5
+
+
+def test_kernel_gradient_matches_finite_differences(run):
+    prob = build(run.keypoints, run.calibration, SolveOptions(method="fte"))
+    Q = run.params[:3] + 0.01
+    prob.meas, prob.valid, prob.likelihood = prob.meas[:3], prob.valid[:3], prob.likelihood[:3]
+    tp = TrajectoryProblem(prob, Q)
+    H, g, _, s, w, cost = tp.normals(Q)
+    eps = 1e-6
+    for n in range(3):
+        num = np.zeros(25)
+        for j in range(25):
+            Qp, Qm = Q.copy(), Q.copy()
+            Qp[n, j] += eps
+            Qm[n, j] -= eps
+            num[j] = (tp.normals(Qp)[5][n] - tp.normals(Qm)[5][n]) / (2 * eps)
+        assert np.allclose(g[n], num, rtol=1e-4, atol=1e-3 * np.abs(num).max())
+        assert np.allclose(H[n], H[n].T)
+        assert np.linalg.eigvalsh(H[n]).min() > -1e-9
+
+
+def test_fte_respects_joint_bounds_and_reports(run):
+    res = solve(run.keypoints, run.calibration, SolveOptions(method="fte", fps=run.fps))
+    from graph.skeleton import load_skeleton
+
+    sk = load_skeleton("cheetah")
+    assert (res.params >= sk.lower - 1e-3).all() and (res.params <= sk.upper + 1e-3).all()
+    err = np.linalg.norm(res.positions - run.positions, axis=-1)
+    assert np.nanmean(err) < 0.02
+    assert np.isfinite(res.std).all() and (res.std > 0).all()
+    assert res.rates.shape == res.params.shape
+    r = res.report.to_dict()
+    for key in ("method", "frames", "cameras", "seconds", "iterations", "cost", "reprojection_rmse_px"):
+        assert key in r
+    assert r["frames"] == 90 and r["cameras"] == 6 and r["iterations"] >= 1
+    assert set(r["seconds"]) >= {"total", "init", "solve"}
+    assert r["reprojection_rmse_px"] < 6
+
+
+def test_degenerate_data_is_reported_not_fatal(run):
+    kps = [k for k in run.keypoints]
+    # the tail tip is seen by one camera only, and camera 2 is blind for the first second
+    for c, k in enumerate(kps):
+        j = k.bodyparts.index("tail2")
+        if c > 0:
+            k.likelihood[:, j] = 0.0
+    kps[1].likelihood[:] = 0.0
+    for method in ("tri", "fte", "ekf"):
+        res = solve(kps, run.calibration, SolveOptions(method=method, fps=run.fps))
+        assert "tail2" in res.report.unconstrained_markers
+        if method == "tri":
+            assert np.isnan(res.positions[:, res.markers.index("tail2")]).all()
+        else:  # the skeleton carries it
+            assert np.isfinite(res.positions).all()
+        others = [m for m in range(len(res.markers)) if res.markers[m] != "tail2"]
+        err = np.linalg.norm(res.positions[:, others] - run.positions[:, others], axis=-1)
+        assert np.nanmedian(err) < 0.05, method
+
+
+def test_frames_with_nothing_seen_twice(rig):
+    run = simulate_run(rig, frames=60, fps=120, noise=2.0, outliers=0.0, seed=5)
+    for k in run.keypoints[1:]:
+        k.likelihood[20:30] = 0.0
+    res = solve(run.keypoints, run.calibration, SolveOptions(method="fte", fps=run.fps))
+    assert res.report.unconstrained_frames == list(range(20, 30))
+    err = np.linalg.norm(res.positions - run.positions, axis=-1)
+    assert np.isfinite(err).all() and np.median(err[20:30]) < 0.1  # bridged by the motion model
+
+
+@pytest.mark.parametrize("method", ["tri", "fte", "ekf"])
+def test_points_skeleton_any_bodyparts(rig, method):
+    parts = ["nose", "l_eye", "r_eye", "neck_base", "spine", "tail_base"]
+    run = simulate_run(rig, frames=60, fps=120, noise=3.0, outliers=0.05, seed=2, bodyparts=parts)
+    res = solve(run.keypoints, run.calibration,
+                SolveOptions(method=method, skeleton="points", fps=run.fps,
+                             bone_lengths=[("neck_base", "spine"), ("spine", "tail_base")]))
+    assert res.markers == parts
+    err = np.linalg.norm(res.positions - run.positions, axis=-1)
+    assert np.nanmedian(err) < 0.03
+
+
+def test_ekf_reports_per_frame_time_and_causal_estimates(run):
+    res = solve(run.keypoints, run.calibration, SolveOptions(method="ekf", fps=run.fps))
+    pf = res.report.per_frame_ms
+    assert pf["median"] > 0 and pf["p95"] >= pf["median"]
+    assert res.causal_positions.shape == res.positions.shape
+    causal = np.nanmean(np.linalg.norm(res.causal_positions - run.positions, axis=-1))
+    smooth = np.nanmean(np.linalg.norm(res.positions - run.positions, axis=-1))
+    assert smooth < 0.03 and causal < 0.05
