@@ -36,7 +36,6 @@ Missing data: x, y may be NaN (DeepLabCut writes empty cells for them); a NaN li
 from __future__ import annotations
 
 import csv
-import io
 import pickletools
 import warnings
 from dataclasses import dataclass
@@ -106,19 +105,19 @@ def _read_csv(path: Path, individual: str | None) -> Keypoints:
         text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError:
         raise InputError("not a DeepLabCut CSV or H5 file (binary, not UTF-8 text)", path) from None
-    try:
-        rows = list(csv.reader(io.StringIO(text, newline="")))
-    except csv.Error as e:
-        raise InputError(f"not a valid CSV file ({e})", path) from None
-    while rows and not any(cell.strip() for cell in rows[-1]):
-        rows.pop()  # trailing blank lines
-    if not rows:
+    if "\x00" in text:
+        raise InputError("not a DeepLabCut CSV or H5 file (binary data)", path)
+    lines = text.splitlines()
+    while lines and not lines[-1].strip():
+        lines.pop()  # trailing blank lines
+    if not lines:
         raise InputError("file is empty", path)
+    rows = [_csv_row(line, path) for line in lines[:4]]
     first = rows[0][0].strip() if rows[0] else ""
     if first != "scorer":
         raise InputError(f"not a DeepLabCut CSV: the first row must start with 'scorer', not {first[:40]!r}", path)
     levels = []
-    for row in rows[:4]:
+    for row in rows:
         levels.append(row[0].strip() if row else "")
         if levels[-1] == "coords":
             break
@@ -137,25 +136,37 @@ def _read_csv(path: Path, individual: str | None) -> Keypoints:
     if n_index >= width:
         raise InputError("not a DeepLabCut CSV: no data columns", path)
     columns = [tuple(h[j].strip() for h in header) for j in range(n_index, width)]
-    body = rows[len(levels):]
-    if not body:
+    first_data = len(levels)
+    if len(lines) == first_data:
         raise InputError("no data rows after the header", path)
-    values = np.empty((len(body), width - n_index))
-    for i, row in enumerate(body):
-        line = len(levels) + i + 1
+    body = []
+    for i in range(first_data, len(lines)):
+        line = lines[i]
+        row = _csv_row(line, path) if '"' in line else line.split(",")  # numbers need no quoting
         if len(row) != width:
-            raise InputError(f"line {line} has {len(row)} cells, the header has {width} "
+            raise InputError(f"line {i + 1} has {len(row)} cells, the header has {width} "
                              "(truncated or ragged file)", path)
-        for j in range(n_index, width):
-            cell = row[j].strip()
-            if cell == "":
-                values[i, j - n_index] = np.nan
-                continue
-            try:
-                values[i, j - n_index] = float(cell)
-            except ValueError:
-                raise InputError(f"line {line}, column {j + 1}: not a number: {cell[:40]!r}", path) from None
+        body.append(row[n_index:])
+    try:  # fast path: plain numbers and empty cells
+        values = np.array([[float(c or "nan") for c in row] for row in body], dtype=np.float64)
+    except ValueError:
+        values = np.empty((len(body), width - n_index))
+        for i, row in enumerate(body):
+            for j, cell in enumerate(row):
+                cell = cell.strip()
+                try:
+                    values[i, j] = float(cell or "nan")
+                except ValueError:
+                    raise InputError(f"line {first_data + i + 1}, column {n_index + j + 1}: "
+                                     f"not a number: {cell[:40]!r}", path) from None
     return _from_columns(columns, values, path, individual)
+
+
+def _csv_row(line: str, path: Path) -> list[str]:
+    try:
+        return next(csv.reader([line]), [])
+    except csv.Error as e:
+        raise InputError(f"not a valid CSV file ({e})", path) from None
 
 
 def _read_h5(path: Path, individual: str | None) -> Keypoints:
@@ -463,12 +474,10 @@ def write_dlc_csv(path: str | Path, keypoints: Keypoints) -> None:
         w.writerow(["bodyparts"] + [bp for bp in keypoints.bodyparts for _ in range(3)])
         w.writerow(["coords"] + ["x", "y", "likelihood"] * m)
         block = np.concatenate([keypoints.xy, keypoints.likelihood[..., None]], axis=-1).reshape(n, 3 * m)
-        for i in range(n):
-            w.writerow([str(i)] + [_cell(v) for v in block[i]])
-
-
-def _cell(v: float) -> str:
-    return "" if np.isnan(v) else repr(float(v))
+        gaps = np.isnan(block).any(axis=1)
+        for i, row in enumerate(block.tolist()):
+            cells = [("" if v != v else repr(v)) for v in row] if gaps[i] else map(repr, row)
+            f.write(f"{i},{','.join(cells)}\n")
 
 
 # ------------------------------------------------------------------------- bodyparts to markers
