@@ -29,8 +29,9 @@ Layouts (what ``DataFrame.to_csv`` / ``to_hdf`` write for DeepLabCut's column Mu
   ``axis0_level<i>`` (the level's labels) and ``axis0_label<i>`` (codes into it) for the column
   MultiIndex, and the same ``block<k>_items_*`` per block. No pickle is needed there.
 
-Missing data: x, y may be NaN (DeepLabCut writes empty cells for them); a NaN likelihood reads as
-0, and a missing point always gets likelihood 0. Likelihoods are clipped to [0, 1].
+Missing data: x, y may be NaN (DeepLabCut writes empty cells for them); a point with either
+coordinate missing is missing (both NaN, likelihood 0). A NaN likelihood reads as 0. Likelihoods
+are clipped to [0, 1]; infinite coordinates are an error.
 """
 
 from __future__ import annotations

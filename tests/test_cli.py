@@ -238,3 +238,25 @@ def test_progress_bar_on_a_terminal(run_dir, tmp_path):
     shown = b"".join(chunks).decode(errors="replace")
     assert proc.returncode == 0, shown
     assert "\r[" in shown and "100%" in shown, shown
+
+
+def test_solve_reads_dlc_h5_files(run_dir, tmp_path):
+    """The H5 files DeepLabCut's analyze_videos writes give the same answer as its CSVs."""
+    pd = pytest.importorskip("pandas")
+    pytest.importorskip("tables")
+    h5s = []
+    for src in cams(run_dir):
+        kp = read_keypoints(src)
+        cols = pd.MultiIndex.from_product([[kp.scorer], kp.bodyparts, ["x", "y", "likelihood"]],
+                                          names=["scorer", "bodyparts", "coords"])
+        data = np.concatenate([kp.xy, kp.likelihood[..., None]], -1).reshape(kp.frames, -1)
+        dst = tmp_path / f"{src.stem}DLC_resnet50.h5"
+        pd.DataFrame(data, columns=cols, index=range(kp.frames)).to_hdf(dst, key="df_with_missing",
+                                                                        format="table", mode="w")
+        h5s.append(dst)
+    from_csv, from_h5 = tmp_path / "csv.csv", tmp_path / "h5.csv"
+    args = ["--calibration", run_dir / "calibration.toml", "--method", "tri", "--skeleton", "points", "--fps", FPS]
+    assert run_cli("solve", *cams(run_dir), *args, "--out", from_csv).returncode == 0
+    proc = run_cli("solve", *h5s, *args, "--out", from_h5)
+    assert proc.returncode == 0, proc.stderr
+    assert from_csv.read_text() == from_h5.read_text()
