@@ -1,0 +1,688 @@
+"""Pictures of a solved run: PNG figures (matplotlib), a self-contained HTML playback file, and the
+JSON payload the web job page draws from.
+
+People judge a 3D reconstruction by looking at it. Every picture here answers one question:
+
+- ``skeleton.png``: where is the animal, and is the skeleton plausible? The whole scene with the
+  cameras and the path of the first marker, and a close-up of the skeleton at a few frames.
+- ``reprojection_error.png``: which camera disagrees about which marker? The median pixel distance
+  between each camera's detections and the estimate drawn into that camera, marker x camera, with
+  the number of detections the robust loss rejected in each cell.
+- ``coordinates.png``: does any marker jump? x, y, z of every marker over time with a band of
+  ``+-2 std`` (the estimate's marginal standard deviation).
+- ``parameters.png`` (kinematic skeletons only): the pose parameters over time, ``+-2 std``.
+- ``flags.png``: what did the solver flag? Per frame and marker, how many cameras saw it (grey
+  level), the detections rejected as outliers (crosses) and the frames no marker was seen twice in
+  (hatched), above the per-frame reprojection error.
+
+The HTML playback file holds plotly.js, the result view script and the payload in one file, so it
+opens offline from a laptop, a shared drive or an e-mail attachment. :func:`result_payload` is the
+one definition of that payload; the REST service returns it as ``GET /v1/jobs/{id}/result?format=json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import html
+import importlib.util
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from graph.api import Result
+from graph.errors import InputError
+
+PAYLOAD_VERSION = 1
+HTML_NAME = "playback.html"
+
+# Decimal places kept in the payload: 10 micrometres, 0.01 px, 0.001 likelihood, 1e-5 rad.
+_POS_DECIMALS = 5
+_PX_DECIMALS = 2
+_SCORE_DECIMALS = 3
+_PARAM_DECIMALS = 5
+
+
+# ----------------------------------------------------------------------------------- summaries
+
+
+@dataclass
+class ErrorTable:
+    """Reprojection error per camera and marker over the whole run (C, M).
+
+    ``median``: median over frames of the pixel residual of the detections the solver used
+    (observed, above the likelihood threshold, not rejected), NaN where there were none.
+    ``observations``: detections above the likelihood threshold. ``outliers``: those the robust loss
+    rejected.
+    """
+
+    median: np.ndarray
+    observations: np.ndarray
+    outliers: np.ndarray
+
+
+def error_table(result: Result) -> ErrorTable:
+    r = np.asarray(result.residuals, dtype=np.float64)
+    out = np.asarray(result.outlier, dtype=bool) & np.isfinite(r)
+    used = np.where(out, np.nan, r)
+    has = np.isfinite(used).any(axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN cells: NaN, as documented
+        med = np.nanmedian(used, axis=1)
+    med[~has] = np.nan
+    return ErrorTable(median=med, observations=np.isfinite(r).sum(axis=1).astype(int),
+                      outliers=out.sum(axis=1).astype(int))
+
+
+def frame_error(result: Result) -> np.ndarray:
+    """Per-frame reprojection RMSE (N,) over the detections used, NaN where none:
+    ``sqrt(mean_{c,m} r_cnm^2)``."""
+    r = np.where(np.asarray(result.outlier, dtype=bool), np.nan, np.asarray(result.residuals, float))
+    cnt = np.isfinite(r).sum(axis=(0, 2))
+    ss = np.nansum(r ** 2, axis=(0, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(cnt > 0, np.sqrt(ss / np.maximum(cnt, 1)), np.nan)
+
+
+def frame_ranges(frames) -> list[tuple[int, int]]:
+    """Sorted frame numbers as inclusive runs: ``[1, 2, 3, 7] -> [(1, 3), (7, 7)]``."""
+    fs = sorted({int(f) for f in frames})
+    runs: list[tuple[int, int]] = []
+    for f in fs:
+        if runs and f == runs[-1][1] + 1:
+            runs[-1] = (runs[-1][0], f)
+        else:
+            runs.append((f, f))
+    return runs
+
+
+def _ranges_text(frames, limit: int = 8) -> str:
+    runs = frame_ranges(frames)
+    parts = [f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:limit]]
+    if len(runs) > limit:
+        parts.append(f"and {len(runs) - limit} more")
+    return ", ".join(parts)
+
+
+def camera_centers(result: Result, calibration=None) -> np.ndarray | None:
+    """World positions of the cameras (C, 3): from the result, else from ``calibration``."""
+    cc = getattr(result, "camera_centers", None)
+    if cc is not None:
+        cc = np.asarray(cc, dtype=np.float64).reshape(-1, 3)
+        if cc.shape[0] == len(result.camera_names):
+            return cc
+    if calibration is not None:
+        if len(calibration) != len(result.camera_names):
+            raise InputError(f"the calibration has {len(calibration)} cameras but the result has "
+                             f"{len(result.camera_names)}", getattr(calibration, "source", None) or None)
+        return np.stack([c.center for c in calibration.cameras])
+    return None
+
+
+def _camera_directions(result: Result, calibration=None) -> np.ndarray | None:
+    """Unit optical axes in the world frame (C, 3), ``R^T [0, 0, 1]``, when a calibration is given."""
+    if calibration is None or len(calibration) != len(result.camera_names):
+        return None
+    return np.stack([c.R[2] for c in calibration.cameras])
+
+
+def _is_length_param(name: str) -> bool:
+    """Pose parameters named ``x_*``, ``y_*``, ``z_*`` are positions in metres; the rest are angles."""
+    return name.split("_", 1)[0] in ("x", "y", "z")
+
+
+# ------------------------------------------------------------------------------------ payload
+
+
+def _json_array(a, decimals: int | None = None):
+    """An array as nested lists, NaN and infinities as ``None``."""
+    if a is None:
+        return None
+    a = np.asarray(a)
+    if a.dtype == bool:
+        return a.tolist()
+    if np.issubdtype(a.dtype, np.integer):
+        return a.astype(np.int64).tolist()
+    a = a.astype(np.float64)
+    finite = np.isfinite(a)
+    if decimals is not None:
+        a = np.round(a, decimals)
+    if finite.all():
+        return a.tolist()
+    obj = a.astype(object)
+    obj[~finite] = None
+    return obj.tolist()
+
+
+def result_payload(result: Result, calibration=None) -> dict:
+    """Everything the result view draws, as JSON-safe data (NaN -> ``null``). Shapes: N frames,
+    M markers, C cameras, P pose parameters.
+
+    ``positions``, ``std`` (N, M, 3) metres; ``ncams`` (N, M) cameras that saw each marker;
+    ``score`` (N, M) mean likelihood; ``residuals`` (C, N, M) px; ``outliers`` a list of
+    ``[camera, frame, marker]`` index triples; ``error_table`` {median, observations, outliers}
+    (C, M); ``frame_error`` (N,) px; ``camera_centers`` (C, 3) or null; ``params``, ``params_std``
+    (N, P) or null, with ``param_units`` "m" or "rad"; ``bones`` marker index pairs; ``report``
+    the solver's report; ``options`` the options the run was solved with.
+    """
+    N, M = result.positions.shape[:2]
+    idx = {m: i for i, m in enumerate(result.markers)}
+    bones = [[idx[a], idx[b]] for a, b in result.bones if a in idx and b in idx]
+    table = error_table(result)
+    out = np.argwhere(np.asarray(result.outlier, dtype=bool) & np.isfinite(result.residuals))
+    report = result.report.to_dict() if hasattr(result.report, "to_dict") else dict(result.report)
+    options = result.options.to_dict() if hasattr(result.options, "to_dict") else dict(result.options or {})
+    cc = camera_centers(result, calibration)
+    cd = _camera_directions(result, calibration)
+    params = result.params
+    return {
+        "version": PAYLOAD_VERSION,
+        "method": result.method,
+        "skeleton": result.skeleton,
+        "fps": float(result.fps),
+        "frames": int(N),
+        "markers": list(result.markers),
+        "bones": bones,
+        "camera_names": list(result.camera_names),
+        "camera_centers": _json_array(cc, _POS_DECIMALS),
+        "camera_directions": _json_array(cd, 4),
+        "positions": _json_array(result.positions, _POS_DECIMALS),
+        "std": _json_array(result.std, _POS_DECIMALS),
+        "ncams": _json_array(np.asarray(result.ncams).astype(np.int64)),
+        "score": _json_array(result.score, _SCORE_DECIMALS),
+        "residuals": _json_array(result.residuals, _PX_DECIMALS),
+        "outliers": out.astype(np.int64).tolist(),
+        "error_table": {"median": _json_array(table.median, _PX_DECIMALS),
+                        "observations": _json_array(table.observations),
+                        "outliers": _json_array(table.outliers)},
+        "frame_error": _json_array(frame_error(result), _PX_DECIMALS),
+        "param_names": list(result.param_names or []),
+        "param_units": ["m" if _is_length_param(p) else "rad" for p in (result.param_names or [])],
+        "params": _json_array(params, _PARAM_DECIMALS) if params is not None else None,
+        "params_std": (_json_array(result.params_std, _PARAM_DECIMALS)
+                       if result.params_std is not None else None),
+        "report": _jsonable(report),
+        "options": _jsonable(options),
+    }
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.ndarray):
+        return _json_array(x)
+    return x
+
+
+# ------------------------------------------------------------------------------------ figures
+
+
+def _figure(width: float, height: float, layout: str | None = "constrained"):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width, height), dpi=110, layout=layout)
+
+
+def _title(result: Result) -> str:
+    N = result.positions.shape[0]
+    return (f"{result.method} / {result.skeleton}: {N} frames at {result.fps:g} fps, "
+            f"{len(result.markers)} markers, {len(result.camera_names)} cameras")
+
+
+def _snapshot_frames(result: Result, k: int) -> list[int]:
+    ok = np.flatnonzero(np.isfinite(result.positions).all(axis=2).sum(axis=1) >= 2)
+    if ok.size == 0:
+        return []
+    pick = np.unique(np.round(np.linspace(0, ok.size - 1, min(k, ok.size))).astype(int))
+    return [int(ok[i]) for i in pick]
+
+
+def _side_style(name: str):
+    """Left markers solid, right dashed, midline dotted-free solid grey: readable without colour."""
+    if name.startswith("l_") or name.startswith("left"):
+        return "-"
+    if name.startswith("r_") or name.startswith("right"):
+        return "--"
+    return "-"
+
+
+def _set_equal_3d(ax, pts: np.ndarray, min_extent: float = 0.2, min_ratio: float = 0.0) -> None:
+    """Axis limits around ``pts`` with one scale on every axis; no axis shorter than ``min_extent``
+    or than ``min_ratio`` times the longest."""
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if pts.size == 0:
+        return
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    mid = (lo + hi) / 2
+    ext = np.maximum(hi - lo, min_extent)
+    ext = np.maximum(ext, min_ratio * ext.max()) * 1.08
+    ax.set_xlim(mid[0] - ext[0] / 2, mid[0] + ext[0] / 2)
+    ax.set_ylim(mid[1] - ext[1] / 2, mid[1] + ext[1] / 2)
+    ax.set_zlim(mid[2] - ext[2] / 2, mid[2] + ext[2] / 2)
+    ax.set_box_aspect(tuple(ext / ext.max()))
+
+
+def _draw_skeleton(ax, P: np.ndarray, result: Result, color, label=None, lw=1.6, ms=9) -> None:
+    """Bones as lines (left side solid, right side dashed) and markers as dots."""
+    idx = {m: i for i, m in enumerate(result.markers)}
+    first = True
+    for a, b in result.bones:
+        if a not in idx or b not in idx:
+            continue
+        i, j = idx[a], idx[b]
+        seg = P[[i, j]]
+        ax.plot(seg[:, 0], seg[:, 1], seg[:, 2], _side_style(b), color=color, lw=lw,
+                label=label if first else None)
+        first = False
+    ok = np.isfinite(P).all(axis=1)
+    ax.scatter(P[ok, 0], P[ok, 1], P[ok, 2], color=color, s=ms, depthshade=False,
+               label=label if first else None)
+
+
+def plot_skeleton(result: Result, path: Path, calibration=None, snapshots: int = 5) -> Path:
+    """The scene with the cameras and the path of the best-seen marker, then the skeleton at a few
+    frames, each panel on the same scale (a cube around the animal) so poses compare."""
+    pos = np.asarray(result.positions, float)
+    frames = _snapshot_frames(result, snapshots)
+    cams = camera_centers(result, calibration)
+    track = _track_marker(result)
+    panels = 1 + max(1, len(frames))
+    cols = min(3, panels)
+    rows = int(np.ceil(panels / cols))
+    fig = _figure(4.6 * cols, 4.2 * rows + 0.4)
+    fig.suptitle(_title(result) + "\nskeleton: solid lines left side, dashed right side", fontsize=10)
+
+    ax = fig.add_subplot(rows, cols, 1, projection="3d")
+    ax.set_title("Scene: cameras and the path of the animal", fontsize=9)
+    path_pts = pos[:, track, :]
+    ax.plot(path_pts[:, 0], path_pts[:, 1], path_pts[:, 2], color="black", lw=1.5,
+            label=f"path of {result.markers[track]}")
+    scene = [pos.reshape(-1, 3)]
+    if cams is not None:
+        ax.scatter(cams[:, 0], cams[:, 1], cams[:, 2], marker="^", s=50, color="tab:red",
+                   edgecolor="black", depthshade=False, label="cameras")
+        for name, c in zip(result.camera_names, cams):
+            ax.text(c[0], c[1], c[2], f"  {name}", fontsize=7)
+        scene.append(cams)
+    else:
+        ax.text2D(0.02, 0.02, "camera positions unknown (pass --calibration)", transform=ax.transAxes,
+                  fontsize=8)
+    _set_equal_3d(ax, np.concatenate(scene), min_extent=0.5, min_ratio=0.25)
+    _label_axes(ax)
+    ax.legend(loc="upper left", fontsize=7)
+
+    if not frames:
+        ax = fig.add_subplot(rows, cols, 2)
+        ax.set_axis_off()
+        ax.text(0.5, 0.5, "no frame has an estimate", ha="center", va="center")
+    else:
+        span = np.nanmax([np.ptp(pos[f][np.isfinite(pos[f]).all(axis=1)], axis=0).max() for f in frames])
+        half = max(0.4, 0.6 * float(span))
+        for k, f in enumerate(frames):
+            ax = fig.add_subplot(rows, cols, k + 2, projection="3d")
+            P = pos[f]
+            _draw_skeleton(ax, P, result, "tab:blue")
+            centre = np.nanmean(P[np.isfinite(P).all(axis=1)], axis=0)
+            ax.set_xlim(centre[0] - half, centre[0] + half)
+            ax.set_ylim(centre[1] - half, centre[1] + half)
+            ax.set_zlim(centre[2] - half, centre[2] + half)
+            ax.set_box_aspect((1, 1, 1))
+            ax.view_init(elev=15, azim=-70)
+            missing = int((~np.isfinite(P).all(axis=1)).sum())
+            extra = f", {missing} markers without estimate" if missing else ""
+            ax.set_title(f"frame {f} ({f / result.fps:.3f} s){extra}", fontsize=9)
+            _label_axes(ax)
+    fig.savefig(path)
+    return path
+
+
+def _track_marker(result: Result) -> int:
+    """The marker whose path is drawn: the best-observed one (most frames with an estimate)."""
+    ok = np.isfinite(result.positions).all(axis=2).sum(axis=0)
+    return int(np.argmax(ok)) if ok.size else 0
+
+
+def _label_axes(ax) -> None:
+    ax.set_xlabel("x (m)", fontsize=8, labelpad=2)
+    ax.set_ylabel("y (m)", fontsize=8, labelpad=2)
+    ax.set_zlabel("z (m)", fontsize=8, labelpad=2)
+    ax.tick_params(labelsize=7, pad=0)
+    from matplotlib.ticker import MaxNLocator
+
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+        axis.set_major_locator(MaxNLocator(4))
+
+
+def plot_reprojection_error(result: Result, path: Path) -> Path:
+    """Heat map of the median reprojection error, marker (rows) x camera (columns), each cell
+    labelled with its number and its count of rejected detections."""
+    t = error_table(result)
+    C, M = t.median.shape
+    fig = _figure(max(6.0, 1.2 * C + 3.2), max(4.0, 0.34 * M + 1.8))
+    ax = fig.add_subplot(1, 1, 1)
+    data = t.median.T  # (M, C)
+    finite = data[np.isfinite(data)]
+    vmax = float(np.percentile(finite, 98)) if finite.size else 1.0
+    vmax = max(vmax, 1.0)
+    im = ax.imshow(np.ma.masked_invalid(data), cmap="magma_r", vmin=0, vmax=vmax, aspect="auto",
+                   interpolation="nearest")
+    ax.set_facecolor("white")
+    for m in range(M):
+        for c in range(C):
+            v = data[m, c]
+            nout = t.outliers[c, m]
+            nobs = t.observations[c, m]
+            if nobs == 0:
+                ax.add_patch(_hatch_cell(c, m))
+                ax.text(c, m, "not seen", ha="center", va="center", fontsize=7, color="0.3")
+                continue
+            txt = "all rejected" if not np.isfinite(v) else f"{v:.1f}"
+            if nout:
+                txt += f"  ({nout}\u00d7)"
+            dark = np.isfinite(v) and v / vmax > 0.55
+            ax.text(c, m, txt, ha="center", va="center", fontsize=7.5,
+                    color="white" if dark else "black")
+    ax.set_xticks(range(C), result.camera_names, fontsize=8)
+    ax.set_yticks(range(M), result.markers, fontsize=8)
+    ax.set_xlabel("camera")
+    rmse = result.report.reprojection_rmse_px if hasattr(result.report, "reprojection_rmse_px") else np.nan
+    ax.set_title("Median reprojection error (px) per marker and camera\n"
+                 f"(n\u00d7): detections rejected as outliers; run RMSE "
+                 f"{rmse:.2f} px, {int(t.outliers.sum())} of {int(t.observations.sum())} rejected",
+                 fontsize=10)
+    cb = fig.colorbar(im, ax=ax, shrink=0.9)
+    cb.set_label("median error (px)")
+    fig.savefig(path)
+    return path
+
+
+def _hatch_cell(c: int, m: int):
+    from matplotlib.patches import Rectangle
+
+    return Rectangle((c - 0.5, m - 0.5), 1, 1, facecolor="0.93", edgecolor="0.6", hatch="///", lw=0)
+
+
+def _shade_frames(ax, frames, label=None) -> None:
+    for k, (a, b) in enumerate(frame_ranges(frames)):
+        ax.axvspan(a - 0.5, b + 0.5, facecolor="0.85", edgecolor="0.55", hatch="//", lw=0,
+                   label=label if k == 0 else None, zorder=0)
+
+
+def plot_coordinates(result: Result, path: Path) -> Path:
+    """x, y, z of every marker over frames, each with a ``+-2 std`` band; hatched frames are those
+    in which no marker was seen by two cameras."""
+    pos = np.asarray(result.positions, float)
+    std = np.asarray(result.std, float)
+    N, M, _ = pos.shape
+    f = np.arange(N)
+    height = 1.05 * M + 1.4
+    fig = _figure(13, height, layout=None)  # constrained layout is slow with 3M panels
+    fig.subplots_adjust(left=0.12, right=0.985, top=1 - 0.75 / height, bottom=0.5 / height,
+                        hspace=0.25, wspace=0.18)
+    axes = fig.subplots(M, 3, sharex=True, squeeze=False)
+    fig.suptitle(_title(result) + "\nmarker coordinates (m) with \u00b12 std band; hatched: frames "
+                 "with no marker seen by two cameras", fontsize=10)
+    unconstrained = result.report.unconstrained_frames if hasattr(result.report, "unconstrained_frames") else []
+    bad_markers = set(getattr(result.report, "unconstrained_markers", []) or [])
+    for m in range(M):
+        for k, axis in enumerate("xyz"):
+            ax = axes[m, k]
+            y = pos[:, m, k]
+            s = 2 * std[:, m, k]
+            _shade_frames(ax, unconstrained)
+            ax.fill_between(f, y - s, y + s, color="tab:blue", alpha=0.25, lw=0)
+            ax.plot(f, y, color="tab:blue", lw=1.0)
+            ax.tick_params(labelsize=7)
+            ax.margins(x=0)
+            if m == 0:
+                ax.set_title(axis, fontsize=10)
+            if k == 0:
+                name = result.markers[m] + (" (never seen twice)" if result.markers[m] in bad_markers else "")
+                ax.set_ylabel(name, fontsize=8, rotation=0, ha="right", va="center")
+            if not np.isfinite(y).any():
+                ax.text(0.5, 0.5, "no estimate", transform=ax.transAxes, ha="center", va="center",
+                        fontsize=8)
+    for k in range(3):
+        axes[-1, k].set_xlabel(f"frame ({result.fps:g} fps)", fontsize=8)
+    fig.savefig(path)
+    return path
+
+
+def plot_parameters(result: Result, path: Path) -> Path | None:
+    """Pose parameters over frames with ``+-2 std``: angles in degrees, positions in metres.
+    Nothing is drawn for skeletons without angles (free points): their parameters are the markers."""
+    if result.params is None or not result.param_names:
+        return None
+    names = list(result.param_names)
+    if all(_is_length_param(n) for n in names):
+        return None
+    q = np.asarray(result.params, float)
+    qs = np.asarray(result.params_std, float) if result.params_std is not None else np.full_like(q, np.nan)
+    N, P = q.shape
+    cols = 5
+    rows = int(np.ceil(P / cols))
+    height = 1.7 * rows + 1.0
+    fig = _figure(14, height, layout=None)
+    fig.subplots_adjust(left=0.05, right=0.99, top=1 - 0.8 / height, bottom=0.5 / height, hspace=0.45, wspace=0.25)
+    axes = fig.subplots(rows, cols, sharex=True, squeeze=False)
+    fig.suptitle(_title(result) + "\npose parameters with \u00b12 std band (angles in degrees); hatched: "
+                 "frames with no marker seen by two cameras", fontsize=10)
+    f = np.arange(N)
+    for p in range(rows * cols):
+        ax = axes.flat[p]
+        if p >= P:
+            ax.set_visible(False)
+            continue
+        scale, unit = (1.0, "m") if _is_length_param(names[p]) else (180 / np.pi, "\u00b0")
+        y = q[:, p] * scale
+        s = 2 * qs[:, p] * scale
+        _shade_frames(ax, getattr(result.report, "unconstrained_frames", []) or [])
+        ax.fill_between(f, y - s, y + s, color="tab:green", alpha=0.25, lw=0)
+        ax.plot(f, y, color="tab:green", lw=1.0)
+        ax.set_title(f"{names[p]} ({unit})", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.margins(x=0)
+    for ax in axes[-1]:
+        ax.set_xlabel("frame", fontsize=8)
+    fig.savefig(path)
+    return path
+
+
+def plot_flags(result: Result, path: Path) -> Path:
+    """What the solver flagged, frame by frame: per-frame reprojection error above, and below per
+    marker the number of cameras that saw it (grey level), rejected detections (crosses) and
+    frames with no marker seen by two cameras (hatched)."""
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    N, M = result.positions.shape[:2]
+    C = len(result.camera_names)
+    ncams = np.asarray(result.ncams).astype(int)
+    out = np.asarray(result.outlier, bool) & np.isfinite(result.residuals)
+    rep = result.report
+    unconstrained = list(getattr(rep, "unconstrained_frames", []) or [])
+    bad_markers = list(getattr(rep, "unconstrained_markers", []) or [])
+
+    fig = _figure(13, 0.28 * M + 4.2)
+    gs = fig.add_gridspec(2, 1, height_ratios=[1.0, max(2.0, 0.14 * M)])
+    ax0 = fig.add_subplot(gs[0])
+    ax = fig.add_subplot(gs[1], sharex=ax0)
+    ferr = frame_error(result)
+    _shade_frames(ax0, unconstrained, label="no marker seen by two cameras")
+    ax0.plot(np.arange(N), ferr, color="black", lw=1.0, label="reprojection RMSE")
+    nout = out.sum(axis=(0, 2))
+    ax0b = ax0.twinx()
+    ax0b.bar(np.arange(N), nout, color="tab:red", alpha=0.35, width=1.0, label="rejected detections")
+    ax0.set_zorder(ax0b.get_zorder() + 1)  # the line above the bars
+    ax0.patch.set_visible(False)
+    ax0b.set_ylabel("rejected", fontsize=8)
+    ax0b.tick_params(labelsize=7)
+    ax0.set_ylabel("px", fontsize=8)
+    ax0.tick_params(labelsize=7)
+    h0, l0 = ax0.get_legend_handles_labels()
+    h1, l1 = ax0b.get_legend_handles_labels()
+    ax0.legend(h0 + h1, l0 + l1, fontsize=8, loc="upper right")
+    ax0.set_title(_title(result) + "\nper frame: reprojection RMSE (line), rejected detections (bars)",
+                  fontsize=10)
+
+    # Darker: fewer cameras. A marker seen by every camera is white; one seen by none, black.
+    greys = ListedColormap([(0.15 + 0.85 * k / max(C, 1),) * 3 for k in range(C + 1)])
+    norm = BoundaryNorm(np.arange(-0.5, C + 1.5), greys.N)
+    im = ax.imshow(ncams.T, aspect="auto", cmap=greys, norm=norm, interpolation="nearest",
+                   extent=(-0.5, N - 0.5, M - 0.5, -0.5))
+    _shade_frames(ax, unconstrained)
+    cc, nn, mm = np.nonzero(out)
+    if nn.size:
+        ax.scatter(nn, mm, marker="x", s=14, color="tab:red", lw=1.0, label="rejected detection")
+        ax.legend(fontsize=8, loc="upper right")
+    ax.set_yticks(range(M), [m + (" *" if m in bad_markers else "") for m in result.markers], fontsize=7)
+    ax.set_xlabel(f"frame ({result.fps:g} fps)", fontsize=8)
+    ax.tick_params(labelsize=7)
+    cb = fig.colorbar(im, ax=ax, ticks=range(C + 1), shrink=0.9)
+    cb.set_label("cameras that saw the marker", fontsize=8)
+    cb.ax.tick_params(labelsize=7)
+    lines = []
+    if bad_markers:
+        lines.append("* never seen by two cameras: " + ", ".join(bad_markers))
+    if unconstrained:
+        lines.append("frames with no marker seen twice: " + _ranges_text(unconstrained))
+    lines.append(f"{int(out.sum())} detections rejected as outliers in {int((nout > 0).sum())} frames")
+    ax.set_title("; ".join(lines), fontsize=8.5)
+    fig.savefig(path)
+    return path
+
+
+def write_figures(result: Result, out_dir: str | Path, calibration=None, snapshots: int = 5) -> list[Path]:
+    """Write every PNG figure into ``out_dir``; returns the paths written."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [plot_skeleton(result, out / "skeleton.png", calibration, snapshots),
+               plot_reprojection_error(result, out / "reprojection_error.png"),
+               plot_coordinates(result, out / "coordinates.png")]
+    p = plot_parameters(result, out / "parameters.png")
+    if p is not None:
+        written.append(p)
+    written.append(plot_flags(result, out / "flags.png"))
+    return written
+
+
+# --------------------------------------------------------------------------------------- HTML
+
+
+def static_dir() -> Path:
+    """The folder of the web pages' scripts and styles (``service/static``), found without
+    importing the service."""
+    spec = importlib.util.find_spec("service")
+    roots = list(spec.submodule_search_locations or []) if spec is not None else []
+    roots.append(str(Path(__file__).resolve().parent.parent / "service"))
+    for root in roots:
+        d = Path(root) / "static"
+        if (d / "result-view.js").is_file():
+            return d
+    raise FileNotFoundError("service/static/result-view.js is missing from this installation")
+
+
+def plotly_js_path() -> Path:
+    """plotly.min.js as shipped inside the plotly wheel (no network needed)."""
+    spec = importlib.util.find_spec("plotly")
+    if spec is None or not spec.submodule_search_locations:
+        raise FileNotFoundError("the plotly package is not installed")
+    p = Path(list(spec.submodule_search_locations)[0]) / "package_data" / "plotly.min.js"
+    if not p.is_file():
+        raise FileNotFoundError(f"{p} is missing from the plotly package")
+    return p
+
+
+def _script_text(text: str) -> str:
+    """Make text safe inside ``<script>``: no ``</script`` or ``<!--`` can end it early."""
+    return text.replace("</", "<\\/").replace("<!--", "<\\!--")
+
+
+def playback_html(result: Result, calibration=None, title: str | None = None) -> str:
+    """One self-contained HTML page: plotly.js, the result view and the payload inlined."""
+    d = static_dir()
+    payload = json.dumps(result_payload(result, calibration), separators=(",", ":"), allow_nan=False)
+    css = (d / "app.css").read_text(encoding="utf-8")
+    view = (d / "result-view.js").read_text(encoding="utf-8")
+    plotly = plotly_js_path().read_text(encoding="utf-8")
+    title = title or f"acinoset: {result.method} / {result.skeleton}, {result.positions.shape[0]} frames"
+    return f"""<!doctype html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<title>{html.escape(title)}</title>
+<style>{css}</style>
+<script>{_script_text(plotly)}</script>
+<script>{_script_text(view)}</script>
+</head>
+<body>
+<header class="top"><span class="brand">acinoset</span></header>
+<main id="main">
+<h1>{html.escape(title)}</h1>
+<div id="result"><p>Loading the result view&hellip;</p></div>
+</main>
+<script type="application/json" id="payload">{_script_text(payload)}</script>
+<script>
+AcinoResultView.render(document.getElementById("result"),
+  JSON.parse(document.getElementById("payload").textContent), {{}});
+</script>
+</body>
+</html>
+"""
+
+
+def write_playback_html(result: Result, path: str | Path, calibration=None) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(playback_html(result, calibration), encoding="utf-8")
+    return path
+
+
+# ---------------------------------------------------------------------------------------- CLI
+
+
+def register(subparsers) -> None:
+    """Add ``acinoset plot RESULT.h5 --out DIR``."""
+    p = subparsers.add_parser(
+        "plot", help="draw a solved run: PNG figures and an HTML playback file",
+        description="Write PNG figures (skeleton with cameras, reprojection error per marker and "
+                    "camera, coordinates and pose parameters over time with uncertainty, flagged "
+                    f"frames) and {HTML_NAME}, a self-contained 3D playback that opens offline.")
+    p.add_argument("result", type=Path, help="RESULT.h5 written by `acinoset solve --h5`")
+    p.add_argument("--out", type=Path, required=True, help="folder to write the pictures into")
+    p.add_argument("--calibration", type=Path, default=None,
+                   help="calibration file, to draw the cameras when the result file holds no camera positions")
+    p.add_argument("--snapshots", type=int, default=5, help="frames drawn in skeleton.png (default 5)")
+    p.add_argument("--no-html", action="store_true", help=f"PNG figures only, no {HTML_NAME}")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from graph.io import read_result
+
+    if not Path(args.result).is_file():
+        raise InputError("no such file", args.result)
+    result = read_result(args.result)
+    calibration = None
+    if args.calibration is not None:
+        from graph.calibration import load_calibration
+
+        calibration = load_calibration(args.calibration)
+    if args.snapshots < 1:
+        raise InputError("--snapshots must be at least 1")
+    written = write_figures(result, args.out, calibration, snapshots=args.snapshots)
+    if not args.no_html:
+        written.append(write_playback_html(result, Path(args.out) / HTML_NAME, calibration))
+    for p in written:
+        print(p)
+    return 0

@@ -1,0 +1,645 @@
+/* The result view: 3D skeleton playback, reprojection error per marker and camera, coordinates
+ * and pose parameters over time with their uncertainty, and what the solver flagged.
+ *
+ * Draws from the payload of graph.plot.result_payload (the service's result?format=json). Used by
+ * the job page and inlined into the HTML file `acinoset plot` writes; needs only Plotly.
+ *
+ *   const view = AcinoResultView.render(containerElement, payload, {});
+ *   view.setFrame(42);
+ */
+(function () {
+  "use strict";
+
+  // Okabe-Ito colours (safe for colour-blind readers); sides also differ by line style.
+  const COLOR = { left: "#0072B2", right: "#D55E00", mid: "#333333", flag: "#CC0000",
+                  camera: "#009E73", path: "#999999", band: "rgba(0,114,178,0.22)" };
+  const PLOT_CONFIG = { displaylogo: false, responsive: true };
+
+  function el(tag, attrs, ...children) {
+    const node = document.createElement(tag);
+    for (const [k, v] of Object.entries(attrs || {})) {
+      if (v === null || v === undefined || v === false) continue;
+      if (k === "class") node.className = v;
+      else if (k === "text") node.textContent = v;
+      else if (k.startsWith("on")) node.addEventListener(k.slice(2), v);
+      else node.setAttribute(k, v === true ? "" : v);
+    }
+    for (const c of children.flat()) {
+      if (c === null || c === undefined || c === false) continue;
+      node.append(c instanceof Node ? c : document.createTextNode(String(c)));
+    }
+    return node;
+  }
+
+  let uid = 0;
+  const newId = (stem) => `${stem}-${++uid}`;
+  const fmt = (v, d) => (v === null || v === undefined || !isFinite(v) ? "–" : Number(v).toFixed(d));
+  const side = (name) => (/^(l_|left)/i.test(name) ? "left" : /^(r_|right)/i.test(name) ? "right" : "mid");
+
+  function ranges(frames) {
+    const fs = Array.from(new Set(frames)).sort((a, b) => a - b);
+    const out = [];
+    for (const f of fs) {
+      if (out.length && f === out[out.length - 1][1] + 1) out[out.length - 1][1] = f;
+      else out.push([f, f]);
+    }
+    return out;
+  }
+
+  function plural(n, one, many) { return `${n} ${n === 1 ? one : (many || one + "s")}`; }
+
+  function render(container, P, opts) {
+    opts = opts || {};
+    container.replaceChildren();
+    const N = P.frames, M = P.markers.length, C = P.camera_names.length;
+    const fps = P.fps || 1;
+    const report = P.report || {};
+    const state = { frame: 0, playing: false, speed: 1, view: "run", last: 0, acc: 0, lastSync: 0 };
+
+    // ---------------------------------------------------------------- per-frame facts
+    const outByFrame = Array.from({ length: N }, () => []);
+    for (const [c, n, m] of P.outliers) outByFrame[n].push([c, m]);
+    const unconstrainedFrames = new Set(report.unconstrained_frames || []);
+    const unconstrainedMarkers = new Set(report.unconstrained_markers || []);
+
+    function markerFlags(n) {
+      /* Per marker in frame n: {missing, weak (cameras < 2), rejected: [camera names]}. */
+      const flags = P.markers.map(() => ({ missing: false, weak: false, cams: 0, rejected: [] }));
+      for (let m = 0; m < M; m++) {
+        const p = P.positions[n][m];
+        flags[m].missing = !p || p[0] === null;
+        flags[m].cams = P.ncams[n][m];
+        flags[m].weak = flags[m].cams < 2;
+      }
+      for (const [c, m] of outByFrame[n]) flags[m].rejected.push(P.camera_names[c]);
+      return flags;
+    }
+
+    function frameSummary(n) {
+      const flags = markerFlags(n);
+      const have = flags.filter((f) => !f.missing).length;
+      const notes = [];
+      flags.forEach((f, m) => {
+        const bits = [];
+        if (f.missing) bits.push("no estimate");
+        else if (f.weak) bits.push(`seen by ${plural(f.cams, "camera")}`);
+        if (f.rejected.length) bits.push(`rejected in ${f.rejected.join(", ")}`);
+        if (bits.length) notes.push(`${P.markers[m]}: ${bits.join("; ")}`);
+      });
+      let text = `Frame ${n} of ${N - 1} (${(n / fps).toFixed(3)} s). ${have} of ${M} markers estimated.`;
+      if (P.frame_error && P.frame_error[n] !== null) text += ` Reprojection error ${fmt(P.frame_error[n], 1)} px.`;
+      if (unconstrainedFrames.has(n)) text += " No marker was seen by two cameras in this frame.";
+      return { text, notes };
+    }
+
+    // ---------------------------------------------------------------- summary
+    const summary = el("section", { class: "card", "aria-labelledby": newId("h") });
+    summary.append(el("h2", { id: summary.getAttribute("aria-labelledby"), text: "Summary" }));
+    const dl = el("dl", { class: "facts" });
+    const fact = (k, v) => dl.append(el("dt", { text: k }), el("dd", { text: v }));
+    fact("Method", `${P.method} (${P.skeleton} skeleton)`);
+    fact("Frames", `${N} at ${fps} fps (${(N / fps).toFixed(2)} s)`);
+    fact("Markers", String(M));
+    fact("Cameras", P.camera_names.join(", "));
+    fact("Reprojection RMSE", `${fmt(report.reprojection_rmse_px, 2)} px`);
+    fact("Rejected detections", `${report.outliers ?? P.outliers.length} of ${report.observations ?? "–"}`);
+    fact("Never seen by two cameras", unconstrainedMarkers.size ? [...unconstrainedMarkers].join(", ") : "none");
+    fact("Frames with no marker seen twice", unconstrainedFrames.size
+      ? ranges([...unconstrainedFrames]).map(([a, b]) => (a === b ? `${a}` : `${a}–${b}`)).join(", ") : "none");
+    if (report.iterations) fact("Iterations", String(report.iterations));
+    if (report.seconds && report.seconds.total) fact("Solve time", `${fmt(report.seconds.total, 2)} s`);
+    summary.append(dl);
+    if (report.warnings && report.warnings.length) {
+      summary.append(el("h3", { text: "Warnings" }), el("ul", {}, report.warnings.map((w) => el("li", { text: w }))));
+    }
+    container.append(summary);
+
+    // ---------------------------------------------------------------- 3D playback
+    const play = el("section", { class: "card", "aria-labelledby": newId("h") });
+    play.append(el("h2", { id: play.getAttribute("aria-labelledby"), text: "3D playback" }));
+    play.append(el("p", { class: "hint", text:
+      "Drag to rotate, scroll to zoom. Bones: left side solid blue, right side dashed orange, midline grey. " +
+      "Markers drawn as an open diamond are flagged in this frame (seen by fewer than two cameras, or a detection " +
+      "was rejected); they are named beside it and listed below." }));
+    const plot3d = el("div", { class: "plot plot3d", role: "img", "data-testid": "plot3d",
+      "aria-label": `3D skeleton of ${P.skeleton}, ${M} markers` + (P.camera_centers ? ` and ${C} cameras` : "") });
+    const sliderId = newId("frame");
+    const numberId = newId("frame-number");
+    const speedId = newId("speed");
+    const viewId = newId("view");
+    const playBtn = el("button", { type: "button", class: "primary", "aria-pressed": "false", text: "▶ Play" });
+    const prevBtn = el("button", { type: "button", "aria-label": "Previous frame", text: "◀ Prev" });
+    const nextBtn = el("button", { type: "button", "aria-label": "Next frame", text: "Next ▶" });
+    const slider = el("input", { type: "range", id: sliderId, min: 0, max: Math.max(0, N - 1), step: 1, value: 0,
+      "data-testid": "frame-slider" });
+    const number = el("input", { type: "number", id: numberId, min: 0, max: Math.max(0, N - 1), step: 1, value: 0,
+      class: "narrow" });
+    const speed = el("select", { id: speedId },
+      [["0.1", "0.1× (slow motion)"], ["0.25", "0.25×"], ["0.5", "0.5×"], ["1", "1× (real time)"]].map(
+        ([v, t]) => el("option", { value: v, selected: v === "0.25", text: t })));
+    state.speed = 0.25;
+    const view = el("select", { id: viewId },
+      el("option", { value: "run", text: "Whole run" }),
+      el("option", { value: "follow", text: "Follow the animal" }),
+      el("option", { value: "scene", text: "Scene with cameras", disabled: !P.camera_centers }));
+    const status = el("p", { class: "frame-status", "aria-live": "polite", "data-testid": "frame-status" });
+    const notes = el("ul", { class: "frame-notes" });
+    const controls = el("div", { class: "controls", role: "group", "aria-label": "Playback controls" },
+      playBtn, prevBtn, nextBtn,
+      el("label", { for: sliderId, class: "grow" }, "Frame ", slider),
+      el("label", { for: numberId }, "Frame number ", number),
+      el("label", { for: speedId }, "Speed ", speed),
+      el("label", { for: viewId }, "View ", view));
+    const timeLabel = el("span", { class: "time" });
+    play.append(plot3d, controls, timeLabel, status, notes);
+    container.append(play);
+
+    // Scene extents.
+    const all = [];
+    for (const fr of P.positions) for (const p of fr) if (p && p[0] !== null) all.push(p);
+    const bbox = (pts) => {
+      const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+      for (const p of pts) for (let k = 0; k < 3; k++) { lo[k] = Math.min(lo[k], p[k]); hi[k] = Math.max(hi[k], p[k]); }
+      if (!pts.length) return { lo: [-1, -1, -1], hi: [1, 1, 1] };
+      return { lo, hi };
+    };
+    const cube = (lo, hi, minExtent) => {
+      const mid = [0, 1, 2].map((k) => (lo[k] + hi[k]) / 2);
+      let ext = [0, 1, 2].map((k) => Math.max(hi[k] - lo[k], minExtent) * 1.1);
+      const big = Math.max(...ext);
+      ext = ext.map((e) => Math.max(e, 0.2 * big));
+      return {
+        ranges: [0, 1, 2].map((k) => [mid[k] - ext[k] / 2, mid[k] + ext[k] / 2]),
+        aspect: { x: ext[0] / big, y: ext[1] / big, z: ext[2] / big },
+      };
+    };
+    const runBox = bbox(all);
+    const animalSize = (() => {
+      let s = 0.5;
+      for (let n = 0; n < N; n += Math.max(1, Math.floor(N / 20))) {
+        const b = bbox(P.positions[n].filter((p) => p && p[0] !== null));
+        if (isFinite(b.lo[0])) s = Math.max(s, ...[0, 1, 2].map((k) => b.hi[k] - b.lo[k]));
+      }
+      return s;
+    })();
+    const sceneBox = P.camera_centers ? bbox(all.concat(P.camera_centers)) : runBox;
+
+    // The best-observed marker's path, for orientation.
+    let track = 0, best = -1;
+    for (let m = 0; m < M; m++) {
+      let k = 0;
+      for (let n = 0; n < N; n++) if (P.positions[n][m] && P.positions[n][m][0] !== null) k++;
+      if (k > best) { best = k; track = m; }
+    }
+
+    const bonesBySide = { left: [], right: [], mid: [] };
+    for (const [a, b] of P.bones) bonesBySide[side(P.markers[b]) !== "mid" ? side(P.markers[b]) : side(P.markers[a])].push([a, b]);
+
+    function boneXYZ(n, list) {
+      const x = [], y = [], z = [];
+      for (const [a, b] of list) {
+        const pa = P.positions[n][a], pb = P.positions[n][b];
+        if (!pa || !pb || pa[0] === null || pb[0] === null) continue;
+        x.push(pa[0], pb[0], null); y.push(pa[1], pb[1], null); z.push(pa[2], pb[2], null);
+      }
+      return { x, y, z };
+    }
+
+    function markerXYZ(n, flagged) {
+      const flags = markerFlags(n);
+      const x = [], y = [], z = [], text = [], hover = [];
+      flags.forEach((f, m) => {
+        const isFlag = f.weak || f.rejected.length > 0;
+        if (f.missing || isFlag !== flagged) return;
+        const p = P.positions[n][m], s = P.std[n][m];
+        x.push(p[0]); y.push(p[1]); z.push(p[2]);
+        text.push(P.markers[m]);
+        const sd = s && s[0] !== null ? Math.max(s[0], s[1], s[2]) * 2000 : null;
+        let h = `${P.markers[m]}<br>x ${fmt(p[0], 3)}, y ${fmt(p[1], 3)}, z ${fmt(p[2], 3)} m` +
+          `<br>±2 std ${fmt(sd, 0)} mm<br>seen by ${plural(f.cams, "camera")}`;
+        if (f.rejected.length) h += `<br>rejected in ${f.rejected.join(", ")}`;
+        hover.push(h);
+      });
+      return { x, y, z, text, hover };
+    }
+
+    const traces = [];
+    const idx = {};
+    if (P.camera_centers) {
+      idx.cameras = traces.length;
+      const cc = P.camera_centers;
+      traces.push({ type: "scatter3d", mode: "markers+text", name: "cameras",
+        x: cc.map((c) => c[0]), y: cc.map((c) => c[1]), z: cc.map((c) => c[2]), text: P.camera_names,
+        textposition: "top center", marker: { symbol: "square", size: 5, color: COLOR.camera },
+        hovertemplate: "%{text}<br>x %{x:.2f}, y %{y:.2f}, z %{z:.2f} m<extra></extra>" });
+      if (P.camera_directions) {
+        const span = Math.max(...[0, 1, 2].map((k) => sceneBox.hi[k] - sceneBox.lo[k]));
+        const L = 0.08 * span, x = [], y = [], z = [];
+        cc.forEach((c, i) => {
+          const d = P.camera_directions[i];
+          x.push(c[0], c[0] + L * d[0], null); y.push(c[1], c[1] + L * d[1], null); z.push(c[2], c[2] + L * d[2], null);
+        });
+        traces.push({ type: "scatter3d", mode: "lines", name: "camera view direction", x, y, z,
+          line: { color: COLOR.camera, width: 3 }, hoverinfo: "skip" });
+      }
+    }
+    idx.path = traces.length;
+    traces.push({ type: "scatter3d", mode: "lines", name: `path of ${P.markers[track]}`,
+      x: P.positions.map((f) => (f[track] ? f[track][0] : null)),
+      y: P.positions.map((f) => (f[track] ? f[track][1] : null)),
+      z: P.positions.map((f) => (f[track] ? f[track][2] : null)),
+      line: { color: COLOR.path, width: 2 }, hoverinfo: "skip" });
+    idx.left = traces.length;
+    traces.push({ type: "scatter3d", mode: "lines", name: "bones, left side", ...boneXYZ(0, bonesBySide.left),
+      line: { color: COLOR.left, width: 6 }, hoverinfo: "skip" });
+    idx.right = traces.length;
+    traces.push({ type: "scatter3d", mode: "lines", name: "bones, right side (dashed)", ...boneXYZ(0, bonesBySide.right),
+      line: { color: COLOR.right, width: 6, dash: "dash" }, hoverinfo: "skip" });
+    idx.mid = traces.length;
+    traces.push({ type: "scatter3d", mode: "lines", name: "bones, midline", ...boneXYZ(0, bonesBySide.mid),
+      line: { color: COLOR.mid, width: 6 }, hoverinfo: "skip" });
+    const mk0 = markerXYZ(0, false), fl0 = markerXYZ(0, true);
+    idx.markers = traces.length;
+    traces.push({ type: "scatter3d", mode: "markers", name: "markers", x: mk0.x, y: mk0.y, z: mk0.z,
+      text: mk0.text, hovertext: mk0.hover, hovertemplate: "%{hovertext}<extra></extra>",
+      marker: { size: 3.5, color: "#222222" } });
+    idx.flagged = traces.length;
+    traces.push({ type: "scatter3d", mode: "markers+text", name: "flagged markers (◇)", x: fl0.x, y: fl0.y, z: fl0.z,
+      text: fl0.text, hovertext: fl0.hover, hovertemplate: "%{hovertext}<extra></extra>", textposition: "top center",
+      textfont: { color: COLOR.flag, size: 11 }, marker: { size: 9, symbol: "diamond-open", color: COLOR.flag } });
+
+    function sceneLayout(n) {
+      let box;
+      if (state.view === "scene") box = cube(sceneBox.lo, sceneBox.hi, 0.5);
+      else if (state.view === "follow") {
+        const b = bbox(P.positions[n].filter((p) => p && p[0] !== null));
+        const mid = [0, 1, 2].map((k) => (isFinite(b.lo[k]) ? (b.lo[k] + b.hi[k]) / 2 : 0));
+        const h = 0.6 * animalSize;
+        box = cube(mid.map((v) => v - h), mid.map((v) => v + h), 0.3);
+      } else box = cube(runBox.lo, runBox.hi, animalSize * 0.6);
+      return {
+        "scene.xaxis.range": box.ranges[0], "scene.yaxis.range": box.ranges[1], "scene.zaxis.range": box.ranges[2],
+        "scene.aspectratio": box.aspect,
+      };
+    }
+
+    const layout3d = {
+      margin: { l: 0, r: 0, t: 10, b: 0 }, height: 520, uirevision: "keep", showlegend: true,
+      legend: { x: 0, y: 1, bgcolor: "rgba(255,255,255,0.7)" },
+      scene: {
+        aspectmode: "manual", uirevision: "keep",
+        xaxis: { title: { text: "x (m)" }, autorange: false },
+        yaxis: { title: { text: "y (m)" }, autorange: false },
+        zaxis: { title: { text: "z (m)" }, autorange: false },
+        camera: { eye: { x: 0.3, y: -1.25, z: 0.5 } },
+      },
+    };
+    const first = sceneLayout(0);
+    layout3d.scene.xaxis.range = first["scene.xaxis.range"];
+    layout3d.scene.yaxis.range = first["scene.yaxis.range"];
+    layout3d.scene.zaxis.range = first["scene.zaxis.range"];
+    layout3d.scene.aspectratio = first["scene.aspectratio"];
+    let plot3dReady = Plotly.newPlot(plot3d, traces, layout3d, PLOT_CONFIG);
+
+    function draw3d(n) {
+      const L = boneXYZ(n, bonesBySide.left), R = boneXYZ(n, bonesBySide.right), D = boneXYZ(n, bonesBySide.mid);
+      const mk = markerXYZ(n, false), fl = markerXYZ(n, true);
+      const upd = {
+        x: [L.x, R.x, D.x, mk.x, fl.x], y: [L.y, R.y, D.y, mk.y, fl.y], z: [L.z, R.z, D.z, mk.z, fl.z],
+        text: [null, null, null, mk.text, fl.text], hovertext: [null, null, null, mk.hover, fl.hover],
+      };
+      const lay = state.view === "follow" ? sceneLayout(n) : {};
+      return Plotly.update(plot3d, upd, lay, [idx.left, idx.right, idx.mid, idx.markers, idx.flagged]);
+    }
+
+    // ---------------------------------------------------------------- reprojection error heat map
+    const heat = el("section", { class: "card", "aria-labelledby": newId("h") });
+    heat.append(el("h2", { id: heat.getAttribute("aria-labelledby"), text: "Reprojection error per marker and camera" }));
+    heat.append(el("p", { class: "hint", text:
+      "Pixel distance between each camera's detection and the 3D estimate drawn into that camera. " +
+      "Every cell is labelled with its number; (n×) counts detections the robust loss rejected as outliers. " +
+      "Click a cell to plot that marker over time." }));
+    const heatModeId = newId("heat-mode");
+    const heatMode = el("select", { id: heatModeId },
+      el("option", { value: "run", text: "Whole run: median over frames" }),
+      el("option", { value: "frame", text: "Current frame" }));
+    heat.append(el("div", { class: "controls" }, el("label", { for: heatModeId }, "Show ", heatMode)));
+    const heatPlot = el("div", { class: "plot", role: "img", "data-testid": "heatmap",
+      "aria-label": "Heat map of reprojection error, markers by cameras; the same numbers are in the table below" });
+    const heatTable = el("table", { class: "data" });
+    heat.append(heatPlot, el("details", {}, el("summary", { text: "Show the numbers as a table" }), heatTable));
+    container.append(heat);
+
+    function heatData(mode, n) {
+      const z = [], text = [];
+      for (let m = 0; m < M; m++) {
+        const zr = [], tr = [];
+        for (let c = 0; c < C; c++) {
+          if (mode === "run") {
+            const v = P.error_table.median[c][m], nobs = P.error_table.observations[c][m], nout = P.error_table.outliers[c][m];
+            zr.push(v);
+            tr.push(nobs === 0 ? "not seen" : (v === null ? "all rejected" : fmt(v, 1)) + (nout ? ` (${nout}×)` : ""));
+          } else {
+            const v = P.residuals[c][n][m];
+            const rej = outByFrame[n].some(([cc, mm]) => cc === c && mm === m);
+            zr.push(v);
+            tr.push(v === null ? "not seen" : fmt(v, 1) + (rej ? " rejected" : ""));
+          }
+        }
+        z.push(zr); text.push(tr);
+      }
+      return { z, text };
+    }
+
+    function drawHeat() {
+      const d = heatData(heatMode.value, state.frame);
+      const trace = { type: "heatmap", z: d.z, x: P.camera_names, y: P.markers, text: d.text,
+        texttemplate: "%{text}", textfont: { size: 11 }, colorscale: "Magma", reversescale: true, zmin: 0,
+        colorbar: { title: { text: "px" } }, hoverongaps: false, xgap: 1, ygap: 1,
+        hovertemplate: "%{y} in %{x}: %{text} px<extra></extra>" };
+      if (heatMode.value === "run") {
+        const vals = d.z.flat().filter((v) => v !== null).sort((a, b) => a - b);
+        trace.zmax = Math.max(1, vals.length ? vals[Math.floor(0.98 * (vals.length - 1))] : 1);
+      } else trace.zmax = 20;
+      const lay = { margin: { l: 110, r: 10, t: 10, b: 40 }, height: Math.max(260, 24 * M + 70),
+        yaxis: { autorange: "reversed", automargin: true }, xaxis: { side: "bottom" }, plot_bgcolor: "#eeeeee" };
+      Plotly.react(heatPlot, [trace], lay, PLOT_CONFIG);
+      heatTable.replaceChildren(
+        el("caption", { text: heatMode.value === "run" ? "Median reprojection error (px), whole run"
+          : `Reprojection error (px), frame ${state.frame}` }),
+        el("thead", {}, el("tr", {}, el("th", { scope: "col", text: "Marker" }),
+          P.camera_names.map((c) => el("th", { scope: "col", text: c })))),
+        el("tbody", {}, P.markers.map((m, i) => el("tr", {}, el("th", { scope: "row", text: m }),
+          d.text[i].map((t) => el("td", { text: t }))))));
+    }
+    heatMode.addEventListener("change", drawHeat);
+
+    // ---------------------------------------------------------------- over time
+    const series = el("section", { class: "card", "aria-labelledby": newId("h") });
+    series.append(el("h2", { id: series.getAttribute("aria-labelledby"), text: "Over time" }));
+    series.append(el("p", { class: "hint", text:
+      "The estimate with a band of ±2 standard deviations. Hatched grey: frames with no marker seen by two " +
+      "cameras. The vertical line is the current frame; click the plot to go to a frame." }));
+    const whatId = newId("what");
+    const what = el("select", { id: whatId, "data-testid": "series-select" },
+      el("optgroup", { label: "Marker coordinates" },
+        P.markers.map((m, i) => el("option", { value: `m:${i}`, text: m }))),
+      P.params && P.param_names.length ? el("optgroup", { label: "Pose parameters" },
+        P.param_names.map((p, i) => el("option", { value: `p:${i}`,
+          text: `${p} (${P.param_units[i] === "m" ? "m" : "degrees"})` }))) : null,
+      el("optgroup", { label: "Fit" }, el("option", { value: "err", text: "Reprojection error per frame" })));
+    what.value = `m:${track}`;
+    series.append(el("div", { class: "controls" }, el("label", { for: whatId }, "Plot ", what)));
+    const seriesPlot = el("div", { class: "plot", role: "img", "data-testid": "series",
+      "aria-label": "Selected quantity over frames with its uncertainty band" });
+    series.append(seriesPlot);
+    container.append(series);
+
+    const frames = Array.from({ length: N }, (_, i) => i);
+    function band(y, s, k, axis, color, fill, name) {
+      const up = y.map((v, i) => (v === null || s[i] === null ? null : v + k * s[i]));
+      const lo = y.map((v, i) => (v === null || s[i] === null ? null : v - k * s[i]));
+      return [
+        { x: frames, y: up, xaxis: axis.x, yaxis: axis.y, mode: "lines", line: { width: 0 }, hoverinfo: "skip",
+          showlegend: false },
+        { x: frames, y: lo, xaxis: axis.x, yaxis: axis.y, mode: "lines", line: { width: 0 }, fill: "tonexty",
+          fillcolor: fill, hoverinfo: "skip", showlegend: false },
+        { x: frames, y, xaxis: axis.x, yaxis: axis.y, mode: "lines", line: { color, width: 1.6 }, name,
+          hovertemplate: `${name}: %{y:.4f}<br>frame %{x}<extra></extra>` },
+      ];
+    }
+
+    function hatchShapes(yref) {
+      return ranges([...unconstrainedFrames]).map(([a, b]) => ({ type: "rect", xref: "x", yref, x0: a - 0.5, x1: b + 0.5,
+        y0: 0, y1: 1, fillcolor: "rgba(120,120,120,0.25)", line: { width: 0 }, layer: "below" }));
+    }
+
+    function cursorShape() {
+      return { type: "line", xref: "x", yref: "paper", x0: state.frame, x1: state.frame, y0: 0, y1: 1,
+        line: { color: "#000", width: 1.5, dash: "dot" }, name: "cursor" };
+    }
+
+    let seriesShapes = [];
+    function drawSeries() {
+      const v = what.value;
+      let data = [], layout = { margin: { l: 60, r: 10, t: 10, b: 40 }, showlegend: false, hovermode: "x" };
+      if (v.startsWith("m:")) {
+        const m = Number(v.slice(2));
+        const axes = ["x", "y", "z"];
+        axes.forEach((a, k) => {
+          const y = P.positions.map((f) => (f[m] ? f[m][k] : null));
+          const s = P.std.map((f) => (f[m] ? f[m][k] : null));
+          data.push(...band(y, s, 2, { x: "x", y: k ? `y${k + 1}` : "y" }, COLOR.left, COLOR.band, `${P.markers[m]} ${a} (m)`));
+        });
+        const nc = P.ncams.map((f) => f[m]);
+        data.push({ x: frames, y: nc, xaxis: "x", yaxis: "y4", mode: "lines", line: { shape: "hvh", color: "#555" },
+          name: "cameras", hovertemplate: "seen by %{y} cameras<br>frame %{x}<extra></extra>" });
+        const rej = [];
+        P.outliers.forEach(([c, n, mm]) => { if (mm === m) rej.push([n, P.camera_names[c]]); });
+        data.push({ x: rej.map((r) => r[0]), y: rej.map((r) => P.ncams[r[0]][m]), xaxis: "x", yaxis: "y4",
+          mode: "markers", marker: { symbol: "x", size: 8, color: COLOR.flag }, text: rej.map((r) => r[1]),
+          name: "rejected", hovertemplate: "rejected in %{text}<br>frame %{x}<extra></extra>" });
+        layout = { ...layout, height: 620,
+          grid: { rows: 4, columns: 1, pattern: "coupled", roworder: "top to bottom" },
+          yaxis: { title: { text: "x (m)" } }, yaxis2: { title: { text: "y (m)" } }, yaxis3: { title: { text: "z (m)" } },
+          yaxis4: { title: { text: "cameras" }, range: [-0.3, C + 0.3], dtick: 1 },
+          xaxis: { title: { text: `frame (${fps} fps)` } } };
+        seriesShapes = ["y domain", "y2 domain", "y3 domain"].flatMap(hatchShapes);
+      } else if (v.startsWith("p:")) {
+        const p = Number(v.slice(2));
+        const k = P.param_units[p] === "m" ? 1 : 180 / Math.PI;
+        const y = P.params.map((r) => (r[p] === null ? null : r[p] * k));
+        const s = P.params_std ? P.params_std.map((r) => (r[p] === null ? null : r[p] * k)) : y.map(() => null);
+        const unit = P.param_units[p] === "m" ? "m" : "degrees";
+        data = band(y, s, 2, { x: "x", y: "y" }, COLOR.left, COLOR.band, `${P.param_names[p]} (${unit})`);
+        layout = { ...layout, height: 320, yaxis: { title: { text: `${P.param_names[p]} (${unit})` } },
+          xaxis: { title: { text: `frame (${fps} fps)` } } };
+        seriesShapes = hatchShapes("y domain");
+      } else {
+        const nrej = frames.map((n) => outByFrame[n].length);
+        data = [
+          { x: frames, y: P.frame_error, mode: "lines", line: { color: "#000", width: 1.5 }, name: "RMSE (px)",
+            hovertemplate: "RMSE %{y:.2f} px<br>frame %{x}<extra></extra>" },
+          { x: frames, y: nrej, yaxis: "y2", type: "bar", marker: { color: "rgba(204,0,0,0.35)" },
+            name: "rejected detections", hovertemplate: "%{y} rejected<br>frame %{x}<extra></extra>" },
+        ];
+        layout = { ...layout, height: 320, showlegend: true, legend: { orientation: "h", y: 1.12 },
+          yaxis: { title: { text: "reprojection RMSE (px)" } },
+          yaxis2: { title: { text: "rejected" }, overlaying: "y", side: "right", showgrid: false },
+          xaxis: { title: { text: `frame (${fps} fps)` } }, margin: { l: 60, r: 60, t: 30, b: 40 } };
+        seriesShapes = hatchShapes("y domain");
+      }
+      layout.shapes = [...seriesShapes, cursorShape()];
+      Plotly.react(seriesPlot, data, layout, PLOT_CONFIG).then(() => {
+        if (!seriesPlot._acinoClick) {
+          seriesPlot._acinoClick = true;
+          seriesPlot.on("plotly_click", (ev) => { if (ev.points && ev.points.length) setFrame(ev.points[0].x); });
+        }
+      });
+    }
+    what.addEventListener("change", drawSeries);
+
+    // ---------------------------------------------------------------- flags
+    const flags = el("section", { class: "card", "aria-labelledby": newId("h") });
+    flags.append(el("h2", { id: flags.getAttribute("aria-labelledby"), text: "Flagged by the solver" }));
+    const nFramesRej = outByFrame.filter((o) => o.length).length;
+    flags.append(el("p", { text:
+      `${plural(P.outliers.length, "detection")} rejected as outliers in ${plural(nFramesRej, "frame")}; ` +
+      `${plural(unconstrainedFrames.size, "frame")} with no marker seen by two cameras; ` +
+      `${plural(unconstrainedMarkers.size, "marker")} never seen by two cameras.` }));
+    const goto = (n, label) => el("button", { type: "button", class: "link", text: label || `frame ${n}`,
+      "aria-label": `Go to frame ${n}`, onclick: () => { setFrame(n); plot3d.scrollIntoView({ block: "center" }); } });
+    if (unconstrainedMarkers.size) {
+      flags.append(el("h3", { text: "Markers never seen by two cameras" }),
+        el("p", { text: [...unconstrainedMarkers].join(", ") + ": their 3D positions rest on the motion model alone." }));
+    }
+    if (unconstrainedFrames.size) {
+      flags.append(el("h3", { text: "Frames with no marker seen by two cameras" }),
+        el("p", { class: "buttons" }, ranges([...unconstrainedFrames]).slice(0, 40).map(([a, b]) =>
+          goto(a, a === b ? `frame ${a}` : `frames ${a}–${b}`))));
+    }
+    // Frames with the most rejected detections.
+    const worst = frames.filter((n) => outByFrame[n].length).sort((a, b) => outByFrame[b].length - outByFrame[a].length || a - b).slice(0, 10);
+    if (worst.length) {
+      flags.append(el("h3", { text: "Frames with the most rejected detections" }));
+      flags.append(el("table", { class: "data" },
+        el("thead", {}, el("tr", {}, ["Frame", "Rejected", "Which (marker in camera)"].map((t) => el("th", { scope: "col", text: t })))),
+        el("tbody", {}, worst.map((n) => el("tr", {},
+          el("td", {}, goto(n, String(n))), el("td", { text: String(outByFrame[n].length) }),
+          el("td", { text: outByFrame[n].map(([c, m]) => `${P.markers[m]} in ${P.camera_names[c]}`).join(", ") }))))));
+    }
+    // Per marker: rejected detections and frames seen by fewer than two cameras.
+    const perMarkerBox = el("details", {}, el("summary", { text: "Counts per marker" }));
+    flags.append(perMarkerBox);
+    const perMarker = P.markers.map((name, m) => {
+      let rej = 0, weak = 0, missing = 0;
+      for (let n = 0; n < N; n++) {
+        if (P.ncams[n][m] < 2) weak++;
+        const p = P.positions[n][m];
+        if (!p || p[0] === null) missing++;
+      }
+      for (const [, , mm] of P.outliers) if (mm === m) rej++;
+      return { name, rej, weak, missing };
+    });
+    perMarkerBox.append(el("table", { class: "data", "data-testid": "per-marker" },
+      el("thead", {}, el("tr", {}, ["Marker", "Rejected detections", "Frames seen by fewer than 2 cameras", "Frames without estimate"]
+        .map((t) => el("th", { scope: "col", text: t })))),
+      el("tbody", {}, perMarker.map((r) => el("tr", {}, el("th", { scope: "row", text: r.name }),
+        el("td", { text: String(r.rej) }), el("td", { text: String(r.weak) }), el("td", { text: String(r.missing) }))))));
+    const raster = el("div", { class: "plot", role: "img",
+      "aria-label": "Cameras that saw each marker in each frame, with rejected detections as crosses; the table above has the counts" });
+    const nFlagText = flags.children[1];
+    nFlagText.after(el("h3", { text: "Cameras per marker and frame" }),
+      el("p", { class: "hint", text: "Darker: fewer cameras saw the marker. Crosses: rejected detections. Hatched grey: " +
+        "frames with no marker seen by two cameras. Click to go to a frame." }), raster);
+    container.append(flags);
+
+    function drawRaster() {
+      const z = P.markers.map((_, m) => P.ncams.map((f) => f[m]));
+      const xs = P.outliers.map(([, n]) => n), ys = P.outliers.map(([, , m]) => P.markers[m]);
+      const data = [
+        { type: "heatmap", z, x: frames, y: P.markers, zmin: 0, zmax: C, colorscale: [[0, "#262626"], [1, "#ffffff"]],
+          colorbar: { title: { text: "cameras" }, dtick: 1 }, hovertemplate: "%{y}, frame %{x}: %{z} cameras<extra></extra>" },
+        { type: "scatter", mode: "markers", x: xs, y: ys, marker: { symbol: "x", size: 7, color: COLOR.flag },
+          text: P.outliers.map(([c]) => P.camera_names[c]), hovertemplate: "%{y}, frame %{x}: rejected in %{text}<extra></extra>",
+          name: "rejected" },
+      ];
+      const layout = { margin: { l: 110, r: 10, t: 10, b: 40 }, height: Math.max(240, 18 * M + 70), showlegend: false,
+        yaxis: { autorange: "reversed", automargin: true, type: "category" }, xaxis: { title: { text: "frame" }, range: [-0.5, N - 0.5] },
+        shapes: [...hatchShapes("paper"), cursorShape()] };
+      Plotly.react(raster, data, layout, PLOT_CONFIG).then(() => {
+        if (!raster._acinoClick) {
+          raster._acinoClick = true;
+          raster.on("plotly_click", (ev) => { if (ev.points && ev.points.length) setFrame(ev.points[0].x); });
+        }
+      });
+    }
+
+    // ---------------------------------------------------------------- frame control
+    function describe(n) {
+      const s = frameSummary(n);
+      status.textContent = s.text + (s.notes.length ? ` ${plural(s.notes.length, "marker")} flagged:` : " No marker flagged.");
+      notes.replaceChildren(...s.notes.slice(0, 30).map((t) => el("li", { text: t })));
+      if (s.notes.length > 30) notes.append(el("li", { text: `and ${s.notes.length - 30} more` }));
+      timeLabel.textContent = `${(n / fps).toFixed(3)} s`;
+      slider.setAttribute("aria-valuetext", `Frame ${n} of ${N - 1}, ${(n / fps).toFixed(3)} seconds`);
+    }
+
+    function syncOthers() {
+      const shape = cursorShape();
+      if (seriesPlot.layout) Plotly.relayout(seriesPlot, { shapes: [...seriesShapes, shape] });
+      if (raster.layout) Plotly.relayout(raster, { shapes: [...hatchShapes("paper"), shape] });
+      if (heatMode.value === "frame") drawHeat();
+    }
+
+    function setFrame(n, fromPlayback) {
+      n = Math.max(0, Math.min(N - 1, Math.round(Number(n) || 0)));
+      state.frame = n;
+      slider.value = String(n);
+      if (document.activeElement !== number) number.value = String(n);
+      plot3d.dataset.frame = String(n);
+      draw3d(n);
+      if (!fromPlayback) { describe(n); syncOthers(); }
+      else {
+        timeLabel.textContent = `${(n / fps).toFixed(3)} s`;
+        const now = performance.now();
+        if (now - state.lastSync > 400) { state.lastSync = now; syncOthers(); describe(n); }
+      }
+    }
+
+    function tick(now) {
+      if (!state.playing) return;
+      const dt = (now - state.last) / 1000;
+      state.last = now;
+      state.acc += dt * fps * state.speed;
+      if (state.acc >= 1) {
+        const step = Math.floor(state.acc);
+        state.acc -= step;
+        setFrame((state.frame + step) % N, true);
+      }
+      requestAnimationFrame(tick);
+    }
+
+    function setPlaying(on) {
+      state.playing = on && N > 1;
+      playBtn.textContent = state.playing ? "❚❚ Pause" : "▶ Play";
+      playBtn.setAttribute("aria-pressed", String(state.playing));
+      status.setAttribute("aria-live", state.playing ? "off" : "polite");
+      if (state.playing) { state.last = performance.now(); state.acc = 0; requestAnimationFrame(tick); }
+      else describe(state.frame);
+    }
+
+    playBtn.addEventListener("click", () => setPlaying(!state.playing));
+    prevBtn.addEventListener("click", () => { setPlaying(false); setFrame(state.frame - 1); });
+    nextBtn.addEventListener("click", () => { setPlaying(false); setFrame(state.frame + 1); });
+    slider.addEventListener("input", () => { setPlaying(false); setFrame(slider.value); });
+    number.addEventListener("change", () => { setPlaying(false); setFrame(number.value); });
+    speed.addEventListener("change", () => { state.speed = Number(speed.value); });
+    view.addEventListener("change", () => {
+      state.view = view.value;
+      Plotly.relayout(plot3d, sceneLayout(state.frame));
+    });
+    play.addEventListener("keydown", (ev) => {
+      const t = ev.target;
+      if (t.tagName === "INPUT" || t.tagName === "SELECT" || t.tagName === "TEXTAREA") return;
+      if (ev.key === " " && t.tagName !== "BUTTON") { ev.preventDefault(); setPlaying(!state.playing); }
+      else if (ev.key === "ArrowLeft") { ev.preventDefault(); setPlaying(false); setFrame(state.frame - 1); }
+      else if (ev.key === "ArrowRight") { ev.preventDefault(); setPlaying(false); setFrame(state.frame + 1); }
+      else if (ev.key === "Home") { ev.preventDefault(); setFrame(0); }
+      else if (ev.key === "End") { ev.preventDefault(); setFrame(N - 1); }
+    });
+    plot3d.tabIndex = 0;
+    plot3d.setAttribute("aria-describedby", status.id = newId("status"));
+
+    let firstFrame = 0;
+    for (let n = 0; n < N; n++) if (P.positions[n].some((p) => p && p[0] !== null)) { firstFrame = n; break; }
+    drawHeat();
+    drawSeries();
+    drawRaster();
+    plot3dReady.then(() => { setFrame(firstFrame); container.dataset.ready = "true"; });
+
+    return { setFrame, play: () => setPlaying(true), pause: () => setPlaying(false), state };
+  }
+
+  window.AcinoResultView = { render };
+})();
