@@ -74,9 +74,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
+        func = getattr(args, "func", None)
+        if func is None:  # a command group given without one of its subcommands
+            raise UsageError(f"'{args.command}' needs a subcommand (see {PROG} {args.command} --help)")
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
-            return int(args.func(args) or 0)
+            return int(func(args) or 0)
     except UsageError as e:
         return _fail(str(e))
     except InputError as e:

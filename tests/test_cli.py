@@ -172,11 +172,22 @@ def test_registered_subcommands_follow_the_contract():
     """Every registered subcommand sets ``func``; modules that do not exist are skipped."""
     from graph.cli import _optional_module, build_parser
 
+    import argparse
+
+    def leaves(parser, path=()):
+        """Every runnable command: a parser without subcommands of its own."""
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        if not subs:
+            yield path, parser
+        for action in subs:
+            for name, p in action.choices.items():
+                yield from leaves(p, path + (name,))
+
     parser = build_parser()
-    sub = next(a for a in parser._actions if a.dest == "command")
-    assert "solve" in sub.choices
-    for name, p in sub.choices.items():
-        assert callable(p.get_default("func")), name
+    found = dict(leaves(parser))
+    assert ("solve",) in found
+    for path, p in found.items():
+        assert callable(p.get_default("func")), " ".join(path)
     assert _optional_module("graph.no_such_module") is None
     assert _optional_module("no_such_package.cli") is None
 

@@ -165,6 +165,26 @@ def test_single_animal_csv_literal_text(tmp_path):
     np.testing.assert_array_equal(kp.likelihood, [[0.998, 0.0], [0.0, 0.9]])
 
 
+def test_multi_animal_csv_literal_text(tmp_path):
+    """The multi-animal layout as text (runs without pandas): 4 header rows, a 'single' block."""
+    text = ("scorer,S,S,S,S,S,S,S,S,S\n"
+            "individuals,ind1,ind1,ind1,ind2,ind2,ind2,single,single,single\n"
+            "bodyparts,nose,nose,nose,nose,nose,nose,lure,lure,lure\n"
+            "coords,x,y,likelihood,x,y,likelihood,x,y,likelihood\n"
+            "0,1.0,2.0,0.5,3.0,4.0,0.75,5.0,6.0,1.0\n"
+            "1,,,,7.0,8.0,0.25,9.0,10.0,0.125\n")
+    path = tmp_path / "ma.csv"
+    path.write_text(text)
+    with pytest.warns(UserWarning, match="2 individuals"):
+        one = read_keypoints(path)
+    np.testing.assert_array_equal(one.likelihood, [[0.5], [0.0]])
+    two = read_keypoints(path, individual="ind2")
+    np.testing.assert_array_equal(two.xy[:, 0], [[3, 4], [7, 8]])
+    lure = read_keypoints(path, individual="single")
+    assert lure.bodyparts == ["lure"]
+    np.testing.assert_array_equal(lure.likelihood, [[1.0], [0.125]])
+
+
 def test_write_dlc_csv_is_byte_identical_to_pandas(tmp_path):
     d = _detections(30)
     xy, lik = _expected(d)
