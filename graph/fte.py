@@ -133,13 +133,13 @@ class TrajectoryProblem:
 
 
 def optimise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int = 50, progress=None,
-             stretches=(4.0, 1.0), tol: float = 1e-5):
+             stretches=(4.0, 1.0), tol: float = 1e-4):
     """Levenberg-Marquardt with bound clipping and graduated robustness. Returns (Q, iterations, cost)."""
     sk = tp.prob.skeleton
     lower, upper = sk.lower, sk.upper
     it_total = 0
     cost = np.inf
-    budget = [max(2, max_iterations // 10)] * (len(stretches) - 1) + [max_iterations]
+    budget = [min(3, max_iterations)] * (len(stretches) - 1) + [max_iterations]
     total_budget = sum(budget)
     for stretch, iters in zip(stretches, budget):
         lam = 1e-3
@@ -200,6 +200,7 @@ def solve_fte(prob, progress=None):
     t_solve = time.perf_counter() - t0 - t_init
     if progress:
         progress(Progress(stage="uncertainty", fraction=0.95, iteration=iterations, cost=cost))
+    t1 = time.perf_counter()
     Sigma = tp.marginal_covariances(Q)
     pos, dpos = kernels.fk_jacobian_batch(Q, *tp.sk_args)
     cov = np.einsum("nmip,npq,nmjq->nmij", dpos, Sigma, dpos)
@@ -216,6 +217,7 @@ def solve_fte(prob, progress=None):
     if progress:
         progress(Progress(stage="done", fraction=1.0, iteration=iterations, cost=cost))
     return build_result(prob, "fte", positions=pos, std=std, reprojections=uv.transpose(1, 0, 2, 3), s=s,
-                        outlier=s >= OUTLIER_S, seconds={"init": t_init, "solve": t_solve},
+                        outlier=s >= OUTLIER_S,
+                        seconds={"init": t_init, "solve": t_solve, "uncertainty": time.perf_counter() - t1},
                         iterations=iterations, cost=cost, params=Q, params_std=params_std,
                         bounds_active=active)

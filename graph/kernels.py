@@ -178,16 +178,17 @@ def fk_jacobian_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_ro
 
 
 @njit(cache=True)
-def project_point(intr, R, t, X):
-    """Pixel (2,) of world point X in one camera, d uv / d X (2, 3), and whether it is in front."""
+def project_point(intr, R, t, X, uv, J):
+    """Write the pixel ``uv`` (2,) of world point X in one camera and ``J = d uv / d X`` (2, 3);
+    return whether the point is in front of the camera (uv is NaN otherwise)."""
     xc = R[0, 0] * X[0] + R[0, 1] * X[1] + R[0, 2] * X[2] + t[0]
     yc = R[1, 0] * X[0] + R[1, 1] * X[1] + R[1, 2] * X[2] + t[1]
     zc = R[2, 0] * X[0] + R[2, 1] * X[1] + R[2, 2] * X[2] + t[2]
-    uv = np.zeros(2)
-    J = np.zeros((2, 3))
     if zc <= 1e-9:
-        uv[:] = np.nan
-        return uv, J, False
+        uv[0] = np.nan
+        uv[1] = np.nan
+        J[:, :] = 0.0
+        return False
     x = xc / zc
     y = yc / zc
     fx, fy, cx, cy = intr[1], intr[2], intr[3], intr[4]
@@ -229,7 +230,7 @@ def project_point(intr, R, t, X):
         dyn = (R[1, c] - y * R[2, c]) * iz
         J[0, c] = fx * (a00 * dxn + a01 * dyn)
         J[1, c] = fy * (a10 * dxn + a11 * dyn)
-    return uv, J, True
+    return True
 
 
 @njit(cache=True)
@@ -275,11 +276,12 @@ def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
     H[:, :] = 0.0
     g[:] = 0.0
     Jr = np.zeros((2, D))
+    uv = np.zeros(2)
+    Jx = np.zeros((2, 3))
     cost = 0.0
-    flat = 0.5 * ra * ra
     for c in range(C):
         for m in range(M):
-            uv, Jx, ok = project_point(intr[c], Rc[c], tc[c], pos[m])
+            ok = project_point(intr[c], Rc[c], tc[c], pos[m], uv, Jx)
             uv_out[c, m, 0] = uv[0]
             uv_out[c, m, 1] = uv[1]
             s_out[c, m] = np.nan
@@ -387,7 +389,10 @@ def inverse_kinematics(Q0, X, anchor_w, lower, upper, huber, iterations,
     """
     N, P = Q0.shape
     M = marker_point.shape[0]
+    D = marker_dep.shape[1]
     Q = Q0.copy()
+    H = np.zeros((P, P))
+    g = np.zeros(P)
     for n in range(N):
         q = Q0[n].copy()
         if n > 0:
@@ -397,25 +402,162 @@ def inverse_kinematics(Q0, X, anchor_w, lower, upper, huber, iterations,
         for it in range(iterations):
             pos, dpos = fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
                                     marker_point, marker_dep)
-            H = np.zeros((P, P))
-            g = np.zeros(P)
+            H[:, :] = 0.0
+            g[:] = 0.0
             for m in range(M):
                 if not (np.isfinite(X[n, m, 0]) and np.isfinite(X[n, m, 1]) and np.isfinite(X[n, m, 2])):
                     continue
-                e = pos[m] - X[n, m]
-                d = np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+                e0 = pos[m, 0] - X[n, m, 0]
+                e1 = pos[m, 1] - X[n, m, 1]
+                e2 = pos[m, 2] - X[n, m, 2]
+                d = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
                 w = 1.0 if d <= huber else huber / d
-                Jm = dpos[m]
-                H += w * (Jm.T @ Jm)
-                g += w * (Jm.T @ e)
+                for a in range(D):
+                    pa = marker_dep[m, a]
+                    if pa < 0:
+                        break
+                    g[pa] += w * (dpos[m, 0, pa] * e0 + dpos[m, 1, pa] * e1 + dpos[m, 2, pa] * e2)
+                    for b in range(a, D):
+                        pb = marker_dep[m, b]
+                        if pb < 0:
+                            break
+                        h = w * (dpos[m, 0, pa] * dpos[m, 0, pb] + dpos[m, 1, pa] * dpos[m, 1, pb]
+                                 + dpos[m, 2, pa] * dpos[m, 2, pb])
+                        H[pa, pb] += h
+                        if pb != pa:
+                            H[pb, pa] += h
             for i in range(P):
                 H[i, i] += anchor_w[i] ** 2 + 1e-3
                 g[i] += anchor_w[i] ** 2 * (q[i] - Q0[n, i])
             step = np.linalg.solve(H, g)
-            q = q - step
+            biggest = 0.0
             for i in range(P):
-                q[i] = min(max(q[i], lower[i]), upper[i])
-            if np.max(np.abs(step)) < 1e-6:
+                q[i] = min(max(q[i] - step[i], lower[i]), upper[i])
+                biggest = max(biggest, abs(step[i]))
+            if biggest < 1e-5:
                 break
         Q[n] = q
     return Q
+
+
+@njit(cache=True, inline="always")
+def _solve3(H, g):
+    """Solve the 3x3 system H x = g by Cramer's rule (H symmetric positive definite here)."""
+    a, b, c = H[0, 0], H[0, 1], H[0, 2]
+    d, e, f = H[1, 0], H[1, 1], H[1, 2]
+    gg, h, i = H[2, 0], H[2, 1], H[2, 2]
+    A = e * i - f * h
+    B = -(d * i - f * gg)
+    C = d * h - e * gg
+    det = a * A + b * B + c * C
+    x = np.empty(3)
+    if det == 0.0:
+        x[:] = np.nan
+        return x
+    inv = 1.0 / det
+    x[0] = (A * g[0] + (c * h - b * i) * g[1] + (b * f - c * e) * g[2]) * inv
+    x[1] = (B * g[0] + (a * i - c * gg) * g[1] + (c * d - a * f) * g[2]) * inv
+    x[2] = (C * g[0] + (b * gg - a * h) * g[1] + (a * e - b * d) * g[2]) * inv
+    return x
+
+
+@njit(cache=True)
+def _dlt(norm, ok, Pm, use):
+    """Least-squares point from the views in ``use``: rows ``x P_3 - P_1``, ``y P_3 - P_2``."""
+    H = np.zeros((3, 3))
+    g = np.zeros(3)
+    row = np.empty(4)
+    for c in range(norm.shape[0]):
+        if not use[c]:
+            continue
+        for r in range(2):
+            for j in range(4):
+                row[j] = norm[c, r] * Pm[c, 2, j] - Pm[c, r, j]
+            for i in range(3):
+                g[i] -= row[i] * row[3]
+                for j in range(3):
+                    H[i, j] += row[i] * row[j]
+    for i in range(3):
+        H[i, i] += 1e-12
+    return _solve3(H, g)
+
+
+@njit(cache=True)
+def _cauchy_cost(X, z, ok, intr, Rc, tc, sigma, uv, J):
+    cost = 0.0
+    for c in range(z.shape[0]):
+        if not ok[c]:
+            continue
+        front = project_point(intr[c], Rc[c], tc[c], X, uv, J)
+        if not front:
+            cost += np.log1p(1e12)
+            continue
+        s2 = ((uv[0] - z[c, 0]) ** 2 + (uv[1] - z[c, 1]) ** 2) / (sigma * sigma)
+        cost += np.log1p(s2)
+    return cost
+
+
+@njit(cache=True, parallel=True)
+def triangulate_points(norm, z, ok, intr, Rc, tc, Pm, sigma, iterations):
+    """Robust triangulation of K points seen by C cameras (see :mod:`graph.triangulate`).
+
+    ``norm`` (K, C, 2) undistorted normalised coordinates, ``z`` (K, C, 2) pixels, ``ok`` (K, C).
+    Returns X (K, 3) (NaN with fewer than two views) and the Gauss-Newton information H (K, 3, 3).
+    """
+    K, C = ok.shape
+    X = np.full((K, 3), np.nan)
+    Hout = np.zeros((K, 3, 3))
+    for k in prange(K):
+        nv = 0
+        for c in range(C):
+            if ok[k, c]:
+                nv += 1
+        if nv < 2:
+            continue
+        use = ok[k].copy()
+        uv = np.zeros(2)
+        J = np.zeros((2, 3))
+        x = _dlt(norm[k], ok[k], Pm, use)
+        best = _cauchy_cost(x, z[k], ok[k], intr, Rc, tc, sigma, uv, J)
+        # every view within ~3 sigma of the all-view point: no outlier to look for
+        if nv >= 3 and best > nv * np.log1p(9.0):
+            for a in range(C):
+                if not ok[k, a]:
+                    continue
+                for b in range(a + 1, C):
+                    if not ok[k, b]:
+                        continue
+                    use[:] = False
+                    use[a] = True
+                    use[b] = True
+                    xp = _dlt(norm[k], ok[k], Pm, use)
+                    cst = _cauchy_cost(xp, z[k], ok[k], intr, Rc, tc, sigma, uv, J)
+                    if cst < best:
+                        best = cst
+                        x = xp
+        H = np.zeros((3, 3))
+        for it in range(iterations):
+            H[:, :] = 0.0
+            g = np.zeros(3)
+            for c in range(C):
+                if not ok[k, c]:
+                    continue
+                front = project_point(intr[c], Rc[c], tc[c], x, uv, J)
+                if not front:
+                    continue
+                r0 = uv[0] - z[k, c, 0]
+                r1 = uv[1] - z[k, c, 1]
+                w = 1.0 / (1.0 + (r0 * r0 + r1 * r1) / (sigma * sigma))
+                for i in range(3):
+                    g[i] += w * (J[0, i] * r0 + J[1, i] * r1)
+                    for j in range(3):
+                        H[i, j] += w * (J[0, i] * J[0, j] + J[1, i] * J[1, j])
+            for i in range(3):
+                H[i, i] += 1e-9
+            step = _solve3(H, g)
+            x = x - step
+            if np.max(np.abs(step)) < 1e-7:
+                break
+        X[k] = x
+        Hout[k] = H
+    return X, Hout

@@ -31,7 +31,7 @@ def build_result(prob, method: str, *, positions, std, reprojections, s, outlier
         rates = np.gradient(params, prob.dt, axis=0)
     report = SolveReport(
         method=method, skeleton=sk.name, frames=prob.frames, cameras=prob.cameras, markers=len(sk.markers),
-        seconds={"total": 0.0, "init": float(seconds.get("init", 0.0)), "solve": float(seconds.get("solve", 0.0))},
+        seconds={"total": 0.0, **{k: float(v) for k, v in seconds.items()}},
         iterations=int(iterations), cost=float(cost), reprojection_rmse_px=rmse, per_frame_ms=per_frame_ms,
         outliers=int(out.sum()), observations=int(valid.sum()), unconstrained_markers=um,
         unconstrained_frames=uf, bounds_active=int(bounds_active), warnings=list(prob.warnings))

@@ -19,13 +19,13 @@ Everything is vectorised over all N*M points at once.
 
 from __future__ import annotations
 
-import itertools
 import time
 
 import numpy as np
 
+from graph import kernels
 from graph.camera import Calibration, undistort_points
-from graph.robust import OUTLIER_S, cauchy_weight
+from graph.robust import OUTLIER_S
 
 
 def triangulate(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, sigma_px: float = 5.0,
@@ -34,73 +34,24 @@ def triangulate(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, s
 
     Returns ``X`` (N, M, 3) (NaN with fewer than two views), ``cov`` (N, M, 3, 3),
     ``uv`` reprojections (C, N, M, 2) and ``s`` normalised residuals (N, C, M) (NaN where not valid).
+    The per-point work runs compiled (:func:`graph.kernels.triangulate_points`).
     """
     N, C, M, _ = meas.shape
     K = N * M
-    z = meas.transpose(1, 0, 2, 3).reshape(C, K, 2)
-    ok = valid.transpose(1, 0, 2).reshape(C, K)
-    norm = np.stack([undistort_points(cam, z[c]) for c, cam in enumerate(calibration.cameras)])
-    ok = ok & np.isfinite(norm).all(-1)
+    z = meas.transpose(0, 2, 1, 3).reshape(K, C, 2)  # (K, C, 2)
+    ok = valid.transpose(0, 2, 1).reshape(K, C)
+    norm = np.stack([undistort_points(cam, z[:, c]) for c, cam in enumerate(calibration.cameras)], axis=1)
+    ok = ok & np.isfinite(norm).all(-1) & np.isfinite(z).all(-1)
     Pm = np.stack([np.hstack([cam.R, cam.t[:, None]]) for cam in calibration.cameras])  # (C, 3, 4)
-    # DLT rows per view: (C, K, 2, 4)
-    rows = np.stack([norm[..., 0:1] * Pm[:, None, 2, :] - Pm[:, None, 0, :],
-                     norm[..., 1:2] * Pm[:, None, 2, :] - Pm[:, None, 1, :]], axis=2)
-    rows = np.nan_to_num(rows)
-    nviews = ok.sum(0)
-    can = nviews >= 2
-
-    def dlt(mask):  # mask (C, K)
-        Aw = rows * mask[..., None, None]
-        A3 = Aw[..., :3].transpose(1, 0, 2, 3).reshape(K, 2 * C, 3)
-        b = -Aw[..., 3].transpose(1, 0, 2).reshape(K, 2 * C)
-        H = np.einsum("kri,krj->kij", A3, A3) + 1e-12 * np.eye(3)
-        g = np.einsum("kri,kr->ki", A3, b)
-        return np.linalg.solve(H, g[..., None])[..., 0]
-
-    def cauchy_cost(X):
-        uv = np.stack([cam.project(X) for cam in calibration.cameras])
-        s2 = np.sum((uv - z) ** 2, -1) / sigma_px**2
-        cost = np.where(ok & np.isfinite(s2), np.log1p(np.nan_to_num(s2, nan=1e12)), 0.0)
-        # a point behind a camera that saw it costs as a gross outlier
-        cost = np.where(ok & ~np.isfinite(s2), np.log1p(1e12), cost)
-        return cost.sum(0)
-
-    X = dlt(ok)
-    best = cauchy_cost(X)
-    multi = nviews >= 3
-    if multi.any() and C >= 3:
-        for a, b in itertools.combinations(range(C), 2):
-            pair = np.zeros_like(ok)
-            pair[a], pair[b] = ok[a], ok[b]
-            sel = multi & pair[a] & pair[b]
-            if not sel.any():
-                continue
-            Xp = dlt(pair)
-            cst = cauchy_cost(Xp)
-            better = sel & (cst < best)
-            X[better], best[better] = Xp[better], cst[better]
-
-    for _ in range(iterations):
-        H = np.zeros((K, 3, 3))
-        g = np.zeros((K, 3))
-        for c, cam in enumerate(calibration.cameras):
-            uv, J = cam.project_with_jacobian(X)
-            r = uv - z[c]
-            good = ok[c] & np.isfinite(r).all(-1)
-            w = np.where(good, cauchy_weight(np.linalg.norm(np.nan_to_num(r), axis=-1) / sigma_px), 0.0)
-            J = np.nan_to_num(J)
-            H += w[:, None, None] * np.einsum("kri,krj->kij", J, J)
-            g += w[:, None] * np.einsum("kri,kr->ki", J, np.nan_to_num(r))
-        H += 1e-9 * np.eye(3)
-        step = np.linalg.solve(H, g[..., None])[..., 0]
-        X = X - np.where(can[:, None], step, 0.0)
-        if np.nanmax(np.abs(step[can]), initial=0.0) < 1e-7:
-            break
-    cov = sigma_px**2 * np.linalg.inv(H)
-    X[~can] = np.nan
-    cov[~can] = np.nan
+    intr, Rc, tc = calibration.packed()
+    X, H = kernels.triangulate_points(np.nan_to_num(norm), np.nan_to_num(z), ok, intr, Rc, tc, Pm,
+                                      float(sigma_px), iterations)
+    good = np.isfinite(X).all(-1)
+    cov = np.full((K, 3, 3), np.nan)
+    if good.any():
+        cov[good] = sigma_px**2 * np.linalg.inv(H[good])
     uv = np.stack([cam.project(X) for cam in calibration.cameras])  # (C, K, 2)
-    s = np.where(ok, np.linalg.norm(uv - z, axis=-1) / sigma_px, np.nan)
+    s = np.where(ok.T, np.linalg.norm(uv - z.transpose(1, 0, 2), axis=-1) / sigma_px, np.nan)  # (C, K)
     return (X.reshape(N, M, 3), cov.reshape(N, M, 3, 3), uv.reshape(C, N, M, 2),
             s.reshape(C, N, M).transpose(1, 0, 2))
 

@@ -52,8 +52,9 @@ def test_jacobians_match_finite_differences_and_kernel(rig, model):
     num = np.stack([(cam.project(X + eps * e) - cam.project(X - eps * e)) / (2 * eps) for e in np.eye(3)], -1)
     assert np.abs(J - num).max() < 1e-4 * np.abs(J).max()
     packed = cam.packed()
+    kuv, kJ = np.zeros(2), np.zeros((2, 3))
     for i in range(len(X)):
-        kuv, kJ, ok = project_point(packed, cam.R, cam.t, X[i])
+        ok = project_point(packed, cam.R, cam.t, X[i], kuv, kJ)
         assert ok
         assert np.allclose(kuv, uv[i], atol=1e-9)
         assert np.allclose(kJ, J[i], rtol=1e-9, atol=1e-9)
@@ -63,5 +64,6 @@ def test_point_behind_camera_is_nan(rig):
     cam = rig.cameras[0]
     behind = cam.center - 2.0 * cam.R[2]
     assert np.isnan(cam.project(behind[None])).all()
-    _, _, ok = project_point(cam.packed(), cam.R, cam.t, behind)
-    assert not ok
+    uv = np.zeros(2)
+    assert not project_point(cam.packed(), cam.R, cam.t, behind, uv, np.zeros((2, 3)))
+    assert np.isnan(uv).all()
