@@ -51,7 +51,25 @@
   function render(container, P, opts) {
     opts = opts || {};
     container.replaceChildren();
-    const N = P.frames, M = P.markers.length, C = P.camera_names.length;
+    if (!P || !Array.isArray(P.positions) || !Array.isArray(P.markers)) {
+      container.append(el("p", { class: "notice", text: "This result holds no 3D positions to draw." }));
+      return null;
+    }
+    // Older or partial payloads: fill what the view needs with "unknown".
+    const blank = (v) => P.positions.map((f) => f.map(() => v));
+    P.cameras = P.cameras || P.camera_names || [];
+    P.std = P.std || blank([null, null, null]);
+    P.ncams = P.ncams || blank(0);
+    P.outliers = P.outliers || [];
+    P.residuals = P.residuals || P.cameras.map(() => blank(null));
+    P.error_table = P.error_table || { median: P.cameras.map(() => P.markers.map(() => null)),
+      observations: P.cameras.map(() => P.markers.map(() => 0)), outliers: P.cameras.map(() => P.markers.map(() => 0)) };
+    P.param_names = P.param_names || [];
+    P.param_units = P.param_units || P.param_names.map((p) => (/^[xyz]_/.test(p) ? "m" : "rad"));
+    const N = P.frames, M = P.markers.length, C = P.cameras.length;
+    const markerIndex = new Map(P.markers.map((m, i) => [m, i]));
+    const boneIdx = (P.bones || []).map(([a, b]) => [markerIndex.get(a), markerIndex.get(b)])
+      .filter(([a, b]) => a !== undefined && b !== undefined);
     const fps = P.fps || 1;
     const report = P.report || {};
     const state = { frame: 0, playing: false, speed: 1, view: "run", last: 0, acc: 0, lastSync: 0 };
@@ -71,7 +89,7 @@
         flags[m].cams = P.ncams[n][m];
         flags[m].weak = flags[m].cams < 2;
       }
-      for (const [c, m] of outByFrame[n]) flags[m].rejected.push(P.camera_names[c]);
+      for (const [c, m] of outByFrame[n]) flags[m].rejected.push(P.cameras[c]);
       return flags;
     }
 
@@ -100,7 +118,7 @@
     fact("Method", `${P.method} (${P.skeleton} skeleton)`);
     fact("Frames", `${N} at ${fps} fps (${(N / fps).toFixed(2)} s)`);
     fact("Markers", String(M));
-    fact("Cameras", P.camera_names.join(", "));
+    fact("Cameras", P.cameras.join(", "));
     fact("Reprojection RMSE", `${fmt(report.reprojection_rmse_px, 2)} px`);
     fact("Rejected detections", `${report.outliers ?? P.outliers.length} of ${report.observations ?? "–"}`);
     fact("Never seen by two cameras", unconstrainedMarkers.size ? [...unconstrainedMarkers].join(", ") : "none");
@@ -193,7 +211,7 @@
     }
 
     const bonesBySide = { left: [], right: [], mid: [] };
-    for (const [a, b] of P.bones) bonesBySide[side(P.markers[b]) !== "mid" ? side(P.markers[b]) : side(P.markers[a])].push([a, b]);
+    for (const [a, b] of boneIdx) bonesBySide[side(P.markers[b]) !== "mid" ? side(P.markers[b]) : side(P.markers[a])].push([a, b]);
 
     function boneXYZ(n, list) {
       const x = [], y = [], z = [];
@@ -229,7 +247,7 @@
       idx.cameras = traces.length;
       const cc = P.camera_centers;
       traces.push({ type: "scatter3d", mode: "markers+text", name: "cameras",
-        x: cc.map((c) => c[0]), y: cc.map((c) => c[1]), z: cc.map((c) => c[2]), text: P.camera_names,
+        x: cc.map((c) => c[0]), y: cc.map((c) => c[1]), z: cc.map((c) => c[2]), text: P.cameras,
         textposition: "top center", marker: { symbol: "square", size: 5, color: COLOR.camera },
         hovertemplate: "%{text}<br>x %{x:.2f}, y %{y:.2f}, z %{z:.2f} m<extra></extra>" });
       if (P.camera_directions) {
@@ -353,7 +371,7 @@
 
     function drawHeat() {
       const d = heatData(heatMode.value, state.frame);
-      const trace = { type: "heatmap", z: d.z, x: P.camera_names, y: P.markers, text: d.text,
+      const trace = { type: "heatmap", z: d.z, x: P.cameras, y: P.markers, text: d.text,
         texttemplate: "%{text}", textfont: { size: 11 }, colorscale: "Magma", reversescale: true, zmin: 0,
         colorbar: { title: { text: "px" } }, hoverongaps: false, xgap: 1, ygap: 1,
         hovertemplate: "%{y} in %{x}: %{text} px<extra></extra>" };
@@ -368,7 +386,7 @@
         el("caption", { text: heatMode.value === "run" ? "Median reprojection error (px), whole run"
           : `Reprojection error (px), frame ${state.frame}` }),
         el("thead", {}, el("tr", {}, el("th", { scope: "col", text: "Marker" }),
-          P.camera_names.map((c) => el("th", { scope: "col", text: c })))),
+          P.cameras.map((c) => el("th", { scope: "col", text: c })))),
         el("tbody", {}, P.markers.map((m, i) => el("tr", {}, el("th", { scope: "row", text: m }),
           d.text[i].map((t) => el("td", { text: t }))))));
     }
@@ -435,7 +453,7 @@
         data.push({ x: frames, y: nc, xaxis: "x", yaxis: "y4", mode: "lines", line: { shape: "hvh", color: "#555" },
           name: "cameras", hovertemplate: "seen by %{y} cameras<br>frame %{x}<extra></extra>" });
         const rej = [];
-        P.outliers.forEach(([c, n, mm]) => { if (mm === m) rej.push([n, P.camera_names[c]]); });
+        P.outliers.forEach(([c, n, mm]) => { if (mm === m) rej.push([n, P.cameras[c]]); });
         data.push({ x: rej.map((r) => r[0]), y: rej.map((r) => P.ncams[r[0]][m]), xaxis: "x", yaxis: "y4",
           mode: "markers", marker: { symbol: "x", size: 8, color: COLOR.flag }, text: rej.map((r) => r[1]),
           name: "rejected", hovertemplate: "rejected in %{text}<br>frame %{x}<extra></extra>" });
@@ -506,7 +524,7 @@
         el("thead", {}, el("tr", {}, ["Frame", "Rejected", "Which (marker in camera)"].map((t) => el("th", { scope: "col", text: t })))),
         el("tbody", {}, worst.map((n) => el("tr", {},
           el("td", {}, goto(n, String(n))), el("td", { text: String(outByFrame[n].length) }),
-          el("td", { text: outByFrame[n].map(([c, m]) => `${P.markers[m]} in ${P.camera_names[c]}`).join(", ") }))))));
+          el("td", { text: outByFrame[n].map(([c, m]) => `${P.markers[m]} in ${P.cameras[c]}`).join(", ") }))))));
     }
     // Per marker: rejected detections and frames seen by fewer than two cameras.
     const perMarkerBox = el("details", {}, el("summary", { text: "Counts per marker" }));
@@ -541,7 +559,7 @@
         { type: "heatmap", z, x: frames, y: P.markers, zmin: 0, zmax: C, colorscale: [[0, "#262626"], [1, "#ffffff"]],
           colorbar: { title: { text: "cameras" }, dtick: 1 }, hovertemplate: "%{y}, frame %{x}: %{z} cameras<extra></extra>" },
         { type: "scatter", mode: "markers", x: xs, y: ys, marker: { symbol: "x", size: 7, color: COLOR.flag },
-          text: P.outliers.map(([c]) => P.camera_names[c]), hovertemplate: "%{y}, frame %{x}: rejected in %{text}<extra></extra>",
+          text: P.outliers.map(([c]) => P.cameras[c]), hovertemplate: "%{y}, frame %{x}: rejected in %{text}<extra></extra>",
           name: "rejected" },
       ];
       const layout = { margin: { l: 110, r: 10, t: 10, b: 40 }, height: Math.max(240, 18 * M + 70), showlegend: false,

@@ -1,0 +1,153 @@
+"""The FastAPI application: :func:`create_app` wires settings, the job table, a backend and the routes.
+
+One server process owns a data dir at a time (an exclusive lock on ``<data dir>/server.lock``,
+released by the kernel however the process ends): that is what lets a restarted server treat every
+run still marked ``running`` as interrupted.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import logging
+import os
+import shutil
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+import graph
+from service.backends import make_backend
+from service.jobs import JobService
+from service.limits import UploadGuard
+from service.settings import Settings
+from service.store import Store
+
+log = logging.getLogger("acinoset.service")
+
+DESCRIPTION = """\
+3D animal pose from DeepLabCut keypoints and a camera calibration, as a shared lab service.
+
+Submit one keypoint file per camera and the calibration (`POST /v1/jobs`), poll the job
+(`GET /v1/jobs/{id}`) and download the result (`GET /v1/jobs/{id}/result?format=csv|h5|json`).
+Every call under `/v1` needs `Authorization: Bearer TOKEN` (an admin makes tokens with
+`acinoset users add NAME`). Every error answer is JSON: `{"detail": "one line"}`.
+"""
+
+
+class DataDirInUse(RuntimeError):
+    pass
+
+
+class DataDirLock:
+    """An exclusive, non-blocking ``flock`` on ``<data dir>/server.lock``."""
+
+    def __init__(self, data_dir: Path):
+        self.path = data_dir / "server.lock"
+        self._fd: int | None = None
+
+    def acquire(self) -> None:
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise DataDirInUse(f"another acinoset server is using {self.path.parent}") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._fd = fd
+
+    def release(self) -> None:
+        if self._fd is not None:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = None
+
+
+def _tidy(settings: Settings, store: Store) -> None:
+    """Remove what a crash can leave in the jobs dir: half-stored uploads, half-written results and
+    directories of jobs that never made it into the table."""
+    jobs_dir = settings.jobs_dir
+    known = store.all_job_ids()
+    for p in jobs_dir.iterdir():
+        if p.name.startswith(".upload-") or (p.is_dir() and p.name not in known and len(p.name) == 32):
+            shutil.rmtree(p, ignore_errors=True)
+        elif p.is_dir():
+            for tmp in p.glob("result.*.tmp"):
+                shutil.rmtree(tmp, ignore_errors=True)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The application. The data dir is locked, and the backend started, when the app starts up."""
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        settings.jobs_dir.mkdir(parents=True, exist_ok=True)
+        lock = DataDirLock(settings.data_dir)
+        lock.acquire()
+        try:
+            store = Store(settings.db_path)
+            _tidy(settings, store)
+            backend = make_backend(settings, store)
+            app.state.store = store
+            app.state.backend = backend
+            app.state.jobs = JobService(settings, store, backend)
+            backend.start()
+            try:
+                yield
+            finally:
+                backend.stop()
+        finally:
+            lock.release()
+
+    app = FastAPI(title="acinoset", version=graph.__version__, description=DESCRIPTION, lifespan=lifespan)
+    app.state.settings = settings
+    app.add_middleware(UploadGuard, settings=settings)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException):
+        detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request: Request, exc: RequestValidationError):
+        parts = []
+        for err in exc.errors():
+            loc = [str(x) for x in err.get("loc", ()) if x not in ("body", "query", "path", "header")]
+            parts.append(f"{'.'.join(loc) + ': ' if loc else ''}{err.get('msg', 'invalid')}")
+        return JSONResponse({"detail": "; ".join(parts) or "invalid request"}, status_code=422)
+
+    @app.exception_handler(Exception)
+    async def internal_error(request: Request, exc: Exception):
+        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        return JSONResponse({"detail": f"internal error ({type(exc).__name__}); the server log has the details"},
+                            status_code=500)
+
+    from service import routes
+
+    app.include_router(routes.router)
+    app.include_router(routes.public)
+    _include_web(app)
+    return app
+
+
+def _include_web(app: FastAPI) -> None:
+    """The web pages (``service/web.py``), when that module exists; not part of the REST contract."""
+    import importlib
+
+    try:
+        web = importlib.import_module("service.web")
+    except ModuleNotFoundError as e:
+        if e.name != "service.web":
+            raise
+        return
+    app.include_router(web.router, include_in_schema=False)
+    static = Path(__file__).parent / "static"
+    if static.is_dir() and not any(getattr(r, "path", None) == "/static" for r in app.routes):
+        from fastapi.staticfiles import StaticFiles
+
+        app.mount("/static", StaticFiles(directory=static), name="static")

@@ -1,0 +1,226 @@
+"""The embedded backend: solves run in child processes of the server, one process per job.
+
+No other server is needed. A scheduler thread keeps at most ``settings.workers`` solves running:
+it claims the next queued job from the table (fair between users), forks a process for it and
+watches it. A process per job means a cancel kills exactly that solve (gtsam's optimiser holds the
+GIL and cannot be interrupted from Python), and a solve that crashes takes nothing else with it.
+
+Processes come from a *forkserver* that imported the solver (and, with ``warm_start``, ran it once
+so numba's kernels are compiled): forking a job costs milliseconds, not an import and a JIT.
+
+Crash safety:
+
+* a job process that dies without finishing (killed, out of memory) interrupts its run: the job is
+  queued again, or failed once it used ``max_attempts`` runs;
+* the scheduler renews the lease of every run it watches; at start-up the server holds the data
+  dir's lock, so runs still marked ``running`` belong to a server that died: they are interrupted
+  the same way (:meth:`service.store.Store.adopt`);
+* job processes ask the kernel to kill them when the forkserver dies (which it does when the
+  server dies), and a run's writes are fenced by its run token, so an orphan can never overwrite a
+  newer run.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import socket
+import threading
+import time
+from dataclasses import dataclass
+
+from service.backends.base import Backend, log
+from service.settings import Settings
+from service.store import Store
+
+
+@dataclass
+class _Run:
+    job_id: str
+    token: str
+    process: multiprocessing.process.BaseProcess
+    started: float
+    cancelled: bool = False
+
+
+def _describe_exit(code: int | None) -> str:
+    import signal
+
+    if code is None:
+        return "the solve process vanished"
+    if code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        return f"the solve process was killed ({name})"
+    return f"the solve process exited with status {code} without a result"
+
+
+class EmbeddedBackend(Backend):
+    name = "embedded"
+
+    def __init__(self, settings: Settings, store: Store):
+        super().__init__(settings, store)
+        self._ctx = multiprocessing.get_context("forkserver")
+        self._runs: dict[str, _Run] = {}
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._halt = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._host = socket.gethostname()
+        self._last_renew = 0.0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        counts = self.store.adopt(self.name, "the service stopped while it ran")
+        if any(counts.values()):
+            log.warning("recovered jobs from the last run: %s", counts)
+        from service.worker import SOLVER_MODULES, prepare_solver_environment
+
+        prepare_solver_environment()  # the forkserver inherits it
+        preload = ["service.worker", *SOLVER_MODULES] + (["service.warmup"] if self.settings.warm_start else [])
+        self._ctx.set_forkserver_preload(preload)
+        threading.Thread(target=self._start_forkserver, name="acinoset-forkserver-start", daemon=True).start()
+        self._thread = threading.Thread(target=self._loop, name="acinoset-scheduler", daemon=True)
+        self._thread.start()
+
+    def _start_forkserver(self) -> None:
+        """Start the forkserver (importing and warming the solver) now rather than at the first job."""
+        from service.worker import noop
+
+        try:
+            p = self._ctx.Process(target=noop, name="acinoset-forkserver-start", daemon=True)
+            p.start()
+            p.join()
+        except Exception:
+            log.exception("could not start the forkserver")
+
+    def stop(self) -> None:
+        self._halt.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10)
+        with self._lock:
+            runs = list(self._runs.values())
+            self._runs.clear()
+        for run in runs:
+            run.process.kill()
+            run.process.join(timeout=5)
+            self.store.release(run.job_id, run.token, "the service was stopped while it ran; it runs again")
+
+    # -- the API's calls ---------------------------------------------------------------------
+
+    def submit(self, job_id: str) -> None:
+        self._wake.set()
+
+    def cancel(self, job_id: str, run_token: str | None) -> None:
+        with self._lock:
+            run = self._runs.get(job_id)
+            if run is not None:
+                run.cancelled = True
+                run.process.kill()
+        if run is not None:
+            run.process.join(timeout=5)
+        self._wake.set()
+
+    def health(self) -> dict:
+        alive = self._thread is not None and self._thread.is_alive()
+        return {"ok": alive, "workers": self.settings.workers,
+                "detail": None if alive else "the scheduler thread is not running"}
+
+    def running(self) -> dict[str, int | None]:
+        """Job id -> pid of its solve process."""
+        with self._lock:
+            return {j: r.process.pid for j, r in self._runs.items()}
+
+    # -- the scheduler -----------------------------------------------------------------------
+
+    def _loop(self) -> None:
+        while not self._halt.is_set():
+            self._wake.wait(timeout=0.25)
+            self._wake.clear()
+            if self._halt.is_set():
+                break
+            try:
+                self._reap()
+                self._enforce()
+                self._renew()
+                self._fill()
+            except Exception:  # keep scheduling whatever one tick hit (e.g. a locked database)
+                log.exception("scheduler tick failed")
+                time.sleep(0.5)
+
+    def _reap(self) -> None:
+        """Ended processes: a run that did not record its end was interrupted."""
+        with self._lock:
+            ended = [r for r in self._runs.values() if r.process.exitcode is not None]
+            for r in ended:
+                del self._runs[r.job_id]
+        for r in ended:
+            code = r.process.exitcode
+            r.process.join(timeout=1)
+            if r.cancelled:
+                continue
+            status = self.store.interrupt(r.job_id, r.token, _describe_exit(code))
+            if status is not None:
+                log.warning("job %s: %s; now %s", r.job_id, _describe_exit(code), status)
+            try:
+                r.process.close()
+            except ValueError:
+                pass
+
+    def _enforce(self) -> None:
+        """Kill runs whose job is no longer theirs (cancelled, deleted, or cancelled from the CLI)
+        and runs over the time limit."""
+        with self._lock:
+            runs = list(self._runs.values())
+        now = time.time()
+        for r in runs:
+            job = self.store.job(r.job_id)
+            if job is None or job.status != "running" or job.run_token != r.token:
+                if r.process.is_alive() and job is not None and job.status in ("succeeded", "failed"):
+                    continue  # finished a moment ago; the process is on its way out
+                if r.process.is_alive():
+                    r.cancelled = True
+                    r.process.kill()
+            elif now - r.started > self.settings.job_timeout_seconds:
+                r.cancelled = True
+                r.process.kill()
+                r.process.join(timeout=5)
+                self.store.finish(r.job_id, r.token, "failed",
+                                  error=f"the solve ran longer than the time limit of "
+                                        f"{self.settings.job_timeout_seconds:g} s")
+
+    def _renew(self) -> None:
+        now = time.time()
+        if now - self._last_renew < self.settings.heartbeat_seconds:
+            return
+        self._last_renew = now
+        with self._lock:
+            tokens = [r.token for r in self._runs.values()]
+        self.store.renew_leases(tokens, self.settings.lease_seconds)
+
+    def _fill(self) -> None:
+        from service.worker import run_embedded
+
+        while True:
+            with self._lock:
+                if len(self._runs) >= self.settings.workers:
+                    return
+            job = self.store.claim_next(f"{self._host}:starting", self.settings.lease_seconds, self.name)
+            if job is None:
+                return
+            assert job.run_token is not None
+            p = self._ctx.Process(
+                target=run_embedded, name=f"acinoset-job-{job.id[:8]}", daemon=True,
+                args=(str(self.settings.db_path), str(self.settings.jobs_dir), job.id, job.run_token,
+                      self.settings.progress_interval_seconds, self.settings.solve_niceness))
+            try:
+                p.start()
+            except Exception as e:  # cannot fork: give the attempt back and retry later
+                self.store.interrupt(job.id, job.run_token, f"could not start a solve process ({e})")
+                raise
+            with self._lock:
+                self._runs[job.id] = _Run(job.id, job.run_token, p, time.time())
+            self.store.set_worker(job.id, job.run_token, f"{self._host}:{p.pid}")

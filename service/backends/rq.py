@@ -1,0 +1,292 @@
+"""The RQ backend: solves run on ``acinoset worker`` processes, on any machine that reaches Redis.
+
+Redis carries the work, the job table stays the record of truth. Each attempt chain of a job is
+one RQ job whose id is the job's *run token* in the table; its arguments hold the input files (so
+workers need no shared disk), and its return value holds the result files, which the server's
+collector thread copies into the data dir and the table, then deletes from Redis. RQ is used with
+``Retry`` (a work horse that dies is queued again by its worker), ``result_ttl=-1`` (a result
+waits in Redis until the server has stored it, even across a server restart), a job timeout above
+the longest solve, and the JSON serializer (nothing from a job is ever unpickled).
+
+The collector (every ``0.5 s``) reconciles the table with Redis:
+
+* a queued row without an RQ job (the server died between the two writes, or Redis lost data) is
+  enqueued;
+* a started RQ job mirrors its progress, worker and attempt into the row; one whose worker stopped
+  heartbeating for ``lease_seconds`` (the whole worker machine died) is dropped and enqueued again
+  as the next attempt, or failed after ``max_attempts``;
+* finished, failed and stopped RQ jobs end the row and are deleted from Redis.
+"""
+
+from __future__ import annotations
+
+import shutil
+import threading
+import time
+from pathlib import Path
+
+from service.backends.base import Backend, log
+from service.settings import Settings
+from service.store import Job, Store
+
+RQ_FUNCTION = "service.worker.run_rq_job"
+
+
+def _rq():
+    from redis import Redis
+    from rq import Queue
+    from rq.serializers import JSONSerializer
+
+    return Redis, Queue, JSONSerializer
+
+
+class RQBackend(Backend):
+    name = "rq"
+
+    def __init__(self, settings: Settings, store: Store):
+        super().__init__(settings, store)
+        Redis, Queue, JSONSerializer = _rq()
+        self.serializer = JSONSerializer
+        self.redis = Redis.from_url(settings.redis_url, socket_timeout=10, socket_connect_timeout=5,
+                                    health_check_interval=30)
+        self.queue = Queue(settings.queue_name, connection=self.redis, serializer=JSONSerializer,
+                           default_timeout=int(settings.job_timeout_seconds))
+        self._halt = threading.Event()
+        self._wake = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._stopping: dict[str, float] = {}  # RQ job ids told to stop -> when
+        self._last_sweep = 0.0
+        self._redis_error: str | None = None
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        counts = self.store.adopt(self.name, "the service stopped while it ran")
+        if any(counts.values()):
+            log.warning("recovered jobs from the last run: %s", counts)
+        self._thread = threading.Thread(target=self._loop, name="acinoset-rq-collector", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._halt.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10)
+
+    # -- the API's calls ---------------------------------------------------------------------
+
+    def submit(self, job_id: str) -> None:
+        job = self.store.job(job_id)
+        if job is None:
+            return
+        try:
+            self._enqueue(job)
+        except Exception as e:  # Redis down: the row stays queued, the collector enqueues it later
+            log.warning("job %s: could not enqueue yet (%s)", job_id, e)
+
+    def cancel(self, job_id: str, run_token: str | None) -> None:
+        if not run_token:
+            return
+        from rq.command import send_stop_job_command
+        from rq.job import Job as RQJob, JobStatus
+
+        try:
+            rj = RQJob.fetch(run_token, connection=self.redis, serializer=self.serializer)
+        except Exception:
+            return
+        try:
+            if rj.get_status(refresh=False) == JobStatus.STARTED:
+                send_stop_job_command(self.redis, run_token, serializer=self.serializer)
+                self._stopping[run_token] = time.time()
+            else:
+                rj.delete()
+        except Exception as e:
+            log.warning("job %s: could not stop RQ job %s (%s)", job_id, run_token, e)
+            self._stopping[run_token] = time.time()
+
+    def health(self) -> dict:
+        from rq import Worker
+
+        try:
+            self.redis.ping()
+            workers = Worker.count(queue=self.queue)
+        except Exception as e:
+            return {"ok": False, "workers": 0, "detail": f"Redis at {self.settings.redis_url} unreachable: {e}"}
+        alive = self._thread is not None and self._thread.is_alive()
+        detail = None
+        if not alive:
+            detail = "the collector thread is not running"
+        elif workers == 0:
+            detail = "no worker is connected: start 'acinoset worker --redis-url URL'"
+        return {"ok": alive, "workers": workers, "detail": detail}
+
+    # -- enqueue -----------------------------------------------------------------------------
+
+    def _enqueue(self, job: Job) -> None:
+        """One RQ job for the job's remaining attempts; its id becomes the row's run token."""
+        from rq import Retry
+
+        from service.worker import input_payload
+
+        remaining = max(1, job.max_attempts - job.attempts)
+        token = f"{job.id}-{job.attempts + 1}"
+        payload = input_payload(self.settings.jobs_dir / job.id / "input")
+        if not self.store.assign_run(job.id, token):
+            return  # cancelled meanwhile
+        self.queue.enqueue_call(
+            RQ_FUNCTION,
+            args=(job.id, payload, self.settings.progress_interval_seconds, self.settings.solve_niceness),
+            job_id=token, timeout=int(self.settings.job_timeout_seconds), result_ttl=-1,
+            failure_ttl=7 * 24 * 3600, retry=Retry(max=remaining - 1) if remaining > 1 else None,
+            meta={"attempt": job.attempts, "job": job.id},
+            description=f"acinoset job {job.id} ({job.owner})")
+
+    # -- the collector -----------------------------------------------------------------------
+
+    def _loop(self) -> None:
+        while not self._halt.is_set():
+            self._wake.wait(timeout=0.5)
+            self._wake.clear()
+            if self._halt.is_set():
+                break
+            try:
+                self._collect()
+                self._finish_stopping()
+                if time.time() - self._last_sweep > 60:
+                    self._sweep()
+                    self._last_sweep = time.time()
+                if self._redis_error:
+                    log.warning("Redis reachable again")
+                self._redis_error = None
+            except Exception as e:
+                if str(e) != self._redis_error:
+                    log.exception("RQ collector")
+                self._redis_error = str(e)
+                time.sleep(1.0)
+
+    def _collect(self) -> None:
+        from rq.job import Job as RQJob, JobStatus
+
+        rows = self.store.active_jobs(self.name)
+        tokens = [r.run_token for r in rows if r.run_token]
+        fetched = dict(zip(tokens, RQJob.fetch_many(tokens, connection=self.redis, serializer=self.serializer)))
+        now = time.time()
+        for row in rows:
+            rj = fetched.get(row.run_token) if row.run_token else None
+            if rj is None:
+                if row.status == "queued":
+                    self._enqueue(row)
+                else:
+                    status = self.store.interrupt(row.id, row.run_token, "the queue lost the job "
+                                                  "(Redis restarted without its data?)")
+                    fresh = self.store.job(row.id)
+                    if status == "queued" and fresh is not None:
+                        self._enqueue(fresh)
+                continue
+            token = rj.id
+            status = rj.get_status(refresh=False)
+            attempt = int(rj.meta.get("attempt", row.attempts) or 0)
+            if status == JobStatus.STARTED:
+                hb = rj.last_heartbeat or rj.started_at
+                if hb is not None and now - hb.timestamp() > self.settings.lease_seconds:
+                    self._lost(row, rj, attempt)
+                else:
+                    self.store.mirror_running(row.id, token, attempt, rj.worker_name,
+                                              rj.started_at.timestamp() if rj.started_at else None,
+                                              self.settings.lease_seconds, rj.meta.get("progress"))
+            elif status == JobStatus.FINISHED:
+                self._finished(row, rj, attempt)
+            elif status == JobStatus.FAILED:
+                res = rj.latest_result()
+                exc = (res.exc_string if res is not None else None) or "unknown error"
+                last = [ln for ln in exc.strip().splitlines() if ln.strip()][-1:] or ["unknown error"]
+                reason = " ".join(last[0].split())
+                if "terminated unexpectedly" in exc or "Abandoned" in exc:
+                    reason = f"the worker's solve process died ({reason})"
+                self.store.mirror_finished(row.id, token, "failed", attempt,
+                                           error=f"gave up after {max(attempt, 1)} attempts; last: {reason}"
+                                           if attempt >= row.max_attempts else reason)
+                rj.delete()
+            elif status in (JobStatus.STOPPED, JobStatus.CANCELED):
+                self.store.cancel(row.id)
+                rj.delete()
+            elif status in (JobStatus.QUEUED, JobStatus.SCHEDULED, JobStatus.DEFERRED):
+                if row.status == "running":  # RQ retries it: its work horse died
+                    self.store.mirror_requeued(row.id, token, attempt,
+                                               f"attempt {attempt} of {row.max_attempts} interrupted: "
+                                               "the worker's solve process died")
+
+    def _lost(self, row: Job, rj, attempt: int) -> None:
+        """A started job whose worker stopped heartbeating: that worker is gone."""
+        self.store.mirror_running(row.id, rj.id, attempt, rj.worker_name, None, self.settings.lease_seconds, None)
+        try:
+            rj.delete()
+        except Exception:
+            pass
+        status = self.store.interrupt(row.id, rj.id, f"worker {rj.worker_name or '?'} stopped responding")
+        log.warning("job %s: worker %s stopped responding; now %s", row.id, rj.worker_name, status)
+        fresh = self.store.job(row.id)
+        if status == "queued" and fresh is not None:
+            self._enqueue(fresh)
+
+    def _finished(self, row: Job, rj, attempt: int) -> None:
+        from service.worker import RESULT_FILES, unpack_files
+
+        rv = rj.return_value()
+        if not isinstance(rv, dict) or rv.get("status") not in ("succeeded", "failed"):
+            self.store.mirror_finished(row.id, rj.id, "failed", attempt, error="the worker returned no result")
+        elif rv["status"] == "failed":
+            self.store.mirror_finished(row.id, rj.id, "failed", attempt, error=rv.get("error") or "failed",
+                                       worker=rv.get("worker"))
+        else:
+            job_dir = self.settings.jobs_dir / row.id
+            tmp = job_dir / f"result.{rj.id}.tmp"
+            final = job_dir / "result"
+            shutil.rmtree(tmp, ignore_errors=True)
+            files = {k: v for k, v in rv.get("files", {}).items() if k in RESULT_FILES}
+            unpack_files(files, tmp)
+
+            def commit() -> None:
+                if final.exists():
+                    shutil.rmtree(final)
+                Path(tmp).replace(final)
+
+            self.store.mirror_finished(row.id, rj.id, "succeeded", attempt, summary=rv.get("report"),
+                                       solve_seconds=rv.get("seconds"), worker=rv.get("worker"), commit=commit)
+            shutil.rmtree(tmp, ignore_errors=True)
+        rj.delete()
+
+    def _finish_stopping(self) -> None:
+        """Delete stopped RQ jobs of cancelled rows once their work horse is gone."""
+        from rq.job import Job as RQJob, JobStatus
+        from rq.command import send_stop_job_command
+
+        for token, since in list(self._stopping.items()):
+            rj = RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0]
+            if rj is None:
+                self._stopping.pop(token, None)
+                continue
+            if rj.get_status(refresh=False) != JobStatus.STARTED:
+                rj.delete()
+                self._stopping.pop(token, None)
+            elif time.time() - since > 10:  # the stop message was missed: say it again
+                send_stop_job_command(self.redis, token, serializer=self.serializer)
+                self._stopping[token] = time.time()
+
+    def _sweep(self) -> None:
+        """Delete RQ jobs that belong to no active row (left by a crash, or a run given up for lost
+        whose worker came back): Redis does not keep growing."""
+        from rq.job import Job as RQJob
+        from rq.registry import CanceledJobRegistry, FailedJobRegistry, FinishedJobRegistry, StoppedJobRegistry
+
+        live = {r.run_token for r in self.store.active_jobs(self.name) if r.run_token}
+        for reg in (FinishedJobRegistry, FailedJobRegistry, StoppedJobRegistry, CanceledJobRegistry):
+            registry = reg(queue=self.queue)
+            for jid in registry.get_job_ids():
+                if jid in live:
+                    continue
+                rj = RQJob.fetch_many([jid], connection=self.redis, serializer=self.serializer)[0]
+                if rj is not None:
+                    rj.delete()
+                else:
+                    registry.remove(jid)

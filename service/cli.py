@@ -1,0 +1,245 @@
+"""``acinoset serve``, ``acinoset worker`` and ``acinoset users``.
+
+:func:`register` adds the three subcommands to the ``acinoset`` command line (``graph/cli.py``);
+``python -m service`` runs them on their own. Every flag left out falls back to the environment
+(``ACINOSET_*``, see :mod:`service.settings`), then to the defaults.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import socket
+import sys
+
+from service.settings import Settings
+
+
+def _settings(args: argparse.Namespace, *names: str) -> Settings:
+    overrides = {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
+    return Settings(**overrides)
+
+
+def _data_dir_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data-dir", help="where jobs, results and the job table live "
+                                      "(default: $ACINOSET_DATA_DIR or ~/.local/share/acinoset)")
+
+
+def register(subparsers) -> None:
+    """Add ``serve``, ``worker`` and ``users`` to an argparse subparsers object."""
+    p = subparsers.add_parser("serve", help="run the job service (REST API)",
+                              description="Run the REST job service for a lab: upload keypoints and a "
+                                          "calibration, poll the job, download the 3D result.")
+    p.add_argument("--host", help="address to listen on (default 127.0.0.1; 0.0.0.0 for the whole network)")
+    p.add_argument("--port", type=int, help="port (default 8000)")
+    _data_dir_arg(p)
+    p.add_argument("--backend", choices=["embedded", "rq"],
+                   help="embedded: solves run in this server's child processes (default); "
+                        "rq: on 'acinoset worker' processes through Redis")
+    p.add_argument("--redis-url", help="Redis for --backend rq (default redis://127.0.0.1:6379/0)")
+    p.add_argument("--workers", type=int, help="embedded: solves at once (default: the number of cores)")
+    p.add_argument("--log-level", choices=["debug", "info", "warning", "error"], help="default info")
+    p.add_argument("--access-log", action="store_true", help="log every request")
+    p.set_defaults(func=serve)
+
+    w = subparsers.add_parser("worker", help="run solves for an 'acinoset serve --backend rq' server",
+                              description="Join the pool of an RQ-backed server: take jobs from Redis, solve "
+                                          "them, hand the results back. Run it on any machine with acinoset "
+                                          "installed that reaches the Redis server.")
+    w.add_argument("--redis-url", help="the server's Redis (default redis://127.0.0.1:6379/0)")
+    w.add_argument("--queue-name", help="default acinoset")
+    w.add_argument("--name", help="worker name shown in jobs (default: host.pid)")
+    w.add_argument("--burst", action="store_true", help="stop when the queue is empty")
+    w.add_argument("--log-level", choices=["debug", "info", "warning", "error"], help="default info")
+    w.set_defaults(func=worker)
+
+    u = subparsers.add_parser("users", help="manage the service's users and tokens",
+                              description="Users of the job service. Tokens are printed once, on the last "
+                                          "line, and stored only as a hash.")
+    us = u.add_subparsers(dest="users_command", required=True, metavar="{add,list,token,remove}")
+    a = us.add_parser("add", help="add a user and print its token (last line)")
+    a.add_argument("name")
+    a.add_argument("--admin", action="store_true", help="can see and cancel everyone's jobs")
+    _data_dir_arg(a)
+    a.set_defaults(func=users_add)
+    ls = us.add_parser("list", help="list users and their job counts")
+    _data_dir_arg(ls)
+    ls.set_defaults(func=users_list)
+    t = us.add_parser("token", help="revoke a user's tokens and print a new one (last line)")
+    t.add_argument("name")
+    _data_dir_arg(t)
+    t.set_defaults(func=users_token)
+    r = us.add_parser("remove", help="revoke a user's tokens and cancel its active jobs (jobs are kept)")
+    r.add_argument("name")
+    _data_dir_arg(r)
+    r.set_defaults(func=users_remove)
+
+
+# -- serve -------------------------------------------------------------------------------------
+
+def serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.app import DataDirInUse, DataDirLock, create_app
+    from service.store import Store
+
+    s = _settings(args, "host", "port", "data_dir", "backend", "redis_url", "workers", "log_level")
+    logging.basicConfig(level=s.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    s.jobs_dir.mkdir(parents=True, exist_ok=True)
+    probe = DataDirLock(s.data_dir)
+    try:
+        probe.acquire()
+    except DataDirInUse as e:
+        print(f"acinoset serve: {e}", file=sys.stderr)
+        return 2
+    probe.release()
+    if s.backend == "rq":
+        try:
+            from redis import Redis
+
+            Redis.from_url(s.redis_url, socket_connect_timeout=3).ping()
+        except Exception as e:
+            print(f"acinoset serve: cannot reach Redis at {s.redis_url}: {e}", file=sys.stderr)
+            return 2
+
+    store = Store(s.db_path)
+    n_users = len(store.users())
+    store.close()
+    shown = socket.gethostname() if s.host in ("0.0.0.0", "::") else s.host
+    url = f"http://{shown}:{s.port}"
+    how = (f"{s.workers} solves at once in this process's children" if s.backend == "embedded"
+           else f"solves on 'acinoset worker --redis-url {s.redis_url}' processes")
+    print(f"acinoset {_version()} serving on {url}  (API docs {url}/docs)", flush=True)
+    print(f"  data dir {s.data_dir}; backend {s.backend}: {how}", flush=True)
+    if n_users == 0:
+        print(f"  no users yet: make a token with  acinoset users add NAME --admin --data-dir {s.data_dir}", flush=True)
+    else:
+        print(f"  {n_users} user(s); a new token:  acinoset users add NAME --data-dir {s.data_dir}", flush=True)
+    print("  send it as the header  Authorization: Bearer TOKEN", flush=True)
+    uvicorn.run(create_app(s), host=s.host, port=s.port, log_level=s.log_level, access_log=bool(args.access_log),
+                timeout_graceful_shutdown=10)
+    return 0
+
+
+def service_worker_modules() -> list[str]:
+    from service.worker import SOLVER_MODULES
+
+    return ["service.worker", *SOLVER_MODULES]
+
+
+def _version() -> str:
+    import graph
+
+    return graph.__version__
+
+
+# -- worker ------------------------------------------------------------------------------------
+
+def worker(args: argparse.Namespace) -> int:
+    from redis import Redis
+    from rq import Queue, Worker
+    from rq.serializers import JSONSerializer
+
+    s = _settings(args, "redis_url", "queue_name", "log_level")
+    logging.basicConfig(level=s.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    conn = Redis.from_url(s.redis_url)
+    try:
+        conn.ping()
+    except Exception as e:
+        print(f"acinoset worker: cannot reach Redis at {s.redis_url}: {e}", file=sys.stderr)
+        return 2
+    from service.worker import prepare_solver_environment
+
+    prepare_solver_environment()  # work horses fork from this process
+    import importlib
+
+    for name in service_worker_modules():
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            pass
+
+    if s.warm_start:
+        import service.warmup  # noqa: F401 - importing it runs the warm-up
+    queue = Queue(s.queue_name, connection=conn, serializer=JSONSerializer)
+    w = Worker([queue], connection=conn, serializer=JSONSerializer, name=args.name or None,
+               job_monitoring_interval=max(1, int(round(s.heartbeat_seconds))))
+    print(f"acinoset worker {w.name}: taking jobs from {s.redis_url} queue {s.queue_name}", flush=True)
+    w.work(burst=bool(args.burst), logging_level=s.log_level.upper())
+    return 0
+
+
+# -- users -------------------------------------------------------------------------------------
+
+def _store(args: argparse.Namespace):
+    from service.store import Store
+
+    s = _settings(args, "data_dir")
+    return Store(s.db_path), s
+
+
+def users_add(args: argparse.Namespace) -> int:
+    from service.store import StoreError
+
+    store, s = _store(args)
+    try:
+        user, token = store.add_user(args.name, admin=args.admin)
+    except StoreError as e:
+        print(f"acinoset users add: {e}", file=sys.stderr)
+        return 2
+    print(f"added {'admin' if user.is_admin else 'user'} {user.name} to {s.data_dir}")
+    print("its token (shown once; send it as 'Authorization: Bearer TOKEN'):")
+    print(token)
+    return 0
+
+
+def users_token(args: argparse.Namespace) -> int:
+    from service.store import StoreError
+
+    store, _ = _store(args)
+    try:
+        token = store.new_token(args.name)
+    except StoreError as e:
+        print(f"acinoset users token: {e}", file=sys.stderr)
+        return 2
+    print(f"revoked the old tokens of {args.name}; the new one (shown once):")
+    print(token)
+    return 0
+
+
+def users_remove(args: argparse.Namespace) -> int:
+    from service.store import StoreError
+
+    store, _ = _store(args)
+    try:
+        n = store.disable_user(args.name)
+    except StoreError as e:
+        print(f"acinoset users remove: {e}", file=sys.stderr)
+        return 2
+    print(f"removed {args.name}: tokens revoked, {n} active job(s) cancelled; its jobs stay for admins")
+    return 0
+
+
+def users_list(args: argparse.Namespace) -> int:
+    import time
+
+    store, _ = _store(args)
+    rows = store.users()
+    if not rows:
+        print("no users (add one with 'acinoset users add NAME --admin')")
+        return 0
+    print(f"{'name':<24} {'role':<6} {'state':<8} {'created':<17} jobs")
+    for u, counts in rows:
+        jobs = ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "-"
+        created = time.strftime("%Y-%m-%d %H:%M", time.localtime(u.created_at))
+        print(f"{u.name:<24} {'admin' if u.is_admin else 'user':<6} {'removed' if u.disabled else 'active':<8} "
+              f"{created:<17} {jobs}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m service", description="acinoset job service")
+    sub = parser.add_subparsers(dest="command", required=True)
+    register(sub)
+    args = parser.parse_args(argv)
+    return int(args.func(args) or 0)

@@ -1,0 +1,267 @@
+"""What the API does with jobs: submit (validate, store, queue), find, list, cancel, delete.
+
+The routes (:mod:`service.routes`) stay thin and call these. Every refusal is an
+:class:`fastapi.HTTPException` with a one-line ``detail``.
+
+Uploads never choose a path: each file lands in the job's own directory under a name made only of
+``[A-Za-z0-9._-]`` (directories stripped), one directory per camera; user options name a shipped
+skeleton or the uploaded skeleton file, never a path on the server. Files are read with the core's
+readers (CSV, h5py without pickles, JSON, TOML): nothing uploaded is executed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import shutil
+import uuid
+from pathlib import Path, PurePosixPath
+from typing import BinaryIO
+
+from fastapi import HTTPException
+
+from service.backends.base import Backend
+from service.settings import Settings
+from service.store import STATUSES, Job, QuotaExceeded, Store, User
+from service.worker import MANIFEST
+
+JOB_ID = re.compile(r"^[0-9a-f]{32}$")
+KEYPOINT_SUFFIXES = (".csv", ".h5", ".hdf5")
+CALIBRATION_SUFFIXES = (".json", ".toml")
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+@dataclasses.dataclass
+class Upload:
+    """One uploaded file: the name the client gave and a readable binary stream."""
+
+    filename: str | None
+    file: BinaryIO
+
+
+def safe_name(filename: str | None, default: str) -> str:
+    """The last path component of ``filename`` with every character outside ``[A-Za-z0-9._-]``
+    replaced, no leading dots, at most 100 characters; ``default`` if nothing is left."""
+    base = PurePosixPath((filename or "").replace("\\", "/")).name
+    base = re.sub(r"[^A-Za-z0-9._-]+", "_", base).lstrip(".-_")
+    if len(base) > 100:
+        stem, dot, suffix = base.rpartition(".")
+        base = (stem[: 100 - len(suffix) - 1] + "." + suffix) if dot and len(suffix) < 10 else base[:100]
+    return base or default
+
+
+def _with_suffix(name: str, head: bytes, allowed: tuple[str, ...], sniff) -> str:
+    if Path(name).suffix.lower() in allowed:
+        return name
+    return name + sniff(head)
+
+
+def _keypoint_suffix(head: bytes) -> str:
+    return ".h5" if head.startswith(HDF5_SIGNATURE) else ".csv"
+
+
+def _calibration_suffix(head: bytes) -> str:
+    return ".json" if head.lstrip()[:1] == b"{" else ".toml"
+
+
+def _unprocessable(detail: str) -> HTTPException:
+    return HTTPException(422, " ".join(detail.split()))
+
+
+class JobService:
+    def __init__(self, settings: Settings, store: Store, backend: Backend):
+        self.settings = settings
+        self.store = store
+        self.backend = backend
+
+    # -- submit ------------------------------------------------------------------------------
+
+    def parse_options(self, text: str | None, skeleton_file: str | None) -> dict:
+        """The ``options`` form field: a JSON object of :class:`graph.api.SolveOptions` fields."""
+        from pydantic import TypeAdapter, ValidationError
+
+        from graph.api import SolveOptions
+        from graph.skeleton import available_skeletons
+
+        try:
+            data = json.loads(text) if text and text.strip() else {}
+        except json.JSONDecodeError as e:
+            raise _unprocessable(f"options: not valid JSON ({e.msg} at line {e.lineno} column {e.colno})")
+        if not isinstance(data, dict):
+            raise _unprocessable("options: must be a JSON object such as {\"method\": \"fte\", \"fps\": 120}")
+        known = [f.name for f in dataclasses.fields(SolveOptions)]
+        unknown = sorted(set(data) - set(known))
+        if unknown:
+            raise _unprocessable(f"options: unknown option {unknown[0]!r}; known: {', '.join(known)}")
+        if skeleton_file is not None:
+            data["skeleton"] = skeleton_file
+        else:
+            name = data.get("skeleton", SolveOptions.skeleton)
+            names = available_skeletons()
+            if name not in names:
+                raise _unprocessable(f"options: unknown skeleton {name!r}; use one of {', '.join(names)} "
+                                     "or upload a skeleton .toml file as 'skeleton'")
+        try:
+            opts = TypeAdapter(SolveOptions).validate_python(data)
+        except ValidationError as e:
+            err = e.errors()[0]
+            where = ".".join(str(x) for x in err["loc"])
+            msg = err["msg"].removeprefix("Value error, ")
+            raise _unprocessable(f"options: {where + ': ' if where else ''}{msg}")
+        except (TypeError, ValueError) as e:
+            raise _unprocessable(f"options: {e}")
+        return json.loads(json.dumps(opts.to_dict()))
+
+    def _save(self, upload: Upload, dest_dir: Path, default: str, allowed: tuple[str, ...], sniff) -> Path:
+        head = upload.file.read(16)
+        name = _with_suffix(safe_name(upload.filename, default), head, allowed, sniff)
+        dest_dir.mkdir(parents=True, exist_ok=True)
+        path = dest_dir / name
+        with open(path, "wb") as f:
+            f.write(head)
+            shutil.copyfileobj(upload.file, f, 1 << 20)
+        return path
+
+    def submit(self, user: User, keypoints: list[Upload], calibration: Upload, options_text: str | None,
+               skeleton: Upload | None = None) -> Job:
+        """Validate the upload with the core's readers, store it, queue the job."""
+        from graph.calibration import load_calibration
+        from graph.errors import InputError
+        from graph.keypoints import check_same_frames, read_keypoints
+        from graph.skeleton import load_skeleton
+
+        s = self.settings
+        if not keypoints:
+            raise _unprocessable("keypoints: upload one keypoint file per camera")
+        if len(keypoints) > s.max_cameras:
+            raise HTTPException(413, f"{len(keypoints)} keypoint files; this server takes at most "
+                                     f"{s.max_cameras} cameras per job (ACINOSET_MAX_CAMERAS)")
+        self._check_quota(user)
+        skeleton_name = safe_name(skeleton.filename, "skeleton.toml") if skeleton is not None else None
+        options = self.parse_options(options_text, skeleton_name)
+
+        job_id = uuid.uuid4().hex
+        staging = s.jobs_dir / f".upload-{job_id}"
+        input_dir = staging / "input"
+        try:
+            kp_paths = [self._save(u, input_dir / "keypoints" / f"{i + 1:02d}", f"camera{i + 1}.csv",
+                                   KEYPOINT_SUFFIXES, _keypoint_suffix) for i, u in enumerate(keypoints)]
+            cal_path = self._save(calibration, input_dir / "calibration", "calibration.toml",
+                                  CALIBRATION_SUFFIXES, _calibration_suffix)
+            sk_path = (self._save(skeleton, input_dir / "skeleton", "skeleton.toml", (".toml",), lambda h: ".toml")
+                       if skeleton is not None else None)
+            try:
+                kps = []
+                for u, p in zip(keypoints, kp_paths):
+                    kp = read_keypoints(p, individual=options.get("individual"))
+                    if kp.frames > s.max_frames:
+                        raise HTTPException(413, f"{p.name}: {kp.frames} frames; this server takes at most "
+                                                 f"{s.max_frames} frames per file (ACINOSET_MAX_FRAMES)")
+                    kps.append(kp)
+                check_same_frames(kps)
+                cal = load_calibration(cal_path)
+                if len(cal) != len(kps):
+                    raise _unprocessable(f"{cal_path.name}: the calibration has {len(cal)} cameras but "
+                                         f"{len(kps)} keypoint files were uploaded (one per camera, in the "
+                                         "calibration's order)")
+                load_skeleton(sk_path if sk_path is not None else options["skeleton"], bodyparts=kps[0].bodyparts)
+            except InputError as e:
+                raise _unprocessable(str(e))
+            except (OSError, ValueError, KeyError, IndexError, TypeError, UnicodeDecodeError) as e:
+                # a reader tripped on something it did not foresee: still a bad file, still one line
+                raise _unprocessable(f"{getattr(e, 'filename', None) and Path(e.filename).name or 'upload'}: "
+                                     f"cannot be read ({type(e).__name__}: {e})")
+
+            rel = lambda p: p.relative_to(input_dir).as_posix()  # noqa: E731
+            manifest = {"keypoints": [rel(p) for p in kp_paths], "calibration": rel(cal_path),
+                        "skeleton": rel(sk_path) if sk_path is not None else None, "options": options}
+            (input_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
+            inputs = {
+                "cameras": len(kps), "frames": max(k.frames for k in kps), "bodyparts": list(kps[0].bodyparts),
+                "keypoints": [{"name": p.name, "bytes": p.stat().st_size, "frames": k.frames,
+                               "bodyparts": len(k.bodyparts)} for p, k in zip(kp_paths, kps)],
+                "calibration": {"name": cal_path.name, "bytes": cal_path.stat().st_size},
+                "skeleton": ({"name": sk_path.name, "bytes": sk_path.stat().st_size} if sk_path else None),
+            }
+            staging.replace(s.jobs_dir / job_id)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        try:
+            job = self.store.insert_job(job_id, user.id, self.backend.name, options, inputs, s.max_attempts,
+                                        max_active=s.max_active_jobs_per_user)
+        except QuotaExceeded:
+            shutil.rmtree(s.jobs_dir / job_id, ignore_errors=True)
+            self._check_quota(user)
+            raise
+        self.backend.submit(job.id)
+        return job
+
+    def _check_quota(self, user: User) -> None:
+        n = self.store.count_active(user.id)
+        if n >= self.settings.max_active_jobs_per_user:
+            raise HTTPException(429, f"you have {n} queued or running jobs, the most this server allows per user "
+                                     "(ACINOSET_MAX_ACTIVE_JOBS_PER_USER); wait for some to finish or cancel some")
+
+    # -- read --------------------------------------------------------------------------------
+
+    def visible(self, user: User, job_id: str) -> Job:
+        """The job if the caller may see it (its owner, or an admin); 404 otherwise, whether or not it exists."""
+        job = self.store.job(job_id) if JOB_ID.match(job_id) else None
+        if job is None or (job.owner_id != user.id and not user.is_admin):
+            raise HTTPException(404, f"no job {job_id}")
+        return job
+
+    def list(self, user: User, statuses: list[str] | None, limit: int, cursor: str | None,
+             owner: str | None) -> tuple[list[Job], int, str | None]:
+        if statuses:
+            bad = [st for st in statuses if st not in STATUSES]
+            if bad:
+                raise _unprocessable(f"status: {bad[0]!r} is not one of {', '.join(STATUSES)}")
+        before = None
+        if cursor:
+            if not cursor.isdigit():
+                raise _unprocessable("cursor: pass the next_cursor of the previous page")
+            before = int(cursor)
+        owner_id: int | None = user.id
+        if user.is_admin:
+            owner_id = None
+            if owner:
+                u = self.store.user(owner)
+                if u is None:
+                    return [], 0, None
+                owner_id = u.id
+        elif owner and owner != user.name:
+            raise HTTPException(403, "only admins can list other users' jobs")
+        limit = max(1, min(limit, self.settings.page_size_max))
+        jobs, total = self.store.jobs(owner_id, statuses, limit + 1, before)
+        more = len(jobs) > limit
+        jobs = jobs[:limit]
+        return jobs, total, (str(jobs[-1].seq) if more and jobs else None)
+
+    def result_file(self, user: User, job_id: str, filename: str) -> Path:
+        job = self.visible(user, job_id)
+        if job.status != "succeeded":
+            why = f": {job.error}" if job.status == "failed" and job.error else ""
+            raise HTTPException(409, f"job {job_id} is {job.status}{why}; its result is ready when it succeeded")
+        path = self.settings.jobs_dir / job.id / "result" / filename
+        if not path.is_file():
+            raise HTTPException(404, f"job {job_id} has no {filename} (its result files were removed)")
+        return path
+
+    # -- cancel, delete ----------------------------------------------------------------------
+
+    def cancel_or_delete(self, user: User, job_id: str) -> Job | None:
+        """Cancel an active job (its run stops) and return it; delete a finished one and its files (None)."""
+        job = self.visible(user, job_id)
+        if job.active:
+            before = self.store.cancel(job.id)
+            if before is not None:
+                self.backend.cancel(job.id, before.run_token)
+            now = self.store.job(job.id)
+            assert now is not None
+            return now
+        if self.store.delete(job.id):
+            shutil.rmtree(self.settings.jobs_dir / job.id, ignore_errors=True)
+        return None

@@ -1,0 +1,84 @@
+"""Refuse an upload before reading it: an ASGI middleware in front of ``POST /v1/jobs``.
+
+FastAPI reads a whole multipart body before any dependency runs. This guard answers first, from the
+headers alone, when the caller has no valid token (401), already has the most active jobs allowed
+(429) or announces a body over ``max_upload_bytes`` (413); and it counts the bytes of a body sent
+without a length, stopping at the limit (413).
+"""
+
+from __future__ import annotations
+
+import json
+
+from fastapi import HTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.settings import Settings
+
+
+class UploadGuard:
+    def __init__(self, app: ASGIApp, settings: Settings, path: str = "/v1/jobs"):
+        self.app = app
+        self.settings = settings
+        self.path = path
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] != "POST" or scope["path"].rstrip("/") != self.path:
+            await self.app(scope, receive, send)
+            return
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
+        refusal = self._refuse(scope, headers)
+        if refusal is not None:
+            status, detail, extra = refusal
+            await _answer(send, status, detail, extra)
+            return
+        limit = self.settings.max_upload_bytes
+        seen = 0
+
+        async def counted() -> Message:
+            nonlocal seen
+            message = await receive()
+            if message["type"] == "http.request":
+                seen += len(message.get("body", b""))
+                if seen > limit:
+                    raise HTTPException(413, _too_large(limit))
+            return message
+
+        await self.app(scope, counted, send)
+
+    def _refuse(self, scope: Scope, headers: dict[str, str]) -> tuple[int, str, dict] | None:
+        app = scope.get("app")
+        store = getattr(getattr(app, "state", None), "store", None)
+        if store is not None:
+            token = None
+            auth = headers.get("authorization", "")
+            scheme, _, value = auth.partition(" ")
+            if scheme.lower() == "bearer" and value.strip():
+                token = value.strip()
+            if token is None:
+                return 401, ("missing token: send 'Authorization: Bearer TOKEN' "
+                             "(an admin makes one with 'acinoset users add NAME')"), {"www-authenticate": "Bearer"}
+            user = store.authenticate(token)
+            if user is None:
+                return 401, "invalid or revoked token", {"www-authenticate": "Bearer"}
+            n = store.count_active(user.id)
+            if n >= self.settings.max_active_jobs_per_user:
+                return 429, (f"you have {n} queued or running jobs, the most this server allows per user "
+                             "(ACINOSET_MAX_ACTIVE_JOBS_PER_USER); wait for some to finish or cancel some"), {}
+        length = headers.get("content-length")
+        if length is not None and length.isdigit() and int(length) > self.settings.max_upload_bytes:
+            return 413, _too_large(self.settings.max_upload_bytes), {"connection": "close"}
+        return None
+
+
+def _too_large(limit: int) -> str:
+    return (f"upload larger than this server's limit of {limit / 2**20:.1f} MiB per job "
+            "(ACINOSET_MAX_UPLOAD_BYTES)")
+
+
+async def _answer(send: Send, status: int, detail: str, extra: dict[str, str]) -> None:
+    body = json.dumps({"detail": detail}).encode()
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+    headers += [(k.encode(), v.encode()) for k, v in extra.items()]
+    await send({"type": "http.response.start", "status": status, "headers": headers})
+    await send({"type": "http.response.body", "body": body})

@@ -1,0 +1,176 @@
+"""The REST API's data as pydantic models: what clients send and get back (``openapi.yaml``).
+
+Separate from the job table (:mod:`service.store`): a :class:`JobOut` is built from a stored row.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime, timezone
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+from service.store import Job
+
+JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+ResultFormat = Literal["csv", "h5", "json", "report"]
+RESULT_FILES: dict[str, tuple[str, str]] = {  # format: (file in the job's result dir, media type)
+    "csv": ("result.csv", "text/csv"),
+    "h5": ("result.h5", "application/x-hdf5"),
+    "json": ("result.json", "application/json"),
+    "report": ("report.json", "application/json"),
+}
+
+
+class ErrorBody(BaseModel):
+    """Every error answer: one line saying what is wrong."""
+
+    detail: str = Field(examples=["cam3.csv: no 'likelihood' column for bodypart nose"])
+
+
+class Progress(BaseModel):
+    stage: str | None = Field(None, description="what the solve is doing: starting, init, solve, writing, done")
+    fraction: float | None = Field(None, description="share of the whole solve done, 0 to 1")
+    iteration: int | None = Field(None, description="optimiser iteration")
+    cost: float | None = Field(None, description="optimiser cost at that iteration")
+
+
+class Timings(BaseModel):
+    created_at: datetime
+    started_at: datetime | None = Field(None, description="start of the latest attempt")
+    finished_at: datetime | None = None
+    queued_seconds: float | None = Field(None, description="from submission to the start of the latest attempt")
+    run_seconds: float | None = Field(None, description="of the latest attempt, so far or in all")
+
+
+class InputFile(BaseModel):
+    name: str = Field(description="the file name as uploaded")
+    bytes: int
+    frames: int | None = None
+    bodyparts: int | None = None
+
+
+class Inputs(BaseModel):
+    cameras: int
+    frames: int = Field(description="frames in the longest keypoint file")
+    bodyparts: list[str]
+    keypoints: list[InputFile] = Field(description="one per camera, in the calibration's order")
+    calibration: InputFile
+    skeleton: InputFile | None = None
+
+
+class ResultSummary(BaseModel):
+    """The headline numbers of a succeeded solve; the whole report is ``GET .../result?format=report``."""
+
+    method: str | None = None
+    skeleton: str | None = None
+    frames: int | None = None
+    cameras: int | None = None
+    markers: int | None = None
+    iterations: int | None = None
+    cost: float | None = None
+    reprojection_rmse_px: float | None = None
+    observations: int | None = None
+    outliers: int | None = None
+    seconds: dict[str, float | None] = Field(default_factory=dict)
+    warnings: list[str] = Field(default_factory=list)
+    formats: list[ResultFormat] = Field(default_factory=lambda: list(RESULT_FILES))
+
+
+class Links(BaseModel):
+    self: str
+    result: dict[str, str] | None = Field(None, description="download link per format, once succeeded")
+    cancel: str | None = Field(None, description="DELETE this to cancel (active) or delete (finished) the job")
+
+
+class JobOut(BaseModel):
+    id: str
+    owner: str
+    status: JobStatus
+    attempts: int = Field(description="runs started so far (a run interrupted by a crash is tried again)")
+    max_attempts: int
+    progress: Progress | None = None
+    timings: Timings
+    options: dict[str, Any]
+    inputs: Inputs
+    error: str | None = Field(None, description="why the job failed")
+    interruption: str | None = Field(None, description="the latest run that was interrupted, and why")
+    worker: str | None = Field(None, description="host:pid (embedded) or worker name (rq) of the latest run")
+    result: ResultSummary | None = None
+    links: Links
+
+
+class JobList(BaseModel):
+    jobs: list[JobOut]
+    total: int = Field(description="jobs matching the filter, on all pages")
+    next_cursor: str | None = Field(None, description="pass as ?cursor= for the next page")
+    next: str | None = Field(None, description="the next page's URL")
+
+
+class SkeletonOut(BaseModel):
+    name: str
+    kind: str = Field(description="kinematic (a tree with pose parameters) or points (free 3D points)")
+    markers: list[str] | None = Field(None, description="None for points: the keypoint files' bodyparts")
+    parameters: int | None = None
+    description: str = ""
+
+
+class Limits(BaseModel):
+    max_upload_bytes: int
+    max_frames: int
+    max_cameras: int
+    max_active_jobs: int
+
+
+class Me(BaseModel):
+    name: str
+    admin: bool
+    active_jobs: int
+    jobs: dict[str, int]
+    limits: Limits
+
+
+class Health(BaseModel):
+    status: Literal["ok", "degraded"]
+    version: str
+    backend: str
+    workers: int = Field(description="solves that can run at once (embedded) or connected workers (rq)")
+    running: int
+    queued: int
+    detail: str | None = None
+
+
+def _ts(t: float | None) -> datetime | None:
+    return None if t is None else datetime.fromtimestamp(t, tz=timezone.utc)
+
+
+def summary_of(report: dict | None) -> ResultSummary | None:
+    if not report:
+        return None
+    keys = ResultSummary.model_fields.keys() - {"formats"}
+    return ResultSummary(**{k: report[k] for k in keys if report.get(k) is not None})
+
+
+def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
+    import time
+
+    href = f"{base}/{job.id}"
+    now = time.time()
+    queued = (job.started_at - job.created_at) if job.started_at else (
+        (now - job.created_at) if job.status == "queued" else None)
+    run = None
+    if job.started_at:
+        run = (job.finished_at or now) - job.started_at if job.status != "queued" else None
+    progress = None
+    if job.stage is not None or job.fraction is not None:
+        progress = Progress(stage=job.stage, fraction=job.fraction, iteration=job.iteration, cost=job.cost)
+    return JobOut(
+        id=job.id, owner=job.owner, status=job.status, attempts=job.attempts, max_attempts=job.max_attempts,
+        progress=progress,
+        timings=Timings(created_at=_ts(job.created_at), started_at=_ts(job.started_at),
+                        finished_at=_ts(job.finished_at), queued_seconds=queued, run_seconds=run),
+        options=job.options, inputs=Inputs(**job.inputs), error=job.error, interruption=job.interruption,
+        worker=job.worker, result=summary_of(job.summary) if job.status == "succeeded" else None,
+        links=Links(self=href,
+                    result={f: f"{href}/result?format={f}" for f in RESULT_FILES} if job.status == "succeeded" else None,
+                    cancel=href))

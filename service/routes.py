@@ -1,0 +1,175 @@
+"""The REST API, version 1. Thin: each route checks who calls and hands over to :mod:`service.jobs`."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile
+from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
+
+import graph
+from service import metrics
+from service.auth import current_user
+from service.jobs import JobService, Upload
+from service.models import (RESULT_FILES, ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
+                            SkeletonOut, job_out)
+from service.store import User
+
+
+def _err(description: str) -> dict:
+    return {"model": ErrorBody, "description": description}
+
+
+AUTH_ERRORS = {401: _err("No token, or an unknown or revoked one")}
+NOT_FOUND = {404: _err("No such job, or it belongs to another user")}
+
+router = APIRouter(responses=AUTH_ERRORS)
+public = APIRouter()
+
+CurrentUser = Annotated[User, Depends(current_user)]
+
+
+def _jobs(request: Request) -> JobService:
+    return request.app.state.jobs
+
+
+Jobs = Annotated[JobService, Depends(_jobs)]
+
+
+@router.post(
+    "/v1/jobs", status_code=202, response_model=JobOut, tags=["jobs"], summary="Submit a job",
+    responses={413: _err("Upload, frame count or camera count over this server's limits"),
+               422: _err("A file the readers refuse (the detail names it), or bad options"),
+               429: _err("The caller already has the most queued and running jobs allowed")})
+def submit_job(
+    user: CurrentUser, jobs: Jobs, response: Response,
+    keypoints: Annotated[list[UploadFile], File(
+        description="DeepLabCut keypoints (.csv or .h5), one file per camera, repeated, in the calibration's order")],
+    calibration: Annotated[UploadFile, File(description="AcinoSet scene JSON or Anipose calibration TOML")],
+    options: Annotated[str, Form(
+        description='JSON object of solve options, e.g. {"method": "fte", "fps": 120, "skeleton": "cheetah", '
+                    '"likelihood_threshold": 0.5}; see GET /v1/skeletons')] = "{}",
+    skeleton: Annotated[UploadFile | None, File(
+        description="optional skeleton spec (.toml) to use instead of a named skeleton")] = None,
+) -> JobOut:
+    """Validate the files with the library's readers, store them and queue the solve. Answers 202 with
+    the job; poll its ``links.self`` until ``status`` is ``succeeded`` or ``failed``."""
+    job = jobs.submit(user, [Upload(f.filename, f.file) for f in keypoints], Upload(calibration.filename, calibration.file),
+                      options, Upload(skeleton.filename, skeleton.file) if skeleton is not None else None)
+    out = job_out(job)
+    response.headers["Location"] = out.links.self
+    return out
+
+
+@router.get("/v1/jobs", response_model=JobList, tags=["jobs"], summary="List jobs",
+            responses={403: _err("A non-admin asked for another user's jobs"), 422: _err("Bad filter")})
+def list_jobs(
+    user: CurrentUser, jobs: Jobs, request: Request,
+    status: Annotated[list[JobStatus] | None, Query(description="only jobs in these states (repeat for several)")] = None,
+    limit: Annotated[int, Query(ge=1, description="jobs per page (at most 500)")] = 50,
+    cursor: Annotated[str | None, Query(description="next_cursor of the previous page")] = None,
+    owner: Annotated[str | None, Query(description="admins: only this user's jobs")] = None,
+) -> JobList:
+    """The caller's jobs, newest first (an admin's call lists everyone's)."""
+    rows, total, next_cursor = jobs.list(user, list(status) if status else None, limit, cursor, owner)
+    nxt = None
+    if next_cursor is not None:
+        nxt = f"{request.url.path}?{request.url.include_query_params(cursor=next_cursor).query}"
+    return JobList(jobs=[job_out(j) for j in rows], total=total, next_cursor=next_cursor, next=nxt)
+
+
+@router.get("/v1/jobs/{job_id}", response_model=JobOut, tags=["jobs"], summary="A job's status",
+            responses=NOT_FOUND)
+def get_job(job_id: str, user: CurrentUser, jobs: Jobs) -> JobOut:
+    """Status, progress (stage, iteration, cost, fraction), timings, the error when failed and a
+    summary of the result when succeeded."""
+    return job_out(jobs.visible(user, job_id))
+
+
+@router.get(
+    "/v1/jobs/{job_id}/result", tags=["jobs"], summary="Download the result",
+    response_class=FileResponse,
+    responses={200: {"description": "The result file", "content": {
+                   "text/csv": {"schema": {"type": "string"}},
+                   "application/x-hdf5": {"schema": {"type": "string", "format": "binary"}},
+                   "application/json": {"schema": {"type": "object"}}}},
+               **NOT_FOUND, 409: _err("The job has not succeeded (yet)")})
+def get_result(job_id: str, user: CurrentUser, jobs: Jobs,
+               format: Annotated[ResultFormat, Query(
+                   description="csv: Anipose 3D CSV; h5: everything, HDF5; json: positions and std as JSON; "
+                               "report: the solve report")] = "csv") -> FileResponse:
+    filename, media = RESULT_FILES[format]
+    path = jobs.result_file(user, job_id, filename)
+    ext = filename.rsplit(".", 1)[1]
+    name = f"{job_id}.{ext}" if format != "report" else f"{job_id}.report.json"
+    return FileResponse(path, media_type=media, filename=name)
+
+
+@router.delete(
+    "/v1/jobs/{job_id}", tags=["jobs"], summary="Cancel or delete a job",
+    response_model=JobOut,
+    responses={200: {"description": "The job was queued or running: it is cancelled and its solve stopped"},
+               204: {"description": "The job had finished: it is deleted with its files"}, **NOT_FOUND})
+def delete_job(job_id: str, user: CurrentUser, jobs: Jobs):
+    job = jobs.cancel_or_delete(user, job_id)
+    if job is None:
+        return Response(status_code=204)
+    return job_out(job)
+
+
+@router.get("/v1/skeletons", response_model=list[SkeletonOut], tags=["reference"], summary="Skeletons")
+def list_skeletons(user: CurrentUser) -> list[SkeletonOut]:
+    """The skeletons a job's ``options.skeleton`` can name."""
+    from graph.errors import InputError
+    from graph.skeleton import available_skeletons, load_skeleton
+
+    out = []
+    for name in available_skeletons():
+        if name == "points":
+            out.append(SkeletonOut(name=name, kind="points", description="free 3D points, one per bodypart of "
+                                   "the keypoint files (any animal); no kinematic model"))
+            continue
+        try:
+            sk = load_skeleton(name)
+        except InputError as e:
+            out.append(SkeletonOut(name=name, kind="unknown", description=f"cannot be loaded: {e}"))
+            continue
+        out.append(SkeletonOut(name=name, kind=sk.kind, markers=list(sk.markers), parameters=sk.n_params,
+                               description=sk.description))
+    return out
+
+
+@router.get("/v1/me", response_model=Me, tags=["reference"], summary="The caller")
+def me(user: CurrentUser, request: Request) -> Me:
+    """Who the token belongs to, its job counts and this server's limits."""
+    store = request.app.state.store
+    s = request.app.state.settings
+    counts = store.job_counts(user.id)
+    return Me(name=user.name, admin=user.is_admin, active_jobs=store.count_active(user.id), jobs=counts,
+              limits=Limits(max_upload_bytes=s.max_upload_bytes, max_frames=s.max_frames, max_cameras=s.max_cameras,
+                            max_active_jobs=s.max_active_jobs_per_user))
+
+
+@public.get("/healthz", response_model=Health, tags=["service"], summary="Health",
+            responses={503: {"model": Health, "description": "The backend cannot run jobs (e.g. Redis unreachable)"}})
+def healthz(request: Request):
+    backend = request.app.state.backend
+    h = backend.health()
+    counts = request.app.state.store.status_counts()
+    body = Health(status="ok" if h["ok"] else "degraded", version=graph.__version__, backend=backend.name,
+                  workers=h["workers"], running=counts["running"], queued=counts["queued"], detail=h.get("detail"))
+    if not h["ok"]:
+        return JSONResponse(body.model_dump(), status_code=503)
+    return body
+
+
+@public.get("/metrics", response_class=PlainTextResponse, tags=["service"], summary="Prometheus metrics",
+            responses={200: {"content": {metrics.CONTENT_TYPE: {"schema": {"type": "string"}}},
+                             "description": "Prometheus text format"},
+                       401: _err("The server requires a token for metrics (ACINOSET_METRICS_PUBLIC=false)")})
+def get_metrics(request: Request) -> PlainTextResponse:
+    if not request.app.state.settings.metrics_public:
+        current_user(request)
+    backend = request.app.state.backend
+    text = metrics.render(request.app.state.store, backend.name, backend.health())
+    return PlainTextResponse(text, media_type=metrics.CONTENT_TYPE)

@@ -1,0 +1,77 @@
+"""Every setting of the job service in one place.
+
+Each field can be given as an environment variable ``ACINOSET_<FIELD>`` (for example
+``ACINOSET_DATA_DIR=/srv/acinoset``, ``ACINOSET_MAX_FRAMES=20000``); the ``acinoset serve`` and
+``acinoset worker`` flags override those. Defaults suit one lab server.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+MiB = 1024 * 1024
+
+
+def default_data_dir() -> Path:
+    """``$XDG_DATA_HOME/acinoset`` (``~/.local/share/acinoset``): the same for ``serve`` and ``users``
+    whatever the working directory."""
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "acinoset"
+
+
+def default_workers() -> int:
+    """One solve per core: a solve is single-threaded (gtsam's optimiser holds the GIL)."""
+    return max(1, os.cpu_count() or 2)
+
+
+class Settings(BaseSettings):
+    """The service's configuration."""
+
+    model_config = SettingsConfigDict(env_prefix="ACINOSET_", extra="ignore")
+
+    # where and how to serve
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    data_dir: Path = Field(default_factory=default_data_dir)
+    backend: Literal["embedded", "rq"] = "embedded"
+    redis_url: str = "redis://127.0.0.1:6379/0"
+    queue_name: str = "acinoset"
+    workers: int = Field(default_factory=default_workers, ge=1, le=256)  # embedded: parallel solves
+    log_level: str = "info"
+
+    # limits on what a user can ask for
+    max_upload_bytes: int = Field(512 * MiB, ge=1)  # one POST /v1/jobs request, all files together
+    max_frames: int = Field(100_000, ge=1)  # frames per keypoint file
+    max_cameras: int = Field(64, ge=1)
+    max_active_jobs_per_user: int = Field(200, ge=1)  # queued + running
+    page_size_max: int = Field(500, ge=1)
+
+    # running jobs
+    max_attempts: int = Field(3, ge=1)  # runs of one job interrupted by crashes before it fails
+    job_timeout_seconds: float = Field(6 * 3600.0, gt=0)  # longer than the longest solve
+    lease_seconds: float = Field(30.0, gt=0)  # a running job whose owner stopped renewing it is lost
+    heartbeat_seconds: float = Field(5.0, gt=0)  # lease renewal and RQ job monitoring interval
+    progress_interval_seconds: float = Field(0.2, ge=0)  # at most one progress write per interval
+    solve_niceness: int = Field(5, ge=0, le=19)  # solves yield the CPU to the API
+    warm_start: bool = True  # compile the solver's kernels once in the process that forks solves
+
+    # observability
+    metrics_public: bool = True  # /metrics without a token (counts only, no job content)
+
+    @field_validator("data_dir")
+    @classmethod
+    def _absolute(cls, v: Path) -> Path:
+        return Path(v).expanduser().resolve()
+
+    @property
+    def db_path(self) -> Path:
+        return self.data_dir / "acinoset.db"
+
+    @property
+    def jobs_dir(self) -> Path:
+        return self.data_dir / "jobs"

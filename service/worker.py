@@ -1,0 +1,316 @@
+"""Running one job: read its files, call :func:`graph.api.solve`, write the result files.
+
+The same :func:`solve_job` runs under both backends:
+
+* embedded: :func:`run_embedded` is the body of a child process of the server; it reports progress
+  into the job table itself and moves its result files in place inside the transaction that marks
+  the job succeeded (:meth:`service.store.Store.finish`).
+* rq: :func:`run_rq_job` runs in an RQ work horse on any machine. It gets the input files in the
+  job's arguments, reports progress in the RQ job's ``meta`` and returns the result files; the
+  server stores them in the data dir and the job table (RQ expires results: it is not the record).
+
+Job input layout (``<data dir>/jobs/<id>/input``), named by :data:`MANIFEST`::
+
+    manifest.json                      {"keypoints": [...], "calibration": ..., "skeleton": ..., "options": {...}}
+    keypoints/01/<uploaded name>.csv   one directory per camera, in the calibration's order
+    calibration/<uploaded name>.toml
+    skeleton/<uploaded name>.toml      optional
+
+Result files (``<data dir>/jobs/<id>/result``): :data:`RESULT_FILES`.
+
+Errors: :class:`graph.errors.InputError` and other exceptions of the solve fail the job at once with
+a one-line message (trying again would fail again); only a run that dies (killed, machine lost) is
+tried again.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import shutil
+import socket
+import sys
+import tempfile
+import time
+import traceback
+import zlib
+from pathlib import Path, PurePosixPath
+from typing import Callable
+
+import numpy as np
+
+MANIFEST = "manifest.json"
+RESULT_FILES = ("result.csv", "result.h5", "result.json", "report.json")
+
+
+SOLVER_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+def prepare_solver_environment() -> None:
+    """Settings for a process that forks solves; call it before the solver is imported.
+
+    One thread per solve (a machine runs one solve per core), and numba's ``workqueue`` threading
+    layer: GNU OpenMP, numba's default here, aborts a process forked after it ran a parallel kernel.
+    """
+    for var in SOLVER_THREADS:
+        os.environ.setdefault(var, "1")
+    if os.environ.get("NUMBA_THREADING_LAYER") not in ("tbb", "workqueue"):
+        os.environ["NUMBA_THREADING_LAYER"] = "workqueue"
+    numba = sys.modules.get("numba")
+    if numba is not None:
+        numba.config.THREADING_LAYER = os.environ["NUMBA_THREADING_LAYER"]
+
+
+# imported by every process that forks solves (missing ones are skipped)
+SOLVER_MODULES = ("gtsam", "numba", "graph.api", "graph.calibration", "graph.keypoints", "graph.skeleton",
+                  "graph.problem", "graph.kernels", "graph.triangulate", "graph.fte", "graph.online", "graph.io")
+
+
+def noop() -> None:
+    """A process that does nothing: starting one starts (and warms) the forkserver."""
+
+
+class JobCancelled(Exception):
+    """The run no longer owns its job (cancelled, or given up for lost and run elsewhere)."""
+
+
+# -- inputs ------------------------------------------------------------------------------------
+
+def read_manifest(input_dir: Path) -> dict:
+    return json.loads((input_dir / MANIFEST).read_text())
+
+
+def _inside(base: Path, rel: str) -> Path:
+    """``base / rel`` where ``rel`` is a relative POSIX path that stays inside ``base``."""
+    p = PurePosixPath(rel)
+    if p.is_absolute() or ".." in p.parts or not p.parts:
+        raise ValueError(f"bad path in job manifest: {rel!r}")
+    return base.joinpath(*p.parts)
+
+
+def load_inputs(input_dir: Path):
+    """The job's keypoints (one per camera), calibration and solve options, read with the core's readers."""
+    from pydantic import TypeAdapter
+
+    from graph.api import SolveOptions
+    from graph.calibration import load_calibration
+    from graph.keypoints import read_keypoints
+
+    m = read_manifest(input_dir)
+    options = dict(m["options"])
+    if m.get("skeleton"):
+        options["skeleton"] = str(_inside(input_dir, m["skeleton"]))
+    opts = TypeAdapter(SolveOptions).validate_python(options)
+    keypoints = [read_keypoints(_inside(input_dir, rel), individual=opts.individual) for rel in m["keypoints"]]
+    calibration = load_calibration(_inside(input_dir, m["calibration"]))
+    return keypoints, calibration, opts
+
+
+# -- outputs -----------------------------------------------------------------------------------
+
+def _nullable(a: np.ndarray | None, decimals: int = 6):
+    """An array as nested lists with ``null`` where not finite."""
+    if a is None:
+        return None
+    a = np.asarray(a, dtype=np.float64)
+    out = np.round(a, decimals).astype(object)
+    out[~np.isfinite(a)] = None
+    return out.tolist()
+
+
+def result_json(result) -> dict:
+    """A solved run as plain JSON: positions and std (N, M, 3) in metres, ``null`` where unknown."""
+    return {
+        "method": result.method,
+        "skeleton": result.skeleton,
+        "fps": result.fps,
+        "frames": int(result.positions.shape[0]),
+        "markers": list(result.markers),
+        "cameras": list(result.camera_names),
+        "positions": _nullable(result.positions),
+        "std": _nullable(result.std),
+        "reprojection_error_px": _nullable(result.error, 3),
+        "ncams": np.asarray(result.ncams).astype(int).tolist(),
+        "score": _nullable(result.score, 4),
+        "param_names": list(result.param_names),
+        "params": _nullable(result.params),
+        "bones": [list(b) for b in result.bones],
+        "report": result.report.to_dict(),
+    }
+
+
+def write_results(result, out_dir: Path) -> dict:
+    """Write every result format into ``out_dir``; return the report as a dict."""
+    from graph.io import write_anipose_csv, write_h5
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_anipose_csv(out_dir / "result.csv", result)
+    write_h5(out_dir / "result.h5", result)
+    report = result.report.to_dict()
+    (out_dir / "result.json").write_text(json.dumps(result_json(result), separators=(",", ":")))
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
+    return report
+
+
+# -- progress ----------------------------------------------------------------------------------
+
+class ThrottledProgress:
+    """The solve's progress callback: passes a report on to ``sink`` at most every ``interval``
+    seconds (and always at a new stage). ``sink`` returns False when the run should stop."""
+
+    def __init__(self, sink: Callable[[str, float, int, float | None], bool], interval: float):
+        self.sink = sink
+        self.interval = interval
+        self._last = 0.0
+        self._stage: str | None = None
+
+    def __call__(self, p) -> None:
+        now = time.monotonic()
+        if p.stage == self._stage and now - self._last < self.interval:
+            return
+        self.report(p.stage, p.fraction, p.iteration, p.cost)
+
+    def report(self, stage: str, fraction: float, iteration: int = 0, cost: float | None = None) -> None:
+        self._last, self._stage = time.monotonic(), stage
+        fraction = float(min(1.0, max(0.0, fraction))) if np.isfinite(fraction) else 0.0
+        cost = float(cost) if cost is not None and np.isfinite(cost) else None
+        if not self.sink(stage, fraction, int(iteration), cost):
+            raise JobCancelled()
+
+
+def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> dict:
+    """Read the inputs, solve, write the results; return the solve report."""
+    from graph.api import solve
+
+    progress.report("reading", 0.0)
+    keypoints, calibration, options = load_inputs(input_dir)
+    result = solve(keypoints, calibration, options, progress=progress)
+    progress.report("writing", 1.0, result.report.iterations, result.report.cost)
+    return write_results(result, out_dir)
+
+
+def one_line(e: BaseException) -> str:
+    from graph.errors import InputError
+
+    text = " ".join(str(e).split()) or type(e).__name__
+    return text if isinstance(e, InputError) else f"{type(e).__name__}: {text}"
+
+
+# -- embedded: one child process per job -------------------------------------------------------
+
+def _die_with_parent() -> None:
+    """Ask Linux to kill this process when its parent dies, so no solve outlives its server."""
+    try:
+        import ctypes
+        import signal
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except Exception:  # not Linux: the server's lease checks still stop orphans writing results
+        pass
+
+
+def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_interval: float,
+                 niceness: int) -> None:
+    """Body of the child process that runs one job for the embedded backend."""
+    from service.store import Store
+
+    _die_with_parent()
+    if niceness:
+        try:
+            os.nice(niceness)
+        except OSError:
+            pass
+    store = Store(db_path)
+    job_dir = Path(jobs_dir) / job_id
+    tmp = job_dir / f"result.{token}.tmp"
+    final = job_dir / "result"
+
+    def sink(stage, fraction, iteration, cost) -> bool:
+        return store.report_progress(job_id, token, stage, fraction, iteration, cost)
+
+    def commit() -> None:
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+
+    try:
+        report = solve_job(job_dir / "input", tmp, ThrottledProgress(sink, progress_interval))
+        store.finish(job_id, token, "succeeded", summary=report, commit=commit)
+    except JobCancelled:
+        pass
+    except Exception as e:  # noqa: BLE001 - any error of the solve fails the job with its message
+        _log_traceback(job_dir)
+        store.finish(job_id, token, "failed", error=one_line(e))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        store.close()
+
+
+def _log_traceback(job_dir: Path) -> None:
+    text = traceback.format_exc()
+    try:
+        with open(job_dir / "error.log", "a") as f:
+            f.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} on {socket.gethostname()}:{os.getpid()}\n{text}")
+    except OSError:
+        pass
+    print(text, file=sys.stderr, flush=True)
+
+
+# -- rq: a work horse anywhere -----------------------------------------------------------------
+
+def pack_files(base: Path, rels: list[str]) -> dict[str, str]:
+    """Files under ``base`` as {relative path: base64 of zlib}; JSON-safe for RQ's JSON serializer."""
+    return {rel: base64.b64encode(zlib.compress(_inside(base, rel).read_bytes(), 6)).decode("ascii")
+            for rel in rels}
+
+
+def unpack_files(files: dict[str, str], base: Path) -> None:
+    for rel, data in files.items():
+        p = _inside(base, rel)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_bytes(zlib.decompress(base64.b64decode(data)))
+
+
+def input_payload(input_dir: Path) -> dict:
+    """What an RQ worker needs to run a job: the manifest and the input files."""
+    m = read_manifest(input_dir)
+    rels = [MANIFEST, *m["keypoints"], m["calibration"], *([m["skeleton"]] if m.get("skeleton") else [])]
+    return {"files": pack_files(input_dir, rels)}
+
+
+def run_rq_job(job_id: str, payload: dict, progress_interval: float = 0.5, niceness: int = 0) -> dict:
+    """The RQ job function. Returns ``{"status": "succeeded", "report", "files", "seconds", "worker"}``
+    or ``{"status": "failed", "error"}``; raises only if the process itself is in trouble."""
+    from rq import get_current_job
+
+    rq_job = get_current_job()
+    if niceness:
+        try:
+            os.nice(niceness)
+        except OSError:
+            pass
+    worker = os.environ.get("RQ_WORKER_ID") or f"{socket.gethostname()}:{os.getpid()}"
+    if rq_job is not None:
+        rq_job.meta["attempt"] = int(rq_job.meta.get("attempt", 0)) + 1
+        rq_job.meta["host"] = f"{socket.gethostname()}:{os.getpid()}"
+        rq_job.save_meta()
+
+    def sink(stage, fraction, iteration, cost) -> bool:
+        if rq_job is not None:
+            rq_job.meta["progress"] = {"stage": stage, "fraction": fraction, "iteration": iteration, "cost": cost}
+            rq_job.save_meta()
+        return True
+
+    t0 = time.time()
+    with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-") as tmp:
+        input_dir, out_dir = Path(tmp) / "input", Path(tmp) / "result"
+        unpack_files(payload["files"], input_dir)
+        try:
+            report = solve_job(input_dir, out_dir, ThrottledProgress(sink, progress_interval))
+        except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
+            traceback.print_exc()
+            return {"status": "failed", "error": one_line(e), "worker": worker}
+        return {"status": "succeeded", "report": report, "files": pack_files(out_dir, list(RESULT_FILES)),
+                "seconds": time.time() - t0, "worker": worker}
