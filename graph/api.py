@@ -17,6 +17,7 @@ from graph.keypoints import Keypoints
 
 Method = Literal["tri", "ekf", "fte"]
 METHODS: tuple[str, ...] = ("tri", "ekf", "fte")
+CALIBRATION_UNITS: dict[str, float] = {"auto": 0.0, "m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per unit
 
 
 @dataclass
@@ -34,6 +35,7 @@ class SolveOptions:
     bone_lengths: list[tuple[str, str]] | None = None  # soft bone-length terms for "points"
     individual: str | None = None  # multi-animal DLC files: which individual
     lag_seconds: float = 0.25  # "ekf": the fixed-lag window
+    calibration_units: str = "auto"  # "m", "cm", "mm", or "auto" (a rig measured in mm is recognised)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -44,6 +46,8 @@ class SolveOptions:
             raise ValueError(f"likelihood_threshold must be in [0, 1], not {self.likelihood_threshold}")
         if not (self.measurement_std_px > 0):
             raise ValueError("measurement_std_px must be positive")
+        if self.calibration_units not in CALIBRATION_UNITS:
+            raise ValueError(f"calibration_units must be one of {', '.join(CALIBRATION_UNITS)}")
         if self.max_iterations < 1:
             raise ValueError("max_iterations must be at least 1")
 

@@ -108,7 +108,7 @@ def _fail(message: str) -> int:
 
 
 def _register_solve(sub) -> None:
-    from graph.api import METHODS, SolveOptions
+    from graph.api import CALIBRATION_UNITS, METHODS, SolveOptions
 
     defaults = SolveOptions()
     p = sub.add_parser("solve", help="3D trajectories from DeepLabCut files of calibrated cameras",
@@ -124,6 +124,10 @@ def _register_solve(sub) -> None:
     p.add_argument("--likelihood-threshold", type=float, default=defaults.likelihood_threshold, metavar="P",
                    help=f"ignore detections below this likelihood (default {defaults.likelihood_threshold:g})")
     p.add_argument("--individual", default=None, metavar="NAME", help="multi-animal files: which individual")
+    p.add_argument("--calibration-units", choices=list(CALIBRATION_UNITS), default="auto",
+                   help="units of the calibration's translations (default: auto, which recognises millimetres)")
+    p.add_argument("--bones", default=None, metavar="A-B,C-D",
+                   help="points skeleton: soft bone-length terms between these bodypart pairs")
     p.add_argument("--out", required=True, metavar="OUT.csv", help="3D result in Anipose's CSV layout")
     p.add_argument("--h5", default=None, metavar="OUT.h5", help="also write everything as HDF5")
     p.add_argument("--report", default=None, metavar="REPORT.json", help="also write the solver report")
@@ -138,8 +142,14 @@ def run_solve(args: argparse.Namespace) -> int:
     from graph.keypoints import check_same_frames, read_keypoints
 
     try:
+        bones = None
+        if args.bones:
+            bones = [tuple(pair.split("-", 1)) for pair in args.bones.split(",") if pair.strip()]
+            if any(len(b) != 2 or not all(b) for b in bones):
+                raise ValueError("--bones takes pairs of bodyparts as A-B,C-D")
         options = api.SolveOptions(method=args.method, fps=args.fps, skeleton=args.skeleton,
-                                   likelihood_threshold=args.likelihood_threshold, individual=args.individual)
+                                   likelihood_threshold=args.likelihood_threshold, individual=args.individual,
+                                   calibration_units=args.calibration_units, bone_lengths=bones)
     except ValueError as e:
         raise UsageError(str(e)) from None
     for out in (args.out, args.h5, args.report):

@@ -8,11 +8,11 @@ likelihood threshold, and packs the cameras for the kernels.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from graph.api import SolveOptions
+from graph.api import CALIBRATION_UNITS, SolveOptions
 from graph.camera import Calibration
 from graph.errors import InputError
 from graph.keypoints import Keypoints, check_same_frames, match_bodyparts
@@ -66,6 +66,29 @@ class Problem:
         return markers, frames
 
 
+RIG_SIZE_MM_GUESS = 50.0  # a rig whose cameras sit this many units apart is not in metres
+
+
+def in_metres(calibration: Calibration, units: str) -> tuple[Calibration, str | None]:
+    """The calibration with translations in metres. Anipose calibrations are in the units of the
+    calibration board, often millimetres; with ``units="auto"`` a rig whose cameras are more than
+    50 units from their centroid is taken to be in millimetres (and said so)."""
+    scale = CALIBRATION_UNITS[units]
+    note = None
+    if scale == 0.0:
+        centres = np.stack([c.center for c in calibration.cameras])
+        spread = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1)))
+        scale = 1.0
+        if spread > RIG_SIZE_MM_GUESS:
+            scale = 0.001
+            note = (f"{calibration.source or 'calibration'}: cameras are {spread:.0f} units from their centre; "
+                    "taking the calibration to be in millimetres (set calibration units to override)")
+    if scale == 1.0:
+        return calibration, note
+    cams = [replace(c, t=c.t * scale) for c in calibration.cameras]
+    return replace(calibration, cameras=cams), note
+
+
 def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOptions) -> Problem:
     """Stack per-camera keypoints into a :class:`Problem`, or raise :class:`InputError`."""
     C = len(calibration)
@@ -79,6 +102,10 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
         raise InputError("no frames", keypoints[0].source or None)
 
     notes: list[str] = []
+    calibration, note = in_metres(calibration, options.calibration_units)
+    if note:
+        notes.append(note)
+        warnings.warn(note, stacklevel=2)
     if options.skeleton == "points":
         names: list[str] = []
         for kp in keypoints:

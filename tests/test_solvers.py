@@ -124,3 +124,16 @@ def test_ekf_reports_per_frame_time_and_causal_estimates(run):
     causal = np.nanmean(np.linalg.norm(res.causal_positions - run.positions, axis=-1))
     smooth = np.nanmean(np.linalg.norm(res.positions - run.positions, axis=-1))
     assert smooth < 0.03 and causal < 0.05
+
+
+def test_millimetre_calibration_is_recognised(rig, run):
+    from dataclasses import replace
+
+    mm = replace(rig, cameras=[replace(c, t=c.t * 1000.0) for c in rig.cameras], source="calibration.toml")
+    with pytest.warns(UserWarning, match="millimetres"):
+        res = solve(run.keypoints, mm, SolveOptions(method="tri", fps=run.fps))
+    assert any("millimetres" in w for w in res.report.warnings)
+    err = np.linalg.norm(res.positions - run.positions, axis=-1)
+    assert np.nanmedian(err) < 0.05  # metres, as if the rig had been given in metres
+    same = solve(run.keypoints, mm, SolveOptions(method="tri", fps=run.fps, calibration_units="mm"))
+    assert np.allclose(same.positions, res.positions, equal_nan=True)
