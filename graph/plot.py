@@ -160,16 +160,16 @@ def result_payload(result: Result, calibration=None) -> dict:
     """Everything the result view draws, as JSON-safe data (NaN -> ``null``). Shapes: N frames,
     M markers, C cameras, P pose parameters.
 
-    ``positions``, ``std`` (N, M, 3) metres; ``ncams`` (N, M) cameras that saw each marker;
-    ``score`` (N, M) mean likelihood; ``residuals`` (C, N, M) px; ``outliers`` a list of
+    ``markers`` and ``cameras`` are names; ``bones`` pairs of marker names. ``positions``, ``std`` (N, M, 3) metres; ``ncams`` (N, M) cameras that saw each marker;
+    ``score`` (N, M) mean likelihood; ``reprojection_error_px`` (N, M) the mean over the cameras
+    whose detection was used; ``residuals`` (C, N, M) px per camera; ``outliers`` a list of
     ``[camera, frame, marker]`` index triples; ``error_table`` {median, observations, outliers}
     (C, M); ``frame_error`` (N,) px; ``camera_centers`` (C, 3) or null; ``params``, ``params_std``
-    (N, P) or null, with ``param_units`` "m" or "rad"; ``bones`` marker index pairs; ``report``
+    (N, P) or null, with ``param_units`` "m" or "rad"; ``report``
     the solver's report; ``options`` the options the run was solved with.
     """
     N, M = result.positions.shape[:2]
-    idx = {m: i for i, m in enumerate(result.markers)}
-    bones = [[idx[a], idx[b]] for a, b in result.bones if a in idx and b in idx]
+    bones = [[a, b] for a, b in result.bones if a in result.markers and b in result.markers]
     table = error_table(result)
     out = np.argwhere(np.asarray(result.outlier, dtype=bool) & np.isfinite(result.residuals))
     report = result.report.to_dict() if hasattr(result.report, "to_dict") else dict(result.report)
@@ -185,13 +185,14 @@ def result_payload(result: Result, calibration=None) -> dict:
         "frames": int(N),
         "markers": list(result.markers),
         "bones": bones,
-        "camera_names": list(result.camera_names),
+        "cameras": list(result.camera_names),
         "camera_centers": _json_array(cc, _POS_DECIMALS),
         "camera_directions": _json_array(cd, 4),
         "positions": _json_array(result.positions, _POS_DECIMALS),
         "std": _json_array(result.std, _POS_DECIMALS),
         "ncams": _json_array(np.asarray(result.ncams).astype(np.int64)),
         "score": _json_array(result.score, _SCORE_DECIMALS),
+        "reprojection_error_px": _json_array(result.error, _PX_DECIMALS),
         "residuals": _json_array(result.residuals, _PX_DECIMALS),
         "outliers": out.astype(np.int64).tolist(),
         "error_table": {"median": _json_array(table.median, _PX_DECIMALS),

@@ -116,6 +116,7 @@ def test_payload_is_strict_json_with_the_result_numbers(solved):
     back = json.loads(text)
     N, M = result.positions.shape[:2]
     C = len(result.camera_names)
+    np.testing.assert_allclose(np.array(back["reprojection_error_px"], dtype=float), result.error, atol=0.006)
     assert back["frames"] == N and back["markers"] == result.markers
     assert np.array(back["positions"], dtype=float).shape == (N, M, 3)
     assert np.array(back["residuals"], dtype=float).shape == (C, N, M)
@@ -123,8 +124,9 @@ def test_payload_is_strict_json_with_the_result_numbers(solved):
     pos = np.array(back["positions"], dtype=float)
     assert np.array_equal(np.isnan(pos), np.isnan(result.positions))
     np.testing.assert_allclose(pos, result.positions, atol=1e-5, equal_nan=True)
-    # Bones are index pairs into the markers, drawn from the skeleton's tree.
-    assert {(result.markers[a], result.markers[b]) for a, b in back["bones"]} == set(map(tuple, result.bones))
+    # Bones are pairs of marker names, drawn from the skeleton's tree.
+    assert {tuple(b) for b in back["bones"]} == set(map(tuple, result.bones)) and len(back["bones"]) == 21
+    assert back["cameras"] == calib.names
     # Camera centres come from the calibration: -R^T t.
     np.testing.assert_allclose(back["camera_centers"], [c.center for c in calib.cameras], atol=1e-5)
     # Every rejected detection is listed once, as [camera, frame, marker].

@@ -1,0 +1,164 @@
+/* Shared by every page: the API token (kept in this browser's localStorage), calls to the REST API
+ * v1 with it, the page header, and small formatting helpers. */
+(function () {
+  "use strict";
+
+  const TOKEN_KEY = "acinoset.token";
+
+  class ApiError extends Error {
+    constructor(status, detail) {
+      super(detail);
+      this.status = status;
+    }
+  }
+
+  function el(tag, attrs, ...children) {
+    const node = document.createElement(tag);
+    for (const [k, v] of Object.entries(attrs || {})) {
+      if (v === null || v === undefined || v === false) continue;
+      if (k === "class") node.className = v;
+      else if (k === "text") node.textContent = v;
+      else if (k.startsWith("on")) node.addEventListener(k.slice(2), v);
+      else node.setAttribute(k, v === true ? "" : v);
+    }
+    for (const c of children.flat()) {
+      if (c === null || c === undefined || c === false) continue;
+      node.append(c instanceof Node ? c : document.createTextNode(String(c)));
+    }
+    return node;
+  }
+
+  function token() {
+    try { return localStorage.getItem(TOKEN_KEY); } catch (e) { return null; }
+  }
+
+  function here() { return location.pathname + location.search; }
+
+  function toLogin(reason) {
+    const q = new URLSearchParams({ next: here() });
+    if (reason) q.set("reason", reason);
+    location.replace("/login?" + q.toString());
+  }
+
+  /** Send the user to the sign-in page when this browser holds no token. */
+  function requireToken() {
+    if (!token()) { toLogin(); return false; }
+    return true;
+  }
+
+  function detailText(body, fallback) {
+    if (!body) return fallback;
+    const d = body.detail;
+    if (typeof d === "string") return d;
+    if (Array.isArray(d)) return d.map((e) => (e && e.msg ? e.msg : JSON.stringify(e))).join("; ");
+    return fallback;
+  }
+
+  /** Call the REST API with the token. Resolves to parsed JSON (or the Response when raw);
+   * rejects with an ApiError whose message is the server's one-line detail. A 401 clears the token
+   * and goes to the sign-in page. */
+  async function api(path, opts) {
+    opts = opts || {};
+    const headers = Object.assign({ Accept: "application/json" }, opts.headers || {});
+    const t = opts.token !== undefined ? opts.token : token();
+    if (t) headers.Authorization = "Bearer " + t;
+    let res;
+    try {
+      res = await fetch(path, { method: opts.method || "GET", headers, body: opts.body, cache: "no-store" });
+    } catch (e) {
+      throw new ApiError(0, "The server cannot be reached. Check that it is running and try again.");
+    }
+    if (res.status === 401 && !opts.noRedirect) {
+      try { localStorage.removeItem(TOKEN_KEY); } catch (e) { /* ignore */ }
+      toLogin("expired");
+      throw new ApiError(401, "Your token was not accepted; sign in again.");
+    }
+    if (!res.ok) {
+      let body = null;
+      try { body = await res.json(); } catch (e) { /* not JSON */ }
+      throw new ApiError(res.status, detailText(body, `${res.status} ${res.statusText}`));
+    }
+    if (opts.raw) return res;
+    if (res.status === 204) return null;
+    return res.json();
+  }
+
+  /** Fetch a file with the token and hand it to the browser as a download. */
+  async function download(path, filename) {
+    const res = await api(path, { raw: true, headers: { Accept: "*/*" } });
+    const blob = await res.blob();
+    const url = URL.createObjectURL(blob);
+    const a = el("a", { href: url, download: filename });
+    document.body.append(a);
+    a.click();
+    a.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 60000);
+  }
+
+  const STATUS = {
+    queued: ["◷", "queued"],
+    running: ["⟳", "running"],
+    succeeded: ["✓", "succeeded"],
+    failed: ["✕", "failed"],
+    cancelled: ["⊘", "cancelled"],
+  };
+
+  /** A status as icon and word (never colour alone). */
+  function statusBadge(status) {
+    const [icon, word] = STATUS[status] || ["?", status];
+    return el("span", { class: `status status-${status}`, "data-status": status },
+      el("span", { "aria-hidden": "true", text: icon }), word);
+  }
+
+  function fmtDate(iso) {
+    if (!iso) return "–";
+    const d = new Date(iso);
+    if (isNaN(d)) return String(iso);
+    const today = new Date();
+    const sameDay = d.toDateString() === today.toDateString();
+    const time = d.toLocaleTimeString([], { hour: "2-digit", minute: "2-digit", second: "2-digit" });
+    return sameDay ? time : `${d.toLocaleDateString()} ${time}`;
+  }
+
+  function fmtSeconds(s) {
+    if (s === null || s === undefined || !isFinite(s)) return "–";
+    if (s < 1) return `${Math.round(s * 1000)} ms`;
+    if (s < 60) return `${s.toFixed(1)} s`;
+    const m = Math.floor(s / 60), r = Math.round(s % 60);
+    if (m < 60) return `${m} min ${r} s`;
+    return `${Math.floor(m / 60)} h ${m % 60} min`;
+  }
+
+  function progressText(job) {
+    const p = job.progress || {};
+    const bits = [];
+    if (p.stage) bits.push(p.stage);
+    if (p.iteration) bits.push(`iteration ${p.iteration}`);
+    if (p.fraction !== null && p.fraction !== undefined) bits.push(`${Math.round(100 * p.fraction)}%`);
+    return bits.join(", ");
+  }
+
+  /** The page header: brand, navigation with the current page marked, who is signed in, sign out. */
+  function header(active) {
+    const top = document.getElementById("top");
+    if (!top) return;
+    const link = (href, text, key) => el("a", { href, text, "aria-current": key === active ? "page" : null });
+    const who = el("span", { class: "who", "aria-live": "polite" });
+    const out = el("button", { type: "button", text: "Sign out", onclick: () => {
+      try { localStorage.removeItem(TOKEN_KEY); } catch (e) { /* ignore */ }
+      location.assign("/login");
+    } });
+    top.replaceChildren(
+      el("a", { class: "brand", href: "/", text: "acinoset" }),
+      el("nav", { "aria-label": "Main" }, link("/", "Jobs", "jobs"), link("/jobs/new", "New job", "new"),
+        el("span", { class: "spacer" }), token() ? who : null, token() ? out : null));
+    if (token()) {
+      api("/v1/me").then((me) => { who.textContent = `Signed in as ${me.name}${me.admin ? " (admin)" : ""}`; })
+        .catch(() => { /* the call redirects on 401; other errors leave the name out */ });
+    }
+  }
+
+  window.Acino = { TOKEN_KEY, ApiError, el, token, requireToken, api, download, statusBadge, fmtDate, fmtSeconds,
+    progressText, header, toLogin,
+    setToken(t) { localStorage.setItem(TOKEN_KEY, t); } };
+})();

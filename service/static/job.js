@@ -1,0 +1,165 @@
+/* One job: live status and progress, the error in plain words when it failed, downloads of every
+ * result format, and the result view (3D playback, reprojection error, over time, flags). */
+(function () {
+  "use strict";
+  const A = window.Acino;
+  if (!A.requireToken()) return;
+  A.header("job");
+  const { el } = A;
+  const id = decodeURIComponent(location.pathname.split("/").filter(Boolean)[1] || "");
+  const short = id.slice(0, 8);
+  const title = document.getElementById("job-title");
+  const statusLine = document.getElementById("job-status");
+  const alertBox = document.getElementById("job-alert");
+  const progressBox = document.getElementById("job-progress");
+  const bar = document.getElementById("progress-bar");
+  const progressText = document.getElementById("progress-text");
+  const facts = document.getElementById("job-facts");
+  const actions = document.getElementById("job-actions");
+  const downloads = document.getElementById("downloads");
+  const downloadButtons = document.getElementById("download-buttons");
+  const downloadError = document.getElementById("download-error");
+  const resultBox = document.getElementById("result");
+  const ACTIVE = new Set(["queued", "running"]);
+  const FORMATS = {
+    csv: ["CSV", "Anipose 3D table: x, y, z, error, cameras and score per marker and frame", "csv"],
+    h5: ["HDF5", "everything: positions, uncertainty, reprojections, residuals, pose parameters", "h5"],
+    json: ["JSON", "what this page draws, for your own plots", "json"],
+    report: ["Report", "the solver's report (JSON)", "report.json"],
+  };
+  let lastStatus = null;
+  let timer = null;
+  let resultShown = false;
+
+  title.textContent = `Job ${short}`;
+
+  function fact(k, v) { if (v !== null && v !== undefined && v !== "") facts.append(el("dt", { text: k }), el("dd", {}, v)); }
+
+  function drawFacts(job) {
+    facts.replaceChildren();
+    const t = job.timings || {};
+    const o = job.options || {};
+    const i = job.inputs || {};
+    fact("Job id", el("code", { text: job.id }));
+    fact("Owner", job.owner);
+    fact("Method", `${o.method} with the ${o.skeleton} skeleton at ${o.fps} fps, likelihood threshold ${o.likelihood_threshold}`);
+    fact("Input", `${i.cameras} cameras, ${i.frames} frames, ${(i.bodyparts || []).length} bodyparts`);
+    if (i.keypoints) fact("Keypoint files", el("ol", {}, i.keypoints.map((f) => el("li", { text: f.name }))));
+    if (i.calibration) fact("Calibration", i.calibration.name);
+    fact("Submitted", A.fmtDate(t.created_at));
+    fact("Started", t.started_at ? A.fmtDate(t.started_at) : null);
+    fact("Finished", t.finished_at ? A.fmtDate(t.finished_at) : null);
+    fact("Waited", t.queued_seconds != null ? A.fmtSeconds(t.queued_seconds) : null);
+    fact("Ran", t.run_seconds != null ? A.fmtSeconds(t.run_seconds) : null);
+    if (job.attempts > 1) fact("Attempts", `${job.attempts} of ${job.max_attempts}`);
+    const r = job.result;
+    if (r) {
+      fact("Reprojection RMSE", r.reprojection_rmse_px != null ? `${r.reprojection_rmse_px.toFixed(2)} px` : null);
+      fact("Rejected detections", r.outliers != null ? `${r.outliers} of ${r.observations}` : null);
+      if (r.warnings && r.warnings.length) fact("Warnings", el("ul", {}, r.warnings.map((w) => el("li", { text: w }))));
+    }
+  }
+
+  function drawAlert(job) {
+    alertBox.replaceChildren();
+    if (job.status === "failed") {
+      alertBox.append(el("section", { class: "alert", role: "alert", "data-testid": "job-error" },
+        el("h2", { text: "This job failed" }),
+        el("p", { class: "error-text", text: job.error || "The server gave no reason." }),
+        el("p", { text: "Fix what the message names (usually one of the uploaded files or an option) and " +
+          "submit the job again. If the message does not make sense, send the job id to whoever runs this server." }),
+        el("p", {}, el("a", { class: "button", href: "/jobs/new", text: "Submit a new job" }))));
+    } else if (job.status === "cancelled") {
+      alertBox.append(el("p", { class: "notice", text: "This job was cancelled; it has no result." }));
+    } else if (job.interruption && ACTIVE.has(job.status)) {
+      alertBox.append(el("p", { class: "notice", text: `An earlier run of this job was interrupted (${job.interruption}); it is being run again.` }));
+    }
+  }
+
+  function drawProgress(job) {
+    const active = ACTIVE.has(job.status);
+    progressBox.hidden = !active;
+    if (!active) return;
+    const f = job.progress && job.progress.fraction != null ? job.progress.fraction : null;
+    if (f === null) bar.removeAttribute("value");
+    else { bar.value = f; bar.setAttribute("aria-valuetext", `${Math.round(100 * f)} percent`); }
+    progressText.textContent = job.status === "queued" ? "Waiting for a free worker." : (A.progressText(job) || "Starting.");
+  }
+
+  function drawActions(job) {
+    const active = ACTIVE.has(job.status);
+    actions.replaceChildren(el("button", { type: "button", class: active ? "" : "danger",
+      text: active ? "Cancel this job" : "Delete this job", onclick: async () => {
+        if (!confirm(active ? `Cancel job ${short}?` : `Delete job ${short} and its result files?`)) return;
+        try {
+          await A.api(`/v1/jobs/${encodeURIComponent(id)}`, { method: "DELETE" });
+          if (active) refresh(); else location.assign("/");
+        } catch (e) {
+          alertBox.replaceChildren(el("p", { class: "alert", role: "alert", text: `Could not do that: ${e.message}` }));
+        }
+      } }));
+  }
+
+  function drawDownloads(job) {
+    const links = (job.links && job.links.result) || {};
+    const formats = Object.keys(links);
+    downloads.hidden = !formats.length;
+    downloadButtons.replaceChildren(...formats.map((f) => {
+      const [label, what, ext] = FORMATS[f] || [f.toUpperCase(), "", f];
+      return el("button", { type: "button", "data-format": f, "aria-describedby": null, onclick: async (ev) => {
+        downloadError.hidden = true;
+        ev.target.disabled = true;
+        try { await A.download(links[f], `${id}.${ext}`); }
+        catch (e) { downloadError.textContent = `The ${label} file could not be downloaded: ${e.message}`; downloadError.hidden = false; }
+        finally { ev.target.disabled = false; }
+      } }, el("strong", { text: `Download ${label}` }), what ? el("span", { class: "muted", text: ` — ${what}` }) : null);
+    }));
+  }
+
+  async function showResult(job) {
+    resultShown = true;
+    resultBox.replaceChildren(el("p", { class: "muted", role: "status", text: "Loading the result for drawing…" }));
+    try {
+      const href = (job.links.result && job.links.result.json) || `/v1/jobs/${encodeURIComponent(id)}/result?format=json`;
+      const payload = await A.api(href);
+      if (typeof window.Plotly === "undefined" || !window.AcinoResultView) throw new Error("the plotting scripts did not load");
+      window.AcinoResultView.render(resultBox, payload, {});
+    } catch (e) {
+      resultShown = false;
+      resultBox.replaceChildren(el("p", { class: "alert", role: "alert", text: `The result could not be drawn: ${e.message}` }));
+    }
+  }
+
+  async function refresh() {
+    clearTimeout(timer);
+    let job;
+    try {
+      job = await A.api(`/v1/jobs/${encodeURIComponent(id)}`);
+    } catch (e) {
+      if (e.status === 404) {
+        title.textContent = `Job ${short}: not found`;
+        statusLine.textContent = "There is no such job, or it belongs to another user.";
+        return;
+      }
+      statusLine.textContent = `Could not load the job: ${e.message}. Trying again…`;
+      timer = setTimeout(refresh, 5000);
+      return;
+    }
+    document.title = `Job ${short} · ${job.status} · acinoset`;
+    if (job.status !== lastStatus) {
+      statusLine.replaceChildren(A.statusBadge(job.status), " ",
+        { queued: "Waiting in the queue.", running: "Solving.", succeeded: "Done.", failed: "Stopped with an error.",
+          cancelled: "Cancelled." }[job.status] || "");
+      drawAlert(job);
+      drawActions(job);
+      lastStatus = job.status;
+    }
+    drawProgress(job);
+    drawFacts(job);
+    drawDownloads(job);
+    if (job.status === "succeeded" && !resultShown) showResult(job);
+    if (ACTIVE.has(job.status)) timer = setTimeout(refresh, 1000);
+  }
+
+  refresh();
+})();

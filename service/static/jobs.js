@@ -1,0 +1,120 @@
+/* The job list: the caller's jobs, newest first, refreshed while any is queued or running. */
+(function () {
+  "use strict";
+  const A = window.Acino;
+  if (!A.requireToken()) return;
+  A.header("jobs");
+  const { el } = A;
+  const body = document.getElementById("jobs-body");
+  const filter = document.getElementById("status-filter");
+  const more = document.getElementById("more");
+  const counts = document.getElementById("counts");
+  const updated = document.getElementById("updated");
+  const errorBox = document.getElementById("list-error");
+  const ACTIVE = new Set(["queued", "running"]);
+  const params = new URLSearchParams(location.search);
+  filter.value = params.get("status") || "";
+  let limit = 50;
+  let timer = null;
+
+  function query() {
+    const q = new URLSearchParams({ limit: String(limit) });
+    if (filter.value === "active") { q.append("status", "queued"); q.append("status", "running"); }
+    else if (filter.value) q.append("status", filter.value);
+    return q.toString();
+  }
+
+  function inputText(job) {
+    const i = job.inputs || {};
+    const files = (i.keypoints || []).map((f) => f.name);
+    const first = files.length ? files[0] + (files.length > 1 ? ` +${files.length - 1}` : "") : "";
+    return `${i.cameras ?? "?"} cameras × ${i.frames ?? "?"} frames` + (first ? ` (${first})` : "");
+  }
+
+  function progressCell(job) {
+    if (job.status === "queued") return el("td", { class: "progress-cell" }, el("span", { class: "small", text: "waiting for a free worker" }));
+    if (job.status !== "running") {
+      if (job.status === "failed") return el("td", { class: "progress-cell small", text: (job.error || "").slice(0, 120) });
+      return el("td", { class: "progress-cell" });
+    }
+    const f = job.progress && job.progress.fraction != null ? job.progress.fraction : null;
+    const bar = el("progress", { max: "1", "aria-label": `Progress of job ${job.id.slice(0, 8)}` });
+    if (f !== null) { bar.value = f; bar.setAttribute("aria-valuetext", `${Math.round(100 * f)} percent`); }
+    return el("td", { class: "progress-cell" }, bar, el("div", { class: "small", text: A.progressText(job) }));
+  }
+
+  async function act(job) {
+    const active = ACTIVE.has(job.status);
+    const what = active ? "Cancel" : "Delete";
+    if (!confirm(`${what} job ${job.id.slice(0, 8)}?` + (active ? "" : " Its result files are removed."))) return;
+    try {
+      await A.api(`/v1/jobs/${encodeURIComponent(job.id)}`, { method: "DELETE" });
+    } catch (e) {
+      showError(`Could not ${what.toLowerCase()} the job: ${e.message}`);
+    }
+    refresh();
+  }
+
+  function row(job) {
+    const opts = job.options || {};
+    const short = job.id.slice(0, 8);
+    const active = ACTIVE.has(job.status);
+    return el("tr", { "data-job": job.id, "data-status": job.status },
+      el("td", {}, el("a", { href: `/jobs/${encodeURIComponent(job.id)}`, "aria-label": `Job ${short}, open`, text: short })),
+      el("td", { text: A.fmtDate(job.timings && job.timings.created_at) }),
+      el("td", { text: `${opts.method || "?"} · ${opts.skeleton || "?"} · ${opts.fps ?? "?"} fps` }),
+      el("td", { text: inputText(job) }),
+      el("td", {}, A.statusBadge(job.status)),
+      progressCell(job),
+      el("td", { text: A.fmtSeconds(job.timings && job.timings.run_seconds) }),
+      el("td", {}, el("button", { type: "button", class: active ? "" : "danger",
+        "aria-label": `${active ? "Cancel" : "Delete"} job ${short}`, text: active ? "Cancel" : "Delete",
+        onclick: () => act(job) })));
+  }
+
+  function showError(text) {
+    errorBox.textContent = text;
+    errorBox.hidden = !text;
+  }
+
+  async function refresh() {
+    clearTimeout(timer);
+    let next = 10000;
+    try {
+      const data = await A.api(`/v1/jobs?${query()}`);
+      const jobs = data.jobs || [];
+      // Keep keyboard focus on the same control across the redraw.
+      const focused = document.activeElement && document.activeElement.closest("tr[data-job]");
+      const focusJob = focused ? focused.dataset.job : null;
+      const focusLabel = focusJob ? document.activeElement.getAttribute("aria-label") : null;
+      if (!jobs.length) {
+        body.replaceChildren(el("tr", {}, el("td", { colspan: "8" },
+          filter.value ? "No jobs match this filter. " : "No jobs yet. ",
+          el("a", { href: "/jobs/new", text: "Submit one" }), ".")));
+      } else body.replaceChildren(...jobs.map(row));
+      if (focusJob && focusLabel) {
+        const again = body.querySelector(`tr[data-job="${CSS.escape(focusJob)}"] [aria-label="${CSS.escape(focusLabel)}"]`);
+        if (again) again.focus();
+      }
+      const active = jobs.filter((j) => ACTIVE.has(j.status)).length;
+      counts.textContent = `${jobs.length} of ${data.total} shown` + (active ? `, ${active} in progress` : "");
+      more.hidden = !(data.total > jobs.length && limit < 500);
+      updated.textContent = `Updated ${new Date().toLocaleTimeString()}`;
+      showError("");
+      next = active ? 2000 : 10000;
+    } catch (e) {
+      showError(`Could not load the jobs: ${e.message}`);
+    }
+    if (document.visibilityState === "visible") timer = setTimeout(refresh, next);
+  }
+
+  filter.addEventListener("change", () => {
+    const q = new URLSearchParams(location.search);
+    if (filter.value) q.set("status", filter.value); else q.delete("status");
+    history.replaceState(null, "", `${location.pathname}${q.toString() ? "?" + q : ""}`);
+    refresh();
+  });
+  more.addEventListener("click", () => { limit = Math.min(500, limit + 50); refresh(); });
+  document.addEventListener("visibilitychange", () => { if (document.visibilityState === "visible") refresh(); });
+  refresh();
+})();

@@ -1,0 +1,50 @@
+/* Sign in: check the API token against GET /v1/me and keep it in this browser. */
+(function () {
+  "use strict";
+  const { api, header } = window.Acino;
+  header("login");
+  const form = document.getElementById("login-form");
+  const input = document.getElementById("token");
+  const error = document.getElementById("login-error");
+  const show = document.getElementById("show-token");
+  const params = new URLSearchParams(location.search);
+  if (params.get("reason") === "expired") {
+    document.getElementById("login-note").textContent =
+      "Your token was not accepted (it may have been revoked). Sign in again.";
+  }
+
+  function safeNext() {
+    const next = params.get("next") || "/";
+    return next.startsWith("/") && !next.startsWith("//") && !next.startsWith("/login") ? next : "/";
+  }
+
+  show.addEventListener("change", () => { input.type = show.checked ? "text" : "password"; });
+
+  form.addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    error.hidden = true;
+    const t = input.value.trim();
+    if (!t) {
+      error.textContent = "Paste your API token first.";
+      error.hidden = false;
+      input.focus();
+      return;
+    }
+    const button = form.querySelector("button[type=submit]");
+    button.disabled = true;
+    try {
+      await api("/v1/me", { token: t, noRedirect: true });
+      window.Acino.setToken(t);
+      location.assign(safeNext());
+    } catch (e) {
+      error.textContent = e.status === 401
+        ? "That token was not accepted. Check that you copied all of it, or ask your admin for a new one."
+        : `Could not sign in: ${e.message}`;
+      error.hidden = false;
+      input.setAttribute("aria-invalid", "true");
+      input.focus();
+    } finally {
+      button.disabled = false;
+    }
+  });
+})();

@@ -1,0 +1,76 @@
+"""The web pages: sign in, the job list, the submit form and the job page.
+
+Plain HTML and JavaScript (``service/templates``, ``service/static``) that call the REST API v1 with
+the user's token, which the browser keeps in localStorage. Nothing is fetched from outside the
+server: plotly.js comes from the plotly wheel (:func:`graph.plot.plotly_js_path`). The app includes
+:data:`router` with ``include_in_schema=False``: pages are not part of the REST contract.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from fastapi import APIRouter, HTTPException
+from fastapi.responses import FileResponse, HTMLResponse
+
+from graph.plot import plotly_js_path
+
+HERE = Path(__file__).resolve().parent
+TEMPLATES = HERE / "templates"
+STATIC = HERE / "static"
+
+router = APIRouter(include_in_schema=False)
+
+_STATIC_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*\.(js|css)$")
+_JOB_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+_MEDIA = {"js": "text/javascript; charset=utf-8", "css": "text/css; charset=utf-8"}
+# Pages and our scripts are revalidated on every load (small, and an upgrade shows at once);
+# plotly.js is large and changes only with the installed plotly.
+_PAGE_HEADERS = {"Cache-Control": "no-cache", "X-Content-Type-Options": "nosniff", "Referrer-Policy": "no-referrer",
+                 "X-Frame-Options": "DENY"}
+_PLOTLY_HEADERS = {"Cache-Control": "public, max-age=86400", "X-Content-Type-Options": "nosniff"}
+
+
+def _page(name: str, status_code: int = 200) -> HTMLResponse:
+    return HTMLResponse((TEMPLATES / name).read_text(encoding="utf-8"), status_code=status_code,
+                        headers=_PAGE_HEADERS)
+
+
+@router.get("/", response_class=HTMLResponse)
+def jobs_page() -> HTMLResponse:
+    """The caller's jobs with live status and progress."""
+    return _page("jobs.html")
+
+
+@router.get("/login", response_class=HTMLResponse)
+def login_page() -> HTMLResponse:
+    return _page("login.html")
+
+
+@router.get("/jobs/new", response_class=HTMLResponse)
+def submit_page() -> HTMLResponse:
+    return _page("submit.html")
+
+
+@router.get("/jobs/{job_id}", response_class=HTMLResponse)
+def job_page(job_id: str) -> HTMLResponse:
+    """One job. The page itself holds no job data: its script asks the API, with the user's token."""
+    if not _JOB_ID.match(job_id):
+        raise HTTPException(404, "no such page")
+    return _page("job.html")
+
+
+@router.get("/static/plotly.min.js")
+def plotly_js() -> FileResponse:
+    return FileResponse(plotly_js_path(), media_type=_MEDIA["js"], headers=_PLOTLY_HEADERS)
+
+
+@router.get("/static/{name}")
+def static_file(name: str) -> FileResponse:
+    """A script or stylesheet of the pages; nothing outside ``service/static``."""
+    m = _STATIC_NAME.match(name)
+    path = STATIC / name
+    if not m or not path.is_file():
+        raise HTTPException(404, f"no static file {name!r}")
+    return FileResponse(path, media_type=_MEDIA[m.group(1)], headers=_PAGE_HEADERS)

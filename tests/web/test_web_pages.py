@@ -1,0 +1,199 @@
+"""The pages in a real browser: sign in, submit a simulated run through the form, watch it succeed,
+check the 3D playback is drawn and changes when scrubbed, download the CSV; a failed job shows its
+error; the offline playback file that `acinoset plot` writes works with no server at all."""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+
+SOLVE_TIMEOUT_MS = 240_000  # the first solve compiles the kernels on a busy 2-core machine
+
+
+def _pixels(png: bytes) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
+
+
+def _drawn_fraction(img: np.ndarray) -> float:
+    """Share of pixels that are not the white page background."""
+    return float((np.abs(img - 255).sum(axis=2) > 60).mean())
+
+
+def _sign_in(page, token: str) -> None:
+    page.goto("/")
+    page.wait_for_url(re.compile(r"/login\?next=%2F"))
+    page.get_by_label("API token").fill(token)
+    page.get_by_role("button", name="Sign in").click()
+    page.wait_for_url(re.compile(r"/$"))
+
+
+def _submit(page, run, **choices) -> str:
+    page.get_by_role("link", name="New job").first.click()
+    page.wait_for_url(re.compile(r"/jobs/new$"))
+    cams = [str(run / f"cam{i}.csv") for i in range(1, 7)]
+    page.get_by_label("Keypoint files, one per camera").set_input_files(cams)
+    items = page.locator("#keypoint-list li")
+    assert items.count() == 6
+    assert "camera 1" in items.nth(0).inner_text() and "cam1.csv" in items.nth(0).inner_text()
+    page.get_by_label("Calibration").set_input_files(str(run / "calibration.toml"))
+    page.get_by_role("radio", name=re.compile("^" + choices.get("method", "fte") + ":")).check()
+    page.get_by_label("Frame rate (frames per second)").fill(str(choices.get("fps", 120)))
+    page.get_by_label("Skeleton", exact=True).select_option(choices.get("skeleton", "cheetah"))
+    page.get_by_label("Likelihood threshold").fill(str(choices.get("threshold", 0.5)))
+    page.get_by_role("button", name="Submit job").click()
+    page.wait_for_url(re.compile(r"/jobs/[0-9a-f]{32}$"))
+    return page.url.rsplit("/", 1)[1]
+
+
+def test_sign_in_submit_watch_scrub_and_download(page, server, simulated_run, tmp_path):
+    base, token = server
+    page.goto("/login")
+    page.get_by_label("API token").fill("not-a-token")
+    page.get_by_role("button", name="Sign in").click()
+    assert "not accepted" in page.get_by_role("alert").inner_text()
+    _sign_in(page, token)
+    job_id = _submit(page, simulated_run, method="fte")
+
+    status = page.locator("#job-status [data-status]")
+    status.and_(page.locator("[data-status=succeeded]")).wait_for(timeout=SOLVE_TIMEOUT_MS)
+    assert "succeeded" in status.inner_text()  # the word, not only a colour
+    page.locator("#result[data-ready=true]").wait_for(timeout=60_000)
+
+    # The 3D plot is drawn: a canvas with a skeleton on it, not a blank box.
+    plot = page.get_by_test_id("plot3d")
+    assert plot.locator("canvas").count() >= 1
+    page.wait_for_timeout(300)
+    first = _pixels(plot.screenshot())
+    assert _drawn_fraction(first) > 0.01
+    frame_status = page.get_by_test_id("frame-status")
+    assert frame_status.inner_text().startswith("Frame 0 of 59")
+
+    # Scrub with the keyboard to the last frame: the text and the picture change.
+    slider = page.get_by_label("Frame", exact=True)
+    slider.focus()
+    page.keyboard.press("End")
+    page.wait_for_function("document.querySelector('[data-testid=plot3d]').dataset.frame === '59'")
+    assert frame_status.inner_text().startswith("Frame 59 of 59")
+    page.wait_for_timeout(300)
+    last = _pixels(plot.screenshot())
+    changed = (np.abs(first - last).sum(axis=2) > 60).mean()
+    assert changed > 0.001, "the 3D view did not change when scrubbing"
+    # Stepping back one frame with the button.
+    page.get_by_role("button", name="Previous frame").click()
+    assert frame_status.inner_text().startswith("Frame 58 of 59")
+
+    # The other views are there and labelled.
+    assert page.get_by_test_id("heatmap").locator(".main-svg").count() >= 1
+    assert page.get_by_role("heading", name="Flagged by the solver").is_visible()
+
+    # Download the CSV: the Anipose table of this run.
+    with page.expect_download() as dl:
+        page.get_by_role("button", name=re.compile(r"^Download CSV")).click()
+    download = dl.value
+    assert download.suggested_filename == f"{job_id}.csv"
+    text = open(download.path(), encoding="utf-8").read()
+    rows = list(csv.reader(io.StringIO(text)))
+    assert "nose_x" in rows[0] and "fnum" in rows[0]
+    assert len(rows) == 61
+    nose = np.array([[float(r[rows[0].index(f"nose_{a}")]) for a in "xyz"] for r in rows[1:]])
+    assert np.isfinite(nose).all() and np.ptp(nose[:, :2], axis=0).max() > 0.1  # the animal moved
+
+    # The list shows the job as succeeded.
+    page.get_by_role("link", name="Jobs", exact=True).click()
+    row = page.locator(f"tr[data-job='{job_id}']")
+    row.wait_for()
+    assert row.get_attribute("data-status") == "succeeded" and "succeeded" in row.inner_text()
+
+
+def test_failed_job_shows_its_error(page, server, simulated_run):
+    _, token = server
+    _sign_in(page, token)
+    # Every simulated likelihood is below 1: a threshold of 1 leaves the solver nothing to use.
+    _submit(page, simulated_run, method="tri", threshold=1)
+    error = page.get_by_test_id("job-error")
+    error.wait_for(timeout=SOLVE_TIMEOUT_MS)
+    text = error.inner_text()
+    assert "This job failed" in text
+    assert "likelihood threshold" in text
+    assert "Traceback" not in text
+    assert page.locator("#job-status [data-status=failed]").inner_text().strip().endswith("failed")
+    assert page.locator("#downloads").is_hidden()
+
+
+def test_bad_upload_is_refused_on_the_form(page, server, simulated_run):
+    """A keypoint file that does not fit the calibration is refused before any job is made, and the
+    form says which file."""
+    _, token = server
+    _sign_in(page, token)
+    page.goto("/jobs/new")
+    page.get_by_label("Keypoint files, one per camera").set_input_files(
+        [str(simulated_run / "cam1.csv"), str(simulated_run / "cam2.csv")])
+    page.get_by_label("Calibration").set_input_files(str(simulated_run / "calibration.toml"))
+    page.get_by_role("button", name="Submit job").click()
+    alert = page.locator("#submit-error")
+    alert.wait_for()
+    assert "calibration has 6 cameras but 2 keypoint files" in alert.inner_text()
+    assert page.url.endswith("/jobs/new")
+
+
+def test_controls_are_labelled(page, server):
+    _, token = server
+    _sign_in(page, token)
+    for path in ("/", "/jobs/new"):
+        page.goto(path)
+        page.wait_for_load_state("networkidle")
+        unlabelled = page.evaluate("""() => [...document.querySelectorAll('input, select, button, textarea')]
+            .filter(e => e.type !== 'hidden' && !(e.labels && e.labels.length) && !e.getAttribute('aria-label')
+                         && !(e.textContent || '').trim())
+            .map(e => e.outerHTML.slice(0, 80))""")
+        assert unlabelled == [], f"{path}: {unlabelled}"
+
+
+def test_offline_playback_file(browser, simulated_run, tmp_path):
+    """`acinoset solve --h5` then `acinoset plot`: the HTML file opens from disk with no server and
+    no network, draws the skeleton and follows the frame slider."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    cams = [str(simulated_run / f"cam{i}.csv") for i in range(1, 7)]
+    h5 = tmp_path / "run.h5"
+    solved = subprocess.run([sys.executable, "-m", "graph.cli", "solve", *cams, "--calibration",
+                             str(simulated_run / "calibration.toml"), "--method", "tri", "--out",
+                             str(tmp_path / "run.csv"), "--h5", str(h5)],
+                            cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert solved.returncode == 0, solved.stderr
+    drawn = subprocess.run([sys.executable, "-m", "graph.cli", "plot", str(h5), "--out", str(tmp_path / "pics")],
+                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert drawn.returncode == 0, drawn.stderr
+    html = tmp_path / "pics" / "playback.html"
+    assert html.is_file() and (tmp_path / "pics" / "skeleton.png").is_file()
+
+    ctx = browser.new_context(viewport={"width": 1280, "height": 900}, offline=True)
+    requests: list[str] = []
+    pg = ctx.new_page()
+    pg.on("request", lambda r: requests.append(r.url))
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.goto(html.as_uri())
+    pg.locator("#result[data-ready=true]").wait_for(timeout=60_000)
+    plot = pg.get_by_test_id("plot3d")
+    pg.wait_for_timeout(300)
+    first = _pixels(plot.screenshot())
+    assert _drawn_fraction(first) > 0.01
+    pg.get_by_role("button", name="Next frame").click()
+    pg.get_by_role("button", name="Next frame").click()
+    assert pg.get_by_test_id("frame-status").inner_text().startswith("Frame 2 of 59")
+    # Camera positions came through the result file.
+    assert "cam1" in pg.locator("dl.facts").inner_text()
+    ctx.close()
+    assert not errors, errors
+    assert [u for u in requests if not u.startswith("file:")] == []
