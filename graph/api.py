@@ -35,6 +35,7 @@ class SolveOptions:
     bone_lengths: list[tuple[str, str]] | None = None  # soft bone-length terms for "points"
     individual: str | None = None  # multi-animal DLC files: which individual
     lag_seconds: float = 0.25  # "ekf": the fixed-lag window
+    uncertainty: bool = True  # per-marker 3D std from the marginals ("fte": about a third of the time)
     calibration_units: str = "auto"  # "m", "cm", "mm", or "auto" (a rig measured in mm is recognised)
 
     def __post_init__(self) -> None:

@@ -205,11 +205,15 @@ def solve_fte(prob, progress=None):
     if progress:
         progress(Progress(stage="uncertainty", fraction=0.95, iteration=iterations, cost=cost))
     t1 = time.perf_counter()
-    Sigma = tp.marginal_covariances(Q)
     pos, dpos = kernels.fk_jacobian_batch(Q, *tp.sk_args)
-    cov = np.einsum("nmip,npq,nmjq->nmij", dpos, Sigma, dpos)
-    std = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
-    params_std = np.sqrt(np.maximum(np.diagonal(Sigma, axis1=-2, axis2=-1), 0.0))
+    if prob.options.uncertainty:
+        Sigma = tp.marginal_covariances(Q)
+        cov = np.einsum("nmip,npq,nmjq->nmij", dpos, Sigma, dpos)
+        std = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
+        params_std = np.sqrt(np.maximum(np.diagonal(Sigma, axis1=-2, axis2=-1), 0.0))
+    else:
+        std = np.full(pos.shape, np.nan)
+        params_std = None
     _, _, uv, s, _, _ = tp.normals(Q, 1.0)
     if prob.skeleton.kind == "points":
         # a free point never seen by two cameras has no 3D estimate

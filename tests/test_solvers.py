@@ -137,3 +137,9 @@ def test_millimetre_calibration_is_recognised(rig, run):
     assert np.nanmedian(err) < 0.05  # metres, as if the rig had been given in metres
     same = solve(run.keypoints, mm, SolveOptions(method="tri", fps=run.fps, calibration_units="mm"))
     assert np.allclose(same.positions, res.positions, equal_nan=True)
+
+
+def test_uncertainty_can_be_skipped(run):
+    res = solve(run.keypoints, run.calibration, SolveOptions(method="fte", fps=run.fps, uncertainty=False))
+    assert np.isnan(res.std).all() and np.isfinite(res.positions).all()
+    assert "uncertainty" in res.report.seconds
