@@ -146,8 +146,3 @@ def _include_web(app: FastAPI) -> None:
             raise
         return
     app.include_router(web.router, include_in_schema=False)
-    static = Path(__file__).parent / "static"
-    if static.is_dir() and not any(getattr(r, "path", None) == "/static" for r in app.routes):
-        from fastapi.staticfiles import StaticFiles
-
-        app.mount("/static", StaticFiles(directory=static), name="static")

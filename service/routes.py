@@ -22,9 +22,11 @@ def _err(description: str) -> dict:
 
 AUTH_ERRORS = {401: _err("No token, or an unknown or revoked one")}
 NOT_FOUND = {404: _err("No such job, or it belongs to another user")}
+BAD_REQUEST = {422: _err("A request parameter or field is missing or malformed")}
+SERVER_ERROR = {500: _err("A fault of the server (logged there)")}
 
-router = APIRouter(responses=AUTH_ERRORS)
-public = APIRouter()
+router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR})
+public = APIRouter(responses=SERVER_ERROR)
 
 CurrentUser = Annotated[User, Depends(current_user)]
 
@@ -163,7 +165,7 @@ def healthz(request: Request):
     return body
 
 
-@public.get("/metrics", response_class=PlainTextResponse, tags=["service"], summary="Prometheus metrics",
+@public.get("/metrics", response_class=Response, tags=["service"], summary="Prometheus metrics",
             responses={200: {"content": {metrics.CONTENT_TYPE: {"schema": {"type": "string"}}},
                              "description": "Prometheus text format"},
                        401: _err("The server requires a token for metrics (ACINOSET_METRICS_PUBLIC=false)")})

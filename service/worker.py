@@ -64,7 +64,8 @@ def prepare_solver_environment() -> None:
 
 # imported by every process that forks solves (missing ones are skipped)
 SOLVER_MODULES = ("gtsam", "numba", "graph.api", "graph.calibration", "graph.keypoints", "graph.skeleton",
-                  "graph.problem", "graph.kernels", "graph.triangulate", "graph.fte", "graph.online", "graph.io")
+                  "graph.problem", "graph.kernels", "graph.triangulate", "graph.fte", "graph.online", "graph.io",
+                  "graph.plot")
 
 
 def noop() -> None:
@@ -109,46 +110,16 @@ def load_inputs(input_dir: Path):
 
 # -- outputs -----------------------------------------------------------------------------------
 
-def _nullable(a: np.ndarray | None, decimals: int = 6):
-    """An array as nested lists with ``null`` where not finite."""
-    if a is None:
-        return None
-    a = np.asarray(a, dtype=np.float64)
-    out = np.round(a, decimals).astype(object)
-    out[~np.isfinite(a)] = None
-    return out.tolist()
-
-
-def result_json(result) -> dict:
-    """A solved run as plain JSON: positions and std (N, M, 3) in metres, ``null`` where unknown."""
-    return {
-        "method": result.method,
-        "skeleton": result.skeleton,
-        "fps": result.fps,
-        "frames": int(result.positions.shape[0]),
-        "markers": list(result.markers),
-        "cameras": list(result.camera_names),
-        "positions": _nullable(result.positions),
-        "std": _nullable(result.std),
-        "reprojection_error_px": _nullable(result.error, 3),
-        "ncams": np.asarray(result.ncams).astype(int).tolist(),
-        "score": _nullable(result.score, 4),
-        "param_names": list(result.param_names),
-        "params": _nullable(result.params),
-        "bones": [list(b) for b in result.bones],
-        "report": result.report.to_dict(),
-    }
-
-
 def write_results(result, out_dir: Path) -> dict:
     """Write every result format into ``out_dir``; return the report as a dict."""
     from graph.io import write_anipose_csv, write_h5
+    from graph.plot import result_payload  # what the job page draws: one definition for both sides
 
     out_dir.mkdir(parents=True, exist_ok=True)
     write_anipose_csv(out_dir / "result.csv", result)
     write_h5(out_dir / "result.h5", result)
     report = result.report.to_dict()
-    (out_dir / "result.json").write_text(json.dumps(result_json(result), separators=(",", ":")))
+    (out_dir / "result.json").write_text(json.dumps(result_payload(result), separators=(",", ":"), allow_nan=False))
     (out_dir / "report.json").write_text(json.dumps(report, indent=2))
     return report
 

@@ -1,0 +1,19 @@
+"""Fixtures of the service tests: simulated runs, written once per session."""
+
+from __future__ import annotations
+
+import pytest
+
+from service_helpers import Run, make_run
+
+
+@pytest.fixture(scope="session")
+def small_run(tmp_path_factory) -> Run:
+    """6 cameras, 60 frames: a solve well under a second."""
+    return make_run(tmp_path_factory.mktemp("small_run"), frames=60, cameras=6, seed=1)
+
+
+@pytest.fixture(scope="session")
+def long_run(tmp_path_factory) -> Run:
+    """3 cameras, 800 frames: an fte/cheetah solve of a few seconds, to stop or kill while it runs."""
+    return make_run(tmp_path_factory.mktemp("long_run"), frames=800, cameras=3, seed=2)

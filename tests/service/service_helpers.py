@@ -1,0 +1,266 @@
+"""Real servers for the service tests: ``python -m service serve`` (and ``worker``, and Debian's
+``redis-server``) in subprocesses on free loopback ports, simulated runs written as a user would
+bring them, and a small HTTP client."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[2]
+PY = sys.executable
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# -- simulated runs ------------------------------------------------------------------------------
+
+@dataclass
+class Run:
+    dir: Path
+    cams: list[Path]
+    calibration: Path  # Anipose TOML
+    scene: Path  # AcinoSet JSON
+    fps: float
+    frames: int
+
+
+def make_run(out: Path, frames: int, cameras: int = 6, seed: int = 0) -> Run:
+    """A simulated cheetah run on the AcinoSet rig (its first ``cameras`` cameras), written as
+    DeepLabCut CSVs plus the calibration in both formats."""
+    from graph.calibration import default_rig_path, load_calibration, write_acinoset_json
+    from graph.camera import Calibration
+    from graph.simulate import simulate_run, write_run
+
+    cal = load_calibration(default_rig_path())
+    if cameras < len(cal):
+        cal = Calibration(cameras=cal.cameras[:cameras])
+    run = simulate_run(cal, frames=frames, seed=seed)
+    write_run(run, out)
+    scene = out / "scene.json"
+    write_acinoset_json(scene, cal)
+    cams = [out / f"{name}.csv" for name in cal.names]
+    return Run(out, cams, out / "calibration.toml", scene, run.fps, frames)
+
+
+# -- users ---------------------------------------------------------------------------------------
+
+def add_user(data_dir: Path, name: str, admin: bool = False) -> str:
+    """A user made the way ``acinoset users add`` does; returns its token."""
+    from service.store import Store
+
+    store = Store(Path(data_dir) / "acinoset.db")
+    _, token = store.add_user(name, admin=admin)
+    store.close()
+    return token
+
+
+# -- processes -----------------------------------------------------------------------------------
+
+class Proc:
+    """A subprocess in its own session (so kill -9 reaches everything it started)."""
+
+    def __init__(self, args: list[str], log: Path, env: dict | None = None):
+        self.args = args
+        self.log_path = log
+        self.env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
+        self.p: subprocess.Popen | None = None
+
+    def start(self) -> "Proc":
+        self._log = open(self.log_path, "ab")
+        self.p = subprocess.Popen(self.args, cwd=ROOT, env=self.env, stdout=self._log, stderr=subprocess.STDOUT,
+                                  stdin=subprocess.DEVNULL, start_new_session=True)
+        return self
+
+    @property
+    def pid(self) -> int:
+        assert self.p is not None
+        return self.p.pid
+
+    def alive(self) -> bool:
+        return self.p is not None and self.p.poll() is None
+
+    def kill9(self) -> None:
+        """SIGKILL to the whole process group: the process and every child it forked."""
+        if self.p is None:
+            return
+        try:
+            os.killpg(self.p.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        self.p.wait(timeout=30)
+
+    def stop(self, timeout: float = 30) -> int | None:
+        if self.p is None or self.p.poll() is not None:
+            return self.p.returncode if self.p else None
+        self.p.send_signal(signal.SIGTERM)
+        try:
+            return self.p.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.kill9()
+            return None
+        finally:
+            # nothing of this session may outlive the test
+            try:
+                os.killpg(self.p.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
+
+
+class Server(Proc):
+    def __init__(self, data_dir: Path, log: Path, backend: str = "embedded", workers: int = 2,
+                 redis_url: str | None = None, env: dict | None = None, port: int | None = None):
+        self.port = port or free_port()
+        self.data_dir = Path(data_dir)
+        args = [PY, "-m", "service", "serve", "--port", str(self.port), "--data-dir", str(data_dir),
+                "--backend", backend, "--workers", str(workers), "--log-level", "warning"]
+        if redis_url:
+            args += ["--redis-url", redis_url]
+        super().__init__(args, log, env)
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def start(self, timeout: float = 60) -> "Server":
+        super().start()
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            if not self.alive():
+                raise RuntimeError(f"server exited:\n{self.log()}")
+            try:
+                r = httpx.get(self.url + "/healthz", timeout=2)
+                if r.status_code in (200, 503):
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.1)
+        raise RuntimeError(f"server did not answer in {timeout} s:\n{self.log()}")
+
+    def client(self, token: str | None = None, timeout: float = 60) -> httpx.Client:
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        return httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
+
+
+class Redis(Proc):
+    def __init__(self, workdir: Path, log: Path, port: int | None = None):
+        self.port = port or free_port()
+        workdir.mkdir(parents=True, exist_ok=True)
+        super().__init__(["redis-server", "--port", str(self.port), "--bind", "127.0.0.1", "--dir", str(workdir),
+                          "--appendonly", "yes", "--appendfsync", "always", "--save", ""], log)
+
+    @property
+    def url(self) -> str:
+        return f"redis://127.0.0.1:{self.port}/0"
+
+    def start(self, timeout: float = 20) -> "Redis":
+        super().start()
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            try:
+                with socket.create_connection(("127.0.0.1", self.port), timeout=1) as s:
+                    s.sendall(b"PING\r\n")
+                    if s.recv(16).startswith(b"+PONG"):
+                        return self
+            except OSError:
+                time.sleep(0.05)
+        raise RuntimeError(f"redis-server did not start:\n{self.log()}")
+
+
+def worker(redis_url: str, log: Path, name: str, env: dict | None = None) -> Proc:
+    return Proc([PY, "-m", "service", "worker", "--redis-url", redis_url, "--name", name, "--log-level", "warning"],
+                log, env)
+
+
+def have_redis() -> bool:
+    return shutil.which("redis-server") is not None
+
+
+# -- the API -------------------------------------------------------------------------------------
+
+def submit(client: httpx.Client, run: Run, options: dict | None = None, calibration: Path | None = None,
+           cams: list[Path] | None = None) -> httpx.Response:
+    import json
+
+    files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in (cams or run.cams)]
+    cal = calibration or run.calibration
+    files.append(("calibration", (cal.name, cal.read_bytes(), "application/octet-stream")))
+    return client.post("/v1/jobs", files=files, data={"options": json.dumps(options or {})})
+
+
+def submit_ok(client: httpx.Client, run: Run, options: dict | None = None) -> str:
+    r = submit(client, run, options)
+    assert r.status_code == 202, r.text
+    return r.json()["id"]
+
+
+def wait_for(client: httpx.Client, job_id: str, pred, timeout: float = 120, what: str = "") -> dict:
+    deadline = time.time() + timeout
+    job = None
+    while time.time() < deadline:
+        r = client.get(f"/v1/jobs/{job_id}")
+        assert r.status_code == 200, r.text
+        job = r.json()
+        if pred(job):
+            return job
+        time.sleep(0.05)
+    raise AssertionError(f"job {job_id} not {what or 'as expected'} after {timeout} s: {job}")
+
+
+def wait_finished(client: httpx.Client, job_id: str, timeout: float = 180) -> dict:
+    return wait_for(client, job_id, lambda j: j["status"] in ("succeeded", "failed", "cancelled"), timeout,
+                    "finished")
+
+
+def wait_solving(client: httpx.Client, job_id: str, timeout: float = 180) -> dict:
+    """Until the job's run is inside the solver (past reading its files)."""
+    return wait_for(client, job_id, lambda j: j["status"] == "running" and j["progress"] is not None
+                    and j["progress"]["stage"] not in (None, "starting", "reading"), timeout, "solving")
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie is dead
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+def wait_dead(pid: int, timeout: float = 10) -> bool:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        if not pid_alive(pid):
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out

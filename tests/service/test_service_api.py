@@ -1,0 +1,284 @@
+"""The REST API against a real embedded server (uvicorn in a subprocess on a loopback port)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service_helpers import (PY, ROOT, Server, add_user, submit, submit_ok, wait_finished)
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    data = tmp_path_factory.mktemp("api_data")
+    tokens = {"alice": add_user(data, "alice"), "bob": add_user(data, "bob"), "root": add_user(data, "root", admin=True)}
+    srv = Server(data, data.parent / "api_server.log").start()
+    srv.tokens = tokens
+    yield srv
+    srv.stop()
+
+
+@pytest.fixture
+def alice(server):
+    with server.client(server.tokens["alice"]) as c:
+        yield c
+
+
+@pytest.fixture
+def bob(server):
+    with server.client(server.tokens["bob"]) as c:
+        yield c
+
+
+@pytest.fixture
+def root(server):
+    with server.client(server.tokens["root"]) as c:
+        yield c
+
+
+FAST = {"method": "tri", "skeleton": "points"}
+
+
+# -- tokens ----------------------------------------------------------------------------------------
+
+def test_every_v1_call_needs_a_valid_token(server, small_run):
+    with server.client() as anon, server.client("acn_0123456789ab_not-a-real-secret") as forged:
+        for c in (anon, forged):
+            for method, path in [("GET", "/v1/jobs"), ("GET", "/v1/jobs/" + "0" * 32), ("GET", "/v1/skeletons"),
+                                 ("DELETE", "/v1/jobs/" + "0" * 32), ("GET", "/v1/me")]:
+                r = c.request(method, path)
+                assert r.status_code == 401, (method, path, r.text)
+                assert r.headers["www-authenticate"] == "Bearer"
+                assert isinstance(r.json()["detail"], str) and r.json()["detail"]
+            r = submit(c, small_run, FAST)  # refused from the headers, before the body is read
+            assert r.status_code == 401 and "token" in r.json()["detail"]
+        assert "Authorization: Bearer" in anon.get("/v1/jobs").json()["detail"]
+        assert forged.get("/v1/jobs").json()["detail"] == "invalid or revoked token"
+
+
+# -- the round trip --------------------------------------------------------------------------------
+
+def test_a_simulated_run_through_rest_gives_the_cli_csv(alice, small_run, tmp_path):
+    opts = {"method": "fte", "skeleton": "cheetah", "fps": small_run.fps}
+    r = submit(alice, small_run, opts)
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert job["status"] == "queued" and r.headers["location"] == job["links"]["self"] == f"/v1/jobs/{job['id']}"
+    assert job["inputs"]["cameras"] == 6 and job["inputs"]["frames"] == small_run.frames
+    assert [k["name"] for k in job["inputs"]["keypoints"]] == [p.name for p in small_run.cams]
+    done = wait_finished(alice, job["id"])
+    assert done["status"] == "succeeded", done
+    assert done["progress"]["fraction"] == 1.0 and done["attempts"] == 1
+    assert done["result"]["frames"] == small_run.frames and done["result"]["markers"] == 20
+    assert done["timings"]["run_seconds"] > 0 and done["timings"]["finished_at"]
+
+    rest_csv = alice.get(done["links"]["result"]["csv"])
+    assert rest_csv.status_code == 200 and rest_csv.headers["content-type"].startswith("text/csv")
+    cli_csv = tmp_path / "cli.csv"
+    cli = subprocess.run([PY, "-m", "graph.cli", "solve", *map(str, small_run.cams), "--calibration",
+                          str(small_run.calibration), "--method", "fte", "--skeleton", "cheetah",
+                          "--fps", str(small_run.fps), "--out", str(cli_csv)], cwd=ROOT, capture_output=True, text=True)
+    assert cli.returncode == 0, cli.stderr
+    assert rest_csv.content == cli_csv.read_bytes()
+
+    from graph.io import read_anipose_csv, read_result
+
+    h5 = tmp_path / "rest.h5"
+    h5.write_bytes(alice.get(f"/v1/jobs/{job['id']}/result", params={"format": "h5"}).content)
+    res = read_result(h5)
+    pts = read_anipose_csv(cli_csv)
+    assert res.positions.shape == (small_run.frames, 20, 3)
+    as_json = alice.get(f"/v1/jobs/{job['id']}/result", params={"format": "json"}).json()
+    pos = np.array([[[np.nan if v is None else v for v in xyz] for xyz in frame] for frame in as_json["positions"]])
+    np.testing.assert_allclose(pos, res.positions, atol=1e-5, equal_nan=True)  # 10 um steps
+    assert as_json["markers"] == res.markers
+    np.testing.assert_allclose(pts.positions, res.positions, atol=1e-5, equal_nan=True)
+    report = alice.get(f"/v1/jobs/{job['id']}/result", params={"format": "report"}).json()
+    assert report["frames"] == small_run.frames and report["method"] == "fte"
+
+
+def test_an_acinoset_json_calibration_works_too(alice, small_run):
+    r = submit(alice, small_run, FAST, calibration=small_run.scene)
+    assert r.status_code == 202, r.text
+    assert wait_finished(alice, r.json()["id"])["status"] == "succeeded"
+
+
+# -- users see their own jobs ----------------------------------------------------------------------
+
+def test_users_see_only_their_own_jobs_and_admins_see_all(alice, bob, root, small_run):
+    job_id = submit_ok(alice, small_run, FAST)
+    for path in (f"/v1/jobs/{job_id}", f"/v1/jobs/{job_id}/result"):
+        r = bob.get(path)
+        assert r.status_code == 404 and r.json()["detail"] == f"no job {job_id}"
+    assert bob.delete(f"/v1/jobs/{job_id}").status_code == 404
+    assert job_id not in [j["id"] for j in bob.get("/v1/jobs").json()["jobs"]]
+    assert bob.get("/v1/jobs", params={"owner": "alice"}).status_code == 403
+    assert job_id in [j["id"] for j in alice.get("/v1/jobs").json()["jobs"]]
+    seen = root.get("/v1/jobs", params={"owner": "alice", "limit": 500}).json()
+    assert job_id in [j["id"] for j in seen["jobs"]] and {j["owner"] for j in seen["jobs"]} == {"alice"}
+    assert root.get(f"/v1/jobs/{job_id}").json()["owner"] == "alice"
+    wait_finished(alice, job_id)
+    assert bob.get(f"/v1/jobs/{job_id}").status_code == 404  # still not bob's after it finished
+
+
+def test_list_filters_by_status_and_pages(bob, small_run):
+    ids = [submit_ok(bob, small_run, FAST) for _ in range(3)]
+    for i in ids:
+        wait_finished(bob, i)
+    page1 = bob.get("/v1/jobs", params={"limit": 2, "status": "succeeded"}).json()
+    assert len(page1["jobs"]) == 2 and page1["total"] >= 3 and page1["next_cursor"]
+    assert page1["next"].startswith("/v1/jobs?") and "cursor=" in page1["next"]
+    page2 = bob.get(page1["next"]).json()
+    got = [j["id"] for j in page1["jobs"] + page2["jobs"]]
+    assert got[:3] == ids[::-1] and len(set(got)) == len(got)
+    assert all(j["status"] == "succeeded" for j in page1["jobs"] + page2["jobs"])
+    assert bob.get("/v1/jobs", params={"status": "cancelled"}).json()["total"] == 0
+    bad = bob.get("/v1/jobs", params={"status": "done"})
+    assert bad.status_code == 422 and "status" in bad.json()["detail"]
+
+
+def test_result_before_success_is_409_and_delete_removes_files(server, alice, small_run):
+    job_id = submit_ok(alice, small_run, {"method": "fte", "skeleton": "points"})
+    r = alice.get(f"/v1/jobs/{job_id}/result")
+    assert r.status_code in (409, 200)
+    if r.status_code == 409:
+        assert "its result is ready when it succeeded" in r.json()["detail"]
+    assert wait_finished(alice, job_id)["status"] == "succeeded"
+    job_dir = server.data_dir / "jobs" / job_id
+    assert (job_dir / "result" / "result.csv").is_file()
+    assert alice.delete(f"/v1/jobs/{job_id}").status_code == 204
+    assert not job_dir.exists()
+    assert alice.get(f"/v1/jobs/{job_id}").status_code == 404
+    assert alice.get("/v1/jobs/not-a-job-id").status_code == 404
+    assert alice.get("/v1/jobs/../../etc/passwd").status_code == 404
+
+
+def test_reference_endpoints(server, alice):
+    sk = {s["name"]: s for s in alice.get("/v1/skeletons").json()}
+    assert {"cheetah", "points"} <= set(sk)
+    assert sk["cheetah"]["kind"] == "kinematic" and "nose" in sk["cheetah"]["markers"]
+    assert sk["cheetah"]["parameters"] == 25
+    me = alice.get("/v1/me").json()
+    assert me["name"] == "alice" and me["admin"] is False and me["limits"]["max_frames"] > 0
+    with server.client() as anon:
+        health = anon.get("/healthz").json()
+        assert health["status"] == "ok" and health["backend"] == "embedded" and health["workers"] == 2
+        metrics = anon.get("/metrics")
+        assert metrics.headers["content-type"].startswith("text/plain")
+        text = metrics.text
+        assert 'acinoset_jobs{status="succeeded"}' in text and "acinoset_solve_seconds_count" in text
+        assert anon.get("/no/such/page").json()["detail"]
+
+
+# -- bad uploads -----------------------------------------------------------------------------------
+
+def _upload(client, files: list[tuple[str, str, bytes]], options=None):
+    data = {"options": options if isinstance(options, str) else json.dumps(options or FAST)}
+    return client.post("/v1/jobs", files=[(field, (name, content, "application/octet-stream"))
+                                          for field, name, content in files], data=data)
+
+
+def _files(run, cams=None, cal=None):
+    out = [("keypoints", p.name, p.read_bytes()) for p in (cams or run.cams)]
+    out.append(("calibration", (cal or run.calibration).name, (cal or run.calibration).read_bytes()))
+    return out
+
+
+def _bad_cases(run):
+    csv = run.cams[0].read_bytes()
+    lines = csv.decode().splitlines()
+    short = ("\n".join(lines[: len(lines) - 5]) + "\n").encode()
+    return {
+        "garbage keypoints": (_files(run)[:2] + [("keypoints", "cam3.csv", b"\x00\x01 not a csv at all")]
+                              + _files(run)[3:], FAST, "cam3.csv"),
+        "keypoints with no data rows": ([("keypoints", "cam1.csv", b"scorer,a\nbodyparts,b\ncoords,x\n")]
+                                        + _files(run)[1:], FAST, "cam1.csv"),
+        "garbage calibration": (_files(run)[:-1] + [("calibration", "calib.toml", b"this = [is not toml")], FAST,
+                                "calib.toml"),
+        "empty calibration": (_files(run)[:-1] + [("calibration", "calib.json", b"")], FAST, "calib.json"),
+        "a camera too few": (_files(run, cams=run.cams[:-1]), FAST, "6 cameras"),
+        "frames differ": (_files(run)[:1] + [("keypoints", "cam2.csv", short)] + _files(run)[2:], FAST, "frames"),
+        "options not json": (_files(run), "{method: tri", "options: not valid JSON"),
+        "options not an object": (_files(run), "[1, 2]", "options: must be a JSON object"),
+        "unknown option": (_files(run), {"methd": "tri"}, "unknown option 'methd'"),
+        "bad method": (_files(run), {"method": "magic"}, "options: method"),
+        "bad fps": (_files(run), {"method": "tri", "fps": -3}, "fps must be positive"),
+        "skeleton as a server path": (_files(run), {"skeleton": "/etc/passwd"}, "unknown skeleton '/etc/passwd'"),
+        "no calibration": (_files(run)[:-1], FAST, "calibration"),
+        "no keypoints": (_files(run)[-1:], FAST, "keypoints"),
+    }
+
+
+def test_every_bad_upload_is_422_naming_the_problem(server, alice, small_run):
+    jobs_before = set((server.data_dir / "jobs").iterdir())
+    for case, (files, options, expected) in _bad_cases(small_run).items():
+        r = _upload(alice, files, options)
+        assert r.status_code == 422, (case, r.status_code, r.text)
+        detail = r.json()["detail"]
+        assert isinstance(detail, str) and "\n" not in detail and "Traceback" not in detail, (case, detail)
+        assert expected in detail, (case, detail)
+    # nothing was queued or left behind
+    assert set((server.data_dir / "jobs").iterdir()) == jobs_before
+
+
+def test_uploaded_names_cannot_leave_the_job_directory(server, alice, small_run):
+    files = [("keypoints", f"../../../../tmp/evil{i}.csv", p.read_bytes()) for i, p in enumerate(small_run.cams)]
+    files.append(("calibration", "/etc/acinoset-calibration.toml", small_run.calibration.read_bytes()))
+    r = _upload(alice, files)
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert [k["name"] for k in job["inputs"]["keypoints"]] == [f"evil{i}.csv" for i in range(6)]
+    assert job["inputs"]["calibration"]["name"] == "acinoset-calibration.toml"
+    job_dir = (server.data_dir / "jobs" / job["id"]).resolve()
+    stored = [p for p in job_dir.rglob("*") if p.is_file()]
+    assert all(p.resolve().is_relative_to(job_dir) for p in stored)
+    assert not Path("/tmp/evil0.csv").exists() and not Path("/etc/acinoset-calibration.toml").exists()
+    assert wait_finished(alice, job["id"])["status"] == "succeeded"
+
+
+# -- limits ----------------------------------------------------------------------------------------
+
+def test_upload_and_frame_limits_answer_413(tmp_path, small_run):
+    from graph.calibration import load_calibration, write_anipose_toml
+    from graph.camera import Calibration
+
+    data = tmp_path / "data"
+    token = add_user(data, "carol")
+    cam_bytes = sum(p.stat().st_size for p in small_run.cams)
+    env = {"ACINOSET_MAX_UPLOAD_BYTES": str(cam_bytes // 2), "ACINOSET_MAX_FRAMES": "50", "ACINOSET_WARM_START": "0"}
+    one_cam = tmp_path / "one.toml"
+    write_anipose_toml(one_cam, Calibration(cameras=load_calibration(small_run.calibration).cameras[:1]))
+    srv = Server(data, tmp_path / "server.log", workers=1, env=env).start()
+    try:
+        with srv.client(token) as c:
+            r = submit(c, small_run, FAST)
+            assert r.status_code == 413 and "MiB per job" in r.json()["detail"], r.text
+            r = submit(c, small_run, FAST, calibration=one_cam, cams=small_run.cams[:1])
+            assert r.status_code == 413, r.text
+            assert r.json()["detail"] == ("cam1.csv: 60 frames; this server takes at most 50 frames per file "
+                                          "(ACINOSET_MAX_FRAMES)")
+            assert c.get("/v1/jobs").json()["total"] == 0
+    finally:
+        srv.stop()
+
+
+def test_too_many_active_jobs_answer_429(tmp_path, small_run, long_run):
+    data = tmp_path / "data"
+    token = add_user(data, "dave")
+    env = {"ACINOSET_MAX_ACTIVE_JOBS_PER_USER": "1", "ACINOSET_WARM_START": "0"}
+    srv = Server(data, tmp_path / "server.log", workers=1, env=env).start()
+    try:
+        with srv.client(token) as c:
+            first = submit_ok(c, long_run, {"method": "fte", "skeleton": "cheetah"})
+            r = submit(c, small_run, FAST)
+            assert c.get(f"/v1/jobs/{first}").json()["status"] in ("queued", "running")
+            assert r.status_code == 429, r.text
+            assert r.json()["detail"].startswith("you have 1 queued or running jobs")
+            assert c.delete(f"/v1/jobs/{first}").json()["status"] == "cancelled"
+            assert submit(c, small_run, FAST).status_code == 202
+    finally:
+        srv.stop()
