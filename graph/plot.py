@@ -373,9 +373,11 @@ def plot_reprojection_error(result: Result, path: Path) -> Path:
     ax = fig.add_subplot(1, 1, 1)
     data = t.median.T  # (M, C)
     finite = data[np.isfinite(data)]
-    vmax = float(np.percentile(finite, 98)) if finite.size else 1.0
-    vmax = max(vmax, 1.0)
-    im = ax.imshow(np.ma.masked_invalid(data), cmap="magma_r", vmin=0, vmax=vmax, aspect="auto",
+    # Colours from 0 to at least twice the expected detection noise: light is as good as the
+    # detections allow, dark is worse.
+    sigma = float(getattr(result.options, "measurement_std_px", 5.0) or 5.0)
+    vmax = max(float(np.percentile(finite, 98)) if finite.size else 0.0, 2 * sigma)
+    im = ax.imshow(np.ma.masked_invalid(data), cmap=_light_magma(), vmin=0, vmax=vmax, aspect="auto",
                    interpolation="nearest")
     ax.set_facecolor("white")
     for m in range(M):
@@ -390,7 +392,7 @@ def plot_reprojection_error(result: Result, path: Path) -> Path:
             txt = "all rejected" if not np.isfinite(v) else f"{v:.1f}"
             if nout:
                 txt += f"  ({nout}\u00d7)"
-            dark = np.isfinite(v) and v / vmax > 0.55
+            dark = np.isfinite(v) and v / vmax > 0.7
             ax.text(c, m, txt, ha="center", va="center", fontsize=7.5,
                     color="white" if dark else "black")
     ax.set_xticks(range(C), result.camera_names, fontsize=8)
@@ -402,9 +404,17 @@ def plot_reprojection_error(result: Result, path: Path) -> Path:
                  f"{rmse:.2f} px, {int(t.outliers.sum())} of {int(t.observations.sum())} rejected",
                  fontsize=10)
     cb = fig.colorbar(im, ax=ax, shrink=0.9)
-    cb.set_label("median error (px)")
+    cb.set_label(f"median error (px); expected detection noise {sigma:g} px")
     fig.savefig(path)
     return path
+
+
+def _light_magma():
+    """magma_r without its darkest quarter, so black numbers stay readable on every cell."""
+    from matplotlib import colormaps
+    from matplotlib.colors import ListedColormap
+
+    return ListedColormap(colormaps["magma_r"](np.linspace(0.0, 0.75, 256)))
 
 
 def _hatch_cell(c: int, m: int):

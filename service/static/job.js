@@ -63,12 +63,24 @@
   function drawAlert(job) {
     alertBox.replaceChildren();
     if (job.status === "failed") {
-      alertBox.append(el("section", { class: "alert", role: "alert", "data-testid": "job-error" },
-        el("h2", { text: "This job failed" }),
-        el("p", { class: "error-text", text: job.error || "The server gave no reason." }),
-        el("p", { text: "Fix what the message names (usually one of the uploaded files or an option) and " +
-          "submit the job again. If the message does not make sense, send the job id to whoever runs this server." }),
-        el("p", {}, el("a", { class: "button", href: "/jobs/new", text: "Submit a new job" }))));
+      const err = (job.error || "").trim();
+      // A readers' or solver's message about the input is one plain line; anything shaped like an
+      // exception name is a fault on the server's side, explained as such.
+      const internal = !err || /^[A-Z][A-Za-z0-9_.]*(Error|Exception|Interrupt)\b/.test(err) || /Traceback|internal error/i.test(err);
+      const box = el("section", { class: "alert", role: "alert", "data-testid": "job-error" },
+        el("h2", { text: "This job failed" }));
+      if (internal) {
+        box.append(
+          el("p", { text: "The solver stopped on an unexpected error inside the server. Your files were accepted, " +
+            "so this is most likely not a problem with them: send the job id " + job.id + " to whoever runs this server." }),
+          err ? el("details", {}, el("summary", { text: "Technical detail" }), el("p", { class: "error-text", text: err })) : null);
+      } else {
+        box.append(
+          el("p", { class: "error-text", text: err }),
+          el("p", { text: "Fix what the message names (one of the uploaded files or an option) and submit the job again." }));
+      }
+      box.append(el("p", {}, el("a", { class: "button", href: "/jobs/new", text: "Submit a new job" })));
+      alertBox.append(box);
     } else if (job.status === "cancelled") {
       alertBox.append(el("p", { class: "notice", text: "This job was cancelled; it has no result." }));
     } else if (job.interruption && ACTIVE.has(job.status)) {

@@ -35,6 +35,14 @@
     if (job.status === "queued") return el("td", { class: "progress-cell" }, el("span", { class: "small", text: "waiting for a free worker" }));
     if (job.status !== "running") {
       if (job.status === "failed") return el("td", { class: "progress-cell small", text: (job.error || "").slice(0, 120) });
+      const r = job.result;
+      if (job.status === "succeeded" && r) {
+        const bits = [];
+        if (r.reprojection_rmse_px != null) bits.push(`RMSE ${r.reprojection_rmse_px.toFixed(1)} px`);
+        if (r.outliers != null) bits.push(`${r.outliers} of ${r.observations} rejected`);
+        if (r.warnings && r.warnings.length) bits.push(`${r.warnings.length} warning${r.warnings.length > 1 ? "s" : ""}`);
+        return el("td", { class: "progress-cell small", text: bits.join(" · ") });
+      }
       return el("td", { class: "progress-cell" });
     }
     const f = job.progress && job.progress.fraction != null ? job.progress.fraction : null;

@@ -14,6 +14,8 @@
   const COLOR = { left: "#0072B2", right: "#D55E00", mid: "#333333", flag: "#CC0000",
                   camera: "#009E73", path: "#999999", band: "rgba(0,114,178,0.22)" };
   const PLOT_CONFIG = { displaylogo: false, responsive: true };
+  // Light (small error) to dark (large error), the light half of magma: numbers stay readable.
+  const ERROR_SCALE = [[0, "#fcfdbf"], [0.25, "#feb078"], [0.5, "#f1605d"], [0.75, "#b73779"], [1, "#51127c"]];
 
   function el(tag, attrs, ...children) {
     const node = document.createElement(tag);
@@ -337,6 +339,9 @@
       "Pixel distance between each camera's detection and the 3D estimate drawn into that camera. " +
       "Every cell is labelled with its number; (n×) counts detections the robust loss rejected as outliers. " +
       "Click a cell to plot that marker over time." }));
+    const sigmaPx = (P.options && P.options.measurement_std_px) || 5;
+    heat.querySelector(".hint").textContent += ` The colours run from 0 to at least twice the expected detection noise ` +
+      `(${sigmaPx} px): light is as good as the detections allow, dark is worse.`;
     const heatModeId = newId("heat-mode");
     const heatMode = el("select", { id: heatModeId },
       el("option", { value: "run", text: "Whole run: median over frames" }),
@@ -372,16 +377,26 @@
     function drawHeat() {
       const d = heatData(heatMode.value, state.frame);
       const trace = { type: "heatmap", z: d.z, x: P.cameras, y: P.markers, text: d.text,
-        texttemplate: "%{text}", textfont: { size: 11 }, colorscale: "Magma", reversescale: true, zmin: 0,
+        texttemplate: "%{text}", textfont: { size: 11 }, colorscale: ERROR_SCALE, zmin: 0,
         colorbar: { title: { text: "px" } }, hoverongaps: false, xgap: 1, ygap: 1,
         hovertemplate: "%{y} in %{x}: %{text} px<extra></extra>" };
       if (heatMode.value === "run") {
         const vals = d.z.flat().filter((v) => v !== null).sort((a, b) => a - b);
-        trace.zmax = Math.max(1, vals.length ? vals[Math.floor(0.98 * (vals.length - 1))] : 1);
-      } else trace.zmax = 20;
+        trace.zmax = Math.max(2 * sigmaPx, vals.length ? vals[Math.floor(0.98 * (vals.length - 1))] : 1);
+      } else trace.zmax = 4 * sigmaPx;
       const lay = { margin: { l: 110, r: 10, t: 10, b: 40 }, height: Math.max(260, 24 * M + 70),
         yaxis: { autorange: "reversed", automargin: true }, xaxis: { side: "bottom" }, plot_bgcolor: "#eeeeee" };
-      Plotly.react(heatPlot, [trace], lay, PLOT_CONFIG);
+      Plotly.react(heatPlot, [trace], lay, PLOT_CONFIG).then(() => {
+        if (heatPlot._acinoClick) return;
+        heatPlot._acinoClick = true;
+        heatPlot.on("plotly_click", (ev) => {
+          const m = ev.points && ev.points.length ? markerIndex.get(ev.points[0].y) : undefined;
+          if (m === undefined) return;
+          what.value = `m:${m}`;
+          drawSeries();
+          series.scrollIntoView({ block: "start" });
+        });
+      });
       heatTable.replaceChildren(
         el("caption", { text: heatMode.value === "run" ? "Median reprojection error (px), whole run"
           : `Reprojection error (px), frame ${state.frame}` }),
