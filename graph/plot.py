@@ -683,14 +683,16 @@ def run(args: argparse.Namespace) -> int:
 
     if not Path(args.result).is_file():
         raise InputError("no such file", args.result)
+    if args.snapshots < 1:
+        raise InputError("--snapshots must be at least 1")
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise InputError("--out must be a folder, and this is a file", args.out)
     result = read_result(args.result)
     calibration = None
     if args.calibration is not None:
         from graph.calibration import load_calibration
 
         calibration = load_calibration(args.calibration)
-    if args.snapshots < 1:
-        raise InputError("--snapshots must be at least 1")
     written = write_figures(result, args.out, calibration, snapshots=args.snapshots)
     if not args.no_html:
         written.append(write_playback_html(result, Path(args.out) / HTML_NAME, calibration))

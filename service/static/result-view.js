@@ -98,11 +98,12 @@
     function frameSummary(n) {
       const flags = markerFlags(n);
       const have = flags.filter((f) => !f.missing).length;
+      const blind = unconstrainedFrames.has(n);  // then every marker is weak: said once, below
       const notes = [];
       flags.forEach((f, m) => {
         const bits = [];
         if (f.missing) bits.push("no estimate");
-        else if (f.weak) bits.push(`seen by ${plural(f.cams, "camera")}`);
+        else if (f.weak && !blind) bits.push(`seen by ${plural(f.cams, "camera")}`);
         if (f.rejected.length) bits.push(`rejected in ${f.rejected.join(", ")}`);
         if (bits.length) notes.push(`${P.markers[m]}: ${bits.join("; ")}`);
       });
@@ -612,12 +613,20 @@
       if (document.activeElement !== number) number.value = String(n);
       plot3d.dataset.frame = String(n);
       draw3d(n);
-      if (!fromPlayback) { describe(n); syncOthers(); }
+      if (!fromPlayback) { describe(n); scheduleSync(); }
       else {
         timeLabel.textContent = `${(n / fps).toFixed(3)} s`;
         const now = performance.now();
         if (now - state.lastSync > 400) { state.lastSync = now; syncOthers(); describe(n); }
       }
+    }
+
+    // The other plots follow the frame once stepping pauses: redrawing a long run's raster on
+    // every key repeat would make the 3D view lag.
+    let syncTimer = null;
+    function scheduleSync() {
+      clearTimeout(syncTimer);
+      syncTimer = setTimeout(syncOthers, 150);
     }
 
     function tick(now) {

@@ -192,6 +192,12 @@ def test_offline_playback_file(browser, simulated_run, tmp_path):
     pg.get_by_role("button", name="Next frame").click()
     pg.get_by_role("button", name="Next frame").click()
     assert pg.get_by_test_id("frame-status").inner_text().startswith("Frame 2 of 59")
+    # Keyboard: the 3D view takes focus; arrows step, Home goes to the start.
+    plot.focus()
+    pg.keyboard.press("ArrowRight")
+    assert pg.get_by_test_id("frame-status").inner_text().startswith("Frame 3 of 59")
+    pg.keyboard.press("Home")
+    assert pg.get_by_test_id("frame-status").inner_text().startswith("Frame 0 of 59")
     # Camera positions came through the result file.
     assert "cam1" in pg.locator("dl.facts").inner_text()
     ctx.close()
