@@ -77,22 +77,37 @@ class TrajectoryProblem:
             bone_len = np.zeros(len(self.bones))
         self.bone_len = bone_len
         self.bone_sigma = np.maximum(BONE_SIGMA_FRACTION * bone_len, 1e-3)
+        # Variables: one GTSAM key per frame and parameter group. A kinematic skeleton is one group
+        # (every parameter moves together); free points are one group per marker, so the graph
+        # stays a set of small chains (coupled only by bone terms) instead of one wide one.
+        if sk.kind == "points":
+            self.groups = [np.arange(3 * m, 3 * m + 3) for m in range(len(sk.markers))]
+            self.couplings = sorted({(min(a, b), max(a, b)) for a, b in self.bones if a != b})
+        else:
+            self.groups = [np.arange(P)]
+            self.couplings = []
         self._motion = self._motion_factors()
         self._ordering = gtsam.Ordering()
-        for n in range(N):
-            self._ordering.push_back(n)
+        for k in range(len(self.groups) * N):
+            self._ordering.push_back(k)
+
+    def key(self, n: int, group: int) -> int:
+        return group * self.N + n
 
     def _motion_factors(self) -> list:
-        """``(q_{n+3} - 3 q_{n+2} + 3 q_{n+1} - q_n) / sigma_3 = 0``: a GaussianConditional on
-        ``q_{n+3}`` given the three before it, as a 4-key JacobianFactor, kept in Hessian form
+        """``(q_{n+3} - 3 q_{n+2} + 3 q_{n+1} - q_n) / sigma_3 = 0`` per group: a GaussianConditional
+        on ``q_{n+3}`` given the three before it, as a 4-key JacobianFactor, kept in Hessian form
         (elimination is then Cholesky throughout, a third faster than mixing in QR)."""
-        P = self.P
-        eye = np.eye(P)
-        model = gtsam.noiseModel.Diagonal.Sigmas(self.sigma3)
-        zero = np.zeros(P)
-        return [gtsam.HessianFactor(gtsam.JacobianFactor(gtsam.GaussianConditional(
-                    [(n + 3, eye), (n, -eye), (n + 1, 3 * eye), (n + 2, -3 * eye)], 1, zero, model)))
-                for n in range(self.N - 3)]
+        out = []
+        for gi, idx in enumerate(self.groups):
+            eye = np.eye(len(idx))
+            model = gtsam.noiseModel.Diagonal.Sigmas(self.sigma3[idx])
+            zero = np.zeros(len(idx))
+            k = [self.key(n, gi) for n in range(self.N)]
+            out += [gtsam.HessianFactor(gtsam.JacobianFactor(gtsam.GaussianConditional(
+                        [(k[n + 3], eye), (k[n], -eye), (k[n + 1], 3 * eye), (k[n + 2], -3 * eye)], 1, zero, model)))
+                    for n in range(self.N - 3)]
+        return out
 
     def normals(self, Q, stretch=1.0):
         """Per-frame H (N, P, P), g (N, P), reprojections, s, w (N, C, M), data cost (N,)."""
@@ -111,29 +126,74 @@ class TrajectoryProblem:
         return float(data_cost.sum() + 0.5 * np.sum(m * m) + 0.5 * np.sum(pr * pr))
 
     def linear_graph(self, Q, H, g, lam: float) -> gtsam.GaussianFactorGraph:
-        """The damped Gauss-Newton system at Q over the new trajectory Q'."""
+        """The damped Gauss-Newton system at Q over the new trajectory Q'.
+
+        Each group's diagonal block of G with its part of gvec is one HessianFactor; a bone between
+        two markers adds their off-diagonal block as a 2-key HessianFactor with zero diagonal (the
+        sum of the factors is the frame's full quadratic model)."""
         graph = gtsam.GaussianFactorGraph()
         for f in self._motion:
             graph.push_back(f)
         w = 1.0 / PRIOR_SIGMA**2
         G = H + (w + lam) * np.eye(self.P)
         gv = np.einsum("npq,nq->np", H, Q) - g + w * self.Q0 + lam * Q
-        for n in range(self.N):
-            graph.add(gtsam.HessianFactor(n, G[n], gv[n], 0.0))
+        if len(self.groups) == 1:
+            for n in range(self.N):
+                graph.add(gtsam.HessianFactor(n, G[n], gv[n], 0.0))
+            return graph
+        for gi, idx in enumerate(self.groups):
+            a, b = idx[0], idx[-1] + 1
+            Gg, gg = G[:, a:b, a:b], gv[:, a:b]
+            for n in range(self.N):
+                graph.add(gtsam.HessianFactor(self.key(n, gi), Gg[n], gg[n], 0.0))
+        for ga, gb in self.couplings:
+            ia, ib = self.groups[ga], self.groups[gb]
+            za, zb = np.zeros((len(ia), len(ia))), np.zeros((len(ib), len(ib)))
+            va, vb = np.zeros(len(ia)), np.zeros(len(ib))
+            cross = G[:, ia[0]:ia[-1] + 1, ib[0]:ib[-1] + 1]
+            for n in range(self.N):
+                graph.add(gtsam.HessianFactor(self.key(n, ga), self.key(n, gb), za, cross[n], va, zb, vb, 0.0))
         return graph
 
+    def _solution(self, vv: gtsam.VectorValues) -> np.ndarray:
+        if len(self.groups) == 1:
+            return np.stack([vv.at(n) for n in range(self.N)])
+        Q = np.empty((self.N, self.P))
+        for gi, idx in enumerate(self.groups):
+            Q[:, idx] = np.stack([vv.at(self.key(n, gi)) for n in range(self.N)])
+        return Q
+
+    def _eliminate(self, graph: gtsam.GaussianFactorGraph):
+        # chains are best eliminated in time order; bone couplings between chains are left to
+        # GTSAM's fill-reducing ordering
+        if self.couplings:
+            return graph.eliminateMultifrontal(gtsam.Ordering.ColamdGaussianFactorGraph(graph))
+        return graph.eliminateMultifrontal(self._ordering)
+
     def solve_linear(self, Q, H, g, lam: float) -> np.ndarray:
-        vv = self.linear_graph(Q, H, g, lam).optimize(self._ordering)
-        return np.stack([vv.at(n) for n in range(self.N)])
+        graph = self.linear_graph(Q, H, g, lam)
+        if self.couplings:
+            vv = graph.optimize(gtsam.Ordering.ColamdGaussianFactorGraph(graph))
+        else:
+            vv = graph.optimize(self._ordering)
+        return self._solution(vv)
 
     def marginal_covariances(self, Q: np.ndarray) -> np.ndarray:
         """Marginal covariance of each frame's pose (N, P, P) from the Bayes tree of the undamped
-        linearisation. (A plain backward covariance recursion over the chain's conditionals is
-        cheaper but numerically unstable here: the stiff motion factors amplify rounding by about
-        ten per frame.)"""
+        linearisation; for free points the per-marker blocks (the covariance between markers is
+        left at zero: no marker's position depends on another's parameters). (A plain backward
+        covariance recursion over the chain's conditionals is cheaper but numerically unstable
+        here: the stiff motion factors amplify rounding by about ten per frame.)"""
         H, g, _, _, _, _ = self.normals(Q, 1.0)
-        bt = self.linear_graph(Q, H, g, 0.0).eliminateMultifrontal(self._ordering)
-        return np.stack([bt.marginalCovariance(n) for n in range(self.N)])
+        bt = self._eliminate(self.linear_graph(Q, H, g, 0.0))
+        if len(self.groups) == 1:
+            return np.stack([bt.marginalCovariance(n) for n in range(self.N)])
+        S = np.zeros((self.N, self.P, self.P))
+        for gi, idx in enumerate(self.groups):
+            a, b = idx[0], idx[-1] + 1
+            for n in range(self.N):
+                S[n, a:b, a:b] = bt.marginalCovariance(self.key(n, gi))
+        return S
 
 
 def optimise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int = 50, progress=None,
