@@ -288,6 +288,10 @@ def _draw_skeleton(ax, P: np.ndarray, result: Result, color, label=None, lw=1.6,
     ok = np.isfinite(P).all(axis=1)
     ax.scatter(P[ok, 0], P[ok, 1], P[ok, 2], color=color, s=ms, depthshade=False,
                label=label if first else None)
+    if first:  # no bones to read the body by: name the markers
+        for name, p in zip(result.markers, P):
+            if np.isfinite(p).all():
+                ax.text(p[0], p[1], p[2], f" {name}", fontsize=6, color="0.25")
 
 
 def plot_skeleton(result: Result, path: Path, calibration=None, snapshots: int = 5) -> Path:
@@ -301,7 +305,8 @@ def plot_skeleton(result: Result, path: Path, calibration=None, snapshots: int =
     cols = min(3, panels)
     rows = int(np.ceil(panels / cols))
     fig = _figure(4.6 * cols, 4.2 * rows + 0.4)
-    fig.suptitle(_title(result) + "\nskeleton: solid lines left side, dashed right side", fontsize=10)
+    fig.suptitle(_title(result) + ("\nskeleton: solid lines left side, dashed right side" if result.bones
+                                   else "\nno bones to draw (free points): markers named"), fontsize=10)
 
     ax = fig.add_subplot(rows, cols, 1, projection="3d")
     ax.set_title("Scene: cameras and the path of the animal", fontsize=9)

@@ -281,9 +281,10 @@
       line: { color: COLOR.mid, width: 6 }, hoverinfo: "skip" });
     const mk0 = markerXYZ(0, false), fl0 = markerXYZ(0, true);
     idx.markers = traces.length;
-    traces.push({ type: "scatter3d", mode: "markers", name: "markers", x: mk0.x, y: mk0.y, z: mk0.z,
-      text: mk0.text, hovertext: mk0.hover, hovertemplate: "%{hovertext}<extra></extra>",
-      marker: { size: 3.5, color: "#222222" } });
+    // Without bones the dots carry their names, or nobody could tell the nose from the tail.
+    traces.push({ type: "scatter3d", mode: boneIdx.length ? "markers" : "markers+text", name: "markers",
+      x: mk0.x, y: mk0.y, z: mk0.z, text: mk0.text, hovertext: mk0.hover, hovertemplate: "%{hovertext}<extra></extra>",
+      textposition: "top center", textfont: { size: 10, color: "#444444" }, marker: { size: 3.5, color: "#222222" } });
     idx.flagged = traces.length;
     traces.push({ type: "scatter3d", mode: "markers+text", name: "flagged markers (◇)", x: fl0.x, y: fl0.y, z: fl0.z,
       text: fl0.text, hovertext: fl0.hover, hovertemplate: "%{hovertext}<extra></extra>", textposition: "top center",

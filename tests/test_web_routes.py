@@ -1,0 +1,55 @@
+"""The pages' router on its own: what it serves, and what it refuses (no browser needed)."""
+
+from __future__ import annotations
+
+import re
+
+from fastapi import FastAPI
+from fastapi.testclient import TestClient
+
+from service import web
+
+
+def client() -> TestClient:
+    app = FastAPI()
+    app.include_router(web.router)
+    return TestClient(app)
+
+
+def test_pages_are_html_and_load_only_local_scripts():
+    c = client()
+    for path in ("/", "/login", "/jobs/new", "/jobs/0123456789abcdef0123456789abcdef"):
+        r = c.get(path)
+        assert r.status_code == 200, path
+        assert r.headers["content-type"].startswith("text/html")
+        assert r.headers["cache-control"] == "no-cache"
+        for src in re.findall(r'(?:src|href)="([^"]+)"', r.text):
+            assert src.startswith("/") or src.startswith("#"), f"{path} refers outside the server: {src}"
+            if src.startswith("/static/"):
+                assert c.get(src).status_code == 200, f"{path}: {src} is missing"
+
+
+def test_every_page_has_one_h1_a_title_and_a_language():
+    c = client()
+    for path in ("/", "/login", "/jobs/new", "/jobs/abc"):
+        text = c.get(path).text
+        assert '<html lang="en">' in text and "<title>" in text
+        assert text.count("<h1") == 1, path
+        assert 'href="#main"' in text and 'id="main"' in text, f"{path}: no skip link"
+
+
+def test_plotly_comes_from_the_installed_package():
+    r = client().get("/static/plotly.min.js")
+    assert r.status_code == 200
+    assert r.headers["content-type"].startswith("text/javascript")
+    assert "max-age" in r.headers["cache-control"]
+    assert len(r.content) > 1_000_000 and b"plotly" in r.content[:2000].lower()
+
+
+def test_static_files_are_confined_to_the_folder():
+    c = client()
+    assert c.get("/static/app.css").headers["content-type"].startswith("text/css")
+    for bad in ("/static/..%2Fweb.py", "/static/web.py", "/static/.hidden.js", "/static/nope.js",
+                "/static/%2e%2e%2f%2e%2e%2fpyproject.toml"):
+        assert c.get(bad).status_code == 404, bad
+    assert c.get("/jobs/..%2F..%2Fetc").status_code == 404
