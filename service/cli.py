@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import socket
 import sys
 
 from service.settings import Settings
+
+WORKER_TTL = 60  # seconds a dead worker's name stays registered in Redis (idle workers renew it)
 
 
 def _settings(args: argparse.Namespace, *names: str) -> Settings:
@@ -48,7 +51,7 @@ def register(subparsers) -> None:
                                           "installed that reaches the Redis server.")
     w.add_argument("--redis-url", help="the server's Redis (default redis://127.0.0.1:6379/0)")
     w.add_argument("--queue-name", help="default acinoset")
-    w.add_argument("--name", help="worker name shown in jobs (default: host.pid)")
+    w.add_argument("--name", help="worker name shown in jobs, unique among live workers (default: host.pid)")
     w.add_argument("--burst", action="store_true", help="stop when the queue is empty")
     w.add_argument("--log-level", choices=["debug", "info", "warning", "error"], help="default info")
     w.set_defaults(func=worker)
@@ -162,10 +165,18 @@ def worker(args: argparse.Namespace) -> int:
     if s.warm_start:
         import service.warmup  # noqa: F401 - importing it runs the warm-up
     queue = Queue(s.queue_name, connection=conn, serializer=JSONSerializer)
-    w = Worker([queue], connection=conn, serializer=JSONSerializer, name=args.name or None,
+    name = args.name or f"{socket.gethostname()}.{os.getpid()}"
+    w = Worker([queue], connection=conn, serializer=JSONSerializer, name=name, worker_ttl=WORKER_TTL,
                job_monitoring_interval=max(1, int(round(s.heartbeat_seconds))))
     print(f"acinoset worker {w.name}: taking jobs from {s.redis_url} queue {s.queue_name}", flush=True)
-    w.work(burst=bool(args.burst), logging_level=s.log_level.upper())
+    try:
+        w.work(burst=bool(args.burst), logging_level=s.log_level.upper())
+    except ValueError as e:
+        if "exists an active worker" not in str(e):
+            raise
+        print(f"acinoset worker: a worker named {name} is registered in Redis (alive, or dead for less than "
+              f"{WORKER_TTL} s): choose another --name", file=sys.stderr)
+        return 2
     return 0
 
 

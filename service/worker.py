@@ -171,14 +171,31 @@ def one_line(e: BaseException) -> str:
 # -- embedded: one child process per job -------------------------------------------------------
 
 def _die_with_parent() -> None:
-    """Ask Linux to kill this process when its parent dies, so no solve outlives its server."""
+    """No solve outlives its server.
+
+    The parent of a job process is the forkserver, which exits when no process holds its "alive"
+    pipe any more. Every process it forks gets a copy of that pipe: this one closes its copy, so
+    the forkserver exits as soon as the server dies, and asks Linux to SIGKILL it when that happens
+    (``PR_SET_PDEATHSIG``). Elsewhere, fencing by run token still keeps an orphan from writing.
+    """
+    try:
+        from multiprocessing import forkserver
+
+        fd = getattr(forkserver._forkserver, "_forkserver_alive_fd", None)
+        if fd is not None:
+            os.close(fd)
+            forkserver._forkserver._forkserver_alive_fd = None
+    except (ImportError, AttributeError, OSError):
+        pass
     try:
         import ctypes
         import signal
 
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except Exception:  # not Linux: the server's lease checks still stop orphans writing results
+        if os.getppid() == 1:  # the forkserver died before the request took effect
+            os._exit(1)
+    except (OSError, AttributeError):
         pass
 
 
@@ -264,7 +281,6 @@ def run_rq_job(job_id: str, payload: dict, progress_interval: float = 0.5, nicen
             pass
     worker = os.environ.get("RQ_WORKER_ID") or f"{socket.gethostname()}:{os.getpid()}"
     if rq_job is not None:
-        rq_job.meta["attempt"] = int(rq_job.meta.get("attempt", 0)) + 1
         rq_job.meta["host"] = f"{socket.gethostname()}:{os.getpid()}"
         rq_job.save_meta()
 

@@ -40,6 +40,20 @@ def _rq():
     return Redis, Queue, JSONSerializer
 
 
+def _attempts(rj, status, fallback: int) -> int:
+    """Runs of the job started so far, counted from RQ's own retry bookkeeping: the runs before this
+    RQ job, plus the retries it used, plus the current run if it has started or ended."""
+    from rq.job import JobStatus
+
+    meta = rj.meta or {}
+    if "attempts_before" not in meta:
+        return fallback
+    retries = int(meta.get("retries", 0))
+    used = retries - int(rj.retries_left if rj.retries_left is not None else retries)
+    current = 0 if status in (JobStatus.QUEUED, JobStatus.SCHEDULED, JobStatus.DEFERRED) else 1
+    return int(meta["attempts_before"]) + used + current
+
+
 class RQBackend(Backend):
     name = "rq"
 
@@ -51,6 +65,7 @@ class RQBackend(Backend):
                                     health_check_interval=30)
         self.queue = Queue(settings.queue_name, connection=self.redis, serializer=JSONSerializer,
                            default_timeout=int(settings.job_timeout_seconds))
+        self._lock = threading.RLock()  # one enqueue or collector pass at a time
         self._halt = threading.Event()
         self._wake = threading.Event()
         self._thread: threading.Thread | None = None
@@ -123,23 +138,28 @@ class RQBackend(Backend):
     # -- enqueue -----------------------------------------------------------------------------
 
     def _enqueue(self, job: Job) -> None:
-        """One RQ job for the job's remaining attempts; its id becomes the row's run token."""
+        """One RQ job for the job's remaining attempts; its id, ``<job id>-<first attempt>``, becomes
+        the row's run token. If the server died after enqueueing it but before recording it, the RQ
+        job is found again by that id instead of being enqueued twice."""
         from rq import Retry
+        from rq.job import Job as RQJob
 
         from service.worker import input_payload
 
-        remaining = max(1, job.max_attempts - job.attempts)
-        token = f"{job.id}-{job.attempts + 1}"
-        payload = input_payload(self.settings.jobs_dir / job.id / "input")
-        if not self.store.assign_run(job.id, token):
-            return  # cancelled meanwhile
-        self.queue.enqueue_call(
-            RQ_FUNCTION,
-            args=(job.id, payload, self.settings.progress_interval_seconds, self.settings.solve_niceness),
-            job_id=token, timeout=int(self.settings.job_timeout_seconds), result_ttl=-1,
-            failure_ttl=7 * 24 * 3600, retry=Retry(max=remaining - 1) if remaining > 1 else None,
-            meta={"attempt": job.attempts, "job": job.id},
-            description=f"acinoset job {job.id} ({job.owner})")
+        with self._lock:
+            remaining = max(1, job.max_attempts - job.attempts)
+            token = f"{job.id}-{job.attempts + 1}"
+            if RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0] is None:
+                payload = input_payload(self.settings.jobs_dir / job.id / "input")
+                self.queue.enqueue_call(
+                    RQ_FUNCTION,
+                    args=(job.id, payload, self.settings.progress_interval_seconds, self.settings.solve_niceness),
+                    job_id=token, timeout=int(self.settings.job_timeout_seconds), result_ttl=-1,
+                    failure_ttl=7 * 24 * 3600, retry=Retry(max=remaining - 1) if remaining > 1 else None,
+                    meta={"attempts_before": job.attempts, "retries": remaining - 1, "job": job.id},
+                    description=f"acinoset job {job.id} ({job.owner})")
+            if not self.store.assign_run(job.id, token):  # cancelled meanwhile
+                RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0].delete()
 
     # -- the collector -----------------------------------------------------------------------
 
@@ -150,7 +170,8 @@ class RQBackend(Backend):
             if self._halt.is_set():
                 break
             try:
-                self._collect()
+                with self._lock:
+                    self._collect()
                 self._finish_stopping()
                 if time.time() - self._last_sweep > 60:
                     self._sweep()
@@ -185,7 +206,7 @@ class RQBackend(Backend):
                 continue
             token = rj.id
             status = rj.get_status(refresh=False)
-            attempt = int(rj.meta.get("attempt", row.attempts) or 0)
+            attempt = _attempts(rj, status, row.attempts)
             if status == JobStatus.STARTED:
                 hb = rj.last_heartbeat or rj.started_at
                 if hb is not None and now - hb.timestamp() > self.settings.lease_seconds:
@@ -277,10 +298,10 @@ class RQBackend(Backend):
         """Delete RQ jobs that belong to no active row (left by a crash, or a run given up for lost
         whose worker came back): Redis does not keep growing."""
         from rq.job import Job as RQJob
-        from rq.registry import CanceledJobRegistry, FailedJobRegistry, FinishedJobRegistry, StoppedJobRegistry
+        from rq.registry import CanceledJobRegistry, FailedJobRegistry, FinishedJobRegistry
 
         live = {r.run_token for r in self.store.active_jobs(self.name) if r.run_token}
-        for reg in (FinishedJobRegistry, FailedJobRegistry, StoppedJobRegistry, CanceledJobRegistry):
+        for reg in (FinishedJobRegistry, FailedJobRegistry, CanceledJobRegistry):
             registry = reg(queue=self.queue)
             for jid in registry.get_job_ids():
                 if jid in live:

@@ -1,0 +1,192 @@
+"""The RQ backend with real processes: Debian's redis-server (append-only file on), the server with
+``--backend rq`` and two ``worker`` processes. Workers hand results back through Redis; the job table
+stays the record."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import pytest
+
+from service_helpers import (Redis, Server, add_user, children, have_redis, submit_ok, wait_dead, wait_finished,
+                             wait_for, wait_solving, worker)
+
+pytestmark = pytest.mark.skipif(not have_redis(), reason="needs Debian's redis-server (.ci/run installs it)")
+
+LONG = {"method": "fte", "skeleton": "cheetah"}
+FAST = {"method": "tri", "skeleton": "points"}
+# fast failure detection for the tests: workers heartbeat every second, a run is lost after 6 s
+ENV = {"ACINOSET_LEASE_SECONDS": "6", "ACINOSET_HEARTBEAT_SECONDS": "1"}
+
+
+class Pool:
+    def __init__(self, base, redis_port=None):
+        self.base = base
+        self.redis = Redis(base / "redis", base / "redis.log", port=redis_port)
+        self.workers = {}
+
+    def start_redis(self):
+        self.redis.start()
+
+    def start_workers(self, names=("w1", "w2")):
+        for n in names:
+            self.workers[n] = worker(self.redis.url, self.base / f"{n}.log", n, ENV).start()
+
+    def busy_worker(self, name):
+        """(worker process, its work horse's pid) for the worker running a job."""
+        proc = self.workers[name]
+        deadline = time.time() + 30
+        while time.time() < deadline:
+            kids = children(proc.pid)
+            if kids:
+                return proc, kids[0]
+            time.sleep(0.05)
+        raise AssertionError(f"worker {name} has no work horse")
+
+    def stop(self):
+        for w in self.workers.values():
+            w.stop(10)
+        self.redis.stop(10)
+
+
+@pytest.fixture(scope="module")
+def pool(tmp_path_factory):
+    base = tmp_path_factory.mktemp("rq")
+    p = Pool(base)
+    p.start_redis()
+    token = add_user(base / "data", "gina")
+    p.server = Server(base / "data", base / "server.log", backend="rq", redis_url=p.redis.url, env=ENV).start()
+    p.start_workers()
+    p.token = token
+    yield p
+    p.server.stop()
+    p.stop()
+
+
+@pytest.fixture
+def client(pool):
+    with pool.server.client(pool.token) as c:
+        yield c
+
+
+def test_rq_round_trip_gives_the_embedded_result(pool, client, small_run, tmp_path):
+    ids = [submit_ok(client, small_run, {"method": "fte", "skeleton": "cheetah", "fps": small_run.fps})
+           for _ in range(4)]
+    done = [wait_finished(client, j) for j in ids]
+    assert [d["status"] for d in done] == ["succeeded"] * 4, done
+    assert {d["worker"] for d in done} <= {"w1", "w2"} and all(d["attempts"] == 1 for d in done)
+    csvs = {client.get(f"/v1/jobs/{j}/result").content for j in ids}
+    assert len(csvs) == 1
+    # the same upload solved by the embedded backend gives the same bytes
+    data = tmp_path / "emb"
+    token = add_user(data, "h")
+    emb = Server(data, tmp_path / "emb.log", workers=1, env={"ACINOSET_WARM_START": "0"}).start()
+    try:
+        with emb.client(token) as c:
+            j = submit_ok(c, small_run, {"method": "fte", "skeleton": "cheetah", "fps": small_run.fps})
+            assert wait_finished(c, j)["status"] == "succeeded"
+            assert c.get(f"/v1/jobs/{j}/result").content == csvs.pop()
+    finally:
+        emb.stop()
+    health = client.get("/healthz").json()
+    assert health["backend"] == "rq" and health["workers"] == 2 and health["status"] == "ok"
+    # results live in the data dir; Redis keeps nothing of finished jobs
+    import redis as redis_lib
+
+    r = redis_lib.Redis.from_url(pool.redis.url)
+    assert not [k for k in r.keys("rq:job:*") if any(j.encode() in k for j in ids)]
+
+
+def test_rq_cancel_stops_the_work_horse(pool, client, long_run):
+    job_id = submit_ok(client, long_run, LONG)
+    job = wait_solving(client, job_id)
+    _, horse = pool.busy_worker(job["worker"])
+    r = client.delete(f"/v1/jobs/{job_id}")
+    assert r.status_code == 200 and r.json()["status"] == "cancelled"
+    assert wait_dead(horse, 10), "the work horse still runs after the cancel"
+    time.sleep(1.5)
+    assert client.get(f"/v1/jobs/{job_id}").json()["status"] == "cancelled"
+    # the workers are free again
+    assert wait_finished(client, submit_ok(client, long_run, FAST))["status"] == "succeeded"
+
+
+def test_rq_a_killed_work_horse_is_retried(pool, client, long_run):
+    job_id = submit_ok(client, long_run, LONG)
+    job = wait_solving(client, job_id)
+    _, horse = pool.busy_worker(job["worker"])
+    os.kill(horse, signal.SIGKILL)
+    done = wait_finished(client, job_id)
+    assert done["status"] == "succeeded" and done["attempts"] == 2, done
+
+
+def test_rq_a_dead_worker_machine_loses_no_job(pool, client, long_run):
+    job_id = submit_ok(client, long_run, LONG)
+    job = wait_solving(client, job_id)
+    name = job["worker"]
+    pool.workers[name].kill9()  # the worker and its work horse, as if the machine died
+    done = wait_finished(client, job_id, timeout=240)
+    assert done["status"] == "succeeded" and done["attempts"] == 2, done
+    assert done["worker"] != name
+    assert f"worker {name} stopped responding" in done["interruption"]
+    pool.start_workers([name + "b"])
+
+
+def test_rq_kill_9_of_everything_loses_nothing(tmp_path, long_run, small_run):
+    pool = Pool(tmp_path)
+    pool.start_redis()
+    token = add_user(tmp_path / "data", "ivan")
+    srv = Server(tmp_path / "data", tmp_path / "server1.log", backend="rq", redis_url=pool.redis.url, env=ENV).start()
+    pool.start_workers()
+    try:
+        with srv.client(token) as c:
+            long_ids = [submit_ok(c, long_run, LONG) for _ in range(2)]
+            short_ids = [submit_ok(c, small_run, FAST) for _ in range(4)]
+            for j in long_ids:
+                wait_solving(c, j)
+        # everything at once: the server, both workers with their horses, and Redis
+        for w in pool.workers.values():
+            w.kill9()
+        srv.kill9()
+        pool.redis.kill9()
+
+        pool.redis = Redis(tmp_path / "redis", tmp_path / "redis2.log", port=pool.redis.port)
+        pool.start_redis()
+        srv = Server(tmp_path / "data", tmp_path / "server2.log", backend="rq", redis_url=pool.redis.url,
+                     env=ENV).start()
+        pool.workers = {}
+        pool.start_workers(["w3", "w4"])  # w1, w2 stay registered in Redis until their names expire
+        with srv.client(token) as c:
+            finished = [wait_finished(c, j, timeout=240) for j in long_ids + short_ids]
+            assert [f["status"] for f in finished] == ["succeeded"] * 6, finished
+            for f in finished[:2]:
+                assert f["attempts"] == 2, f
+            listed = c.get("/v1/jobs").json()
+            assert listed["total"] == 6
+            for j in long_ids + short_ids:
+                assert c.get(f"/v1/jobs/{j}/result", params={"format": "h5"}).status_code == 200
+    finally:
+        srv.stop()
+        pool.stop()
+
+
+def test_rq_jobs_wait_in_the_table_while_redis_is_down(tmp_path, small_run):
+    pool = Pool(tmp_path)
+    pool.start_redis()
+    token = add_user(tmp_path / "data", "judy")
+    srv = Server(tmp_path / "data", tmp_path / "server.log", backend="rq", redis_url=pool.redis.url, env=ENV).start()
+    try:
+        pool.redis.kill9()
+        with srv.client(token) as c:
+            assert c.get("/healthz").status_code == 503
+            job_id = submit_ok(c, small_run, FAST)  # accepted: the table is the record
+            pool.redis = Redis(tmp_path / "redis", tmp_path / "redis2.log", port=pool.redis.port)
+            pool.start_redis()
+            pool.start_workers(["w1"])
+            assert wait_finished(c, job_id)["status"] == "succeeded"
+            wait_for(c, job_id, lambda j: True)
+            assert c.get("/healthz").json()["status"] == "ok"
+    finally:
+        srv.stop()
+        pool.stop()
