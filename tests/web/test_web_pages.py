@@ -93,6 +93,7 @@ def test_sign_in_submit_watch_scrub_and_download(page, server, simulated_run, tm
     page.get_by_role("button", name="Previous frame").click()
     assert frame_status.inner_text().startswith("Frame 58 of 59")
 
+    assert page.evaluate(UNLABELLED) == []
     # The other views are there and labelled.
     assert page.get_by_test_id("heatmap").locator(".main-svg").count() >= 1
     assert page.get_by_role("heading", name="Flagged by the solver").is_visible()
@@ -147,17 +148,19 @@ def test_bad_upload_is_refused_on_the_form(page, server, simulated_run):
     assert page.url.endswith("/jobs/new")
 
 
+UNLABELLED = """() => [...document.querySelectorAll('input, select, button, textarea')]
+    .filter(e => e.type !== 'hidden' && !(e.labels && e.labels.length) && !e.getAttribute('aria-label')
+                 && !(e.textContent || '').trim())
+    .map(e => e.outerHTML.slice(0, 80))"""
+
+
 def test_controls_are_labelled(page, server):
     _, token = server
     _sign_in(page, token)
     for path in ("/", "/jobs/new"):
         page.goto(path)
         page.wait_for_load_state("networkidle")
-        unlabelled = page.evaluate("""() => [...document.querySelectorAll('input, select, button, textarea')]
-            .filter(e => e.type !== 'hidden' && !(e.labels && e.labels.length) && !e.getAttribute('aria-label')
-                         && !(e.textContent || '').trim())
-            .map(e => e.outerHTML.slice(0, 80))""")
-        assert unlabelled == [], f"{path}: {unlabelled}"
+        assert page.evaluate(UNLABELLED) == [], path
 
 
 def test_offline_playback_file(browser, simulated_run, tmp_path):
