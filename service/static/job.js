@@ -44,7 +44,8 @@
     fact("Owner", job.owner);
     fact("Method", `${o.method} with the ${o.skeleton} skeleton at ${o.fps} fps, likelihood threshold ${o.likelihood_threshold}`);
     fact("Input", `${i.cameras} cameras, ${i.frames} frames, ${(i.bodyparts || []).length} bodyparts`);
-    if (i.keypoints) fact("Keypoint files", el("ol", {}, i.keypoints.map((f) => el("li", { text: f.name }))));
+    if (i.keypoints) fact("Keypoint files", el("ul", { class: "plain" },
+      i.keypoints.map((f, k) => el("li", { text: `camera ${k + 1}: ${f.name}` + (f.frames != null ? ` (${f.frames} frames)` : "") }))));
     if (i.calibration) fact("Calibration", i.calibration.name);
     fact("Submitted", A.fmtDate(t.created_at));
     fact("Started", t.started_at ? A.fmtDate(t.started_at) : null);
