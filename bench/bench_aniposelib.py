@@ -5,8 +5,9 @@
 Each seed is one simulated run (6 cameras, 120 fps, 5 px noise, 10 % outliers of sigma 100 px;
 see bench/harness.py). On it, after one untimed warm-up of every method:
 
-* acinoset ``tri``, ``ekf``, ``fte`` (cheetah skeleton) and ``fte`` on free points with soft bone
-  lengths (``points+bones``: the same model class as aniposelib's optimiser);
+* acinoset ``tri``, ``ekf``, ``fte`` (cheetah skeleton; also without the marginal covariances,
+  ``uncertainty=False``, which aniposelib does not compute either) and ``fte`` on free points with
+  soft bone lengths (``points+bones``: the same model class as aniposelib's optimiser);
 * aniposelib ``triangulate`` (Anipose's default, ``optim = false``) and ``triangulate_optim`` with
   every cheetah bone as a limb-length constraint and Anipose's default scales, after Anipose's
   default score threshold (0.8). The ``CameraGroup`` is loaded from the Anipose TOML acinoset
@@ -42,9 +43,9 @@ def main() -> int:
     print(f"# acinoset vs aniposelib: {args.frames} frames, {args.seeds} runs x {args.repeats} timed solves; "
           f"{info['cpu']}, {info['cores']} cores, load {info['load_average'][0]:.1f}")
 
-    def ours(method, skeleton="cheetah", bones=False):
+    def ours(method, skeleton="cheetah", bones=False, uncertainty=True):
         def run_fn(run):
-            opts = SolveOptions(method=method, fps=run.fps, skeleton=skeleton,
+            opts = SolveOptions(method=method, fps=run.fps, skeleton=skeleton, uncertainty=uncertainty,
                                 bone_lengths=list(run.bones) if bones else None)
             return solve(run.keypoints, cal, opts).positions
         return run_fn
@@ -53,6 +54,7 @@ def main() -> int:
         "acinoset tri": ours("tri"),
         "acinoset ekf": ours("ekf"),
         "acinoset fte": ours("fte"),
+        "acinoset fte, no uncertainty": ours("fte", uncertainty=False),
         "acinoset fte points+bones": ours("fte", "points", bones=True),
         "aniposelib triangulate": lambda run: h.anipose_triangulate(cg, h.anipose_points(run)),
         "aniposelib triangulate_optim": lambda run: h.anipose_triangulate_optim(

@@ -64,13 +64,14 @@ def machine() -> dict:
                 mem = f"{int(line.split()[1]) / 2**20:.0f} GiB"
     except OSError:
         pass
+    from importlib import metadata
+
     versions = {}
-    for mod in ("numpy", "scipy", "gtsam", "numba", "aniposelib", "jax", "cv2"):
+    for dist in ("numpy", "scipy", "gtsam", "numba", "aniposelib", "jax", "opencv-python-headless"):
         try:
-            m = __import__(mod)
-            versions[mod] = getattr(m, "__version__", "?")
-        except Exception:  # noqa: BLE001 - a missing optional package is reported as absent
-            versions[mod] = "absent"
+            versions[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            versions[dist] = "absent"
     commit = ""
     try:
         commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
@@ -133,8 +134,8 @@ def simulate(calibration, frames: int, seed: int, noise: float = TARGET["noise"]
                         outlier_std=outlier_std, seed=seed, **kw)
 
 
-def solve_ours(run, calibration, method: str, skeleton: str = "cheetah"):
-    return solve(run.keypoints, calibration, SolveOptions(method=method, fps=run.fps, skeleton=skeleton))
+def solve_ours(run, calibration, method: str, skeleton: str = "cheetah", **options):
+    return solve(run.keypoints, calibration, SolveOptions(method=method, fps=run.fps, skeleton=skeleton, **options))
 
 
 def error_mm(positions: np.ndarray, run) -> dict:
