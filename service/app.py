@@ -25,6 +25,8 @@ from service.jobs import JobService
 from service.limits import UploadGuard
 from service.settings import Settings
 from service.store import Store
+from service.uploads import UploadReader
+from service.worker import configure_forkserver
 
 log = logging.getLogger("acinoset.service")
 
@@ -92,15 +94,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             store = Store(settings.db_path)
             _tidy(settings, store)
+            configure_forkserver(warm=settings.warm_start and settings.backend == "embedded")
             backend = make_backend(settings, store)
+            reader = UploadReader(settings.upload_readers)
             app.state.store = store
             app.state.backend = backend
-            app.state.jobs = JobService(settings, store, backend)
+            app.state.jobs = JobService(settings, store, backend, reader)
             backend.start()
             try:
                 yield
             finally:
                 backend.stop()
+                reader.close()
         finally:
             lock.release()
 

@@ -15,6 +15,7 @@ import dataclasses
 import json
 import re
 import shutil
+import threading
 import uuid
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
@@ -24,6 +25,7 @@ from fastapi import HTTPException
 from service.backends.base import Backend
 from service.settings import Settings
 from service.store import STATUSES, Job, QuotaExceeded, Store, User
+from service.uploads import Refusal, UploadReader
 from service.worker import MANIFEST
 
 JOB_ID = re.compile(r"^[0-9a-f]{32}$")
@@ -70,10 +72,15 @@ def _unprocessable(detail: str) -> HTTPException:
 
 
 class JobService:
-    def __init__(self, settings: Settings, store: Store, backend: Backend):
+    # Uploads stored and read at once (the reading runs in :class:`UploadReader`'s processes).
+    VALIDATING_AT_ONCE = 2
+
+    def __init__(self, settings: Settings, store: Store, backend: Backend, reader: UploadReader | None = None):
         self.settings = settings
         self.store = store
         self.backend = backend
+        self.reader = reader or UploadReader(0)
+        self._validating = threading.BoundedSemaphore(self.VALIDATING_AT_ONCE)
 
     # -- submit ------------------------------------------------------------------------------
 
@@ -126,11 +133,6 @@ class JobService:
     def submit(self, user: User, keypoints: list[Upload], calibration: Upload, options_text: str | None,
                skeleton: Upload | None = None) -> Job:
         """Validate the upload with the core's readers, store it, queue the job."""
-        from graph.calibration import load_calibration
-        from graph.errors import InputError
-        from graph.keypoints import check_same_frames, read_keypoints
-        from graph.skeleton import load_skeleton
-
         s = self.settings
         if not keypoints:
             raise _unprocessable("keypoints: upload one keypoint file per camera")
@@ -141,6 +143,23 @@ class JobService:
         skeleton_name = safe_name(skeleton.filename, "skeleton.toml") if skeleton is not None else None
         options = self.parse_options(options_text, skeleton_name)
 
+        with self._validating:
+            job_id, inputs = self._store_upload(keypoints, calibration, skeleton, options)
+        try:
+            job = self.store.insert_job(job_id, user.id, self.backend.name, options, inputs, s.max_attempts,
+                                        max_active=s.max_active_jobs_per_user)
+        except QuotaExceeded:
+            shutil.rmtree(s.jobs_dir / job_id, ignore_errors=True)
+            self._check_quota(user)
+            raise
+        self.backend.submit(job.id)
+        return job
+
+    def _store_upload(self, keypoints: list[Upload], calibration: Upload, skeleton: Upload | None,
+                      options: dict) -> tuple[str, dict]:
+        """Write the files into a new job directory and read them with the core's readers.
+        Returns the job id and the description of the inputs; refusals remove everything."""
+        s = self.settings
         job_id = uuid.uuid4().hex
         staging = s.jobs_dir / f".upload-{job_id}"
         input_dir = staging / "input"
@@ -151,52 +170,22 @@ class JobService:
                                   CALIBRATION_SUFFIXES, _calibration_suffix)
             sk_path = (self._save(skeleton, input_dir / "skeleton", "skeleton.toml", (".toml",), lambda h: ".toml")
                        if skeleton is not None else None)
-            try:
-                kps = []
-                for u, p in zip(keypoints, kp_paths):
-                    kp = read_keypoints(p, individual=options.get("individual"))
-                    if kp.frames > s.max_frames:
-                        raise HTTPException(413, f"{p.name}: {kp.frames} frames; this server takes at most "
-                                                 f"{s.max_frames} frames per file (ACINOSET_MAX_FRAMES)")
-                    kps.append(kp)
-                check_same_frames(kps)
-                cal = load_calibration(cal_path)
-                if len(cal) != len(kps):
-                    raise _unprocessable(f"{cal_path.name}: the calibration has {len(cal)} cameras but "
-                                         f"{len(kps)} keypoint files were uploaded (one per camera, in the "
-                                         "calibration's order)")
-                load_skeleton(sk_path if sk_path is not None else options["skeleton"], bodyparts=kps[0].bodyparts)
-            except InputError as e:
-                raise _unprocessable(str(e))
-            except (OSError, ValueError, KeyError, IndexError, TypeError, UnicodeDecodeError) as e:
-                # a reader tripped on something it did not foresee: still a bad file, still one line
-                raise _unprocessable(f"{getattr(e, 'filename', None) and Path(e.filename).name or 'upload'}: "
-                                     f"cannot be read ({type(e).__name__}: {e})")
-
             rel = lambda p: p.relative_to(input_dir).as_posix()  # noqa: E731
             manifest = {"keypoints": [rel(p) for p in kp_paths], "calibration": rel(cal_path),
                         "skeleton": rel(sk_path) if sk_path is not None else None, "options": options}
+            try:
+                inputs = self.reader.inspect(
+                    input_dir=str(input_dir), keypoints=manifest["keypoints"], calibration=manifest["calibration"],
+                    skeleton_file=manifest["skeleton"], skeleton=options["skeleton"],
+                    individual=options.get("individual"), max_frames=s.max_frames)
+            except Refusal as e:
+                raise HTTPException(e.status, e.detail) from None
             (input_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
-            inputs = {
-                "cameras": len(kps), "frames": max(k.frames for k in kps), "bodyparts": list(kps[0].bodyparts),
-                "keypoints": [{"name": p.name, "bytes": p.stat().st_size, "frames": k.frames,
-                               "bodyparts": len(k.bodyparts)} for p, k in zip(kp_paths, kps)],
-                "calibration": {"name": cal_path.name, "bytes": cal_path.stat().st_size},
-                "skeleton": ({"name": sk_path.name, "bytes": sk_path.stat().st_size} if sk_path else None),
-            }
             staging.replace(s.jobs_dir / job_id)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
-        try:
-            job = self.store.insert_job(job_id, user.id, self.backend.name, options, inputs, s.max_attempts,
-                                        max_active=s.max_active_jobs_per_user)
-        except QuotaExceeded:
-            shutil.rmtree(s.jobs_dir / job_id, ignore_errors=True)
-            self._check_quota(user)
-            raise
-        self.backend.submit(job.id)
-        return job
+        return job_id, inputs
 
     def _check_quota(self, user: User) -> None:
         n = self.store.count_active(user.id)

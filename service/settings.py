@@ -50,6 +50,7 @@ class Settings(BaseSettings):
     max_cameras: int = Field(64, ge=1)
     max_active_jobs_per_user: int = Field(200, ge=1)  # queued + running
     page_size_max: int = Field(500, ge=1)
+    upload_readers: int = Field(2, ge=0, le=64)  # processes that read uploads (0: in the API process)
 
     # running jobs
     max_attempts: int = Field(3, ge=1)  # runs of one job interrupted by crashes before it fails
@@ -57,7 +58,7 @@ class Settings(BaseSettings):
     lease_seconds: float = Field(30.0, gt=0)  # a running job whose owner stopped renewing it is lost
     heartbeat_seconds: float = Field(5.0, gt=0)  # lease renewal and RQ job monitoring interval
     progress_interval_seconds: float = Field(0.2, ge=0)  # at most one progress write per interval
-    solve_niceness: int = Field(5, ge=0, le=19)  # solves yield the CPU to the API
+    solve_niceness: int = Field(10, ge=0, le=19)  # solves yield the CPU to the API
     warm_start: bool = True  # compile the solver's kernels once in the process that forks solves
 
     # observability

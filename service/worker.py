@@ -68,6 +68,16 @@ SOLVER_MODULES = ("gtsam", "numba", "graph.api", "graph.calibration", "graph.key
                   "graph.plot")
 
 
+def configure_forkserver(warm: bool) -> None:
+    """Solve processes and upload readers fork from one forkserver with the library imported (and,
+    if ``warm``, its kernels compiled by :mod:`service.warmup`). Call before the first fork."""
+    import multiprocessing
+
+    prepare_solver_environment()  # the forkserver inherits it
+    preload = ["service.worker", *SOLVER_MODULES] + (["service.warmup"] if warm else [])
+    multiprocessing.get_context("forkserver").set_forkserver_preload(preload)
+
+
 def noop() -> None:
     """A process that does nothing: starting one starts (and warms) the forkserver."""
 
@@ -170,13 +180,26 @@ def one_line(e: BaseException) -> str:
 
 # -- embedded: one child process per job -------------------------------------------------------
 
-def _die_with_parent() -> None:
-    """No solve outlives its server.
+def die_with_parent() -> None:
+    """Ask Linux to SIGKILL this process when its parent dies (``PR_SET_PDEATHSIG``)."""
+    try:
+        import ctypes
+        import signal
 
-    The parent of a job process is the forkserver, which exits when no process holds its "alive"
-    pipe any more. Every process it forks gets a copy of that pipe: this one closes its copy, so
-    the forkserver exits as soon as the server dies, and asks Linux to SIGKILL it when that happens
-    (``PR_SET_PDEATHSIG``). Elsewhere, fencing by run token still keeps an orphan from writing.
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+        if os.getppid() == 1:  # the parent died before the request took effect
+            os._exit(1)
+    except (OSError, AttributeError):  # not Linux: fencing by run token still stops orphans writing
+        pass
+
+
+def die_with_server() -> None:
+    """No process forked for the server (solves, upload readers) outlives it.
+
+    Their parent is the forkserver, which exits when no process holds its "alive" pipe any more.
+    Every process it forks gets a copy of that pipe: this one closes its copy, so the forkserver
+    exits as soon as the server dies, and this process dies with the forkserver.
     """
     try:
         from multiprocessing import forkserver
@@ -187,16 +210,7 @@ def _die_with_parent() -> None:
             forkserver._forkserver._forkserver_alive_fd = None
     except (ImportError, AttributeError, OSError):
         pass
-    try:
-        import ctypes
-        import signal
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-        if os.getppid() == 1:  # the forkserver died before the request took effect
-            os._exit(1)
-    except (OSError, AttributeError):
-        pass
+    die_with_parent()
 
 
 def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_interval: float,
@@ -204,7 +218,7 @@ def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_
     """Body of the child process that runs one job for the embedded backend."""
     from service.store import Store
 
-    _die_with_parent()
+    die_with_server()
     if niceness:
         try:
             os.nice(niceness)
@@ -274,6 +288,7 @@ def run_rq_job(job_id: str, payload: dict, progress_interval: float = 0.5, nicen
     from rq import get_current_job
 
     rq_job = get_current_job()
+    die_with_parent()  # a worker that dies takes its work horse along: the job is retried, not orphaned
     if niceness:
         try:
             os.nice(niceness)

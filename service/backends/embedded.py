@@ -76,11 +76,6 @@ class EmbeddedBackend(Backend):
         counts = self.store.adopt(self.name, "the service stopped while it ran")
         if any(counts.values()):
             log.warning("recovered jobs from the last run: %s", counts)
-        from service.worker import SOLVER_MODULES, prepare_solver_environment
-
-        prepare_solver_environment()  # the forkserver inherits it
-        preload = ["service.worker", *SOLVER_MODULES] + (["service.warmup"] if self.settings.warm_start else [])
-        self._ctx.set_forkserver_preload(preload)
         threading.Thread(target=self._start_forkserver, name="acinoset-forkserver-start", daemon=True).start()
         self._thread = threading.Thread(target=self._loop, name="acinoset-scheduler", daemon=True)
         self._thread.start()

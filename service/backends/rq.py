@@ -91,13 +91,9 @@ class RQBackend(Backend):
     # -- the API's calls ---------------------------------------------------------------------
 
     def submit(self, job_id: str) -> None:
-        job = self.store.job(job_id)
-        if job is None:
-            return
-        try:
-            self._enqueue(job)
-        except Exception as e:  # Redis down: the row stays queued, the collector enqueues it later
-            log.warning("job %s: could not enqueue yet (%s)", job_id, e)
+        """The collector enqueues it (rows without a run token) at once; the upload's answer does
+        not wait for Redis, and a Redis that is down only delays the job."""
+        self._wake.set()
 
     def cancel(self, job_id: str, run_token: str | None) -> None:
         if not run_token:

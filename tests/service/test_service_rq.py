@@ -45,8 +45,25 @@ class Pool:
             time.sleep(0.05)
         raise AssertionError(f"worker {name} has no work horse")
 
+    def kill_worker(self, name):
+        """kill -9 a worker and its work horse (RQ puts the horse in a process group of its own), as
+        when the machine dies."""
+        proc = self.workers[name]
+        horses = children(proc.pid)
+        proc.kill9()
+        for pid in horses:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
     def stop(self):
-        for w in self.workers.values():
+        for name, w in self.workers.items():
+            for pid in children(w.pid) if w.alive() else []:
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
             w.stop(10)
         self.redis.stop(10)
 
@@ -125,7 +142,7 @@ def test_rq_a_dead_worker_machine_loses_no_job(pool, client, long_run):
     job_id = submit_ok(client, long_run, LONG)
     job = wait_solving(client, job_id)
     name = job["worker"]
-    pool.workers[name].kill9()  # the worker and its work horse, as if the machine died
+    pool.kill_worker(name)
     done = wait_finished(client, job_id, timeout=240)
     assert done["status"] == "succeeded" and done["attempts"] == 2, done
     assert done["worker"] != name
@@ -146,8 +163,8 @@ def test_rq_kill_9_of_everything_loses_nothing(tmp_path, long_run, small_run):
             for j in long_ids:
                 wait_solving(c, j)
         # everything at once: the server, both workers with their horses, and Redis
-        for w in pool.workers.values():
-            w.kill9()
+        for name in list(pool.workers):
+            pool.kill_worker(name)
         srv.kill9()
         pool.redis.kill9()
 

@@ -1,0 +1,110 @@
+"""Reading an upload with the core's readers, in helper processes.
+
+:func:`inspect_upload` reads a job's stored input files the way the solve will (keypoints,
+calibration, skeleton) and describes them, or says in one line what is wrong. It is CPU work that
+holds the GIL for tens of milliseconds per file, so :class:`UploadReader` runs it in a small pool
+of processes forked from the service's forkserver (which has the library imported): a burst of
+uploads does not stall the status polls the API answers meanwhile, and a file that makes a reader
+crash or blow up takes down a helper, not the server.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import threading
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+
+
+class Refusal(Exception):
+    """The upload cannot be queued: an HTTP status (413, 422) and a one-line detail."""
+
+    def __init__(self, status: int, detail: str):
+        super().__init__(status, detail)
+        self.status = status
+        self.detail = " ".join(detail.split())
+
+
+def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skeleton_file: str | None,
+                   skeleton: str, individual: str | None, max_frames: int) -> dict:
+    """Read the stored files (paths relative to ``input_dir``) and describe them for the job table.
+    Raises :class:`Refusal`."""
+    from graph.calibration import load_calibration
+    from graph.errors import InputError
+    from graph.keypoints import check_same_frames, read_keypoints
+    from graph.skeleton import load_skeleton
+
+    base = Path(input_dir)
+    kp_paths = [base / rel for rel in keypoints]
+    cal_path = base / calibration
+    sk_path = base / skeleton_file if skeleton_file else None
+    try:
+        kps = []
+        for p in kp_paths:
+            kp = read_keypoints(p, individual=individual)
+            if kp.frames > max_frames:
+                raise Refusal(413, f"{p.name}: {kp.frames} frames; this server takes at most {max_frames} frames "
+                                   "per file (ACINOSET_MAX_FRAMES)")
+            kps.append(kp)
+        check_same_frames(kps)
+        cal = load_calibration(cal_path)
+        if len(cal) != len(kps):
+            raise Refusal(422, f"{cal_path.name}: the calibration has {len(cal)} cameras but {len(kps)} keypoint "
+                               "files were uploaded (one per camera, in the calibration's order)")
+        load_skeleton(sk_path if sk_path is not None else skeleton, bodyparts=kps[0].bodyparts)
+    except InputError as e:
+        raise Refusal(422, str(e)) from None
+    except (OSError, ValueError, KeyError, IndexError, TypeError, UnicodeDecodeError, MemoryError) as e:
+        # a reader tripped on something it did not foresee: still a bad file, still one line
+        where = Path(e.filename).name if getattr(e, "filename", None) else "upload"
+        raise Refusal(422, f"{where}: cannot be read ({type(e).__name__}: {e})") from None
+    return {
+        "cameras": len(kps), "frames": max(k.frames for k in kps), "bodyparts": list(kps[0].bodyparts),
+        "keypoints": [{"name": p.name, "bytes": p.stat().st_size, "frames": k.frames, "bodyparts": len(k.bodyparts)}
+                      for p, k in zip(kp_paths, kps)],
+        "calibration": {"name": cal_path.name, "bytes": cal_path.stat().st_size},
+        "skeleton": {"name": sk_path.name, "bytes": sk_path.stat().st_size} if sk_path is not None else None,
+    }
+
+
+def _helper_init() -> None:
+    from service.worker import die_with_server
+
+    die_with_server()
+
+
+class UploadReader:
+    """:func:`inspect_upload` in ``processes`` helper processes (0: in the calling thread)."""
+
+    def __init__(self, processes: int = 2):
+        self.processes = processes
+        self._pool: ProcessPoolExecutor | None = None
+        self._lock = threading.Lock()
+
+    def _executor(self) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(self.processes, mp_context=multiprocessing.get_context("forkserver"),
+                                                 initializer=_helper_init, max_tasks_per_child=500)
+            return self._pool
+
+    def inspect(self, **kwargs) -> dict:
+        if self.processes <= 0:
+            return inspect_upload(**kwargs)
+        pool = self._executor()
+        try:
+            return pool.submit(inspect_upload, **kwargs).result()
+        except BrokenProcessPool:
+            with self._lock:
+                if self._pool is pool:
+                    self._pool = None
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise Refusal(422, f"{Path(kwargs['keypoints'][0]).name} ...: reading the upload crashed a reader "
+                               "process (a malformed or oversized file?)") from None
+
+    def close(self) -> None:
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)

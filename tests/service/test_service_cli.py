@@ -1,0 +1,87 @@
+"""``acinoset serve`` and ``acinoset users`` as an admin uses them (through ``graph.cli``, the
+``acinoset`` entry point)."""
+
+from __future__ import annotations
+
+import subprocess
+import time
+
+import httpx
+
+from service_helpers import PY, ROOT, Proc, free_port, submit_ok, wait_dead, wait_for, wait_solving
+
+
+def acinoset(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([PY, "-m", "graph.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+
+
+def test_serve_and_users_as_an_admin_would(tmp_path, small_run, long_run):
+    data = str(tmp_path / "data")
+    added = acinoset("users", "add", "kim", "--admin", "--data-dir", data)
+    assert added.returncode == 0, added.stderr
+    kim = added.stdout.strip().splitlines()[-1]
+    assert kim.startswith("acn_") and " " not in kim
+    lee = acinoset("users", "add", "lee", "--data-dir", data).stdout.strip().splitlines()[-1]
+    again = acinoset("users", "add", "lee", "--data-dir", data)
+    assert again.returncode == 2 and "already exists" in again.stderr and again.stderr.count("\n") == 1
+
+    port = free_port()
+    server = Proc([PY, "-m", "graph.cli", "serve", "--port", str(port), "--data-dir", data, "--workers", "1"],
+                  tmp_path / "serve.log").start()
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline:
+            try:
+                if httpx.get(url + "/healthz").status_code == 200:
+                    break
+            except httpx.HTTPError:
+                time.sleep(0.1)
+        banner = server.log()
+        assert f"serving on {url}" in banner and "Authorization: Bearer TOKEN" in banner
+        assert "acinoset users add NAME" in banner
+
+        # one data dir, one server
+        second = acinoset("serve", "--port", str(free_port()), "--data-dir", data)
+        assert second.returncode == 2 and "another acinoset server is using" in second.stderr
+
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {lee}"}, timeout=60) as c:
+            running = submit_ok(c, long_run, {"method": "fte", "skeleton": "cheetah"})
+            queued = submit_ok(c, small_run, {"method": "tri", "skeleton": "points"})
+            pid = int(wait_solving(c, running)["worker"].rsplit(":", 1)[1])
+
+            listed = acinoset("users", "list", "--data-dir", data).stdout
+            assert "kim" in listed and "admin" in listed and "lee" in listed
+
+            # a new token revokes the old one
+            new_lee = acinoset("users", "token", "lee", "--data-dir", data).stdout.strip().splitlines()[-1]
+            assert c.get("/v1/jobs").status_code == 401
+            c.headers["Authorization"] = f"Bearer {new_lee}"
+            assert c.get("/v1/jobs").json()["total"] == 2
+
+            # removing a user revokes its token and stops its jobs, even from the command line
+            removed = acinoset("users", "remove", "lee", "--data-dir", data)
+            assert removed.returncode == 0 and "2 active job(s) cancelled" in removed.stdout
+            assert c.get("/v1/jobs").status_code == 401
+            assert wait_dead(pid, 10), "the removed user's solve still runs"
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {kim}"}, timeout=60) as admin:
+            for j in (running, queued):
+                job = wait_for(admin, j, lambda x: x["status"] == "cancelled", 10)
+                assert job["owner"] == "lee"
+    finally:
+        server.stop()
+
+
+def test_the_compose_file_runs_an_api_two_workers_and_a_durable_redis():
+    import yaml
+
+    doc = yaml.safe_load((ROOT / "docker" / "compose.yaml").read_text())
+    services = doc["services"]
+    assert "--appendonly" in services["redis"]["command"]
+    assert services["redis"]["command"][services["redis"]["command"].index("--appendonly") + 1] == "yes"
+    api = services["api"]["command"]
+    assert api[:2] == ["acinoset", "serve"] and "rq" in api and "redis://redis:6379/0" in api
+    workers = [s for s in services.values() if s.get("command", [])[:2] == ["acinoset", "worker"]]
+    assert len(workers) == 2
+    dockerfile = (ROOT / "docker" / "Dockerfile").read_text()
+    assert "pip install ." in dockerfile and 'CMD ["acinoset", "serve"' in dockerfile
