@@ -5,6 +5,7 @@ Separate from the job table (:mod:`service.store`): a :class:`JobOut` is built f
 
 from __future__ import annotations
 
+import time
 from datetime import datetime, timezone
 from typing import Any, Literal
 
@@ -152,8 +153,6 @@ def summary_of(report: dict | None) -> ResultSummary | None:
 
 
 def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
-    import time
-
     href = f"{base}/{job.id}"
     now = time.time()
     queued = (job.started_at - job.created_at) if job.started_at else (

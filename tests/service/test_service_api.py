@@ -282,3 +282,50 @@ def test_too_many_active_jobs_answer_429(tmp_path, small_run, long_run):
             assert submit(c, small_run, FAST).status_code == 202
     finally:
         srv.stop()
+
+
+# -- DeepLabCut H5 ---------------------------------------------------------------------------------
+
+def _dlc_h5(path: Path, kp) -> None:
+    """An H5 file the way DeepLabCut's analyze_videos writes it (pandas, PyTables 'table' format)."""
+    import pandas as pd
+
+    cols = pd.MultiIndex.from_tuples([("DLC_resnet50", b, c) for b in kp.bodyparts for c in ("x", "y", "likelihood")],
+                                     names=["scorer", "bodyparts", "coords"])
+    values = np.concatenate([kp.xy, kp.likelihood[..., None]], axis=-1).reshape(kp.frames, -1)
+    pd.DataFrame(values, columns=cols).to_hdf(path, key="df_with_missing", format="table", mode="w")
+
+
+def test_dlc_h5_uploads_solve_like_the_csvs(alice, small_run, tmp_path):
+    pytest.importorskip("tables")
+    from graph.keypoints import read_keypoints
+
+    h5s = []
+    for p in small_run.cams:
+        h5 = tmp_path / f"{p.stem}DLC_resnet50.h5"
+        _dlc_h5(h5, read_keypoints(p))
+        h5s.append(h5)
+    by_h5 = submit(alice, small_run, FAST, cams=h5s)
+    by_csv = submit(alice, small_run, FAST)
+    assert by_h5.status_code == 202, by_h5.text
+    assert [k["name"] for k in by_h5.json()["inputs"]["keypoints"]] == [p.name for p in h5s]
+    a, b = (wait_finished(alice, r.json()["id"]) for r in (by_h5, by_csv))
+    assert a["status"] == b["status"] == "succeeded"
+    assert alice.get(f"/v1/jobs/{a['id']}/result").content == alice.get(f"/v1/jobs/{b['id']}/result").content
+
+
+def test_an_h5_upload_carrying_a_pickle_is_refused_without_running_it(alice, small_run, tmp_path):
+    pytest.importorskip("tables")
+    import h5py
+
+    from graph.keypoints import read_keypoints
+
+    marker = tmp_path / "pwned"
+    evil = tmp_path / "evil.h5"
+    _dlc_h5(evil, read_keypoints(small_run.cams[0]))
+    payload = np.bytes_(f"cos\nsystem\n(Vtouch {marker}\ntR.".encode())
+    with h5py.File(evil, "r+") as f:
+        f["df_with_missing/table"].attrs["values_block_0_kind"] = payload
+    r = submit(alice, small_run, FAST, cams=[evil, *small_run.cams[1:]])
+    assert r.status_code == 422 and r.json()["detail"].startswith("evil.h5: ") and "would run code" in r.json()["detail"]
+    assert not marker.exists()
