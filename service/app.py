@@ -96,7 +96,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             _tidy(settings, store)
             configure_forkserver(warm=settings.warm_start and settings.backend == "embedded")
             backend = make_backend(settings, store)
-            reader = UploadReader(settings.upload_readers)
+            reader = UploadReader(settings.upload_readers, settings.upload_niceness)
             app.state.store = store
             app.state.backend = backend
             app.state.jobs = JobService(settings, store, backend, reader)

@@ -2,12 +2,13 @@
 
 FastAPI reads a whole multipart body before any dependency runs. This guard answers first, from the
 headers alone, when the caller has no valid token (401), already has the most active jobs allowed
-(429) or announces a body over ``max_upload_bytes`` (413); and it counts the bytes of a body sent
-without a length, stopping at the limit (413).
+(429) or announces a body over ``max_upload_bytes`` (413); it counts the bytes of a body sent
+without a length, stopping at the limit (413); and it lets only a few submissions in at a time.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 
 from fastapi import HTTPException
@@ -17,10 +18,16 @@ from service.settings import Settings
 
 
 class UploadGuard:
+    # Submissions received at once; later ones wait (unread) for a turn. Receiving and storing an
+    # upload is CPU work in this process: a burst of them queues here, and the status polls and
+    # downloads sharing the process keep answering quickly.
+    RECEIVING_AT_ONCE = 2
+
     def __init__(self, app: ASGIApp, settings: Settings, path: str = "/v1/jobs"):
         self.app = app
         self.settings = settings
         self.path = path
+        self._turns: asyncio.Semaphore | None = None
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["method"] != "POST" or scope["path"].rstrip("/") != self.path:
@@ -44,7 +51,10 @@ class UploadGuard:
                     raise HTTPException(413, _too_large(limit))
             return message
 
-        await self.app(scope, counted, send)
+        if self._turns is None:
+            self._turns = asyncio.Semaphore(self.RECEIVING_AT_ONCE)
+        async with self._turns:
+            await self.app(scope, counted, send)
 
     def _refuse(self, scope: Scope, headers: dict[str, str]) -> tuple[int, str, dict] | None:
         app = scope.get("app")

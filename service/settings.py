@@ -51,6 +51,7 @@ class Settings(BaseSettings):
     max_active_jobs_per_user: int = Field(200, ge=1)  # queued + running
     page_size_max: int = Field(500, ge=1)
     upload_readers: int = Field(2, ge=0, le=64)  # processes that read uploads (0: in the API process)
+    upload_niceness: int = Field(5, ge=0, le=19)  # they yield the CPU to the API
 
     # running jobs
     max_attempts: int = Field(3, ge=1)  # runs of one job interrupted by crashes before it fails

@@ -68,17 +68,27 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
     }
 
 
-def _helper_init() -> None:
+def _helper_init(niceness: int) -> None:
+    import os
+
     from service.worker import die_with_server
 
     die_with_server()
+    if niceness:
+        try:
+            os.nice(niceness)
+        except OSError:
+            pass
 
 
 class UploadReader:
-    """:func:`inspect_upload` in ``processes`` helper processes (0: in the calling thread)."""
+    """:func:`inspect_upload` in ``processes`` helper processes (0: in the calling thread), run at
+    a lower priority than the API (``niceness``) so that a burst of uploads waits for the CPU
+    rather than the status polls."""
 
-    def __init__(self, processes: int = 2):
+    def __init__(self, processes: int = 2, niceness: int = 0):
         self.processes = processes
+        self.niceness = niceness
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
 
@@ -86,7 +96,8 @@ class UploadReader:
         with self._lock:
             if self._pool is None:
                 self._pool = ProcessPoolExecutor(self.processes, mp_context=multiprocessing.get_context("forkserver"),
-                                                 initializer=_helper_init, max_tasks_per_child=500)
+                                                 initializer=_helper_init, initargs=(self.niceness,),
+                                                 max_tasks_per_child=500)
             return self._pool
 
     def inspect(self, **kwargs) -> dict:

@@ -264,7 +264,7 @@ def _log_traceback(job_dir: Path) -> None:
 
 def pack_files(base: Path, rels: list[str]) -> dict[str, str]:
     """Files under ``base`` as {relative path: base64 of zlib}; JSON-safe for RQ's JSON serializer."""
-    return {rel: base64.b64encode(zlib.compress(_inside(base, rel).read_bytes(), 6)).decode("ascii")
+    return {rel: base64.b64encode(zlib.compress(_inside(base, rel).read_bytes(), 1)).decode("ascii")
             for rel in rels}
 
 

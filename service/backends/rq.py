@@ -23,6 +23,7 @@ from __future__ import annotations
 import shutil
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from service.backends.base import Backend, log
@@ -38,6 +39,50 @@ def _rq():
     from rq.serializers import JSONSerializer
 
     return Redis, Queue, JSONSerializer
+
+
+_STATE_FIELDS = ("status", "last_heartbeat", "started_at", "worker_name", "meta", "retries_left")
+
+
+@dataclass
+class _RQState:
+    """The few fields of an RQ job the collector reads on every pass (not its data: the input files)."""
+
+    id: str
+    status: str
+    last_heartbeat: float | None
+    started_at: float | None
+    worker_name: str | None
+    meta: dict
+    retries_left: int | None
+
+
+def _states(redis, serializer, tokens: list[str]) -> dict[str, _RQState | None]:
+    from rq.job import Job as RQJob
+    from rq.utils import str_to_date
+
+    def text(v):
+        return v.decode() if isinstance(v, bytes) else v
+
+    def when(v):
+        return str_to_date(v).timestamp() if v else None
+
+    with redis.pipeline() as pipe:
+        for t in tokens:
+            pipe.hmget(RQJob.key_for(t), *_STATE_FIELDS)
+        rows = pipe.execute()
+    out: dict[str, _RQState | None] = {}
+    for t, (status, hb, started, worker, meta, retries) in zip(tokens, rows):
+        if status is None:
+            out[t] = None
+            continue
+        try:
+            meta_d = serializer.loads(meta) if meta else {}
+        except ValueError:
+            meta_d = {}
+        out[t] = _RQState(t, text(status), when(hb), when(started), text(worker) or None, meta_d,
+                          int(retries) if retries not in (None, b"") else None)
+    return out
 
 
 def _attempts(rj, status, fallback: int) -> int:
@@ -181,12 +226,22 @@ class RQBackend(Backend):
                 self._redis_error = str(e)
                 time.sleep(1.0)
 
+    def _full(self, token: str):
+        from rq.job import Job as RQJob
+
+        return RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0]
+
+    def _delete(self, token: str) -> None:
+        rj = self._full(token)
+        if rj is not None:
+            rj.delete()
+
     def _collect(self) -> None:
-        from rq.job import Job as RQJob, JobStatus
+        from rq.job import JobStatus
 
         rows = self.store.active_jobs(self.name)
         tokens = [r.run_token for r in rows if r.run_token]
-        fetched = dict(zip(tokens, RQJob.fetch_many(tokens, connection=self.redis, serializer=self.serializer)))
+        fetched = _states(self.redis, self.serializer, tokens)
         now = time.time()
         for row in rows:
             rj = fetched.get(row.run_token) if row.run_token else None
@@ -201,19 +256,23 @@ class RQBackend(Backend):
                         self._enqueue(fresh)
                 continue
             token = rj.id
-            status = rj.get_status(refresh=False)
+            status = rj.status
             attempt = _attempts(rj, status, row.attempts)
             if status == JobStatus.STARTED:
                 hb = rj.last_heartbeat or rj.started_at
-                if hb is not None and now - hb.timestamp() > self.settings.lease_seconds:
+                if hb is not None and now - hb > self.settings.lease_seconds:
                     self._lost(row, rj, attempt)
                 else:
-                    self.store.mirror_running(row.id, token, attempt, rj.worker_name,
-                                              rj.started_at.timestamp() if rj.started_at else None,
+                    self.store.mirror_running(row.id, token, attempt, rj.worker_name, rj.started_at,
                                               self.settings.lease_seconds, rj.meta.get("progress"))
             elif status == JobStatus.FINISHED:
-                self._finished(row, rj, attempt)
+                full = self._full(token)
+                if full is not None:
+                    self._finished(row, full, attempt)
             elif status == JobStatus.FAILED:
+                rj = self._full(token)
+                if rj is None:
+                    continue
                 res = rj.latest_result()
                 exc = (res.exc_string if res is not None else None) or "unknown error"
                 last = [ln for ln in exc.strip().splitlines() if ln.strip()][-1:] or ["unknown error"]
@@ -226,7 +285,7 @@ class RQBackend(Backend):
                 rj.delete()
             elif status in (JobStatus.STOPPED, JobStatus.CANCELED):
                 self.store.cancel(row.id)
-                rj.delete()
+                self._delete(token)
             elif status in (JobStatus.QUEUED, JobStatus.SCHEDULED, JobStatus.DEFERRED):
                 if row.status == "running":  # RQ retries it: its work horse died
                     self.store.mirror_requeued(row.id, token, attempt,
@@ -237,7 +296,7 @@ class RQBackend(Backend):
         """A started job whose worker stopped heartbeating: that worker is gone."""
         self.store.mirror_running(row.id, rj.id, attempt, rj.worker_name, None, self.settings.lease_seconds, None)
         try:
-            rj.delete()
+            self._delete(rj.id)
         except Exception:
             pass
         status = self.store.interrupt(row.id, rj.id, f"worker {rj.worker_name or '?'} stopped responding")
