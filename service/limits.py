@@ -18,10 +18,12 @@ from service.settings import Settings
 
 
 class UploadGuard:
-    # Submissions received at once; later ones wait (unread) for a turn. Receiving and storing an
-    # upload is CPU work in this process: a burst of them queues here, and the status polls and
-    # downloads sharing the process keep answering quickly.
+    # Submissions received at once; later ones wait (unread) for a turn, at most TURN_WAIT seconds.
+    # Receiving and storing an upload is CPU work in this process: a burst of them queues here, and
+    # the status polls and downloads sharing the process keep answering quickly. The bounded wait
+    # keeps a few slow uploaders from holding up everyone else's submissions.
     RECEIVING_AT_ONCE = 2
+    TURN_WAIT = 2.0
 
     def __init__(self, app: ASGIApp, settings: Settings, path: str = "/v1/jobs"):
         self.app = app
@@ -53,8 +55,16 @@ class UploadGuard:
 
         if self._turns is None:
             self._turns = asyncio.Semaphore(self.RECEIVING_AT_ONCE)
-        async with self._turns:
+        try:
+            await asyncio.wait_for(self._turns.acquire(), self.TURN_WAIT)
+            turn = True
+        except asyncio.TimeoutError:
+            turn = False
+        try:
             await self.app(scope, counted, send)
+        finally:
+            if turn:
+                self._turns.release()
 
     def _refuse(self, scope: Scope, headers: dict[str, str]) -> tuple[int, str, dict] | None:
         app = scope.get("app")

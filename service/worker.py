@@ -5,9 +5,10 @@ The same :func:`solve_job` runs under both backends:
 * embedded: :func:`run_embedded` is the body of a child process of the server; it reports progress
   into the job table itself and moves its result files in place inside the transaction that marks
   the job succeeded (:meth:`service.store.Store.finish`).
-* rq: :func:`run_rq_job` runs in an RQ work horse on any machine. It gets the input files in the
-  job's arguments, reports progress in the RQ job's ``meta`` and returns the result files; the
-  server stores them in the data dir and the job table (RQ expires results: it is not the record).
+* rq: :func:`run_rq_job` runs in an RQ work horse on any machine. It reads the input files from
+  Redis (one zip archive per job), reports progress in the RQ job's ``meta`` and puts the result
+  files back in Redis; the server stores them in the data dir and the job table, then deletes them
+  from Redis (RQ expires results: it is not the record).
 
 Job input layout (``<data dir>/jobs/<id>/input``), named by :data:`MANIFEST`::
 
@@ -25,7 +26,6 @@ tried again.
 
 from __future__ import annotations
 
-import base64
 import json
 import os
 import shutil
@@ -34,7 +34,6 @@ import sys
 import tempfile
 import time
 import traceback
-import zlib
 from pathlib import Path, PurePosixPath
 from typing import Callable
 
@@ -262,29 +261,58 @@ def _log_traceback(job_dir: Path) -> None:
 
 # -- rq: a work horse anywhere -----------------------------------------------------------------
 
-def pack_files(base: Path, rels: list[str]) -> dict[str, str]:
-    """Files under ``base`` as {relative path: base64 of zlib}; JSON-safe for RQ's JSON serializer."""
-    return {rel: base64.b64encode(zlib.compress(_inside(base, rel).read_bytes(), 1)).decode("ascii")
-            for rel in rels}
+def input_key(token: str) -> str:
+    """Redis key of the input files of the RQ job ``token``."""
+    return f"acinoset:input:{token}"
 
 
-def unpack_files(files: dict[str, str], base: Path) -> None:
-    for rel, data in files.items():
-        p = _inside(base, rel)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_bytes(zlib.decompress(base64.b64decode(data)))
+def result_key(token: str) -> str:
+    """Redis key of the result files of the RQ job ``token``."""
+    return f"acinoset:result:{token}"
 
 
-def input_payload(input_dir: Path) -> dict:
-    """What an RQ worker needs to run a job: the manifest and the input files."""
+def pack_files(base: Path, rels: list[str]) -> bytes:
+    """Files under ``base`` as one zip archive (deflate, fast level), names relative to ``base``."""
+    import io
+    import zipfile
+
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as z:
+        for rel in rels:  # one compress call per file (the GIL is released while it runs)
+            z.writestr(rel, _inside(base, rel).read_bytes())
+    return buf.getvalue()
+
+
+def unpack_files(archive: bytes, base: Path, allowed: tuple[str, ...] | None = None) -> list[str]:
+    """Extract :func:`pack_files`' archive under ``base`` (names that would leave it are refused;
+    with ``allowed``, other names are skipped). Returns the names extracted."""
+    import io
+    import zipfile
+
+    names = []
+    with zipfile.ZipFile(io.BytesIO(archive)) as z:
+        for info in z.infolist():
+            if info.is_dir() or (allowed is not None and info.filename not in allowed):
+                continue
+            p = _inside(base, info.filename)
+            p.parent.mkdir(parents=True, exist_ok=True)
+            with z.open(info) as src, open(p, "wb") as dst:
+                shutil.copyfileobj(src, dst, 1 << 20)
+            names.append(info.filename)
+    return names
+
+
+def input_archive(input_dir: Path) -> bytes:
+    """What an RQ worker needs to run a job: the manifest and the input files, zipped."""
     m = read_manifest(input_dir)
     rels = [MANIFEST, *m["keypoints"], m["calibration"], *([m["skeleton"]] if m.get("skeleton") else [])]
-    return {"files": pack_files(input_dir, rels)}
+    return pack_files(input_dir, rels)
 
 
-def run_rq_job(job_id: str, payload: dict, progress_interval: float = 0.5, niceness: int = 0) -> dict:
-    """The RQ job function. Returns ``{"status": "succeeded", "report", "files", "seconds", "worker"}``
-    or ``{"status": "failed", "error"}``; raises only if the process itself is in trouble."""
+def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -> dict:
+    """The RQ job function. Reads the input archive from Redis (:func:`input_key`), stores the result
+    archive there (:func:`result_key`) and returns ``{"status": "succeeded", "report", "seconds",
+    "worker"}`` or ``{"status": "failed", "error"}``; raises only if the process itself is in trouble."""
     from rq import get_current_job
 
     rq_job = get_current_job()
@@ -306,13 +334,17 @@ def run_rq_job(job_id: str, payload: dict, progress_interval: float = 0.5, nicen
         return True
 
     t0 = time.time()
+    token = rq_job.id if rq_job is not None else job_id
+    archive = rq_job.connection.get(input_key(token)) if rq_job is not None else None
+    if archive is None:
+        return {"status": "failed", "error": "the job's input files are no longer in Redis", "worker": worker}
     with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-") as tmp:
         input_dir, out_dir = Path(tmp) / "input", Path(tmp) / "result"
-        unpack_files(payload["files"], input_dir)
+        unpack_files(archive, input_dir)
         try:
             report = solve_job(input_dir, out_dir, ThrottledProgress(sink, progress_interval))
         except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
             traceback.print_exc()
             return {"status": "failed", "error": one_line(e), "worker": worker}
-        return {"status": "succeeded", "report": report, "files": pack_files(out_dir, list(RESULT_FILES)),
-                "seconds": time.time() - t0, "worker": worker}
+        rq_job.connection.set(result_key(token), pack_files(out_dir, list(RESULT_FILES)))
+        return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker}

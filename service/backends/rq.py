@@ -1,9 +1,10 @@
 """The RQ backend: solves run on ``acinoset worker`` processes, on any machine that reaches Redis.
 
 Redis carries the work, the job table stays the record of truth. Each attempt chain of a job is
-one RQ job whose id is the job's *run token* in the table; its arguments hold the input files (so
-workers need no shared disk), and its return value holds the result files, which the server's
-collector thread copies into the data dir and the table, then deletes from Redis. RQ is used with
+one RQ job whose id is the job's *run token* in the table. Its input files travel as one zip
+archive in the Redis key ``acinoset:input:<token>`` (workers need no shared disk), its result files
+come back in ``acinoset:result:<token>``; the server's collector thread copies them into the data
+dir and the table, then deletes them and the RQ job from Redis. RQ is used with
 ``Retry`` (a work horse that dies is queued again by its worker), ``result_ttl=-1`` (a result
 waits in Redis until the server has stored it, even across a server restart), a job timeout above
 the longest solve, and the JSON serializer (nothing from a job is ever unpickled).
@@ -155,7 +156,7 @@ class RQBackend(Backend):
                 send_stop_job_command(self.redis, run_token, serializer=self.serializer)
                 self._stopping[run_token] = time.time()
             else:
-                rj.delete()
+                self._delete(run_token)
         except Exception as e:
             log.warning("job %s: could not stop RQ job %s (%s)", job_id, run_token, e)
             self._stopping[run_token] = time.time()
@@ -185,22 +186,22 @@ class RQBackend(Backend):
         from rq import Retry
         from rq.job import Job as RQJob
 
-        from service.worker import input_payload
+        from service.worker import input_archive, input_key
 
         with self._lock:
             remaining = max(1, job.max_attempts - job.attempts)
             token = f"{job.id}-{job.attempts + 1}"
             if RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0] is None:
-                payload = input_payload(self.settings.jobs_dir / job.id / "input")
+                self.redis.set(input_key(token), input_archive(self.settings.jobs_dir / job.id / "input"))
                 self.queue.enqueue_call(
                     RQ_FUNCTION,
-                    args=(job.id, payload, self.settings.progress_interval_seconds, self.settings.solve_niceness),
+                    args=(job.id, self.settings.progress_interval_seconds, self.settings.solve_niceness),
                     job_id=token, timeout=int(self.settings.job_timeout_seconds), result_ttl=-1,
                     failure_ttl=7 * 24 * 3600, retry=Retry(max=remaining - 1) if remaining > 1 else None,
                     meta={"attempts_before": job.attempts, "retries": remaining - 1, "job": job.id},
                     description=f"acinoset job {job.id} ({job.owner})")
             if not self.store.assign_run(job.id, token):  # cancelled meanwhile
-                RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0].delete()
+                self._delete(token)
 
     # -- the collector -----------------------------------------------------------------------
 
@@ -232,9 +233,13 @@ class RQBackend(Backend):
         return RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0]
 
     def _delete(self, token: str) -> None:
+        """The RQ job and its files in Redis."""
+        from service.worker import input_key, result_key
+
         rj = self._full(token)
         if rj is not None:
             rj.delete()
+        self.redis.delete(input_key(token), result_key(token))
 
     def _collect(self) -> None:
         from rq.job import JobStatus
@@ -282,7 +287,7 @@ class RQBackend(Backend):
                 self.store.mirror_finished(row.id, token, "failed", attempt,
                                            error=f"gave up after {max(attempt, 1)} attempts; last: {reason}"
                                            if attempt >= row.max_attempts else reason)
-                rj.delete()
+                self._delete(token)
             elif status in (JobStatus.STOPPED, JobStatus.CANCELED):
                 self.store.cancel(row.id)
                 self._delete(token)
@@ -306,21 +311,24 @@ class RQBackend(Backend):
             self._enqueue(fresh)
 
     def _finished(self, row: Job, rj, attempt: int) -> None:
-        from service.worker import RESULT_FILES, unpack_files
+        from service.worker import RESULT_FILES, result_key, unpack_files
 
         rv = rj.return_value()
+        archive = self.redis.get(result_key(rj.id))
         if not isinstance(rv, dict) or rv.get("status") not in ("succeeded", "failed"):
             self.store.mirror_finished(row.id, rj.id, "failed", attempt, error="the worker returned no result")
         elif rv["status"] == "failed":
             self.store.mirror_finished(row.id, rj.id, "failed", attempt, error=rv.get("error") or "failed",
                                        worker=rv.get("worker"))
+        elif archive is None:
+            self.store.mirror_finished(row.id, rj.id, "failed", attempt, error="the worker's result files are "
+                                       "missing from Redis", worker=rv.get("worker"))
         else:
             job_dir = self.settings.jobs_dir / row.id
             tmp = job_dir / f"result.{rj.id}.tmp"
             final = job_dir / "result"
             shutil.rmtree(tmp, ignore_errors=True)
-            files = {k: v for k, v in rv.get("files", {}).items() if k in RESULT_FILES}
-            unpack_files(files, tmp)
+            unpack_files(archive, tmp, allowed=RESULT_FILES)
 
             def commit() -> None:
                 if final.exists():
@@ -330,7 +338,7 @@ class RQBackend(Backend):
             self.store.mirror_finished(row.id, rj.id, "succeeded", attempt, summary=rv.get("report"),
                                        solve_seconds=rv.get("seconds"), worker=rv.get("worker"), commit=commit)
             shutil.rmtree(tmp, ignore_errors=True)
-        rj.delete()
+        self._delete(rj.id)
 
     def _finish_stopping(self) -> None:
         """Delete stopped RQ jobs of cancelled rows once their work horse is gone."""
@@ -343,7 +351,7 @@ class RQBackend(Backend):
                 self._stopping.pop(token, None)
                 continue
             if rj.get_status(refresh=False) != JobStatus.STARTED:
-                rj.delete()
+                self._delete(token)
                 self._stopping.pop(token, None)
             elif time.time() - since > 10:  # the stop message was missed: say it again
                 send_stop_job_command(self.redis, token, serializer=self.serializer)
@@ -363,6 +371,12 @@ class RQBackend(Backend):
                     continue
                 rj = RQJob.fetch_many([jid], connection=self.redis, serializer=self.serializer)[0]
                 if rj is not None:
-                    rj.delete()
+                    self._delete(jid)
                 else:
                     registry.remove(jid)
+        # files of RQ jobs that no active row runs
+        for pattern in ("acinoset:input:*", "acinoset:result:*"):
+            for key in self.redis.scan_iter(match=pattern, count=500):
+                token = key.decode().split(":", 2)[2]
+                if token not in live and self._full(token) is None:
+                    self.redis.delete(key)

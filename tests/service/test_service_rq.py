@@ -113,7 +113,8 @@ def test_rq_round_trip_gives_the_embedded_result(pool, client, small_run, tmp_pa
     import redis as redis_lib
 
     r = redis_lib.Redis.from_url(pool.redis.url)
-    assert not [k for k in r.keys("rq:job:*") if any(j.encode() in k for j in ids)]
+    left = [k for k in r.keys("rq:job:*") + r.keys("acinoset:*") if any(j.encode() in k for j in ids)]
+    assert left == []
 
 
 def test_rq_cancel_stops_the_work_horse(pool, client, long_run):
