@@ -1,6 +1,6 @@
 """The job service under load, as a lab would load it: many jobs at once, people polling.
 
-    python bench/bench_service.py [--jobs 50] [--frames 150] [--backend embedded|rq|both]
+    python bench/bench_service.py [--jobs 50] [--frames 150] [--backend embedded|rq|both] [--repeats 1]
 
 For each backend it starts the real thing in subprocesses on loopback ports: ``python -m service
 serve`` (embedded: 2 solve processes; rq: with Debian's ``redis-server`` and two ``python -m
@@ -153,6 +153,7 @@ def poll_stats(records: list, t_from: float, t_to: float) -> dict:
 def run_backend(backend: str, work: Path, n_jobs: int, run150, run500, n_uploads: int) -> dict:
     from service.store import Store
 
+    work.mkdir(parents=True, exist_ok=True)
     data = work / f"data-{backend}"
     store = Store(data / "acinoset.db")
     _, token = store.add_user("bench")
@@ -301,6 +302,7 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--uploads", type=int, default=5)
     ap.add_argument("--backend", choices=["embedded", "rq", "both"], default="both")
+    ap.add_argument("--repeats", type=int, default=1, help="runs per backend (the machine is shared: spread)")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="acinoset-bench-service-"))
     try:
@@ -310,7 +312,13 @@ def main() -> int:
         if "rq" in backends and shutil.which("redis-server") is None:
             print("no redis-server: skipping the rq backend", file=sys.stderr)
             backends.remove("rq")
-        results = [run_backend(b, work, args.jobs, run150, run500, args.uploads) for b in backends]
+        results = []
+        for i in range(args.repeats):
+            for b in backends:
+                r = run_backend(b, work / f"run{i}", args.jobs, run150, run500, args.uploads)
+                if args.repeats > 1:
+                    r["backend"] = f"{b} #{i + 1}"
+                results.append(r)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     print(table(results))
