@@ -122,3 +122,42 @@ def test_kill_9_of_the_whole_service_loses_nothing(tmp_path, long_run, small_run
     # no half-written result or upload was left behind
     leftovers = [p for p in (data / "jobs").rglob("*") if p.name.endswith(".tmp") or p.name.startswith(".upload-")]
     assert leftovers == []
+
+
+def test_an_orderly_stop_gives_running_jobs_back_without_using_an_attempt(tmp_path, long_run):
+    data = tmp_path / "data"
+    token = add_user(data, "mia")
+    srv = Server(data, tmp_path / "server1.log", workers=1).start()
+    with srv.client(token) as c:
+        job_id = submit_ok(c, long_run, LONG)
+        pid = _pid(wait_solving(c, job_id))
+    # SIGTERM: uvicorn shuts down in order (then exits with the signal's status), the backend stops its runs
+    assert srv.stop() in (0, -signal.SIGTERM)
+    assert "leaked" not in srv.log()
+    assert wait_dead(pid, 10)
+    srv2 = Server(data, tmp_path / "server2.log", workers=1).start()
+    try:
+        with srv2.client(token) as c:
+            done = wait_finished(c, job_id)
+            assert done["status"] == "succeeded" and done["attempts"] == 1, done
+            assert done["interruption"] == "the service was stopped while it ran; it runs again"
+    finally:
+        srv2.stop()
+
+
+def test_a_solve_over_the_time_limit_fails(tmp_path, long_run):
+    data = tmp_path / "data"
+    token = add_user(data, "noa")
+    srv = Server(data, tmp_path / "server.log", workers=1,
+                 env={"ACINOSET_JOB_TIMEOUT_SECONDS": "1.5", "ACINOSET_WARM_START": "0"}).start()
+    try:
+        with srv.client(token) as c:
+            job_id = submit_ok(c, long_run, LONG)
+            pid = _pid(wait_for(c, job_id, lambda j: j["status"] == "running" and j["worker"]
+                                and not j["worker"].endswith(":starting"), 60))
+            done = wait_finished(c, job_id, 60)
+            assert done["status"] == "failed" and done["attempts"] == 1
+            assert done["error"] == "the solve ran longer than the time limit of 1.5 s"
+            assert wait_dead(pid, 5)
+    finally:
+        srv.stop()
