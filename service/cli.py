@@ -167,7 +167,7 @@ def worker(args: argparse.Namespace) -> int:
             pass
 
     if s.warm_start:
-        import service.warmup  # noqa: F401 - importing it runs the warm-up
+        importlib.import_module("service.warmup")  # importing it runs the warm-up
     queue = Queue(s.queue_name, connection=conn, serializer=JSONSerializer)
     name = args.name or f"{socket.gethostname()}.{os.getpid()}.{secrets.token_hex(2)}"
     w = Worker([queue], connection=conn, serializer=JSONSerializer, name=name, worker_ttl=WORKER_TTL,

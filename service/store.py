@@ -238,11 +238,6 @@ class Store:
             db.execute("UPDATE users SET disabled = 0 WHERE id = ?", (row[0],))
             return self._new_token(db, row[0], time.time())
 
-    def set_admin(self, name: str, admin: bool) -> None:
-        with self.transaction() as db:
-            if db.execute("UPDATE users SET is_admin = ? WHERE name = ?", (int(admin), name)).rowcount != 1:
-                raise StoreError(f"no user {name!r}")
-
     def disable_user(self, name: str) -> int:
         """Revoke a user's tokens and cancel its queued and running jobs; returns how many were cancelled.
         Its jobs stay in the table (admins can still read and delete them)."""
@@ -399,10 +394,6 @@ class Store:
                 "UPDATE jobs SET stage = ?, fraction = ?, iteration = ?, cost = ?, updated_at = ? "
                 "WHERE id = ? AND run_token = ? AND status = 'running'",
                 (stage, fraction, iteration, cost, time.time(), job_id, token)).rowcount == 1
-
-    def owns(self, job_id: str, token: str) -> bool:
-        return self._db().execute("SELECT 1 FROM jobs WHERE id = ? AND run_token = ? AND status = 'running'",
-                                  (job_id, token)).fetchone() is not None
 
     def finish(self, job_id: str, token: str, status: str, *, summary: dict | None = None,
                error: str | None = None, commit: Callable[[], None] | None = None) -> bool:
