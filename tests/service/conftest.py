@@ -1,4 +1,4 @@
-"""Fixtures of the service tests: simulated runs, written once per session."""
+"""Fixtures of the service tests: simulated runs, written once per test run."""
 
 from __future__ import annotations
 

@@ -71,7 +71,7 @@ def add_user(data_dir: Path, name: str, admin: bool = False) -> str:
 # -- processes -----------------------------------------------------------------------------------
 
 class Proc:
-    """A subprocess in its own session (so kill -9 reaches everything it started)."""
+    """A subprocess in a process group of its own (so kill -9 reaches everything it started)."""
 
     def __init__(self, args: list[str], log: Path, env: dict | None = None):
         self.args = args
@@ -113,7 +113,7 @@ class Proc:
             self.kill9()
             return None
         finally:
-            # nothing of this session may outlive the test
+            # nothing of its process group may outlive the test
             try:
                 os.killpg(self.p.pid, signal.SIGKILL)
             except ProcessLookupError:

@@ -102,7 +102,7 @@ def test_kill_9_of_the_whole_service_loses_nothing(tmp_path, long_run, small_run
     srv.p.wait(timeout=10)
     for pid in solve_pids:
         assert wait_dead(pid, 10), f"solve process {pid} outlived its server"
-    srv.kill9()  # and anything else of that session
+    srv.kill9()  # and anything else of its process group
 
     srv2 = Server(data, tmp_path / "server2.log", workers=2).start()
     try:
