@@ -78,14 +78,15 @@ class TrajectoryProblem:
         self.bone_len = bone_len
         self.bone_sigma = np.maximum(BONE_SIGMA_FRACTION * bone_len, 1e-3)
         # Variables: one GTSAM key per frame and parameter group. A kinematic skeleton is one group
-        # (every parameter moves together); free points are one group per marker, so the graph
-        # stays a set of small chains (coupled only by bone terms) instead of one wide one.
-        if sk.kind == "points":
+        # (every parameter moves together), and so are free points joined by bone terms: one key
+        # per frame keeps the graph a chain, eliminated in time order (per-marker keys coupled by
+        # bones leave a fill-reducing ordering with cliques of hundreds of dimensions, whose
+        # marginals cost 20x more). Free points without bones are one group per marker: a set of
+        # independent small chains.
+        if sk.kind == "points" and not any(a != b for a, b in self.bones):
             self.groups = [np.arange(3 * m, 3 * m + 3) for m in range(len(sk.markers))]
-            self.couplings = sorted({(min(a, b), max(a, b)) for a, b in self.bones if a != b})
         else:
             self.groups = [np.arange(P)]
-            self.couplings = []
         self._motion = self._motion_factors()
         self._ordering = gtsam.Ordering()
         for k in range(len(self.groups) * N):
@@ -128,9 +129,8 @@ class TrajectoryProblem:
     def linear_graph(self, Q, H, g, lam: float) -> gtsam.GaussianFactorGraph:
         """The damped Gauss-Newton system at Q over the new trajectory Q'.
 
-        Each group's diagonal block of G with its part of gvec is one HessianFactor; a bone between
-        two markers adds their off-diagonal block as a 2-key HessianFactor with zero diagonal (the
-        sum of the factors is the frame's full quadratic model)."""
+        Each group's block of G with its part of gvec is one HessianFactor per frame (groups share
+        no terms within a frame: see ``groups``)."""
         graph = gtsam.GaussianFactorGraph()
         for f in self._motion:
             graph.push_back(f)
@@ -146,13 +146,6 @@ class TrajectoryProblem:
             Gg, gg = G[:, a:b, a:b], gv[:, a:b]
             for n in range(self.N):
                 graph.add(gtsam.HessianFactor(self.key(n, gi), Gg[n], gg[n], 0.0))
-        for ga, gb in self.couplings:
-            ia, ib = self.groups[ga], self.groups[gb]
-            za, zb = np.zeros((len(ia), len(ia))), np.zeros((len(ib), len(ib)))
-            va, vb = np.zeros(len(ia)), np.zeros(len(ib))
-            cross = G[:, ia[0]:ia[-1] + 1, ib[0]:ib[-1] + 1]
-            for n in range(self.N):
-                graph.add(gtsam.HessianFactor(self.key(n, ga), self.key(n, gb), za, cross[n], va, zb, vb, 0.0))
         return graph
 
     def _solution(self, vv: gtsam.VectorValues) -> np.ndarray:
@@ -163,29 +156,17 @@ class TrajectoryProblem:
             Q[:, idx] = np.stack([vv.at(self.key(n, gi)) for n in range(self.N)])
         return Q
 
-    def _eliminate(self, graph: gtsam.GaussianFactorGraph):
-        # chains are best eliminated in time order; bone couplings between chains are left to
-        # GTSAM's fill-reducing ordering
-        if self.couplings:
-            return graph.eliminateMultifrontal(gtsam.Ordering.ColamdGaussianFactorGraph(graph))
-        return graph.eliminateMultifrontal(self._ordering)
-
     def solve_linear(self, Q, H, g, lam: float) -> np.ndarray:
-        graph = self.linear_graph(Q, H, g, lam)
-        if self.couplings:
-            vv = graph.optimize(gtsam.Ordering.ColamdGaussianFactorGraph(graph))
-        else:
-            vv = graph.optimize(self._ordering)
-        return self._solution(vv)
+        return self._solution(self.linear_graph(Q, H, g, lam).optimize(self._ordering))
 
     def marginal_covariances(self, Q: np.ndarray) -> np.ndarray:
         """Marginal covariance of each frame's pose (N, P, P) from the Bayes tree of the undamped
-        linearisation; for free points the per-marker blocks (the covariance between markers is
-        left at zero: no marker's position depends on another's parameters). (A plain backward
+        linearisation; for free points without bones the per-marker blocks (markers are then
+        independent chains, so the covariance between them is zero). (A plain backward
         covariance recursion over the chain's conditionals is cheaper but numerically unstable
         here: the stiff motion factors amplify rounding by about ten per frame.)"""
         H, g, _, _, _, _ = self.normals(Q, 1.0)
-        bt = self._eliminate(self.linear_graph(Q, H, g, 0.0))
+        bt = self.linear_graph(Q, H, g, 0.0).eliminateMultifrontal(self._ordering)
         if len(self.groups) == 1:
             return np.stack([bt.marginalCovariance(n) for n in range(self.N)])
         S = np.zeros((self.N, self.P, self.P))

@@ -1,23 +1,31 @@
-"""The pages' router on its own: what it serves, and what it refuses (no browser needed)."""
+"""The pages' routes on a real server: what they serve, and what they refuse (no browser needed)."""
 
 from __future__ import annotations
 
 import re
 
-from fastapi import FastAPI
-from fastapi.testclient import TestClient
+import httpx
+import pytest
 
-from service import web
-
-
-def client() -> TestClient:
-    app = FastAPI()
-    app.include_router(web.router)
-    return TestClient(app)
+from service_helpers import Server
 
 
-def test_pages_are_html_and_load_only_local_scripts():
-    c = client()
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    data = tmp_path_factory.mktemp("pages_data")
+    srv = Server(data, data.parent / "pages_server.log", workers=1).start()
+    yield srv
+    srv.stop()
+
+
+@pytest.fixture
+def client(server) -> httpx.Client:
+    with server.client() as c:
+        yield c
+
+
+def test_pages_are_html_and_load_only_local_scripts(client):
+    c = client
     for path in ("/", "/login", "/jobs/new", "/jobs/0123456789abcdef0123456789abcdef"):
         r = c.get(path)
         assert r.status_code == 200, path
@@ -29,8 +37,8 @@ def test_pages_are_html_and_load_only_local_scripts():
                 assert c.get(src).status_code == 200, f"{path}: {src} is missing"
 
 
-def test_every_page_has_one_h1_a_title_and_a_language():
-    c = client()
+def test_every_page_has_one_h1_a_title_and_a_language(client):
+    c = client
     for path in ("/", "/login", "/jobs/new", "/jobs/abc"):
         text = c.get(path).text
         assert '<html lang="en">' in text and "<title>" in text
@@ -38,16 +46,16 @@ def test_every_page_has_one_h1_a_title_and_a_language():
         assert 'href="#main"' in text and 'id="main"' in text, f"{path}: no skip link"
 
 
-def test_plotly_comes_from_the_installed_package():
-    r = client().get("/static/plotly.min.js")
+def test_plotly_comes_from_the_installed_package(client):
+    r = client.get("/static/plotly.min.js")
     assert r.status_code == 200
     assert r.headers["content-type"].startswith("text/javascript")
     assert "max-age" in r.headers["cache-control"]
     assert len(r.content) > 1_000_000 and b"plotly" in r.content[:2000].lower()
 
 
-def test_static_files_are_confined_to_the_folder():
-    c = client()
+def test_static_files_are_confined_to_the_folder(client):
+    c = client
     assert c.get("/static/app.css").headers["content-type"].startswith("text/css")
     for bad in ("/static/..%2Fweb.py", "/static/web.py", "/static/.hidden.js", "/static/nope.js",
                 "/static/%2e%2e%2f%2e%2e%2fpyproject.toml"):
