@@ -11,7 +11,8 @@ From robust triangulation ``X`` (N, M, 3):
   because a passive ``rot_z(psi)`` maps the body's x axis to ``(cos psi, sin psi, 0)``. Unwrapped and
   median-filtered over time.
 * **Joint angles** by per-frame inverse kinematics on the triangulated points (Huber loss, bounds),
-  each frame started from the previous one (:func:`graph.kernels.inverse_kinematics`).
+  each frame started from, and weakly pulled towards, the previous one
+  (:func:`graph.kernels.inverse_kinematics`).
 * A *points* skeleton starts from the triangulated points themselves, gaps interpolated.
 """
 
@@ -92,9 +93,14 @@ def initial_poses(prob, X: np.ndarray) -> np.ndarray:
         q0[:, yaw_param] = psi
 
     anchor = np.zeros(P)
-    anchor[a.pt_root[root_pt]] = 10.0  # ~0.1 m of slack against the smoothed path
+    # a weak pull (sigma 10 m) to the smoothed path: it holds the root only where its markers are
+    # unseen (the mean of the head's markers is not the head's origin, so a stronger pull bends
+    # every joint to make up for it)
+    anchor[a.pt_root[root_pt]] = 0.1
+    smooth = np.full(P, 0.05)  # 0.1 rad from the previous frame costs as much as 5 mm of misfit
+    smooth[a.pt_root[root_pt]] = 0.0
     Xn = np.where(np.isfinite(X), X, np.nan)
-    return kernels.inverse_kinematics(q0, Xn, anchor, lower, upper, 0.05, 15, *a.kernel_args())
+    return kernels.inverse_kinematics(q0, Xn, anchor, smooth, lower, upper, 0.05, 15, *a.kernel_args())
 
 
 def _nanmean(x: np.ndarray, axis: int) -> np.ndarray:

@@ -376,16 +376,19 @@ def all_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
 
 
 @njit(cache=True)
-def inverse_kinematics(Q0, X, anchor_w, lower, upper, huber, iterations,
+def inverse_kinematics(Q0, X, anchor_w, smooth_w, lower, upper, huber, iterations,
                        seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
                        marker_dep):
     """Per-frame pose from 3D points: minimise, frame by frame,
 
         sum_m huber(|p_m(q) - X_m|) + sum_i (anchor_w_i (q_i - q0_i))^2 / 2
+                                    + sum_i (smooth_w_i (q_i - q_{n-1,i}))^2 / 2
 
     by damped Gauss-Newton with IRLS Huber weights, clipped to the bounds. Frame n starts from the
     solution of frame n-1 for the parameters without an anchor, and from ``Q0[n]`` for the others.
-    ``X`` (N, M, 3) may hold NaN (unobserved).
+    The weak pull towards the previous frame's solution keeps the pose on one branch where the
+    points do not decide (a tail pointing straight down has two equivalent (psi, theta); a frame
+    of outliers could turn an unbounded yaw by a full turn). ``X`` (N, M, 3) may hold NaN.
     """
     N, P = Q0.shape
     M = marker_point.shape[0]
@@ -429,6 +432,9 @@ def inverse_kinematics(Q0, X, anchor_w, lower, upper, huber, iterations,
             for i in range(P):
                 H[i, i] += anchor_w[i] ** 2 + 1e-3
                 g[i] += anchor_w[i] ** 2 * (q[i] - Q0[n, i])
+                if n > 0:
+                    H[i, i] += smooth_w[i] ** 2
+                    g[i] += smooth_w[i] ** 2 * (q[i] - Q[n - 1, i])
             step = np.linalg.solve(H, g)
             biggest = 0.0
             for i in range(P):
