@@ -193,7 +193,9 @@ def optimise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int = 50, pro
         for _ in range(iters):
             it_total += 1
             improved = False
-            for _try in range(10):
+            # a stretched stage only has to bring the pose near the detections: it ends at its
+            # first failed step instead of raising the damping until one succeeds
+            for _try in range(10 if stretch == stretches[-1] else 1):
                 Qn = np.clip(tp.solve_linear(Q, H, g, lam), lower, upper)
                 Hn, gn, _, _, _, dcn = tp.normals(Qn, stretch)
                 new_cost = tp.cost(Qn, dcn)
