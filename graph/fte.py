@@ -217,6 +217,14 @@ def optimise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int = 50, pro
     return Q, it_total, cost
 
 
+def marker_std(dpos: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
+    """Per-marker 3D standard deviations (N, M, 3) from the pose covariances ``Sigma`` (N, P, P)
+    and the marker Jacobians ``dpos`` (N, M, 3, P): the square roots of diag(J_p Sigma_n J_p^T),
+    each the row of ``J_p Sigma_n`` dotted with the row of ``J_p``."""
+    var = np.einsum("nmip,nmip->nmi", np.matmul(dpos, Sigma[:, None]), dpos)
+    return np.sqrt(np.maximum(var, 0.0))
+
+
 def bone_lengths(prob, X: np.ndarray) -> np.ndarray:
     """Median length of each bone over the triangulated frames (0 where never seen)."""
     bones = prob.skeleton.bone_index
@@ -251,8 +259,7 @@ def solve_fte(prob, progress=None):
     pos, dpos = kernels.fk_jacobian_batch(Q, *tp.sk_args)
     if prob.options.uncertainty:
         Sigma = tp.marginal_covariances(Q)
-        cov = np.einsum("nmip,npq,nmjq->nmij", dpos, Sigma, dpos)
-        std = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
+        std = marker_std(dpos, Sigma)
         params_std = np.sqrt(np.maximum(np.diagonal(Sigma, axis1=-2, axis2=-1), 0.0))
     else:
         std = np.full(pos.shape, np.nan)

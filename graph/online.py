@@ -30,7 +30,7 @@ import numpy as np
 
 from graph import kernels
 from graph.api import Progress
-from graph.fte import PRIOR_SIGMA, TrajectoryProblem, bone_lengths, optimise
+from graph.fte import PRIOR_SIGMA, TrajectoryProblem, bone_lengths, marker_std, optimise
 from graph.initial import initial_poses
 from graph.robust import A as RA, B as RB, C as RC, OUTLIER_S
 from graph.triangulate import triangulate
@@ -174,8 +174,7 @@ def solve_ekf(prob, progress=None):
     info = H + np.eye(full.P)[None] / PRIOR_SIGMA**2 + np.diag(2.0 / full.sigma3**2)[None]
     Sigma = np.linalg.inv(info)
     pos, dpos = kernels.fk_jacobian_batch(Q, *full.sk_args)
-    cov = np.einsum("nmip,npq,nmjq->nmij", dpos, Sigma, dpos)
-    std = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
+    std = marker_std(dpos, Sigma)
     causal_pos = prob.skeleton.positions(causal)
     if prob.skeleton.kind == "points":
         never = prob.views().max(axis=0) < 2

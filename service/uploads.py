@@ -69,16 +69,9 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
 
 
 def _helper_init(niceness: int) -> None:
-    import os
+    from service.worker import server_child
 
-    from service.worker import die_with_server
-
-    die_with_server()
-    if niceness:
-        try:
-            os.nice(niceness)
-        except OSError:
-            pass
+    server_child(niceness)
 
 
 class UploadReader:

@@ -212,17 +212,23 @@ def die_with_server() -> None:
     die_with_parent()
 
 
-def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_interval: float,
-                 niceness: int) -> None:
-    """Body of the child process that runs one job for the embedded backend."""
-    from service.store import Store
-
+def server_child(niceness: int) -> None:
+    """Set up a process the server forked: it dies with the server and yields the CPU to the API
+    (``niceness`` added to its nice value; 0 leaves it alone)."""
     die_with_server()
     if niceness:
         try:
             os.nice(niceness)
         except OSError:
             pass
+
+
+def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_interval: float,
+                 niceness: int) -> None:
+    """Body of the child process that runs one job for the embedded backend."""
+    from service.store import Store
+
+    server_child(niceness)
     store = Store(db_path)
     job_dir = Path(jobs_dir) / job_id
     tmp = job_dir / f"result.{token}.tmp"
