@@ -26,8 +26,9 @@ which GTSAM eliminates (banded, natural ordering). Steps are clipped to the boun
 robustness: the first iterations use the loss with its knots a, b, c stretched by 4, so that
 detections far from a rough start are not rejected before the pose comes to them.
 
-Uncertainty: the marginal covariance ``Sigma_n`` of each ``q_n`` from the Bayes tree of the final
-(undamped) linearisation, and per-marker ``Sigma_p = J_p Sigma_n J_p^T``.
+Uncertainty: the marginal covariance ``Sigma_n`` of each ``q_n`` under the final (undamped)
+linearisation, the Bayes tree's numbers in one compiled pass (:mod:`graph.marginals`), and
+per-marker ``Sigma_p = J_p Sigma_n J_p^T``.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import numpy as np
 from graph import kernels
 from graph.api import Progress
 from graph.initial import initial_poses
+from graph.marginals import chain_marginals
 from graph.robust import A as RA, B as RB, C as RC, OUTLIER_S
 from graph.triangulate import triangulate
 
@@ -159,21 +161,20 @@ class TrajectoryProblem:
     def solve_linear(self, Q, H, g, lam: float) -> np.ndarray:
         return self._solution(self.linear_graph(Q, H, g, lam).optimize(self._ordering))
 
-    def marginal_covariances(self, Q: np.ndarray) -> np.ndarray:
-        """Marginal covariance of each frame's pose (N, P, P) from the Bayes tree of the undamped
-        linearisation; for free points without bones the per-marker blocks (markers are then
-        independent chains, so the covariance between them is zero). (A plain backward
-        covariance recursion over the chain's conditionals is cheaper but numerically unstable
-        here: the stiff motion factors amplify rounding by about ten per frame.)"""
-        H, g, _, _, _, _ = self.normals(Q, 1.0)
-        bt = self.linear_graph(Q, H, g, 0.0).eliminateMultifrontal(self._ordering)
+    def marginal_covariances(self, H: np.ndarray) -> np.ndarray:
+        """Marginal covariance of each frame's pose (N, P, P) at the optimum, from the undamped
+        information (``H`` from :meth:`normals` there, the anchor and the motion factors) by
+        :func:`graph.marginals.chain_marginals`, one chain per group: for free points without bones
+        the per-marker blocks (markers are then independent chains, so the covariance between them
+        is zero). The same numbers as GTSAM's Bayes tree of :meth:`linear_graph` (tests)."""
+        G = H + np.eye(self.P)[None] / PRIOR_SIGMA**2
+        w2 = 1.0 / self.sigma3**2
         if len(self.groups) == 1:
-            return np.stack([bt.marginalCovariance(n) for n in range(self.N)])
+            return chain_marginals(G, w2)
         S = np.zeros((self.N, self.P, self.P))
-        for gi, idx in enumerate(self.groups):
+        for idx in self.groups:
             a, b = idx[0], idx[-1] + 1
-            for n in range(self.N):
-                S[n, a:b, a:b] = bt.marginalCovariance(self.key(n, gi))
+            S[:, a:b, a:b] = chain_marginals(np.ascontiguousarray(G[:, a:b, a:b]), w2[a:b])
         return S
 
 
@@ -257,14 +258,14 @@ def solve_fte(prob, progress=None):
         progress(Progress(stage="uncertainty", fraction=0.95, iteration=iterations, cost=cost))
     t1 = time.perf_counter()
     pos, dpos = kernels.fk_jacobian_batch(Q, *tp.sk_args)
+    H, _, uv, s, _, _ = tp.normals(Q, 1.0)
     if prob.options.uncertainty:
-        Sigma = tp.marginal_covariances(Q)
+        Sigma = tp.marginal_covariances(H)
         std = marker_std(dpos, Sigma)
         params_std = np.sqrt(np.maximum(np.diagonal(Sigma, axis1=-2, axis2=-1), 0.0))
     else:
         std = np.full(pos.shape, np.nan)
         params_std = None
-    _, _, uv, s, _, _ = tp.normals(Q, 1.0)
     if prob.skeleton.kind == "points":
         # a free point never seen by two cameras has no 3D estimate
         never = prob.views().max(axis=0) < 2

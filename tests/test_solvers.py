@@ -170,3 +170,28 @@ def test_fte_keeps_the_tail_on_one_branch_through_many_outliers(rig, seed):
     res = solve(run.keypoints, run.calibration, SolveOptions(method="fte", fps=run.fps, uncertainty=False))
     per_marker = np.nanmean(np.linalg.norm(res.positions - run.positions, axis=-1), axis=0)
     assert per_marker.max() < 0.015, dict(zip(run.markers, (per_marker * 1000).round(1)))
+
+
+@pytest.mark.parametrize("skeleton,bones", [("cheetah", False), ("points", True), ("points", False)])
+def test_marginal_covariances_are_the_bayes_trees(rig, skeleton, bones):
+    """The compiled chain recursion gives GTSAM's numbers: the Bayes tree of the same undamped
+    linear graph, queried frame by frame (long enough for rounding to show if it compounded)."""
+    from graph import fte
+    from graph.initial import initial_poses
+    from graph.triangulate import triangulate
+
+    run = simulate_run(rig, frames=150, fps=120, noise=5.0, outliers=0.1, outlier_std=100, seed=4)
+    opts = SolveOptions(method="fte", fps=run.fps, skeleton=skeleton,
+                        bone_lengths=list(run.bones) if bones else None)
+    prob = build(run.keypoints, run.calibration, opts)
+    X, _, _, _ = triangulate(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
+    tp = TrajectoryProblem(prob, initial_poses(prob, X), fte.bone_lengths(prob, X) if skeleton == "points" else None)
+    Q, _, _ = fte.optimise(tp, tp.Q0.copy(), 50)
+    H, g, _, _, _, _ = tp.normals(Q, 1.0)
+    ours = tp.marginal_covariances(H)
+    bt = tp.linear_graph(Q, H, g, 0.0).eliminateMultifrontal(tp._ordering)
+    for gi, idx in enumerate(tp.groups):
+        a, b = idx[0], idx[-1] + 1
+        theirs = np.stack([bt.marginalCovariance(tp.key(n, gi)) for n in range(tp.N)])
+        assert np.abs(ours[:, a:b, a:b] - theirs).max() <= 1e-7 * np.abs(theirs).max()
+    assert np.all(np.linalg.eigvalsh(ours[:, :3, :3]) > 0)
