@@ -34,6 +34,7 @@ per-marker ``Sigma_p = J_p Sigma_n J_p^T``.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import gtsam
 import numpy as np
@@ -43,7 +44,7 @@ from graph.api import Progress
 from graph.initial import initial_poses
 from graph.marginals import chain_marginals
 from graph.robust import A as RA, B as RB, C as RC, OUTLIER_S
-from graph.triangulate import triangulate
+from graph.triangulate import robust_points
 
 PRIOR_SIGMA = 10.0
 BONE_SIGMA_FRACTION = 0.05
@@ -244,10 +245,15 @@ def solve_fte(prob, progress=None):
     t0 = time.perf_counter()
     if progress:
         progress(Progress(stage="initialise", fraction=0.0))
-    X, _, _, _ = triangulate(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
-    Q0 = initial_poses(prob, X)
+    X, _, _ = robust_points(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
     bl = bone_lengths(prob, X) if prob.skeleton.kind == "points" else None
-    tp = TrajectoryProblem(prob, Q0, bl)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # GTSAM's motion factors are built (holding the GIL) on one core while the compiled inverse
+        # kinematics (which releases it) runs on the other
+        building = pool.submit(TrajectoryProblem, prob, np.zeros((prob.frames, prob.skeleton.n_params)), bl)
+        Q0 = initial_poses(prob, X)
+        tp = building.result()
+    tp.Q0 = Q0  # the weak anchor's target, known now
     t_init = time.perf_counter() - t0
     if progress:
         progress(Progress(stage="optimise", fraction=0.1))

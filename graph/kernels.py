@@ -375,7 +375,7 @@ def all_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
     return H, g, uv, s, w, cost
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def inverse_kinematics(Q0, X, anchor_w, smooth_w, lower, upper, huber, iterations,
                        seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
                        marker_dep):

@@ -33,7 +33,7 @@ from graph.api import Progress
 from graph.fte import PRIOR_SIGMA, TrajectoryProblem, bone_lengths, marker_std, optimise
 from graph.initial import initial_poses
 from graph.robust import A as RA, B as RB, C as RC, OUTLIER_S
-from graph.triangulate import triangulate
+from graph.triangulate import robust_points
 
 START_FRAMES = 10
 REFINE_STEPS = 3
@@ -148,7 +148,7 @@ def solve_ekf(prob, progress=None):
     S = min(N, START_FRAMES)
     # the batch start sees the first frames only, as a stream would
     sub = replace(prob, meas=prob.meas[:S], likelihood=prob.likelihood[:S], valid=prob.valid[:S])
-    X, _, _, _ = triangulate(sub.calibration, sub.meas, sub.valid, sub.sigma_px)
+    X, _, _ = robust_points(sub.calibration, sub.meas, sub.valid, sub.sigma_px)
     Q0 = initial_poses(sub, X)
     tp = TrajectoryProblem(sub, Q0, bone_lengths(sub, X) if sub.skeleton.kind == "points" else None)
     Q_start, iters, _ = optimise(tp, Q0.copy(), 30)

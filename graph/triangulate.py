@@ -28,14 +28,12 @@ from graph.camera import Calibration, undistort_points
 from graph.robust import OUTLIER_S
 
 
-def triangulate(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, sigma_px: float = 5.0,
-                iterations: int = 10):
-    """Robust 3D points from pixels ``meas`` (N, C, M, 2) and ``valid`` (N, C, M).
-
-    Returns ``X`` (N, M, 3) (NaN with fewer than two views), ``cov`` (N, M, 3, 3),
-    ``uv`` reprojections (C, N, M, 2) and ``s`` normalised residuals (N, C, M) (NaN where not valid).
-    The per-point work runs compiled (:func:`graph.kernels.triangulate_points`).
-    """
+def robust_points(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, sigma_px: float = 5.0,
+                  iterations: int = 10):
+    """The triangulated points alone: ``X`` (N, M, 3), NaN with fewer than two views, the
+    Gauss-Newton information ``H`` (N*M, 3, 3) of each and the views used, ``ok`` (N*M, C). The
+    per-point work runs compiled (:func:`graph.kernels.triangulate_points`); the smoothers start
+    from ``X``."""
     N, C, M, _ = meas.shape
     K = N * M
     z = meas.transpose(0, 2, 1, 3).reshape(K, C, 2)  # (K, C, 2)
@@ -46,6 +44,21 @@ def triangulate(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, s
     intr, Rc, tc = calibration.packed()
     X, H = kernels.triangulate_points(np.nan_to_num(norm), np.nan_to_num(z), ok, intr, Rc, tc, Pm,
                                       float(sigma_px), iterations)
+    return X.reshape(N, M, 3), H, ok
+
+
+def triangulate(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, sigma_px: float = 5.0,
+                iterations: int = 10):
+    """Robust 3D points from pixels ``meas`` (N, C, M, 2) and ``valid`` (N, C, M).
+
+    Returns ``X`` (N, M, 3) (NaN with fewer than two views), ``cov`` (N, M, 3, 3),
+    ``uv`` reprojections (C, N, M, 2) and ``s`` normalised residuals (N, C, M) (NaN where not valid).
+    """
+    N, C, M, _ = meas.shape
+    K = N * M
+    X, H, ok = robust_points(calibration, meas, valid, sigma_px, iterations)
+    X = X.reshape(K, 3)
+    z = meas.transpose(0, 2, 1, 3).reshape(K, C, 2)
     good = np.isfinite(X).all(-1)
     cov = np.full((K, 3, 3), np.nan)
     if good.any():
