@@ -1,6 +1,6 @@
-"""``acinoset serve``, ``acinoset worker`` and ``acinoset users``.
+"""``acinoset serve``, ``acinoset worker``, ``acinoset users`` and ``acinoset jobs``.
 
-:func:`register` adds the three subcommands to the ``acinoset`` command line (``graph/cli.py``);
+:func:`register` adds the four subcommands to the ``acinoset`` command line (``graph/cli.py``);
 ``python -m service`` runs them on their own. Every flag left out falls back to the environment
 (``ACINOSET_*``, see :mod:`service.settings`), then to the defaults.
 """
@@ -13,6 +13,7 @@ import os
 import secrets
 import socket
 import sys
+from pathlib import Path
 
 from service.settings import Settings
 
@@ -77,6 +78,24 @@ def register(subparsers) -> None:
     r.add_argument("name")
     _data_dir_arg(r)
     r.set_defaults(func=users_remove)
+
+    j = subparsers.add_parser("jobs", help="list the service's jobs and prune old ones (admin)",
+                              description="The job table and result files of a data dir, for its admin. "
+                                          "Safe while the server runs.")
+    js = j.add_subparsers(dest="jobs_command", required=True, metavar="{list,prune}")
+    jl = js.add_parser("list", help="jobs newest first, with their owner, status and disk use")
+    jl.add_argument("--owner", help="only this user's jobs")
+    jl.add_argument("--status", choices=["queued", "running", "succeeded", "failed", "cancelled"])
+    jl.add_argument("--limit", type=int, default=50, help="at most this many (default 50)")
+    _data_dir_arg(jl)
+    jl.set_defaults(func=jobs_list)
+    jp = js.add_parser("prune", help="delete finished jobs older than some days, with their files")
+    jp.add_argument("--older-than", type=float, required=True, metavar="DAYS",
+                    help="finished (succeeded, failed or cancelled) more than DAYS days ago")
+    jp.add_argument("--owner", help="only this user's jobs")
+    jp.add_argument("--dry-run", action="store_true", help="say what would go, delete nothing")
+    _data_dir_arg(jp)
+    jp.set_defaults(func=jobs_prune)
 
 
 # -- serve -------------------------------------------------------------------------------------
@@ -249,6 +268,80 @@ def users_list(args: argparse.Namespace) -> int:
         created = time.strftime("%Y-%m-%d %H:%M", time.localtime(u.created_at))
         print(f"{u.name:<24} {'admin' if u.is_admin else 'user':<6} {'removed' if u.disabled else 'active':<8} "
               f"{created:<17} {jobs}")
+    return 0
+
+
+# -- jobs --------------------------------------------------------------------------------------
+
+def _dir_bytes(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else 0
+
+
+def _mib(n: int) -> str:
+    return f"{n / 2**20:.1f} MiB"
+
+
+def _owner_id(store, name: str | None) -> int | None:
+    if name is None:
+        return None
+    user = store.user(name)
+    if user is None:
+        raise ValueError(f"no user named {name!r}")
+    return user.id
+
+
+def jobs_list(args: argparse.Namespace) -> int:
+    import time
+
+    store, s = _store(args)
+    try:
+        owner_id = _owner_id(store, args.owner)
+    except ValueError as e:
+        print(f"acinoset jobs list: {e}", file=sys.stderr)
+        return 2
+    jobs, total = store.jobs(owner_id, [args.status] if args.status else None, limit=max(1, args.limit))
+    if not jobs:
+        print("no jobs")
+        return 0
+    print(f"{'id':<32} {'owner':<16} {'status':<10} {'method':<7} {'frames':>7} {'created':<17} {'disk':>10}")
+    for job in jobs:
+        created = time.strftime("%Y-%m-%d %H:%M", time.localtime(job.created_at))
+        frames = (job.summary or {}).get("frames", "")
+        print(f"{job.id:<32} {job.owner:<16} {job.status:<10} {job.options.get('method', ''):<7} {frames!s:>7} "
+              f"{created:<17} {_mib(_dir_bytes(s.jobs_dir / job.id)):>10}")
+    if total > len(jobs):
+        print(f"({total - len(jobs)} more; --limit to see them)")
+    return 0
+
+
+def jobs_prune(args: argparse.Namespace) -> int:
+    import shutil
+    import time
+
+    if not args.older_than >= 0:
+        print("acinoset jobs prune: --older-than takes a number of days, 0 or more", file=sys.stderr)
+        return 2
+    store, s = _store(args)
+    try:
+        owner_id = _owner_id(store, args.owner)
+    except ValueError as e:
+        print(f"acinoset jobs prune: {e}", file=sys.stderr)
+        return 2
+    old = store.finished_before(time.time() - args.older_than * 86400.0, owner_id)
+    freed = 0
+    deleted = 0
+    for job in old:
+        size = _dir_bytes(s.jobs_dir / job.id)
+        if args.dry_run:
+            freed += size
+            deleted += 1
+            continue
+        if store.delete(job.id):  # refuses a job that became active again meanwhile
+            shutil.rmtree(s.jobs_dir / job.id, ignore_errors=True)
+            freed += size
+            deleted += 1
+    verb = "would delete" if args.dry_run else "deleted"
+    print(f"{verb} {deleted} finished job(s) older than {args.older_than:g} days, {_mib(freed)}")
     return 0
 
 

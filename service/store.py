@@ -466,6 +466,16 @@ class Store:
                            (now, now, job_id)).rowcount
         return before if n == 1 else None
 
+    def finished_before(self, cutoff: float, owner_id: int | None = None) -> list[Job]:
+        """Finished jobs (succeeded, failed, cancelled) that ended before ``cutoff`` (epoch s), oldest first."""
+        cond = "j.status IN ('succeeded', 'failed', 'cancelled') AND COALESCE(j.finished_at, j.updated_at) < ?"
+        args: list = [cutoff]
+        if owner_id is not None:
+            cond += " AND j.owner_id = ?"
+            args.append(owner_id)
+        rows = self._db().execute(f"{_JOB_SELECT} WHERE {cond} ORDER BY j.seq", args).fetchall()
+        return [_job(r) for r in rows]
+
     def delete(self, job_id: str) -> bool:
         """Remove a finished job's row."""
         with self.transaction() as db:

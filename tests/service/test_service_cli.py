@@ -85,3 +85,46 @@ def test_the_compose_file_runs_an_api_two_workers_and_a_durable_redis():
     assert len(workers) == 2
     dockerfile = (ROOT / "docker" / "Dockerfile").read_text()
     assert "pip install ." in dockerfile and 'CMD ["acinoset", "serve"' in dockerfile
+
+
+def test_an_admin_lists_and_prunes_old_jobs_while_the_server_runs(tmp_path, small_run):
+    data = str(tmp_path / "data")
+    ana = acinoset("users", "add", "ana", "--data-dir", data).stdout.strip().splitlines()[-1]
+    port = free_port()
+    server = Proc([PY, "-m", "graph.cli", "serve", "--port", str(port), "--data-dir", data, "--workers", "1"],
+                  tmp_path / "serve.log").start()
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline:
+            try:
+                if httpx.get(url + "/healthz").status_code == 200:
+                    break
+            except httpx.HTTPError:
+                time.sleep(0.1)
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {ana}"}, timeout=60) as c:
+            done = [submit_ok(c, small_run, {"method": "tri", "skeleton": "points"}) for _ in range(2)]
+            for j in done:
+                wait_for(c, j, lambda x: x["status"] == "succeeded", 120)
+
+            listed = acinoset("jobs", "list", "--data-dir", data)
+            assert listed.returncode == 0, listed.stderr
+            rows = [line for line in listed.stdout.splitlines() if line.split()[0] in done]
+            assert len(rows) == 2 and all("ana" in r and "succeeded" in r and "MiB" in r for r in rows)
+
+            # nothing is a day old yet; a dry run with 0 days names both and deletes nothing
+            kept = acinoset("jobs", "prune", "--older-than", "1", "--data-dir", data)
+            assert kept.returncode == 0 and "deleted 0 finished job(s)" in kept.stdout
+            dry = acinoset("jobs", "prune", "--older-than", "0", "--dry-run", "--data-dir", data)
+            assert "would delete 2 finished job(s)" in dry.stdout
+            assert all(c.get(f"/v1/jobs/{j}").status_code == 200 for j in done)
+
+            pruned = acinoset("jobs", "prune", "--older-than", "0", "--data-dir", data)
+            assert pruned.returncode == 0 and "deleted 2 finished job(s)" in pruned.stdout
+            assert all(c.get(f"/v1/jobs/{j}").status_code == 404 for j in done)
+            assert not any((tmp_path / "data" / "jobs" / j).exists() for j in done)
+
+            nobody = acinoset("jobs", "prune", "--older-than", "0", "--owner", "zed", "--data-dir", data)
+            assert nobody.returncode == 2 and nobody.stderr.strip() == "acinoset jobs prune: no user named 'zed'"
+    finally:
+        server.stop()
