@@ -11,8 +11,9 @@ the longest solve, and the JSON serializer (nothing from a job is ever unpickled
 
 The collector (every ``0.5 s``) reconciles the table with Redis:
 
-* a queued row without an RQ job (the server died between the two writes, or Redis lost data) is
-  enqueued;
+* queued rows without an RQ job are enqueued, a few at a time and fairly between users (see
+  ``_dispatch``), as are rows whose RQ job was lost (the server died between the two writes, or
+  Redis lost data);
 * a started RQ job mirrors its progress, worker and attempt into the row; one whose worker stopped
   heartbeating for ``lease_seconds`` (the whole worker machine died) is dropped and enqueued again
   as the next attempt, or failed after ``max_attempts``;
@@ -248,11 +249,12 @@ class RQBackend(Backend):
         tokens = [r.run_token for r in rows if r.run_token]
         fetched = _states(self.redis, self.serializer, tokens)
         now = time.time()
+        waiting: list[Job] = []  # queued rows Redis does not hold yet
         for row in rows:
             rj = fetched.get(row.run_token) if row.run_token else None
             if rj is None:
                 if row.status == "queued":
-                    self._enqueue(row)
+                    waiting.append(row)
                 else:
                     status = self.store.interrupt(row.id, row.run_token, "the queue lost the job "
                                                   "(Redis restarted without its data?)")
@@ -296,6 +298,31 @@ class RQBackend(Backend):
                     self.store.mirror_requeued(row.id, token, attempt,
                                                f"attempt {attempt} of {row.max_attempts} interrupted: "
                                                "the worker's solve process died")
+        self._dispatch(waiting, rows, fetched)
+
+    def _dispatch(self, waiting: list[Job], rows: list[Job], fetched: dict) -> None:
+        """Hand queued jobs to Redis, fairly between users. RQ runs its queue in order, so one user's
+        200 jobs would hold back everyone else's; instead Redis holds only about two waiting jobs
+        per live worker, and each free place goes to the queued job of the user with the fewest
+        jobs in Redis (running or waiting), the oldest first."""
+        if not waiting:
+            return
+        from collections import Counter
+
+        from rq import Worker
+        from rq.job import JobStatus
+
+        held = [r for r in rows if r.run_token and fetched.get(r.run_token) is not None]
+        ready = sum(1 for r in held if fetched[r.run_token].status in (JobStatus.QUEUED, JobStatus.SCHEDULED,
+                                                                          JobStatus.DEFERRED))
+        room = max(2, 2 * Worker.count(queue=self.queue)) - ready
+        per_owner = Counter(r.owner_id for r in held)
+        while room > 0 and waiting:
+            pick = min(waiting, key=lambda r: (per_owner[r.owner_id], r.seq))
+            waiting.remove(pick)
+            self._enqueue(pick)
+            per_owner[pick.owner_id] += 1
+            room -= 1
 
     def _lost(self, row: Job, rj, attempt: int) -> None:
         """A started job whose worker stopped heartbeating: that worker is gone."""

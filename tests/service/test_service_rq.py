@@ -208,3 +208,27 @@ def test_rq_jobs_wait_in_the_table_while_redis_is_down(tmp_path, small_run):
     finally:
         srv.stop()
         pool.stop()
+
+
+def test_rq_queue_is_fair_between_users(tmp_path, long_run):
+    """One worker, one user's five jobs queued first: another user's job, submitted after them,
+    does not wait for all five (Redis is handed only a few jobs at a time, the fewest-jobs user's
+    first)."""
+    pool = Pool(tmp_path)
+    pool.start_redis()
+    busy = add_user(tmp_path / "data", "busy")
+    late = add_user(tmp_path / "data", "late")
+    srv = Server(tmp_path / "data", tmp_path / "server.log", backend="rq", redis_url=pool.redis.url, env=ENV).start()
+    try:
+        pool.start_workers(["w1"])
+        with srv.client(busy) as a, srv.client(late) as b:
+            mine = [submit_ok(a, long_run, LONG) for _ in range(5)]
+            other = submit_ok(b, long_run, LONG)
+            done = {j: wait_finished(a, j) for j in mine}
+            done[other] = wait_finished(b, other)
+        assert all(d["status"] == "succeeded" for d in done.values()), done
+        order = sorted(done, key=lambda j: done[j]["timings"]["started_at"])
+        assert order.index(other) <= 3, [done[j]["owner"] for j in order]
+    finally:
+        srv.stop()
+        pool.stop()
