@@ -52,6 +52,11 @@ def run_demo(out: str | Path, frames: int = 200, fps: float = 120.0, noise: floa
         f"{len(run.markers)} markers): noise {noise:g} px, {int(run.outlier.sum())} outliers "
         f"(sigma {outlier_std:g} px), seed {seed}")
 
+    from graph.warmup import warm_up
+
+    log("compiling the solver's kernels (once: later runs load them from the cache) ...")
+    log(f"kernels ready in {warm_up():.1f} s; the seconds below are the solves alone")
+
     evaluations, results = [], []
     for method in DEMO_METHODS:
         result = solve(run.keypoints, calibration, SolveOptions(method=method, fps=fps))
