@@ -1,4 +1,5 @@
-"""How good is an estimate: 3D error against the truth, reprojection error, NRMSE and PCK.
+"""How good is an estimate: 3D error against the truth, reprojection error, NRMSE, PCK and the
+calibration of its uncertainty.
 
 C cameras, N frames, M markers. Missing values are NaN and are left out of every statistic (each
 result says how many values it used).
@@ -18,6 +19,10 @@ result says how many values it used).
   correct when ``|u_cnm - z_cnm| < s * d_cn``, where ``d_cn`` is the nose-to-eye distance in the
   reference points of camera c, frame n (``l_eye``, or ``r_eye`` where ``l_eye`` is missing) and
   ``s`` a scale (1 by default).
+* Calibration of a per-axis 3D standard deviation ``sigma_nma`` (axis a = x, y, z) against the
+  truth: ``z_nma = (X_nma - X*_nma) / sigma_nma``. A calibrated sigma gives ``z ~ N(0, 1)``: 68.3 %
+  of ``|z| <= 1``, 95.4 % of ``|z| <= 2``, median ``|z|`` 0.674, RMS ``z`` 1 (see
+  :func:`uncertainty_calibration`).
 """
 
 from __future__ import annotations
@@ -75,6 +80,36 @@ class PCK:
 
 
 @dataclass
+class UncertaintyCalibration:
+    """How well per-axis 3D standard deviations describe the actual errors (per axis: x, y, z).
+
+    A calibrated estimate has ``within_1sigma`` near 0.683, ``within_2sigma`` near 0.954,
+    ``median_abs_z`` near 0.674 and ``rms_z`` near 1; smaller shares (larger z) mean the stated
+    sigma is too small (overconfident), larger shares too large. ``nll`` is the mean Gaussian
+    negative log-likelihood per coordinate in nats with lengths in millimetres (lower is better;
+    it rewards sigmas that are both small and honest).
+    """
+
+    within_1sigma: float  # share of coordinates with |error| <= sigma, all axes together
+    within_2sigma: float
+    within_1sigma_axis: list[float]  # the same per axis (x, y, z)
+    within_2sigma_axis: list[float]
+    median_abs_z: float
+    rms_z: float
+    rms_z_axis: list[float]
+    nll: float
+    rmse_mm: float  # RMS error per coordinate, for scale
+    rms_sigma_mm: float  # RMS stated sigma per coordinate
+    count: int  # coordinates judged
+
+    def to_dict(self) -> dict:
+        return {"within_1sigma": self.within_1sigma, "within_2sigma": self.within_2sigma,
+                "within_1sigma_axis": self.within_1sigma_axis, "within_2sigma_axis": self.within_2sigma_axis,
+                "median_abs_z": self.median_abs_z, "rms_z": self.rms_z, "rms_z_axis": self.rms_z_axis,
+                "nll": self.nll, "rmse_mm": self.rmse_mm, "rms_sigma_mm": self.rms_sigma_mm, "count": self.count}
+
+
+@dataclass
 class Evaluation:
     """One solved run judged against a simulated one's truth (see :func:`evaluate`)."""
 
@@ -118,6 +153,53 @@ def position_error(estimate: np.ndarray, truth: np.ndarray, markers: list[str]) 
         per_marker_mean_mm={m: _stat(mm[:, k], np.mean) for k, m in enumerate(markers)},
         per_marker_median_mm={m: _stat(mm[:, k], np.median) for k, m in enumerate(markers)},
         coverage=count / max(int(have_truth.sum()), 1), count=count)
+
+
+def uncertainty_calibration(estimate: np.ndarray, std: np.ndarray, truth: np.ndarray) -> UncertaintyCalibration:
+    """Calibration of the per-axis standard deviations ``std`` of ``estimate``, both (N, M, 3) in
+    metres, against ``truth`` (N, M, 3).
+
+    Per coordinate (frame n, marker m, axis a), with ``e = X - X*`` and ``z = e / sigma``::
+
+        within_k = (1/|S|) #{ |z| <= k },   k = 1, 2
+        rms_z    = sqrt( (1/|S|) sum z^2 )
+        NLL      = (1/|S|) sum [ log(sigma) + log(2 pi) / 2 + z^2 / 2 ]     (sigma in mm)
+
+    over the set S of coordinates where estimate, sigma and truth are finite and ``sigma > 0``.
+    Each axis is judged on its own (a per-axis sigma says nothing about correlations between axes).
+    """
+    X = np.asarray(estimate, dtype=np.float64)
+    sd = np.asarray(std, dtype=np.float64)
+    T = np.asarray(truth, dtype=np.float64)
+    if not (X.shape == sd.shape == T.shape) or X.shape[-1:] != (3,):
+        raise ValueError(f"estimate {X.shape}, std {sd.shape} and truth {T.shape} must all be (N, M, 3)")
+    e = (X - T) * 1000.0  # mm
+    sigma = sd * 1000.0
+    with np.errstate(invalid="ignore"):
+        use = np.isfinite(e) & np.isfinite(sigma) & (sigma > 0)
+    count = int(use.sum())
+    if not count:
+        nan = float("nan")
+        return UncertaintyCalibration(nan, nan, [nan] * 3, [nan] * 3, nan, nan, [nan] * 3, nan, nan, nan, 0)
+    z = np.where(use, e / np.where(use, sigma, 1.0), np.nan)
+    az = np.abs(z)
+
+    def share(k, axis=None):
+        if axis is None:
+            return float((az[use] <= k).mean())
+        u = use[..., axis]
+        return float((az[..., axis][u] <= k).mean()) if u.any() else float("nan")
+
+    def rms(v, m):
+        return float(np.sqrt(np.mean(v[m] ** 2))) if m.any() else float("nan")
+
+    nll = np.log(sigma[use]) + 0.5 * np.log(2 * np.pi) + 0.5 * z[use] ** 2
+    return UncertaintyCalibration(
+        within_1sigma=share(1.0), within_2sigma=share(2.0),
+        within_1sigma_axis=[share(1.0, a) for a in range(3)], within_2sigma_axis=[share(2.0, a) for a in range(3)],
+        median_abs_z=float(np.median(az[use])), rms_z=rms(z, use),
+        rms_z_axis=[rms(z[..., a], use[..., a]) for a in range(3)],
+        nll=float(nll.mean()), rmse_mm=rms(e, use), rms_sigma_mm=rms(sigma, use), count=count)
 
 
 def bounding_box_area(points: np.ndarray) -> np.ndarray:

@@ -26,7 +26,10 @@ yaw ``psi_0 = atan2(dy, dx)`` follows the heading; its height is ``ground + h`` 
 second; front knees in ``[-pi, 0]``, back knees in ``[0, pi]``), the neck, torso and tail move
 slowly and smoothly, the neck yaw leans into turns. Every angle is a sum of sinusoids, so the run is
 smooth (constant acceleration over a frame is a good model) and stays strictly inside the joint
-bounds. Everything random comes from one ``numpy.random.Generator(seed)``.
+bounds. Everything random comes from one ``numpy.random.Generator(seed)``, unless a ``noise_seed``
+is given: then the truth still comes from ``seed`` and the detections from a generator of their own
+seeded with ``(seed, noise_seed)``, so several detection sets of one run (an ensemble of pose
+models, each with its own noise and outliers) share the same truth.
 
 The observations (what a DeepLabCut network would write)
 --------------------------------------------------------
@@ -126,6 +129,7 @@ class SimulatedRun:
     seed: int
     bones: list[tuple[str, str]] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    noise_seed: int | None = None  # the detections' own seed, if any (module docstring)
 
     @property
     def frames(self) -> int:
@@ -349,12 +353,15 @@ def simulate_run(calibration: Calibration, frames: int = 200, fps: float = 120.0
                  outliers: float = 0.1, outlier_std: float = 100.0, swaps: float = 0.0, dropouts: int = 0,
                  seed: int = 0, *, confident_outliers: float = CONFIDENT_OUTLIERS,
                  dropout_seconds: float = 0.25, speed: float = 4.0, bodyparts: list[str] | None = None,
-                 skeleton: str | Skeleton = "cheetah") -> SimulatedRun:
+                 skeleton: str | Skeleton = "cheetah", noise_seed: int | None = None) -> SimulatedRun:
     """Simulate a cheetah run across ``calibration``'s cameras and what DeepLabCut would detect.
 
     ``noise`` sigma_n (px), ``outliers`` p_o, ``outlier_std`` sigma_o (px), ``swaps`` p_s,
     ``dropouts`` the number of blind-camera stretches. ``bodyparts`` keeps a subset of the
-    cheetah's markers (in that order), for the ``points`` skeleton.
+    cheetah's markers (in that order), for the ``points`` skeleton. ``noise_seed`` draws the
+    detections from ``numpy.random.default_rng((seed, noise_seed))`` instead of continuing the
+    truth's generator: runs with the same ``seed`` and different ``noise_seed`` have the same truth
+    and independent detections.
     """
     if frames < 1:
         raise ValueError("frames must be at least 1")
@@ -385,11 +392,13 @@ def simulate_run(calibration: Calibration, frames: int = 200, fps: float = 120.0
         positions = positions[:, keep]
         markers = list(bodyparts)
         bones = [(a, b) for a, b in bones if a in markers and b in markers]
-    kps, proj, outlier, swapped, dropout = observe(calibration, positions, markers, fps, model, rng)
+    obs_rng = rng if noise_seed is None else np.random.default_rng((seed, noise_seed))
+    kps, proj, outlier, swapped, dropout = observe(calibration, positions, markers, fps, model, obs_rng)
     return SimulatedRun(skeleton=sk.name, markers=markers, positions=positions, params=params,
                         param_names=list(sk.param_names), keypoints=kps, calibration=calibration, fps=fps,
                         projections=proj, outlier=outlier, swapped=swapped, dropout=dropout,
-                        observation=model, stage=stage, seed=seed, bones=bones, notes=notes)
+                        observation=model, stage=stage, seed=seed, bones=bones, notes=notes,
+                        noise_seed=noise_seed)
 
 
 # ---------------------------------------------------------------------------------------- writing
@@ -449,7 +458,8 @@ def write_run(run: SimulatedRun, out: str | Path, rig_path: str | Path | None = 
     written += [truth_csv, truth_npz]
     meta = out / "simulation.json"
     meta.write_text(json.dumps({
-        "frames": run.frames, "fps": run.fps, "seed": run.seed, "skeleton": run.skeleton,
+        "frames": run.frames, "fps": run.fps, "seed": run.seed, "noise_seed": run.noise_seed,
+        "skeleton": run.skeleton,
         "cameras": run.calibration.names, "markers": run.markers,
         "observation": asdict(run.observation),
         "ground_z": run.stage.ground_z, "stage_centre": run.stage.centre.tolist(),

@@ -10,7 +10,7 @@ import pytest
 from graph.api import Result, SolveOptions, SolveReport
 from graph.calibration import default_rig_path, load_calibration
 from graph.metrics import (bounding_box_area, evaluate, nose_to_eye_px, pck, position_error,
-                           reprojection_error)
+                           reprojection_error, uncertainty_calibration)
 from graph.simulate import simulate_run
 
 NAN = float("nan")
@@ -31,6 +31,51 @@ def test_position_error_by_hand():
     np.testing.assert_allclose(e.per_frame, [[0.005, 0.001], [NAN, 0.002]])
     with pytest.raises(ValueError, match="shape"):
         position_error(est[:1], truth, ["a", "b"])
+
+
+def test_uncertainty_calibration_by_hand():
+    truth = np.zeros((1, 2, 3))
+    est = np.array([[[0.001, -0.003, 0.0], [0.0005, 0.0, NAN]]])  # errors in mm: 1, -3, 0 | 0.5, 0, missing
+    std = np.full((1, 2, 3), 0.002)  # 2 mm everywhere
+    std[0, 1, 1] = 0.0  # a zero sigma is not judged
+    c = uncertainty_calibration(est, std, truth)
+    assert c.count == 4  # z = 0.5, -1.5, 0, 0.25
+    assert c.within_1sigma == pytest.approx(0.75) and c.within_2sigma == 1.0
+    assert c.within_1sigma_axis == pytest.approx([1.0, 0.0, 1.0])
+    assert c.median_abs_z == pytest.approx(0.375)
+    assert c.rms_z == pytest.approx(math.sqrt((0.25 + 2.25 + 0 + 0.0625) / 4))
+    assert c.rms_z_axis == pytest.approx([math.sqrt((0.25 + 0.0625) / 2), 1.5, 0.0])
+    want_nll = math.log(2.0) + 0.5 * math.log(2 * math.pi) + 0.5 * (0.25 + 2.25 + 0 + 0.0625) / 4
+    assert c.nll == pytest.approx(want_nll)
+    assert c.rmse_mm == pytest.approx(math.sqrt((1 + 9 + 0 + 0.25) / 4)) and c.rms_sigma_mm == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="must all be"):
+        uncertainty_calibration(est, std[..., :2], truth)
+    assert uncertainty_calibration(est * NAN, std, truth).count == 0
+
+
+def test_uncertainty_calibration_of_gaussian_errors():
+    rng = np.random.default_rng(0)
+    truth = rng.normal(size=(2000, 10, 3))
+    sigma = rng.uniform(0.001, 0.02, size=truth.shape) * np.array([1.0, 2.0, 0.5])  # per-axis scales
+    est = truth + rng.normal(size=truth.shape) * sigma
+    c = uncertainty_calibration(est, sigma, truth)
+    assert c.count == truth.size
+    assert c.within_1sigma == pytest.approx(0.6827, abs=0.005)
+    assert c.within_2sigma == pytest.approx(0.9545, abs=0.003)
+    assert c.within_1sigma_axis == pytest.approx([0.6827] * 3, abs=0.01)
+    assert c.within_2sigma_axis == pytest.approx([0.9545] * 3, abs=0.006)
+    assert c.median_abs_z == pytest.approx(0.6745, abs=0.01)
+    assert c.rms_z == pytest.approx(1.0, abs=0.01) and c.rms_z_axis == pytest.approx([1.0] * 3, abs=0.015)
+    # the expected NLL of an honest sigma: E[log sigma] + log(2 pi) / 2 + 1/2 (sigma in mm)
+    assert c.nll == pytest.approx(np.log(sigma * 1000).mean() + 0.5 * math.log(2 * math.pi) + 0.5, abs=0.01)
+    # stating half the true sigma: |z| <= 1 only where |N(0,1)| <= 0.5 (38.3 %), and a worse NLL
+    over = uncertainty_calibration(est, sigma / 2, truth)
+    assert over.within_1sigma == pytest.approx(0.3829, abs=0.005)
+    assert over.within_2sigma == pytest.approx(0.6827, abs=0.005)
+    assert over.rms_z == pytest.approx(2.0, abs=0.02) and over.nll > c.nll
+    # twice the true sigma: too cautious, |z| <= 1 where |N(0,1)| <= 2, also a worse NLL
+    under = uncertainty_calibration(est, sigma * 2, truth)
+    assert under.within_1sigma == pytest.approx(0.9545, abs=0.003) and under.nll > c.nll
 
 
 def test_reprojection_rmse_and_nrmse_by_hand():

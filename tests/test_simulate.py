@@ -55,6 +55,29 @@ def test_same_seed_same_run_other_seed_other_run(rig):
     assert not np.allclose(a.positions, c.positions)
 
 
+def test_a_noise_seed_keeps_the_truth_and_draws_new_detections(rig):
+    kw = dict(frames=40, noise=5.0, outliers=0.1, seed=3)
+    plain = simulate_run(rig, **kw)
+    a = simulate_run(rig, noise_seed=0, **kw)
+    a2 = simulate_run(rig, noise_seed=0, **kw)
+    b = simulate_run(rig, noise_seed=1, **kw)
+    for other in (a, b):  # one truth for every detection set
+        np.testing.assert_array_equal(other.positions, plain.positions)
+        np.testing.assert_array_equal(other.params, plain.params)
+        np.testing.assert_array_equal(other.projections, plain.projections)
+    for ka, ka2 in zip(a.keypoints, a2.keypoints):  # reproducible
+        np.testing.assert_array_equal(ka.xy, ka2.xy)
+    det_plain, det_a, det_b = (np.stack([k.xy for k in r.keypoints]) for r in (plain, a, b))
+    assert not np.allclose(det_a, det_b) and not np.allclose(det_a, det_plain)
+    assert not np.array_equal(a.outlier, b.outlier)
+    # independent noise: the two sets' inlier errors are uncorrelated, each still 5 px
+    good = ~a.outlier & ~b.outlier & a.visible
+    ea, eb = (det_a - a.projections)[good], (det_b - b.projections)[good]
+    assert ea.std() == pytest.approx(5.0, rel=0.05) and eb.std() == pytest.approx(5.0, rel=0.05)
+    assert abs(np.corrcoef(ea.ravel(), eb.ravel())[0, 1]) < 0.05
+    assert plain.noise_seed is None and a.noise_seed == 0
+
+
 def test_pose_is_plausible_smooth_and_inside_the_joint_bounds(run):
     sk = load_skeleton("cheetah")
     q = run.params
