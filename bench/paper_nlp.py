@@ -2,7 +2,7 @@
 
 Joska et al. (ICRA 2021) wrote FTE in Pyomo and solved it with IPOPT (MUMPS). This module writes
 the same program directly for IPOPT through ``cyipopt`` (no Pyomo: from PyPI and Debian packages
-alone Pyomo cannot reach IPOPT, see bench/bench_pyomo.py), with exact first and second derivatives, as
+alone Pyomo cannot reach IPOPT, see bench/bench_paper_ipopt.py), with exact first and second derivatives, as
 Pyomo's AMPL interface would give them. It reuses acinoset's skeleton spec, camera calibration,
 measurement std and robust loss, so that IPOPT and ``fte`` see the same cost.
 

@@ -28,7 +28,7 @@ class SolveOptions:
     fps: float = 120.0
     skeleton: str = "cheetah"  # "cheetah", "points", or a path to a skeleton TOML file
     likelihood_threshold: float = 0.5
-    measurement_std_px: float = 5.0
+    measurement_std_px: float | Literal["auto"] = 5.0  # detection noise (px per coordinate); "auto": measured
     robust: bool = True  # the redescending loss; False gives plain least squares
     max_iterations: int = 50
     motion_scale: float = 1.0  # multiplies every process-noise std (larger: follows data more)
@@ -45,8 +45,10 @@ class SolveOptions:
             raise ValueError(f"fps must be positive, not {self.fps}")
         if not (0.0 <= self.likelihood_threshold <= 1.0):
             raise ValueError(f"likelihood_threshold must be in [0, 1], not {self.likelihood_threshold}")
-        if not (self.measurement_std_px > 0):
-            raise ValueError("measurement_std_px must be positive")
+        if self.measurement_std_px != "auto" and not (isinstance(self.measurement_std_px, (int, float))
+                                                       and self.measurement_std_px > 0):
+            raise ValueError(f"measurement_std_px must be a positive number of pixels or 'auto', "
+                             f"not {self.measurement_std_px!r}")
         if self.calibration_units not in CALIBRATION_UNITS:
             raise ValueError(f"calibration_units must be one of {', '.join(CALIBRATION_UNITS)}")
         if self.max_iterations < 1:
@@ -88,6 +90,8 @@ class SolveReport:
     unconstrained_markers: list[str] = field(default_factory=list)  # never seen by two cameras
     unconstrained_frames: list[int] = field(default_factory=list)  # frames with no marker seen twice
     bounds_active: int = 0
+    sigma_px: float = float("nan")  # the detection noise the loss and the uncertainties assumed (px)
+    noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.noise)
     warnings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:

@@ -123,6 +123,9 @@ def _register_solve(sub) -> None:
                    help="skeleton: the AcinoSet cheetah, free points, or a skeleton TOML file")
     p.add_argument("--likelihood-threshold", type=float, default=defaults.likelihood_threshold, metavar="P",
                    help=f"ignore detections below this likelihood (default {defaults.likelihood_threshold:g})")
+    p.add_argument("--measurement-std", default=str(defaults.measurement_std_px), metavar="PX|auto",
+                   help=f"detection noise in pixels per coordinate (default {defaults.measurement_std_px:g}, the "
+                        "paper's), or 'auto' to measure it from the data; the 3D uncertainties scale with it")
     p.add_argument("--individual", default=None, metavar="NAME", help="multi-animal files: which individual")
     p.add_argument("--calibration-units", choices=list(CALIBRATION_UNITS), default="auto",
                    help="units of the calibration's translations (default: auto, which recognises millimetres)")
@@ -138,6 +141,19 @@ def _register_solve(sub) -> None:
     p.set_defaults(func=run_solve)
 
 
+def _noise_option(text: str):
+    """``--measurement-std``: a positive number of pixels or ``auto``."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"--measurement-std takes a number of pixels or 'auto', not {text!r}") from None
+    if not value > 0:
+        raise ValueError(f"--measurement-std must be positive, not {text}")
+    return value
+
+
 def run_solve(args: argparse.Namespace) -> int:
     from graph import api
     from graph.calibration import load_calibration
@@ -149,7 +165,9 @@ def run_solve(args: argparse.Namespace) -> int:
             bones = [tuple(pair.split("-", 1)) for pair in args.bones.split(",") if pair.strip()]
             if any(len(b) != 2 or not all(b) for b in bones):
                 raise ValueError("--bones takes pairs of bodyparts as A-B,C-D")
+        std_px = _noise_option(args.measurement_std)
         options = api.SolveOptions(method=args.method, fps=args.fps, skeleton=args.skeleton,
+                                   measurement_std_px=std_px,
                                    likelihood_threshold=args.likelihood_threshold, individual=args.individual,
                                    calibration_units=args.calibration_units, bone_lengths=bones,
                                    uncertainty=args.uncertainty)
@@ -189,8 +207,9 @@ def run_solve(args: argparse.Namespace) -> int:
         written.append(args.reprojections)
     rep = result.report
     rmse = "n/a" if rep.reprojection_rmse_px != rep.reprojection_rmse_px else f"{rep.reprojection_rmse_px:.2f} px"
+    noise = f", detection noise {rep.sigma_px:.2f} px (measured)" if options.measurement_std_px == "auto" else ""
     print(f"{rep.method}: {rep.frames} frames, {rep.cameras} cameras, {rep.markers} markers, "
-          f"reprojection RMSE {rmse}, {rep.seconds.get('total', 0.0):.2f} s -> {', '.join(map(str, written))}")
+          f"reprojection RMSE {rmse}{noise}, {rep.seconds.get('total', 0.0):.2f} s -> {', '.join(map(str, written))}")
     return 0
 
 

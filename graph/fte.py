@@ -219,6 +219,34 @@ def optimise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int = 50, pro
     return Q, it_total, cost
 
 
+NOISE_TOLERANCE = 0.1  # re-solve when the measured noise moved by more than this fraction
+NOISE_ROUNDS = 2
+
+
+def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int):
+    """``measurement_std_px="auto"``: measure the noise again on the smoother's own residuals
+    (:func:`graph.noise.scatter_px`; the trajectory's fit takes few degrees of freedom per
+    detection, so no correction) and, while it differs from the sigma solved with by more than
+    ``NOISE_TOLERANCE``, solve again from ``Q`` with it. Returns (Q, iterations, cost)."""
+    from graph.noise import scatter_px
+    from graph.problem import AUTO_RANGE_PX
+
+    prob = tp.prob
+    iterations, cost = 0, float("nan")
+    for _ in range(NOISE_ROUNDS):
+        _, _, _, s, _, _ = tp.normals(Q)
+        sigma = scatter_px(np.where(prob.valid, s * prob.sigma_px, np.nan))
+        if not np.isfinite(sigma) or abs(sigma / prob.sigma_px - 1.0) <= NOISE_TOLERANCE:
+            break
+        prob.sigma_px = float(np.clip(sigma, *AUTO_RANGE_PX))
+        Q, more, cost = optimise(tp, Q, max_iterations, stretches=(1.0,))
+        iterations += more
+    if not np.isfinite(cost):
+        _, _, _, _, _, dc = tp.normals(Q)
+        cost = tp.cost(Q, dc)
+    return Q, iterations, cost
+
+
 def marker_std(dpos: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     """Per-marker 3D standard deviations (N, M, 3) from the pose covariances ``Sigma`` (N, P, P)
     and the marker Jacobians ``dpos`` (N, M, 3, P): the square roots of diag(J_p Sigma_n J_p^T),
@@ -259,6 +287,9 @@ def solve_fte(prob, progress=None):
         progress(Progress(stage="optimise", fraction=0.1))
     Q, iterations, cost = optimise(tp, Q0.copy(), prob.options.max_iterations, progress,
                                    stretches=(4.0, 1.0) if prob.options.robust else (1.0,))
+    if prob.options.measurement_std_px == "auto":
+        Q, more, cost = remeasure_noise(tp, Q, prob.options.max_iterations)
+        iterations += more
     t_solve = time.perf_counter() - t0 - t_init
     if progress:
         progress(Progress(stage="uncertainty", fraction=0.95, iteration=iterations, cost=cost))

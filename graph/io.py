@@ -246,7 +246,7 @@ def _report(d: dict) -> SolveReport:
     """Inverse of ``SolveReport.to_dict``: JSON ``null`` back to NaN in the float fields."""
     known = {fld.name: fld for fld in dataclasses.fields(SolveReport)}
     d = {k: v for k, v in d.items() if k in known}
-    for k in ("cost", "reprojection_rmse_px"):
+    for k in ("cost", "reprojection_rmse_px", "sigma_px", "noise_px"):
         if k in d and d[k] is None:
             d[k] = float("nan")
     for k in ("seconds", "per_frame_ms"):

@@ -170,9 +170,10 @@ def solve_ekf(prob, progress=None):
     t_solve = time.perf_counter() - t0 - t_init
     full = TrajectoryProblem(prob, Q, tp.bone_len)
     H, g, uv, s, _, dc = full.normals(Q)
-    # per-marker std from each frame's own information plus the motion prior's (a local approximation)
-    info = H + np.eye(full.P)[None] / PRIOR_SIGMA**2 + np.diag(2.0 / full.sigma3**2)[None]
-    Sigma = np.linalg.inv(info)
+    # per-marker std from the marginals of the whole run's information at the smoothed trajectory
+    # (the chain of graph.marginals, as fte); a per-frame inverse with the motion prior as a stiff
+    # local term had claimed 4-9x too little spread
+    Sigma = full.marginal_covariances(H)
     pos, dpos = kernels.fk_jacobian_batch(Q, *full.sk_args)
     std = marker_std(dpos, Sigma)
     causal_pos = prob.skeleton.positions(causal)

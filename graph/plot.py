@@ -156,6 +156,16 @@ def _json_array(a, decimals: int | None = None):
     return obj.tolist()
 
 
+def assumed_noise_px(result: Result) -> float:
+    """The detection noise the solve assumed (px): the report's, which is the measured one when the
+    option was ``"auto"``; the option itself for results written before the report had it."""
+    sigma = getattr(result.report, "sigma_px", float("nan"))
+    if not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma > 0):
+        opt = getattr(result.options, "measurement_std_px", 5.0)
+        sigma = float(opt) if isinstance(opt, (int, float)) and opt > 0 else 5.0
+    return float(sigma)
+
+
 def result_payload(result: Result, calibration=None) -> dict:
     """Everything the result view draws, as JSON-safe data (NaN -> ``null``). Shapes: N frames,
     M markers, C cameras, P pose parameters.
@@ -380,7 +390,7 @@ def plot_reprojection_error(result: Result, path: Path) -> Path:
     finite = data[np.isfinite(data)]
     # Colours from 0 to at least twice the expected detection noise: light is as good as the
     # detections allow, dark is worse.
-    sigma = float(getattr(result.options, "measurement_std_px", 5.0) or 5.0)
+    sigma = assumed_noise_px(result)
     vmax = max(float(np.percentile(finite, 98)) if finite.size else 0.0, 2 * sigma)
     im = ax.imshow(np.ma.masked_invalid(data), cmap=_light_magma(), vmin=0, vmax=vmax, aspect="auto",
                    interpolation="nearest")

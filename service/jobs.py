@@ -113,8 +113,10 @@ class JobService:
             opts = TypeAdapter(SolveOptions).validate_python(data)
         except ValidationError as e:
             err = e.errors()[0]
-            where = ".".join(str(x) for x in err["loc"])
+            where = str(err["loc"][0]) if err["loc"] else ""  # the field, not the union member tried
             msg = err["msg"].removeprefix("Value error, ")
+            if where == "measurement_std_px":
+                msg = "must be a positive number of pixels or 'auto'"
             raise _unprocessable(f"options: {where + ': ' if where else ''}{msg}")
         except (TypeError, ValueError) as e:
             raise _unprocessable(f"options: {e}")

@@ -50,7 +50,8 @@ def submit_job(
     calibration: Annotated[UploadFile, File(description="AcinoSet scene JSON or Anipose calibration TOML")],
     options: Annotated[str, Form(
         description='JSON object of solve options, e.g. {"method": "fte", "fps": 120, "skeleton": "cheetah", '
-                    '"likelihood_threshold": 0.5}; see GET /v1/skeletons')] = "{}",
+                    '"likelihood_threshold": 0.5, "measurement_std_px": 5}; measurement_std_px "auto" measures '
+                    'the detection noise from the data; see GET /v1/skeletons')] = "{}",
     skeleton: Annotated[UploadFile | None, File(
         description="optional skeleton spec (.toml) to use instead of a named skeleton")] = None,
 ) -> JobOut:

@@ -145,6 +145,10 @@ def test_usage_errors_are_one_line(run_dir, tmp_path):
                            (solve_args(run_dir, tmp_path)[:-2] + ["--method", "magic", "--out", "x.csv"],
                             "invalid choice: 'magic'"),
                            (solve_args(run_dir, tmp_path) + ["--fps", "-3"], "fps must be positive"),
+                           (solve_args(run_dir, tmp_path) + ["--measurement-std", "loud"],
+                            "--measurement-std takes a number of pixels or 'auto'"),
+                           (solve_args(run_dir, tmp_path) + ["--measurement-std", "0"],
+                            "--measurement-std must be positive"),
                            (["frobnicate"], "invalid choice: 'frobnicate'"),
                            ([], "required: COMMAND")]:
         proc = run_cli(*args)
@@ -271,3 +275,24 @@ def test_solve_reads_dlc_h5_files(run_dir, tmp_path):
     proc = run_cli("solve", *h5s, *args, "--out", from_h5)
     assert proc.returncode == 0, proc.stderr
     assert from_csv.read_text() == from_h5.read_text()
+
+
+def test_measured_detection_noise(run_dir, tmp_path):
+    """``--measurement-std auto`` measures the 1 px noise of these files; the paper's fixed 5 px gets
+    one warning line saying how far off the uncertainties then are."""
+    h5, report = tmp_path / "run.h5", tmp_path / "report.json"
+    base = ["solve", *cams(run_dir), "--calibration", run_dir / "calibration.toml", "--method", "fte",
+            "--skeleton", "points", "--fps", FPS, "--out", tmp_path / "run.csv"]
+    proc = run_cli(*base, "--measurement-std", "auto", "--h5", h5, "--report", report)
+    assert proc.returncode == 0, proc.stderr
+    assert "detection noise" in proc.stdout and "(measured)" in proc.stdout
+    rep = json.loads(report.read_text())
+    assert 0.8 < rep["sigma_px"] < 1.25 and 0.8 < rep["noise_px"] < 1.25, rep
+    result = read_result(h5)
+    assert result.options.measurement_std_px == "auto" and result.report.sigma_px == pytest.approx(rep["sigma_px"])
+    assert "standard deviations are about" not in proc.stderr
+
+    fixed = run_cli(*base)
+    assert fixed.returncode == 0, fixed.stderr
+    warned = [line for line in fixed.stderr.splitlines() if "standard deviations are about" in line]
+    assert len(warned) == 1 and warned[0].startswith("acinoset: warning: ") and "too large" in warned[0], fixed.stderr

@@ -124,6 +124,12 @@
     fact("Cameras", P.cameras.join(", "));
     fact("Reprojection RMSE", `${fmt(report.reprojection_rmse_px, 2)} px`);
     fact("Rejected detections", `${report.outliers ?? P.outliers.length} of ${report.observations ?? "–"}`);
+    if (report.sigma_px > 0) {
+      const measuredNoise = P.options && P.options.measurement_std_px === "auto";
+      let noise = `${fmt(report.sigma_px, 2)} px ${measuredNoise ? "(measured from the data)" : "(given)"}`;
+      if (!measuredNoise && report.noise_px > 0) noise += `; the residuals scatter ${fmt(report.noise_px, 2)} px`;
+      fact("Detection noise", noise);
+    }
     fact("Never seen by two cameras", unconstrainedMarkers.size ? [...unconstrainedMarkers].join(", ") : "none");
     fact("Frames with no marker seen twice", unconstrainedFrames.size
       ? ranges([...unconstrainedFrames]).map(([a, b]) => (a === b ? `${a}` : `${a}–${b}`)).join(", ") : "none");
@@ -341,7 +347,10 @@
       "Pixel distance between each camera's detection and the 3D estimate drawn into that camera. " +
       "Every cell is labelled with its number; (n×) counts detections the robust loss rejected as outliers. " +
       "Click a cell to plot that marker over time." }));
-    const sigmaPx = (P.options && P.options.measurement_std_px) || 5;
+    // the noise the solve assumed: measured when the option was "auto" (the report has it)
+    const optSigma = P.options && Number(P.options.measurement_std_px);
+    const sigmaPx = (P.report && P.report.sigma_px > 0) ? Number(P.report.sigma_px.toFixed(2))
+      : (optSigma > 0 ? optSigma : 5);
     heat.querySelector(".hint").textContent += ` The colours run from 0 to at least twice the expected detection noise ` +
       `(${sigmaPx} px): light is as good as the detections allow, dark is worse.`;
     const heatModeId = newId("heat-mode");

@@ -71,6 +71,8 @@
     skeletonHint.textContent = text.trim();
   }
   skeleton.addEventListener("change", describeSkeleton);
+  const autoBox = document.getElementById("measurement-auto");
+  autoBox.addEventListener("change", () => { document.getElementById("measurement-std").disabled = autoBox.checked; });
 
   form.addEventListener("submit", async (ev) => {
     ev.preventDefault();
@@ -81,8 +83,9 @@
     if (!(fps > 0)) return showError("The frame rate must be a positive number.", document.getElementById("fps"));
     const thr = Number(document.getElementById("threshold").value);
     if (!(thr >= 0 && thr <= 1)) return showError("The likelihood threshold must be between 0 and 1.", document.getElementById("threshold"));
-    const stdPx = Number(document.getElementById("measurement-std").value);
-    if (!(stdPx > 0)) return showError("The detection noise must be a positive number of pixels.", document.getElementById("measurement-std"));
+    const autoNoise = document.getElementById("measurement-auto").checked;
+    const stdPx = autoNoise ? "auto" : Number(document.getElementById("measurement-std").value);
+    if (!autoNoise && !(stdPx > 0)) return showError("The detection noise must be a positive number of pixels.", document.getElementById("measurement-std"));
     const options = {
       method: form.querySelector("input[name=method]:checked").value,
       fps, skeleton: skeleton.value, likelihood_threshold: thr,

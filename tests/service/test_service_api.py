@@ -107,6 +107,17 @@ def test_an_acinoset_json_calibration_works_too(alice, small_run):
     assert wait_finished(alice, r.json()["id"])["status"] == "succeeded"
 
 
+def test_detection_noise_measured_from_the_data(alice, small_run):
+    r = submit(alice, small_run, {**FAST, "measurement_std_px": "auto"})
+    assert r.status_code == 202, r.text
+    assert r.json()["options"]["measurement_std_px"] == "auto"
+    done = wait_finished(alice, r.json()["id"])
+    assert done["status"] == "succeeded", done
+    report = alice.get(f"/v1/jobs/{done['id']}/result", params={"format": "report"}).json()
+    assert 4.0 < report["sigma_px"] < 5.5 and report["noise_px"] > 0  # the simulation adds 5 px noise
+    assert not any("standard deviations are about" in w for w in report["warnings"])
+
+
 # -- users see their own jobs ----------------------------------------------------------------------
 
 def test_users_see_only_their_own_jobs_and_admins_see_all(alice, bob, root, small_run):
@@ -207,6 +218,8 @@ def _bad_cases(run):
         "unknown option": (_files(run), {"methd": "tri"}, "unknown option 'methd'"),
         "bad method": (_files(run), {"method": "magic"}, "options: method"),
         "bad fps": (_files(run), {"method": "tri", "fps": -3}, "fps must be positive"),
+        "bad noise": (_files(run), {"method": "tri", "measurement_std_px": "loud"},
+                      "options: measurement_std_px: must be a positive number of pixels or 'auto'"),
         "skeleton as a server path": (_files(run), {"skeleton": "/etc/passwd"}, "unknown skeleton '/etc/passwd'"),
         "no calibration": (_files(run)[:-1], FAST, "calibration"),
         "no keypoints": (_files(run)[-1:], FAST, "keypoints"),

@@ -51,6 +51,10 @@ def _submit(page, run, **choices) -> str:
     page.get_by_label("Frame rate (frames per second)").fill(str(choices.get("fps", 120)))
     page.get_by_label("Skeleton", exact=True).select_option(choices.get("skeleton", "cheetah"))
     page.get_by_label("Likelihood threshold").fill(str(choices.get("threshold", 0.5)))
+    if choices.get("measure_noise"):
+        page.locator("details summary", has_text="More options").click()
+        page.get_by_label("Measure it from the data").check()
+        assert page.get_by_label("Detection noise (px)").is_disabled()
     page.get_by_role("button", name="Submit job").click()
     page.wait_for_url(re.compile(r"/jobs/[0-9a-f]{32}$"))
     return page.url.rsplit("/", 1)[1]
@@ -63,7 +67,7 @@ def test_sign_in_submit_watch_scrub_and_download(page, server, simulated_run, tm
     page.get_by_role("button", name="Sign in").click()
     assert "not accepted" in page.get_by_role("alert").inner_text()
     _sign_in(page, token)
-    job_id = _submit(page, simulated_run, method="fte")
+    job_id = _submit(page, simulated_run, method="fte", measure_noise=True)
 
     status = page.locator("#job-status [data-status]")
     status.and_(page.locator("[data-status=succeeded]")).wait_for(timeout=SOLVE_TIMEOUT_MS)
@@ -94,6 +98,9 @@ def test_sign_in_submit_watch_scrub_and_download(page, server, simulated_run, tm
     assert frame_status.inner_text().startswith("Frame 58 of 59")
 
     assert page.evaluate(UNLABELLED) == []
+    # The noise was measured, and the summary says so.
+    noise = page.locator("dt", has_text="Detection noise").locator("xpath=following-sibling::dd[1]")
+    assert "measured from the data" in noise.inner_text()
     # The other views are there and labelled.
     assert page.get_by_test_id("heatmap").locator(".main-svg").count() >= 1
     assert page.get_by_role("heading", name="Flagged by the solver").is_visible()

@@ -1,6 +1,6 @@
 """acinoset ``fte`` against the AcinoSet paper's own solver (its FTE program solved by IPOPT), same runs.
 
-    python bench/bench_pyomo.py [--frames 100] [--seeds 3] [--repeats 1] [--name pyomo]
+    python bench/bench_paper_ipopt.py [--frames 100] [--seeds 3] [--repeats 1] [--name paper_ipopt]
 
 The paper (Joska et al., ICRA 2021) wrote Full Trajectory Estimation in Pyomo and solved it with
 IPOPT and MUMPS. ``bench/paper_nlp.py`` writes that program (pose, rate and acceleration per frame
@@ -25,7 +25,7 @@ confident outliers of sigma 100 px; bench/harness.py). After one untimed warm-up
 IPOPT starts from fte's own start (robust triangulation and inverse kinematics, inside the timed
 call for both) and runs with its defaults (MUMPS, tol 1e-8, exact Hessian). Every answer is judged
 against the simulated truth (3D error) and scored with ONE cost function, fte's
-(:func:`paper_nlp.common_cost`). Prints Markdown tables and writes bench/results/pyomo.json (``--name``).
+(:func:`paper_nlp.common_cost`). Prints Markdown tables and writes bench/results/paper_ipopt.json (``--name``).
 
 Extra dependencies (PyPI; IPOPT 3.14 and MUMPS come inside the ``cyipopt-wheels`` wheel, no system
 package is needed)::
@@ -70,7 +70,7 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--seeds", type=int, default=3, help="simulated runs (seeds 0..S-1)")
     ap.add_argument("--repeats", type=int, default=1, help="timed solves per run and method")
-    ap.add_argument("--name", default="pyomo", help="results file bench/results/NAME.json")
+    ap.add_argument("--name", default="paper_ipopt", help="results file bench/results/NAME.json")
     args = ap.parse_args()
 
     cal = h.rig()
