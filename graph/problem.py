@@ -144,7 +144,7 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
 
 AUTO_START_PX = 5.0  # the triangulation's robust scale before the noise is known
 AUTO_RANGE_PX = (0.05, 200.0)
-AUTO_ROUNDS = 3
+AUTO_ROUNDS = 2
 AUTO_CAUCHY_SCALE = 3.0  # later rounds triangulate with a Cauchy scale of this many sigmas
 
 
