@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from graph.fte import PRIOR_SIGMA
-from graph.robust import A as RA, B as RB, C as RC
+from graph.robust import A as RA, B as RB, C as RC, redescending
 
 
 # ------------------------------------------------------------------------- per-frame projections
@@ -158,15 +158,11 @@ def frame_model(skeleton, calibration) -> FrameModel:
 
 
 def _rho_derivatives(s):
-    """rho(s), w(s) = rho'(s)/s and rho''(s) of the redescending loss, vectorised (s >= 0)."""
+    """rho(s), w(s) = rho'(s)/s (:func:`graph.robust.redescending`) and rho''(s) of the redescending
+    loss, vectorised (s >= 0)."""
     a, b, c = RA, RB, RC
-    u = (c - s) / (c - b)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.select([s < a, s < b, s < c],
-                        [0.5 * s * s, a * s - 0.5 * a * a, a * b - 0.5 * a * a + 0.5 * a * (c - b) * (1 - u * u)],
-                        a * b - 0.5 * a * a + 0.5 * a * (c - b))
-        w = np.select([s < a, s < b, s < c], [np.ones_like(s), a / s, a * (c - s) / ((c - b) * s)], 0.0)
-        d2 = np.select([s < a, s < b, s < c], [np.ones_like(s), np.zeros_like(s), np.full_like(s, -a / (c - b))], 0.0)
+    rho, w = redescending(s, a, b, c)
+    d2 = np.select([s < a, s < b, s < c], [np.ones_like(s), np.zeros_like(s), np.full_like(s, -a / (c - b))], 0.0)
     return rho, w, d2
 
 

@@ -174,22 +174,14 @@ class OnlineSmoother:
         q_pred = np.clip(q_pred, tp.prob.skeleton.lower, tp.prob.skeleton.upper)
         q = q_pred.copy()
         meas = np.nan_to_num(meas)
-        Hf = np.zeros((self.P, self.P))
-        gf = np.zeros(self.P)
-        C, M = valid.shape
-        uv = np.zeros((C, M, 2))
-        s = np.zeros((C, M))
-        wts = np.zeros((C, M))
         ip = 1.0 / self.sigma_pred**2
         for _ in range(REFINE_STEPS):
-            kernels.frame_normal(q, meas, valid, tp.intr, tp.Rc, tp.tc, tp.prob.sigma_px, tp.prob.options.robust,
-                                 RA, RB, RC, *tp.sk_args, tp.bones, tp.bone_len, tp.bone_sigma, Hf, gf, uv, s, wts)
+            Hf, gf = self._normal(q, meas, valid)
             step = np.linalg.solve(Hf + np.diag(ip) + 1e-6 * self.eye, gf + ip * (q - q_pred))
             q = np.clip(q - step, tp.prob.skeleton.lower, tp.prob.skeleton.upper)
             if np.max(np.abs(step)) < 1e-6:
                 break
-        kernels.frame_normal(q, meas, valid, tp.intr, tp.Rc, tp.tc, tp.prob.sigma_px, tp.prob.options.robust,
-                             RA, RB, RC, *tp.sk_args, tp.bones, tp.bone_len, tp.bone_sigma, Hf, gf, uv, s, wts)
+        Hf, gf = self._normal(q, meas, valid)
         graph = gtsam.NonlinearFactorGraph()
         placed = [(n, self._add_frame_factors(graph, n, Hf, gf, q))]
         self.window[n] = _Frame(meas, valid.copy(), None, q.copy())
