@@ -223,16 +223,17 @@ NOISE_TOLERANCE = 0.1  # re-solve when the measured noise moved by more than thi
 NOISE_ROUNDS = 2
 
 
-def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int):
+def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, cost: float, max_iterations: int):
     """``measurement_std_px="auto"``: measure the noise again on the smoother's own residuals
     (:func:`graph.noise.scatter_px`; the trajectory's fit takes few degrees of freedom per
     detection, so no correction) and, while it differs from the sigma solved with by more than
-    ``NOISE_TOLERANCE``, solve again from ``Q`` with it. Returns (Q, iterations, cost)."""
+    ``NOISE_TOLERANCE``, solve again from ``Q`` (whose cost is ``cost``) with it. Returns
+    (Q, iterations, cost)."""
     from graph.noise import scatter_px
     from graph.problem import AUTO_RANGE_PX
 
     prob = tp.prob
-    iterations, cost = 0, float("nan")
+    iterations = 0
     for _ in range(NOISE_ROUNDS):
         _, _, _, s, _, _ = tp.normals(Q)
         sigma = scatter_px(np.where(prob.valid, s * prob.sigma_px, np.nan))
@@ -241,9 +242,6 @@ def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int):
         prob.sigma_px = float(np.clip(sigma, *AUTO_RANGE_PX))
         Q, more, cost = optimise(tp, Q, max_iterations, stretches=(1.0,))
         iterations += more
-    if not np.isfinite(cost):
-        _, _, _, _, _, dc = tp.normals(Q)
-        cost = tp.cost(Q, dc)
     return Q, iterations, cost
 
 
@@ -288,7 +286,7 @@ def solve_fte(prob, progress=None):
     Q, iterations, cost = optimise(tp, Q0.copy(), prob.options.max_iterations, progress,
                                    stretches=(4.0, 1.0) if prob.options.robust else (1.0,))
     if prob.options.measurement_std_px == "auto":
-        Q, more, cost = remeasure_noise(tp, Q, prob.options.max_iterations)
+        Q, more, cost = remeasure_noise(tp, Q, cost, prob.options.max_iterations)
         iterations += more
     t_solve = time.perf_counter() - t0 - t_init
     if progress:
