@@ -1,153 +1,34 @@
-"""The library's front door: :func:`solve` and the typed data it takes and returns.
+"""The library's front door: :func:`solve`, and the registry of solvers it dispatches to.
 
 The CLI and the REST service both call ``solve(keypoints, calibration, options, progress)`` and
-read a :class:`Result`; neither reaches into the solvers.
+read a :class:`~graph.types.Result`; neither reaches into the solvers. The types live in
+:mod:`graph.types` and are re-exported here.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
-from typing import Callable, Literal
+from typing import Protocol
 
-import numpy as np
-
+from graph import problem
 from graph.camera import Calibration
+from graph.fte import solve_fte
 from graph.keypoints import Keypoints
+from graph.online import solve_ekf
+from graph.problem import Problem
+from graph.tri import solve_tri
+from graph.types import METHODS, Method, Progress, ProgressCallback, Result, SolveOptions, SolveReport
 
-Method = Literal["tri", "ekf", "fte"]
-METHODS: tuple[str, ...] = ("tri", "ekf", "fte")
-CALIBRATION_UNITS: dict[str, float] = {"auto": 0.0, "m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per unit
-
-
-@dataclass
-class SolveOptions:
-    """What to solve and how. Every field has a sensible default."""
-
-    method: Method = "fte"
-    fps: float = 120.0
-    skeleton: str = "cheetah"  # "cheetah", "points", or a path to a skeleton TOML file
-    likelihood_threshold: float = 0.5
-    measurement_std_px: float | Literal["auto"] = 5.0  # detection noise (px per coordinate); "auto": measured
-    robust: bool = True  # the redescending loss; False gives plain least squares
-    max_iterations: int = 50
-    motion_scale: float = 1.0  # multiplies every process-noise std (larger: follows data more)
-    bone_lengths: list[tuple[str, str]] | None = None  # soft bone-length terms for "points"
-    individual: str | None = None  # multi-animal DLC files: which individual
-    lag_seconds: float = 0.25  # "ekf": the fixed-lag window
-    uncertainty: bool = True  # per-marker 3D std from the marginals ("fte": about a third of the time)
-    calibration_units: str = "auto"  # "m", "cm", "mm", or "auto" (a rig measured in mm is recognised)
-
-    def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {', '.join(METHODS)}, not {self.method!r}")
-        if not (self.fps > 0):
-            raise ValueError(f"fps must be positive, not {self.fps}")
-        if not (0.0 <= self.likelihood_threshold <= 1.0):
-            raise ValueError(f"likelihood_threshold must be in [0, 1], not {self.likelihood_threshold}")
-        if self.measurement_std_px != "auto" and not (isinstance(self.measurement_std_px, (int, float))
-                                                       and self.measurement_std_px > 0):
-            raise ValueError(f"measurement_std_px must be a positive number of pixels or 'auto', "
-                             f"not {self.measurement_std_px!r}")
-        if self.calibration_units not in CALIBRATION_UNITS:
-            raise ValueError(f"calibration_units must be one of {', '.join(CALIBRATION_UNITS)}")
-        if self.max_iterations < 1:
-            raise ValueError("max_iterations must be at least 1")
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+__all__ = ["solve", "SOLVERS", "Solver", "METHODS", "Method", "Progress", "ProgressCallback", "Result",
+           "SolveOptions", "SolveReport"]
 
 
-@dataclass
-class Progress:
-    """A progress report: ``fraction`` in [0, 1] of the whole solve."""
-
-    stage: str
-    fraction: float
-    iteration: int = 0
-    cost: float = float("nan")
+class Solver(Protocol):
+    def __call__(self, prob: Problem, progress: ProgressCallback | None = None) -> Result: ...
 
 
-ProgressCallback = Callable[[Progress], None]
-
-
-@dataclass
-class SolveReport:
-    """Numbers about the run, written to REPORT.json and shown by the service."""
-
-    method: str
-    skeleton: str
-    frames: int
-    cameras: int
-    markers: int
-    seconds: dict[str, float] = field(default_factory=lambda: {"total": 0.0, "init": 0.0, "solve": 0.0})
-    iterations: int = 0
-    cost: float = float("nan")
-    reprojection_rmse_px: float = float("nan")
-    per_frame_ms: dict[str, float] | None = None
-    outliers: int = 0  # observations the robust loss gave (almost) no weight
-    observations: int = 0  # observations above the likelihood threshold
-    unconstrained_markers: list[str] = field(default_factory=list)  # never seen by two cameras
-    unconstrained_frames: list[int] = field(default_factory=list)  # frames with no marker seen twice
-    bounds_active: int = 0
-    sigma_px: float = float("nan")  # the detection noise the loss and the uncertainties assumed (px)
-    noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.noise)
-    warnings: list[str] = field(default_factory=list)
-
-    def to_dict(self) -> dict:
-        return _jsonable(asdict(self))
-
-
-@dataclass
-class Result:
-    """A solved run. N frames, M markers, C cameras, P pose parameters.
-
-    ``positions`` and ``std`` are in the calibration's world frame, metres, NaN where no estimate.
-    ``reprojections`` are the estimate drawn into each camera; ``residuals`` the pixel distance
-    to the detection (NaN where unobserved or below the likelihood threshold).
-    """
-
-    method: str
-    skeleton: str
-    markers: list[str]
-    positions: np.ndarray  # (N, M, 3)
-    std: np.ndarray  # (N, M, 3)
-    reprojections: np.ndarray  # (C, N, M, 2)
-    residuals: np.ndarray  # (C, N, M)
-    ncams: np.ndarray  # (N, M) cameras that saw the marker above threshold
-    score: np.ndarray  # (N, M) mean likelihood of those views
-    outlier: np.ndarray  # (C, N, M) bool: the robust loss rejected this detection
-    camera_names: list[str]
-    fps: float
-    report: SolveReport
-    options: SolveOptions
-    param_names: list[str] = field(default_factory=list)
-    params: np.ndarray | None = None  # (N, P)
-    rates: np.ndarray | None = None  # (N, P) per second
-    params_std: np.ndarray | None = None  # (N, P)
-    causal_positions: np.ndarray | None = None  # "ekf": the per-frame causal estimate (N, M, 3)
-    bones: list[tuple[str, str]] = field(default_factory=list)  # for drawing
-    camera_centers: np.ndarray | None = None  # (C, 3) world positions of the cameras, for drawing
-
-    @property
-    def error(self) -> np.ndarray:
-        """Mean reprojection error per frame and marker over the cameras that saw it (N, M)."""
-        with np.errstate(invalid="ignore"):
-            r = np.where(self.outlier, np.nan, self.residuals)
-            cnt = np.isfinite(r).sum(0)
-            return np.where(cnt > 0, np.nansum(r, 0) / np.maximum(cnt, 1), np.nan)
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        return None if not np.isfinite(x) else float(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
+SOLVERS: dict[str, Solver] = {"tri": solve_tri, "ekf": solve_ekf, "fte": solve_fte}
+assert tuple(SOLVERS) == METHODS, "graph.types.Method and SOLVERS must name the same methods"
 
 
 def solve(keypoints: list[Keypoints], calibration: Calibration, options: SolveOptions | None = None,
@@ -156,17 +37,9 @@ def solve(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
 
     Raises :class:`graph.errors.InputError` when the inputs do not fit together.
     """
-    from graph import problem
-
     options = options or SolveOptions()
     t0 = time.perf_counter()
     prob = problem.build(keypoints, calibration, options)
-    if options.method == "tri":
-        from graph.triangulate import solve_tri as run
-    elif options.method == "fte":
-        from graph.fte import solve_fte as run
-    else:
-        from graph.online import solve_ekf as run
-    result = run(prob, progress=progress)
+    result = SOLVERS[options.method](prob, progress=progress)
     result.report.seconds["total"] = time.perf_counter() - t0
     return result

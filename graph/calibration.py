@@ -25,6 +25,7 @@ import json
 import math
 import re
 import tomllib
+from dataclasses import replace
 from importlib import resources
 from pathlib import Path
 
@@ -32,6 +33,8 @@ import numpy as np
 
 from graph.camera import FISHEYE, PINHOLE, Calibration, Camera
 from graph.errors import InputError
+
+CALIBRATION_UNITS: dict[str, float] = {"auto": 0.0, "m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per unit
 
 ROTATION_TOLERANCE = 1e-5  # max |R^T R - I| and |det R - 1| accepted (files rounded to ~6 digits pass)
 
@@ -312,3 +315,26 @@ def _toml_value(v) -> str:
     if isinstance(v, dict):
         return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
     raise TypeError(f"cannot write {type(v).__name__} as TOML")
+
+
+RIG_SIZE_MM_GUESS = 50.0  # a rig whose cameras sit this many units apart is not in metres
+
+
+def in_metres(calibration: Calibration, units: str) -> tuple[Calibration, str | None]:
+    """The calibration with translations in metres. Anipose calibrations are in the units of the
+    calibration board, often millimetres; with ``units="auto"`` a rig whose cameras are more than
+    50 units from their centroid is taken to be in millimetres (and said so)."""
+    scale = CALIBRATION_UNITS[units]
+    note = None
+    if scale == 0.0:
+        centres = np.stack([c.center for c in calibration.cameras])
+        spread = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1)))
+        scale = 1.0
+        if spread > RIG_SIZE_MM_GUESS:
+            scale = 0.001
+            note = (f"{calibration.source or 'calibration'}: cameras are {spread:.0f} units from their centre; "
+                    "taking the calibration to be in millimetres (set calibration units to override)")
+    if scale == 1.0:
+        return calibration, note
+    cams = [replace(c, t=c.t * scale) for c in calibration.cameras]
+    return replace(calibration, cameras=cams), note

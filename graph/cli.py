@@ -1,17 +1,18 @@
-"""The ``acinoset`` command line.
+"""The ``acinoset`` command line: one-line errors and lazily loaded subcommands.
 
-``acinoset solve CAM1.csv CAM2.csv ... --calibration FILE --method tri|ekf|fte --out OUT.csv``
-lives here; other subcommands live next to the code they drive and register themselves.
+The library's own subcommands are :data:`COMMANDS` (``python -m graph.cli`` runs them); the
+``acinoset`` script adds the service's (``service/cli.py``), which knows both layers. Only the
+module of the subcommand given is imported, so ``acinoset --help`` and ``--version`` load no solver.
 
-Subcommand contract. A module listed in :data:`SUBCOMMAND_MODULES` may define::
+Subcommand contract. A module named by a :class:`Command` defines::
 
     def register(subparsers: argparse._SubParsersAction) -> None:
-        p = subparsers.add_parser("name", help="one line")
+        p = subparsers.add_parser("name", description="...")   # the one-line help is the Command's
         p.add_argument(...)
         p.set_defaults(func=run)       # run(args: argparse.Namespace) -> int (exit status)
 
-A module that does not exist (yet) is skipped; an ImportError raised *inside* an existing module
-is a real error and propagates. Parsers made by ``add_parser`` share this module's one-line error
+A module that does not exist is skipped; an ImportError raised *inside* an existing module is a
+real error and propagates. Parsers made by ``add_parser`` share this module's one-line error
 handling. Exit statuses: 0 success, 2 bad input (one line on stderr:
 ``acinoset: error: <file>: <problem>``), anything else from the subcommand itself. A
 :class:`graph.errors.InputError` raised by ``func`` is printed the same way.
@@ -25,12 +26,31 @@ import json
 import sys
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
+from graph import __version__
 from graph.errors import InputError
 
 PROG = "acinoset"
-SUBCOMMAND_MODULES = ("graph.simulate", "graph.demo", "graph.plot", "service.cli")
+
+
+@dataclass(frozen=True)
+class Command:
+    """A subcommand: its name, the module whose ``register`` adds it, and its one-line help."""
+
+    name: str
+    module: str
+    help: str
+
+
+COMMANDS: tuple[Command, ...] = (
+    Command("solve", "graph.cli", "3D trajectories from DeepLabCut files of calibrated cameras"),
+    Command("simulate", "graph.simulate",
+            "simulate a cheetah run on a rig and write DeepLabCut CSVs, calibration and truth"),
+    Command("demo", "graph.demo", "simulate a cheetah run on the AcinoSet rig and solve it with every method"),
+    Command("plot", "graph.plot", "draw a solved run: PNG figures and an HTML playback file"),
+)
 
 
 class UsageError(Exception):
@@ -44,19 +64,38 @@ class OneLineParser(argparse.ArgumentParser):
         raise UsageError(" ".join(message.split()))
 
 
-def build_parser() -> argparse.ArgumentParser:
+class _Subparsers:
+    """What a module's ``register`` is given: ``add_parser`` with the help line of its :class:`Command`."""
+
+    def __init__(self, action, helps: dict[str, str]):
+        self._action = action
+        self._helps = helps
+
+    def add_parser(self, name: str, **kwargs):
+        kwargs.setdefault("help", self._helps.get(name))
+        return self._action.add_parser(name, **kwargs)
+
+
+def build_parser(commands: tuple[Command, ...] = COMMANDS, only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of ``commands``. With ``only``, just that subcommand's module is imported (the
+    others are listed with their help line); without, every module is."""
     parser = OneLineParser(prog=PROG, description="Markerless 3D animal pose from calibrated cameras "
                            "and DeepLabCut keypoints.")
-    from graph import __version__
-
     parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    sub.required = True
-    _register_solve(sub)
-    for name in SUBCOMMAND_MODULES:
-        module = _optional_module(name)
-        if module is not None and hasattr(module, "register"):
-            module.register(sub)
+    action = parser.add_subparsers(dest="command", metavar="COMMAND")
+    action.required = True
+    sub = _Subparsers(action, {c.name: c.help for c in commands})
+    loaded: list[str] = []
+    for c in commands:
+        if c.name in action.choices:
+            continue
+        if only is None or c.name == only:
+            module = None if c.module in loaded else _optional_module(c.module)
+            if module is not None and hasattr(module, "register"):
+                module.register(sub)
+                loaded.append(c.module)
+        if c.name not in action.choices:
+            action.add_parser(c.name, help=c.help, add_help=False)  # listed; its module is not loaded
     return parser
 
 
@@ -70,9 +109,15 @@ def _optional_module(name: str):
         raise
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+def _command_named(argv: list[str]) -> str:
+    """The subcommand ``argv`` names: its first word that is not an option ("" if none)."""
+    return next((a for a in argv if not a.startswith("-")), "")
+
+
+def main(argv: list[str] | None = None, commands: tuple[Command, ...] = COMMANDS) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     try:
+        parser = build_parser(commands, only=_command_named(argv))
         args = parser.parse_args(argv)
         func = getattr(args, "func", None)
         if func is None:  # a command group given without one of its subcommands
@@ -107,12 +152,13 @@ def _fail(message: str) -> int:
 # ------------------------------------------------------------------------------------------ solve
 
 
-def _register_solve(sub) -> None:
-    from graph.api import CALIBRATION_UNITS, METHODS, SolveOptions
+def register(sub) -> None:
+    """``acinoset solve``."""
+    from graph.calibration import CALIBRATION_UNITS
+    from graph.types import METHODS, SolveOptions
 
     defaults = SolveOptions()
-    p = sub.add_parser("solve", help="3D trajectories from DeepLabCut files of calibrated cameras",
-                       description="Estimate 3D trajectories from one DeepLabCut CSV/H5 file per camera, "
+    p = sub.add_parser("solve", description="Estimate 3D trajectories from one DeepLabCut CSV/H5 file per camera, "
                        "given in the calibration's camera order.")
     p.add_argument("keypoints", nargs="+", metavar="CAM.csv", help="DeepLabCut CSV or H5, one per camera")
     p.add_argument("--calibration", required=True, metavar="FILE",
@@ -245,5 +291,7 @@ class ProgressBar:
             self.stream.flush()
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # ``python -m graph.cli``: the library's commands, from the module proper
+    from graph.cli import main as library_main
+
+    sys.exit(library_main())

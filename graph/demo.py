@@ -24,7 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
+from graph import io
+from graph.api import solve
+from graph.calibration import default_rig_path, load_calibration
 from graph.errors import InputError
+from graph.metrics import evaluate
+from graph.simulate import simulate_run, write_run
+from graph.types import SolveOptions
+from graph.warmup import warm_up
 
 DEMO_METHODS = ("tri", "ekf", "fte")
 
@@ -35,12 +42,6 @@ def run_demo(out: str | Path, frames: int = 200, fps: float = 120.0, noise: floa
 
     ``figures=False`` skips the per-method figures and playback files (the comparison is drawn).
     """
-    from graph import io
-    from graph.api import SolveOptions, solve
-    from graph.calibration import default_rig_path, load_calibration
-    from graph.metrics import evaluate
-    from graph.simulate import simulate_run, write_run
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rig_path = default_rig_path()
@@ -51,8 +52,6 @@ def run_demo(out: str | Path, frames: int = 200, fps: float = 120.0, noise: floa
     log(f"simulated {run.frames} frames at {fps:g} fps on the AcinoSet 2019 rig ({len(calibration)} cameras, "
         f"{len(run.markers)} markers): noise {noise:g} px, {int(run.outlier.sum())} outliers "
         f"(sigma {outlier_std:g} px), seed {seed}")
-
-    from graph.warmup import warm_up
 
     log("compiling the solver's kernels (once: later runs load them from the cache) ...")
     log(f"kernels ready in {warm_up():.1f} s; the seconds below are the solves alone")
@@ -183,7 +182,7 @@ def plot_comparison(path: Path, evaluations, run) -> Path:
 def register(subparsers) -> None:
     """``acinoset demo``."""
     p = subparsers.add_parser(
-        "demo", help="simulate a cheetah run on the AcinoSet rig and solve it with every method",
+        "demo",
         description="Simulate a cheetah run on the real AcinoSet 2019 six-camera rig (the paper's protocol: "
                     "Gaussian pixel noise and outliers), solve it with tri, ekf and fte, print a comparison "
                     "against the truth and write the results, figures and the simulated inputs.")

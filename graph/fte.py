@@ -13,14 +13,14 @@ difference of q is ``h^2/2 (w_{n+1} + w_n)``, so ``sigma_3 = h^2 sigma_w`` with 
 skeleton's per-parameter process noise.
 
 Solver: Levenberg-Marquardt driven from Python. Each iteration linearises the measurement part
-of all frames in one compiled call (:func:`graph.kernels.all_frames`: IRLS-weighted residuals and
-Jacobians), and builds a :class:`gtsam.GaussianFactorGraph` of
+of all frames in one compiled call (:func:`graph.kernels.all_normals`: the IRLS-weighted normal
+equations ``H_n, g_n`` of every frame), and builds a :class:`gtsam.GaussianFactorGraph` of
 
-* one ``JacobianFactor`` per frame: the frame's stacked camera/marker rows, the anchor and the
-  Marquardt damping ``sqrt(lambda) I``;
+* one ``HessianFactor`` per frame: the frame's normal equations, the anchor and the Marquardt
+  damping ``lambda I`` (see :class:`TrajectoryProblem`);
 * one 4-key linear motion factor per window of four frames (a ``GaussianConditional`` over
-  ``q_{n+3} | q_n, q_{n+1}, q_{n+2}`` turned into a ``JacobianFactor``: the Python constructors stop
-  at three keys);
+  ``q_{n+3} | q_n, q_{n+1}, q_{n+2}``, as a ``JacobianFactor`` kept in Hessian form: the Python
+  ``JacobianFactor`` constructors stop at three keys);
 
 which GTSAM eliminates (banded, natural ordering). Steps are clipped to the bounds. Graduated
 robustness: the first iterations use the loss with its knots a, b, c stretched by 4, so that
@@ -35,19 +35,34 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import gtsam
 import numpy as np
 
 from graph import kernels
-from graph.api import Progress
 from graph.initial import initial_poses
 from graph.marginals import chain_marginals
+from graph.noise import scatter_px
+from graph.problem import AUTO_RANGE_PX, Problem
+from graph.result import build_result
 from graph.robust import A as RA, B as RB, C as RC, OUTLIER_S
 from graph.triangulate import robust_points
+from graph.types import Progress, ProgressCallback, Result
 
 PRIOR_SIGMA = 10.0
 BONE_SIGMA_FRACTION = 0.05
+
+
+class Normals(NamedTuple):
+    """The robust measurement cost of every frame at a trajectory, from :meth:`TrajectoryProblem.normals`."""
+
+    H: np.ndarray  # (N, P, P) Gauss-Newton information of each frame
+    g: np.ndarray  # (N, P) gradient of each frame's cost
+    uv: np.ndarray  # (N, C, M, 2) reprojections
+    s: np.ndarray  # (N, C, M) normalised residuals |r| / sigma
+    w: np.ndarray  # (N, C, M) IRLS weights
+    cost: np.ndarray  # (N,) data cost of each frame
 
 
 class TrajectoryProblem:
@@ -62,10 +77,14 @@ class TrajectoryProblem:
         G = H + I/sigma_prior^2 + lambda I,    gvec = H q - g + q0/sigma_prior^2 + lambda q
 
     (GTSAM's Hessian factor is ``1/2 x^T G x - x^T gvec + f/2``).
+
+    ``sigma_px`` is the detection noise the loss scales by: the problem's, until
+    :func:`remeasure_noise` measures it again on the smoother's residuals.
     """
 
-    def __init__(self, prob, Q0: np.ndarray, bone_len: np.ndarray | None = None):
+    def __init__(self, prob: Problem, Q0: np.ndarray, bone_len: np.ndarray | None = None):
         self.prob = prob
+        self.sigma_px = prob.sigma_px
         sk = prob.skeleton
         self.sk_args = sk.arrays.kernel_args()
         self.intr, self.Rc, self.tc = prob.packed_cameras()
@@ -113,11 +132,11 @@ class TrajectoryProblem:
                     for n in range(self.N - 3)]
         return out
 
-    def normals(self, Q, stretch=1.0):
-        """Per-frame H (N, P, P), g (N, P), reprojections, s, w (N, C, M), data cost (N,)."""
-        return kernels.all_normals(Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.prob.sigma_px,
-                                   self.prob.options.robust, RA * stretch, RB * stretch, RC * stretch,
-                                   *self.sk_args, self.bones, self.bone_len, self.bone_sigma)
+    def normals(self, Q, stretch=1.0) -> Normals:
+        """The robust measurement cost of every frame at ``Q``, with the loss's knots stretched by ``stretch``."""
+        return Normals(*kernels.all_normals(Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_px,
+                                            self.prob.options.robust, RA * stretch, RB * stretch, RC * stretch,
+                                            *self.sk_args, self.bones, self.bone_len, self.bone_sigma))
 
     def motion_residual(self, Q):
         """Whitened third differences (N-3, P)."""
@@ -190,7 +209,7 @@ def optimise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int = 50, pro
     total_budget = sum(budget)
     for stretch, iters in zip(stretches, budget):
         lam = 1e-3
-        H, g, _, _, _, dc = tp.normals(Q, stretch)
+        H, g, *_, dc = tp.normals(Q, stretch)
         cost = tp.cost(Q, dc)
         for _ in range(iters):
             it_total += 1
@@ -199,7 +218,7 @@ def optimise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int = 50, pro
             # first failed step instead of raising the damping until one succeeds
             for _try in range(10 if stretch == stretches[-1] else 1):
                 Qn = np.clip(tp.solve_linear(Q, H, g, lam), lower, upper)
-                Hn, gn, _, _, _, dcn = tp.normals(Qn, stretch)
+                Hn, gn, *_, dcn = tp.normals(Qn, stretch)
                 new_cost = tp.cost(Qn, dcn)
                 if new_cost <= cost:
                     improved = True
@@ -229,17 +248,13 @@ def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, cost: float, max_itera
     detection, so no correction) and, while it differs from the sigma solved with by more than
     ``NOISE_TOLERANCE``, solve again from ``Q`` (whose cost is ``cost``) with it. Returns
     (Q, iterations, cost)."""
-    from graph.noise import scatter_px
-    from graph.problem import AUTO_RANGE_PX
-
-    prob = tp.prob
     iterations = 0
     for _ in range(NOISE_ROUNDS):
-        _, _, _, s, _, _ = tp.normals(Q)
-        sigma = scatter_px(np.where(prob.valid, s * prob.sigma_px, np.nan))
-        if not np.isfinite(sigma) or abs(sigma / prob.sigma_px - 1.0) <= NOISE_TOLERANCE:
+        s = tp.normals(Q).s
+        sigma = scatter_px(np.where(tp.prob.valid, s * tp.sigma_px, np.nan))
+        if not np.isfinite(sigma) or abs(sigma / tp.sigma_px - 1.0) <= NOISE_TOLERANCE:
             break
-        prob.sigma_px = float(np.clip(sigma, *AUTO_RANGE_PX))
+        tp.sigma_px = float(np.clip(sigma, *AUTO_RANGE_PX))
         Q, more, cost = optimise(tp, Q, max_iterations, stretches=(1.0,))
         iterations += more
     return Q, iterations, cost
@@ -253,7 +268,7 @@ def marker_std(dpos: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(var, 0.0))
 
 
-def bone_lengths(prob, X: np.ndarray) -> np.ndarray:
+def bone_lengths(prob: Problem, X: np.ndarray) -> np.ndarray:
     """Median length of each bone over the triangulated frames (0 where never seen)."""
     bones = prob.skeleton.bone_index
     if len(bones) == 0:
@@ -264,10 +279,8 @@ def bone_lengths(prob, X: np.ndarray) -> np.ndarray:
     return np.nan_to_num(L)
 
 
-def solve_fte(prob, progress=None):
+def solve_fte(prob: Problem, progress: ProgressCallback | None = None) -> Result:
     """``--method fte``: triangulate, initialise, then optimise the whole trajectory."""
-    from graph.result import build_result
-
     t0 = time.perf_counter()
     if progress:
         progress(Progress(stage="initialise", fraction=0.0))
@@ -291,27 +304,50 @@ def solve_fte(prob, progress=None):
     t_solve = time.perf_counter() - t0 - t_init
     if progress:
         progress(Progress(stage="uncertainty", fraction=0.95, iteration=iterations, cost=cost))
+    result = trajectory_result(tp, Q, "fte", seconds={"init": t_init, "solve": t_solve}, iterations=iterations,
+                               cost=cost)
+    if progress:
+        progress(Progress(stage="done", fraction=1.0, iteration=iterations, cost=cost))
+    return result
+
+
+BOUND_TOLERANCE = 1e-3  # a parameter this close to a joint limit counts as held by it
+
+
+def trajectory_result(tp: TrajectoryProblem, Q: np.ndarray, method: str, *, seconds: dict[str, float],
+                      iterations: int, cost: float | None = None, causal: np.ndarray | None = None,
+                      per_frame_ms: dict[str, float] | None = None) -> Result:
+    """The :class:`Result` of a smoothed trajectory ``Q`` (N, P) of ``tp``'s problem (``fte`` and
+    ``ekf``): markers by forward kinematics, reprojections and residuals at ``Q``, and, when the
+    options ask for it, the marginal covariance ``Sigma_n`` of every pose
+    (:meth:`TrajectoryProblem.marginal_covariances` of the undamped information at ``Q``), each
+    marker's 3D sd (:func:`marker_std`) and each parameter's ``sqrt(diag Sigma_n)``. ``cost`` is
+    computed at ``Q`` when not given; ``causal`` (N, P) are an online method's per-frame poses.
+    A free point never seen by two cameras has no estimate (NaN)."""
+    prob = tp.prob
     t1 = time.perf_counter()
     pos, dpos = kernels.fk_jacobian_batch(Q, *tp.sk_args)
-    H, _, uv, s, _, _ = tp.normals(Q, 1.0)
+    normals = tp.normals(Q)
+    if cost is None:
+        cost = tp.cost(Q, normals.cost)
     if prob.options.uncertainty:
-        Sigma = tp.marginal_covariances(H)
+        Sigma = tp.marginal_covariances(normals.H)
         std = marker_std(dpos, Sigma)
         params_std = np.sqrt(np.maximum(np.diagonal(Sigma, axis1=-2, axis2=-1), 0.0))
     else:
         std = np.full(pos.shape, np.nan)
         params_std = None
+    causal_pos = prob.skeleton.positions(causal) if causal is not None else None
     if prob.skeleton.kind == "points":
-        # a free point never seen by two cameras has no 3D estimate
         never = prob.views().max(axis=0) < 2
-        pos[:, never] = np.nan
-        std[:, never] = np.nan
-    tol = 1e-3
-    active = int(np.sum((Q <= prob.skeleton.lower + tol) | (Q >= prob.skeleton.upper - tol)))
-    if progress:
-        progress(Progress(stage="done", fraction=1.0, iteration=iterations, cost=cost))
-    return build_result(prob, "fte", positions=pos, std=std, reprojections=uv.transpose(1, 0, 2, 3), s=s,
-                        outlier=s >= OUTLIER_S,
-                        seconds={"init": t_init, "solve": t_solve, "uncertainty": time.perf_counter() - t1},
-                        iterations=iterations, cost=cost, params=Q, params_std=params_std,
-                        bounds_active=active)
+        for a in (pos, std, causal_pos):
+            if a is not None:
+                a[:, never] = np.nan
+    sk = prob.skeleton
+    active = int(np.sum((Q <= sk.lower + BOUND_TOLERANCE) | (Q >= sk.upper - BOUND_TOLERANCE)))
+    s = normals.s
+    return build_result(prob, method, positions=pos, std=std, reprojections=normals.uv.transpose(1, 0, 2, 3), s=s,
+                        outlier=s >= OUTLIER_S, sigma_px=tp.sigma_px,
+                        seconds={**seconds, "uncertainty": time.perf_counter() - t1}, iterations=iterations,
+                        cost=cost, params=Q, params_std=params_std, causal_positions=causal_pos,
+                        per_frame_ms=per_frame_ms, bounds_active=active)

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
 
 from graph import kernels
+from graph.problem import Problem
 
 
 def fill_gaps(x: np.ndarray) -> np.ndarray:
@@ -46,7 +47,7 @@ def smooth_path(x: np.ndarray, median: int = 9, mean: int = 5) -> np.ndarray:
     return x
 
 
-def initial_poses(prob, X: np.ndarray) -> np.ndarray:
+def initial_poses(prob: Problem, X: np.ndarray) -> np.ndarray:
     """Initial pose parameters (N, P) from triangulated markers ``X`` (N, M, 3)."""
     sk = prob.skeleton
     a = sk.arrays

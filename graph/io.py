@@ -24,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.api import Result, SolveOptions, SolveReport
+from graph import __version__
 from graph.errors import InputError
 from graph.keypoints import Keypoints, write_dlc_csv
+from graph.types import Result, SolveOptions, SolveReport, jsonable
 
 RESULT_FORMAT = "acinoset.result"
 RESULT_FORMAT_VERSION = 1
@@ -135,7 +136,6 @@ def write_h5(path: str | Path, result: Result) -> None:
     """Everything in ``result`` as plain HDF5 (readable from any language; no pickles)."""
     import h5py
 
-    from graph import __version__
 
     with h5py.File(path, "w") as f:
         f.attrs["format"] = RESULT_FORMAT
@@ -144,7 +144,7 @@ def write_h5(path: str | Path, result: Result) -> None:
         f.attrs["method"] = result.method
         f.attrs["skeleton"] = result.skeleton
         f.attrs["fps"] = float(result.fps)
-        f.attrs["options"] = json.dumps(_jsonable(result.options.to_dict()))
+        f.attrs["options"] = json.dumps(jsonable(result.options.to_dict()))
         f.attrs["report"] = json.dumps(result.report.to_dict())
         _strings(f, "markers", result.markers)
         _strings(f, "camera_names", result.camera_names)
@@ -222,16 +222,6 @@ def _text(v) -> str:
 def _attr(obj, name: str) -> str | None:
     v = obj.attrs.get(name)
     return None if v is None else _text(v)
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    return x
 
 
 def _options(d: dict) -> SolveOptions:

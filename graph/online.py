@@ -35,11 +35,12 @@ import gtsam
 import numpy as np
 
 from graph import kernels
-from graph.api import Progress
-from graph.fte import PRIOR_SIGMA, TrajectoryProblem, bone_lengths, marker_std, optimise
+from graph.fte import PRIOR_SIGMA, TrajectoryProblem, bone_lengths, optimise, trajectory_result
 from graph.initial import initial_poses
-from graph.robust import A as RA, B as RB, C as RC, OUTLIER_S
+from graph.problem import Problem
+from graph.robust import A as RA, B as RB, C as RC
 from graph.triangulate import robust_points
+from graph.types import Progress, ProgressCallback, Result
 
 START_FRAMES = 10
 REFINE_STEPS = 3
@@ -82,7 +83,7 @@ class OnlineSmoother:
         values = gtsam.Values()
         stamps = {}
         placed = []
-        H, g, _, _, _, _ = tp.normals(Q_start)
+        H, g, *_ = tp.normals(Q_start)
         for k, q in enumerate(Q_start):
             placed.append((k, self._add_frame_factors(graph, k, H[k], g[k], q, anchor=q)))
             self.window[k] = _Frame(tp.meas[k], tp.valid[k], q.copy(), q.copy())
@@ -108,7 +109,7 @@ class OnlineSmoother:
         tp = self.tp
         C, M = valid.shape
         Hf, gf = np.zeros((self.P, self.P)), np.zeros(self.P)
-        kernels.frame_normal(q, meas, valid, tp.intr, tp.Rc, tp.tc, tp.prob.sigma_px, tp.prob.options.robust,
+        kernels.frame_normal(q, meas, valid, tp.intr, tp.Rc, tp.tc, tp.sigma_px, tp.prob.options.robust,
                              RA, RB, RC, *tp.sk_args, tp.bones, tp.bone_len, tp.bone_sigma, Hf, gf,
                              np.zeros((C, M, 2)), np.zeros((C, M)), np.zeros((C, M)))
         return Hf, gf
@@ -203,10 +204,8 @@ class OnlineSmoother:
         return np.stack(self.history)
 
 
-def solve_ekf(prob, progress=None):
+def solve_ekf(prob: Problem, progress: ProgressCallback | None = None) -> Result:
     """``--method ekf``: batch start on the first frames, then one smoother update per frame."""
-    from graph.result import build_result
-
     t0 = time.perf_counter()
     if progress:
         progress(Progress(stage="initialise", fraction=0.0))
@@ -234,26 +233,15 @@ def solve_ekf(prob, progress=None):
                 progress(Progress(stage="filter", fraction=0.1 + 0.85 * (n - S) / (N - S), iteration=n))
         Q = sm.finish()
     t_solve = time.perf_counter() - t0 - t_init
-    full = TrajectoryProblem(prob, Q, tp.bone_len)
-    H, g, uv, s, _, dc = full.normals(Q)
-    # per-marker std from the marginals of the whole run's information at the smoothed trajectory
-    # (the chain of graph.marginals, as fte); a per-frame inverse with the motion prior as a stiff
-    # local term had claimed 4-9x too little spread
-    Sigma = full.marginal_covariances(H)
-    pos, dpos = kernels.fk_jacobian_batch(Q, *full.sk_args)
-    std = marker_std(dpos, Sigma)
-    causal_pos = prob.skeleton.positions(causal)
-    if prob.skeleton.kind == "points":
-        never = prob.views().max(axis=0) < 2
-        pos[:, never] = np.nan
-        std[:, never] = np.nan
-        causal_pos[:, never] = np.nan
     ms = np.array(per_frame) * 1000.0
     per_frame_ms = ({"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "max": float(ms.max())}
                     if len(ms) else {"median": float("nan"), "p95": float("nan"), "max": float("nan")})
+    # per-marker std from the marginals of the whole run's information at the smoothed trajectory
+    # (the chain of graph.marginals, as fte); a per-frame inverse with the motion prior as a stiff
+    # local term had claimed 4-9x too little spread
+    result = trajectory_result(TrajectoryProblem(prob, Q, tp.bone_len), Q, "ekf",
+                               seconds={"init": t_init, "solve": t_solve}, iterations=N - S + iters,
+                               causal=causal, per_frame_ms=per_frame_ms)
     if progress:
         progress(Progress(stage="done", fraction=1.0, iteration=N))
-    return build_result(prob, "ekf", positions=pos, std=std, reprojections=uv.transpose(1, 0, 2, 3), s=s,
-                        outlier=s >= OUTLIER_S, seconds={"init": t_init, "solve": t_solve}, iterations=N - S + iters,
-                        cost=full.cost(Q, dc), params=Q, params_std=np.sqrt(np.diagonal(Sigma, axis1=1, axis2=2)),
-                        causal_positions=causal_pos, per_frame_ms=per_frame_ms)
+    return result

@@ -32,8 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.api import Result
+from graph.calibration import load_calibration
 from graph.errors import InputError
+from graph.io import read_result
+from graph.types import Result, jsonable
+from graph.viewer import SCRIPTS, STYLES, viewer_dir
 
 PAYLOAD_VERSION = 1
 HTML_NAME = "playback.html"
@@ -214,25 +217,9 @@ def result_payload(result: Result, calibration=None) -> dict:
         "params": _json_array(params, _PARAM_DECIMALS) if params is not None else None,
         "params_std": (_json_array(result.params_std, _PARAM_DECIMALS)
                        if result.params_std is not None else None),
-        "report": _jsonable(report),
-        "options": _jsonable(options),
+        "report": jsonable(report),
+        "options": jsonable(options),
     }
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, np.ndarray):
-        return _json_array(x)
-    return x
 
 
 # ------------------------------------------------------------------------------------ figures
@@ -604,19 +591,6 @@ def write_figures(result: Result, out_dir: str | Path, calibration=None, snapsho
 # --------------------------------------------------------------------------------------- HTML
 
 
-def static_dir() -> Path:
-    """The folder of the web pages' scripts and styles (``service/static``), found without
-    importing the service."""
-    spec = importlib.util.find_spec("service")
-    roots = list(spec.submodule_search_locations or []) if spec is not None else []
-    roots.append(str(Path(__file__).resolve().parent.parent / "service"))
-    for root in roots:
-        d = Path(root) / "static"
-        if (d / "result-view.js").is_file():
-            return d
-    raise FileNotFoundError("service/static/result-view.js is missing from this installation")
-
-
 def plotly_js_path() -> Path:
     """plotly.min.js as shipped inside the plotly wheel (no network needed)."""
     spec = importlib.util.find_spec("plotly")
@@ -635,10 +609,10 @@ def _script_text(text: str) -> str:
 
 def playback_html(result: Result, calibration=None, title: str | None = None) -> str:
     """One self-contained HTML page: plotly.js, the result view and the payload inlined."""
-    d = static_dir()
+    d = viewer_dir()
     payload = json.dumps(result_payload(result, calibration), separators=(",", ":"), allow_nan=False)
-    css = (d / "app.css").read_text(encoding="utf-8")
-    view = (d / "result-view.js").read_text(encoding="utf-8")
+    css = "\n".join((d / name).read_text(encoding="utf-8") for name in STYLES)
+    view = "\n".join((d / name).read_text(encoding="utf-8") for name in SCRIPTS)
     plotly = plotly_js_path().read_text(encoding="utf-8")
     title = title or f"acinoset: {result.method} / {result.skeleton}, {result.positions.shape[0]} frames"
     return f"""<!doctype html>
@@ -680,7 +654,7 @@ def write_playback_html(result: Result, path: str | Path, calibration=None) -> P
 def register(subparsers) -> None:
     """Add ``acinoset plot RESULT.h5 --out DIR``."""
     p = subparsers.add_parser(
-        "plot", help="draw a solved run: PNG figures and an HTML playback file",
+        "plot",
         description="Write PNG figures (skeleton with cameras, reprojection error per marker and "
                     "camera, coordinates and pose parameters over time with uncertainty, flagged "
                     f"frames) and {HTML_NAME}, a self-contained 3D playback that opens offline.")
@@ -694,8 +668,6 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from graph.io import read_result
-
     if not Path(args.result).is_file():
         raise InputError("no such file", args.result)
     if args.snapshots < 1:
@@ -705,8 +677,6 @@ def run(args: argparse.Namespace) -> int:
     result = read_result(args.result)
     calibration = None
     if args.calibration is not None:
-        from graph.calibration import load_calibration
-
         calibration = load_calibration(args.calibration)
     written = write_figures(result, args.out, calibration, snapshots=args.snapshots)
     if not args.no_html:

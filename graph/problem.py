@@ -8,20 +8,23 @@ likelihood threshold, and packs the cameras for the kernels.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from graph.api import CALIBRATION_UNITS, SolveOptions
+from graph.calibration import in_metres
 from graph.camera import Calibration
 from graph.errors import InputError
 from graph.keypoints import Keypoints, check_same_frames, match_bodyparts
+from graph.noise import scatter_px, triangulation_dof
 from graph.skeleton import Skeleton, load_skeleton
+from graph.triangulate import triangulate
+from graph.types import SolveOptions
 
 
-@dataclass
+@dataclass(frozen=True)
 class Problem:
-    """N frames, C cameras, M markers."""
+    """N frames, C cameras, M markers. Built once by :func:`build`; the solvers only read it."""
 
     skeleton: Skeleton
     calibration: Calibration
@@ -61,29 +64,6 @@ class Problem:
         markers = [m for j, m in enumerate(self.markers) if not two[:, j].any()]
         frames = [int(n) for n in np.flatnonzero(~two.any(axis=1))]
         return markers, frames
-
-
-RIG_SIZE_MM_GUESS = 50.0  # a rig whose cameras sit this many units apart is not in metres
-
-
-def in_metres(calibration: Calibration, units: str) -> tuple[Calibration, str | None]:
-    """The calibration with translations in metres. Anipose calibrations are in the units of the
-    calibration board, often millimetres; with ``units="auto"`` a rig whose cameras are more than
-    50 units from their centroid is taken to be in millimetres (and said so)."""
-    scale = CALIBRATION_UNITS[units]
-    note = None
-    if scale == 0.0:
-        centres = np.stack([c.center for c in calibration.cameras])
-        spread = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1)))
-        scale = 1.0
-        if spread > RIG_SIZE_MM_GUESS:
-            scale = 0.001
-            note = (f"{calibration.source or 'calibration'}: cameras are {spread:.0f} units from their centre; "
-                    "taking the calibration to be in millimetres (set calibration units to override)")
-    if scale == 1.0:
-        return calibration, note
-    cams = [replace(c, t=c.t * scale) for c in calibration.cameras]
-    return replace(calibration, cameras=cams), note
 
 
 def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOptions) -> Problem:
@@ -156,9 +136,6 @@ def measured_noise(calibration: Calibration, meas: np.ndarray, valid: np.ndarray
     first round at 5 px the points are triangulated again with a scale of 3 sigma (within 10 % of
     the simulated noise at 1-20 px with 20 % outliers). Raises :class:`InputError` when no marker is
     seen twice (nothing to measure)."""
-    from graph.noise import scatter_px, triangulation_dof
-    from graph.triangulate import triangulate
-
     scale, sigma = AUTO_START_PX, float("nan")
     for _ in range(AUTO_ROUNDS):
         _, _, _, s = triangulate(calibration, meas, valid, scale)

@@ -1,4 +1,4 @@
-"""Assemble a :class:`graph.api.Result` from a solver's arrays, with the diagnostics every method shares.
+"""Assemble a :class:`graph.types.Result` from a solver's arrays, with the diagnostics every method shares.
 
 Reprojection RMSE is over the detections used (valid and not flagged as outliers):
 ``sqrt(mean |uv - z|^2)`` in pixels. The measured noise is :func:`graph.noise.scatter_px` of the
@@ -12,16 +12,20 @@ import warnings
 
 import numpy as np
 
-from graph.api import Result, SolveReport
+from graph.noise import scatter_px, triangulation_dof
+from graph.problem import Problem
+from graph.types import Result, SolveReport
 
 
-def build_result(prob, method: str, *, positions, std, reprojections, s, outlier, seconds, iterations,
-                 cost=float("nan"), params=None, params_std=None, causal_positions=None,
-                 per_frame_ms=None, bounds_active=0) -> Result:
-    """``s`` and ``outlier`` are (N, C, M); ``reprojections`` (C, N, M, 2)."""
+def build_result(prob: Problem, method: str, *, positions, std, reprojections, s, outlier, seconds, iterations,
+                 cost=float("nan"), sigma_px: float | None = None, params=None, params_std=None,
+                 causal_positions=None, per_frame_ms=None, bounds_active=0) -> Result:
+    """``s`` and ``outlier`` are (N, C, M); ``reprojections`` (C, N, M, 2). ``sigma_px`` is the
+    detection noise ``s`` is normalised by (default: the problem's)."""
     sk = prob.skeleton
     valid = prob.valid
-    res_px = (s * prob.sigma_px).transpose(1, 0, 2)  # (C, N, M)
+    sigma_px = prob.sigma_px if sigma_px is None else sigma_px
+    res_px = (s * sigma_px).transpose(1, 0, 2)  # (C, N, M)
     res_px = np.where(valid.transpose(1, 0, 2), res_px, np.nan)
     out = (outlier & valid).transpose(1, 0, 2)
     used = np.isfinite(res_px) & ~out
@@ -31,7 +35,7 @@ def build_result(prob, method: str, *, positions, std, reprojections, s, outlier
         score = np.where(ncams > 0, (prob.likelihood * valid).sum(axis=1) / np.maximum(ncams, 1), 0.0)
     noise = measured_scatter(method, res_px, ncams)
     notes = list(prob.warnings)
-    mismatch = noise_mismatch(method, prob.options.measurement_std_px, prob.sigma_px, noise)
+    mismatch = noise_mismatch(method, prob.options.measurement_std_px, sigma_px, noise)
     if mismatch:
         notes.append(mismatch)
         warnings.warn(mismatch, stacklevel=3)
@@ -44,7 +48,7 @@ def build_result(prob, method: str, *, positions, std, reprojections, s, outlier
         seconds={"total": 0.0, **{k: float(v) for k, v in seconds.items()}},
         iterations=int(iterations), cost=float(cost), reprojection_rmse_px=rmse, per_frame_ms=per_frame_ms,
         outliers=int(out.sum()), observations=int(valid.sum()), unconstrained_markers=um,
-        unconstrained_frames=uf, bounds_active=int(bounds_active), sigma_px=float(prob.sigma_px), noise_px=noise,
+        unconstrained_frames=uf, bounds_active=int(bounds_active), sigma_px=float(sigma_px), noise_px=noise,
         warnings=notes)
     return Result(
         method=method, skeleton=sk.name, markers=list(sk.markers), positions=positions, std=std,
@@ -60,8 +64,6 @@ NOISE_MISMATCH = 1.5  # measured / assumed noise beyond this factor (either way)
 
 def measured_scatter(method: str, res_px: np.ndarray, ncams: np.ndarray) -> float:
     """The detections' noise (px) measured from the residuals ``res_px`` (C, N, M) of the estimate."""
-    from graph.noise import scatter_px, triangulation_dof
-
     dof = triangulation_dof(ncams)[None] if method == "tri" else 1.0
     return scatter_px(res_px, dof)
 

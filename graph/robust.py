@@ -34,7 +34,3 @@ def redescending(s: np.ndarray, a: float = A, b: float = B, c: float = C) -> tup
         w = np.select([s < a, s < b, s < c], [np.ones_like(s), a / s, a * (c - s) / ((c - b) * s)], 0.0)
     return rho, w
 
-
-def cauchy_weight(s: np.ndarray) -> np.ndarray:
-    """Cauchy IRLS weight ``1/(1 + s^2)``."""
-    return 1.0 / (1.0 + np.square(s))

@@ -57,9 +57,10 @@ from pathlib import Path
 
 import numpy as np
 
+from graph.calibration import default_rig_path, load_calibration, write_acinoset_json, write_anipose_toml
 from graph.camera import Calibration
 from graph.errors import InputError
-from graph.keypoints import Keypoints
+from graph.keypoints import Keypoints, write_dlc_csv
 from graph.skeleton import Skeleton, load_skeleton
 
 CAMERA_HEIGHT = 0.5  # m: the cameras' mean height above the ground
@@ -428,9 +429,6 @@ def write_run(run: SimulatedRun, out: str | Path, rig_path: str | Path | None = 
     """Write a run as a user would bring it: ``cam1.csv`` ... (DeepLabCut CSV), ``calibration.toml``
     (Anipose) and the rig JSON (AcinoSet), plus the truth (``truth.csv``, ``truth.npz``) and
     ``simulation.json`` (the settings). Returns the files written."""
-    from graph.calibration import write_acinoset_json, write_anipose_toml
-    from graph.keypoints import write_dlc_csv
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -489,7 +487,7 @@ def load_truth(path: str | Path) -> tuple[list[str], np.ndarray]:
 def register(subparsers) -> None:
     """``acinoset simulate``: a synthetic run written as DeepLabCut CSVs plus calibration and truth."""
     p = subparsers.add_parser(
-        "simulate", help="simulate a cheetah run on a rig and write DeepLabCut CSVs, calibration and truth",
+        "simulate",
         description="Simulate a cheetah running across a calibrated rig, with DeepLabCut-like noise, "
                     "outliers, left/right swaps and camera dropouts. Writes cam1.csv ... (DeepLabCut CSV), "
                     "calibration.toml (Anipose), the rig JSON (AcinoSet), truth.csv (Anipose 3D layout), "
@@ -511,8 +509,6 @@ def register(subparsers) -> None:
 
 
 def _cli(args) -> int:
-    from graph.calibration import default_rig_path, load_calibration
-
     if args.frames < 1:
         raise InputError(f"--frames must be at least 1, not {args.frames}")
     if not args.fps > 0:

@@ -19,13 +19,10 @@ Everything is vectorised over all N*M points at once.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from graph import kernels
 from graph.camera import Calibration, undistort_points
-from graph.robust import OUTLIER_S
 
 
 def robust_points(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, sigma_px: float = 5.0,
@@ -67,25 +64,3 @@ def triangulate(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, s
     s = np.where(ok.T, np.linalg.norm(uv - z.transpose(1, 0, 2), axis=-1) / sigma_px, np.nan)  # (C, K)
     return (X.reshape(N, M, 3), cov.reshape(N, M, 3, 3), uv.reshape(C, N, M, 2),
             s.reshape(C, N, M).transpose(1, 0, 2))
-
-
-def solve_tri(prob, progress=None):
-    """``--method tri``: triangulate every marker of every frame independently."""
-    from graph.result import build_result
-
-    t0 = time.perf_counter()
-    if progress:
-        progress(_progress("triangulate", 0.0))
-    X, cov, uv, s = triangulate(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
-    std = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
-    seconds = time.perf_counter() - t0
-    if progress:
-        progress(_progress("done", 1.0))
-    return build_result(prob, "tri", positions=X, std=std, reprojections=uv, s=s, outlier=s >= OUTLIER_S,
-                        seconds={"init": 0.0, "solve": seconds}, iterations=1)
-
-
-def _progress(stage, fraction, iteration=0, cost=float("nan")):
-    from graph.api import Progress
-
-    return Progress(stage=stage, fraction=fraction, iteration=iteration, cost=cost)

@@ -11,6 +11,11 @@ from __future__ import annotations
 import logging
 import time
 
+from graph.api import solve
+from graph.calibration import default_rig_path, load_calibration
+from graph.simulate import simulate_run
+from graph.types import SolveOptions
+
 log = logging.getLogger("acinoset")
 
 WARM_UP_RUNS = (("tri", "points"), ("fte", "points"), ("fte", "cheetah"), ("ekf", "cheetah"))
@@ -21,18 +26,11 @@ def warm_up() -> float:
 
     Never raises: a failed warm-up only means the first real solve compiles for itself."""
     t0 = time.perf_counter()
-    try:
-        from graph.api import SolveOptions, solve
-        from graph.calibration import default_rig_path, load_calibration
-        from graph.simulate import simulate_run
-
-        run = simulate_run(load_calibration(default_rig_path()), frames=12, seed=0)
-        for method, skeleton in WARM_UP_RUNS:
-            try:
-                solve(run.keypoints, run.calibration, SolveOptions(method=method, skeleton=skeleton, fps=run.fps,
-                                                                   max_iterations=2))
-            except Exception as e:  # noqa: BLE001
-                log.debug("warm-up %s/%s: %s", method, skeleton, e)
-    except Exception as e:  # noqa: BLE001 - the simulator may not be importable here
-        log.debug("warm-up skipped: %s", e)
+    run = simulate_run(load_calibration(default_rig_path()), frames=12, seed=0)
+    for method, skeleton in WARM_UP_RUNS:
+        try:
+            solve(run.keypoints, run.calibration, SolveOptions(method=method, skeleton=skeleton, fps=run.fps,
+                                                               max_iterations=2))
+        except Exception as e:  # noqa: BLE001
+            log.debug("warm-up %s/%s: %s", method, skeleton, e)
     return time.perf_counter() - t0

@@ -1,7 +1,6 @@
-"""``acinoset serve``, ``acinoset worker``, ``acinoset users`` and ``acinoset jobs``.
-
-:func:`register` adds the four subcommands to the ``acinoset`` command line (``graph/cli.py``);
-``python -m service`` runs them on their own. Every flag left out falls back to the environment
+"""The ``acinoset`` command: the library's subcommands (:data:`graph.cli.COMMANDS`) and the service's,
+``serve``, ``worker``, ``users`` and ``jobs``, which :func:`register` adds. ``python -m service``
+runs the same command. Every flag left out falls back to the environment
 (``ACINOSET_*``, see :mod:`service.settings`), then to the defaults.
 """
 
@@ -15,12 +14,14 @@ import socket
 import sys
 from pathlib import Path
 
-from service.settings import Settings
+from graph.cli import COMMANDS as LIBRARY_COMMANDS, Command, main as cli_main
 
 WORKER_TTL = 60  # seconds a dead worker's name stays registered in Redis (idle workers renew it)
 
 
-def _settings(args: argparse.Namespace, *names: str) -> Settings:
+def _settings(args: argparse.Namespace, *names: str):
+    from service.settings import Settings
+
     overrides = {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
     return Settings(**overrides)
 
@@ -32,7 +33,7 @@ def _data_dir_arg(p: argparse.ArgumentParser) -> None:
 
 def register(subparsers) -> None:
     """Add ``serve``, ``worker`` and ``users`` to an argparse subparsers object."""
-    p = subparsers.add_parser("serve", help="run the job service (REST API)",
+    p = subparsers.add_parser("serve",
                               description="Run the REST job service for a lab: upload keypoints and a "
                                           "calibration, poll the job, download the 3D result.")
     p.add_argument("--host", help="address to listen on (default 127.0.0.1; 0.0.0.0 for the whole network)")
@@ -47,7 +48,7 @@ def register(subparsers) -> None:
     p.add_argument("--access-log", action="store_true", help="log every request")
     p.set_defaults(func=serve)
 
-    w = subparsers.add_parser("worker", help="run solves for an 'acinoset serve --backend rq' server",
+    w = subparsers.add_parser("worker",
                               description="Join the pool of an RQ-backed server: take jobs from Redis, solve "
                                           "them, hand the results back. Run it on any machine with acinoset "
                                           "installed that reaches the Redis server.")
@@ -58,7 +59,7 @@ def register(subparsers) -> None:
     w.add_argument("--log-level", choices=["debug", "info", "warning", "error"], help="default info")
     w.set_defaults(func=worker)
 
-    u = subparsers.add_parser("users", help="manage the service's users and tokens",
+    u = subparsers.add_parser("users",
                               description="Users of the job service. Tokens are printed once, on the last "
                                           "line, and stored only as a hash.")
     us = u.add_subparsers(dest="users_command", required=True, metavar="{add,list,token,remove}")
@@ -79,7 +80,7 @@ def register(subparsers) -> None:
     _data_dir_arg(r)
     r.set_defaults(func=users_remove)
 
-    j = subparsers.add_parser("jobs", help="list the service's jobs and prune old ones (admin)",
+    j = subparsers.add_parser("jobs",
                               description="The job table and result files of a data dir, for its admin. "
                                           "Safe while the server runs.")
     js = j.add_subparsers(dest="jobs_command", required=True, metavar="{list,prune}")
@@ -154,9 +155,9 @@ def service_worker_modules() -> list[str]:
 
 
 def _version() -> str:
-    import graph
+    from graph import __version__
 
-    return graph.__version__
+    return __version__
 
 
 # -- worker ------------------------------------------------------------------------------------
@@ -345,9 +346,14 @@ def jobs_prune(args: argparse.Namespace) -> int:
     return 0
 
 
+# The one ``acinoset`` command: the library's subcommands and the service's, composed here, where
+# both layers are known (the console script in pyproject.toml points at :func:`main`).
+COMMANDS: tuple[Command, ...] = (*LIBRARY_COMMANDS, *(Command(name, __name__, text) for name, text in (
+    ("serve", "run the job service (REST API)"),
+    ("worker", "run solves for an 'acinoset serve --backend rq' server"),
+    ("users", "manage the service's users and tokens"),
+    ("jobs", "list the service's jobs and prune old ones (admin)"),)))
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m service", description="acinoset job service")
-    sub = parser.add_subparsers(dest="command", required=True)
-    register(sub)
-    args = parser.parse_args(argv)
-    return int(args.func(args) or 0)
+    return cli_main(argv, COMMANDS)
