@@ -12,7 +12,7 @@ from typing import Protocol
 
 from graph import problem
 from graph.camera import Calibration
-from graph.fte import solve_fte
+from graph.joint import solve_fte_joint
 from graph.keypoints import Keypoints
 from graph.online import solve_ekf
 from graph.problem import Problem
@@ -27,7 +27,8 @@ class Solver(Protocol):
     def __call__(self, prob: Problem, progress: ProgressCallback | None = None) -> Result: ...
 
 
-SOLVERS: dict[str, Solver] = {"tri": solve_tri, "ekf": solve_ekf, "fte": solve_fte}
+# fte: graph.fte.solve_fte, with the body and the clocks as unknowns where the options ask (graph.joint)
+SOLVERS: dict[str, Solver] = {"tri": solve_tri, "ekf": solve_ekf, "fte": solve_fte_joint}
 assert tuple(SOLVERS) == METHODS, "graph.types.Method and SOLVERS must name the same methods"
 
 

@@ -54,6 +54,16 @@ PRIOR_SIGMA = 10.0
 BONE_SIGMA_FRACTION = 0.05
 
 
+class Estimate(NamedTuple):
+    """What a solved trajectory gives: marker positions (N, M, 3), their 3D sd (N, M, 3; NaN
+    without uncertainty), each parameter's sd (N, P, or None) and report fields of its own."""
+
+    positions: np.ndarray
+    std: np.ndarray
+    params_std: np.ndarray | None
+    report: dict | None = None
+
+
 class Normals(NamedTuple):
     """The robust measurement cost of every frame at a trajectory, from :meth:`TrajectoryProblem.normals`."""
 
@@ -181,6 +191,30 @@ class TrajectoryProblem:
     def solve_linear(self, Q, H, g, lam: float) -> np.ndarray:
         return self._solution(self.linear_graph(Q, H, g, lam).optimize(self._ordering))
 
+    # the state interface :func:`optimise` drives (a subclass with more unknowns has its own state)
+
+    def step(self, Q: np.ndarray, normals: Normals, lam: float) -> np.ndarray:
+        """The damped Gauss-Newton step from ``Q``, clipped to the joint bounds."""
+        sk = self.prob.skeleton
+        return np.clip(self.solve_linear(Q, normals.H, normals.g, lam), sk.lower, sk.upper)
+
+    @staticmethod
+    def change(Q: np.ndarray, Qn: np.ndarray) -> float:
+        return float(np.max(np.abs(Qn - Q)))
+
+    def poses(self, Q: np.ndarray) -> np.ndarray:
+        return Q
+
+    def estimate(self, Q: np.ndarray, normals: Normals, uncertainty: bool) -> "Estimate":
+        """Markers at ``Q`` by forward kinematics and, with ``uncertainty``, the marginal covariance
+        ``Sigma_n`` of every pose (:meth:`marginal_covariances`), each marker's 3D sd
+        (:func:`marker_std`) and each parameter's ``sqrt(diag Sigma_n)``."""
+        pos, dpos = kernels.fk_jacobian_batch(Q, *self.sk_args)
+        if not uncertainty:
+            return Estimate(pos, np.full(pos.shape, np.nan), None)
+        Sigma = self.marginal_covariances(normals.H)
+        return Estimate(pos, marker_std(dpos, Sigma), np.sqrt(np.maximum(np.diagonal(Sigma, axis1=-2, axis2=-1), 0.0)))
+
     def marginal_covariances(self, H: np.ndarray) -> np.ndarray:
         """Marginal covariance of each frame's pose (N, P, P) at the optimum, from the undamped
         information (``H`` from :meth:`normals` there, the anchor and the motion factors) by
@@ -198,44 +232,43 @@ class TrajectoryProblem:
         return S
 
 
-def optimise(tp: TrajectoryProblem, Q: np.ndarray, max_iterations: int = 50, progress=None,
+def optimise(tp: TrajectoryProblem, X, max_iterations: int = 50, progress=None,
              stretches=(4.0, 1.0), tol: float = 1e-4):
-    """Levenberg-Marquardt with bound clipping and graduated robustness. Returns (Q, iterations, cost)."""
-    sk = tp.prob.skeleton
-    lower, upper = sk.lower, sk.upper
+    """Levenberg-Marquardt with bound clipping and graduated robustness, on the state ``X`` of
+    ``tp`` (the trajectory Q, or a subclass's). Returns (X, iterations, cost)."""
     it_total = 0
     cost = np.inf
     budget = [min(3, max_iterations)] * (len(stretches) - 1) + [max_iterations]
     total_budget = sum(budget)
     for stretch, iters in zip(stretches, budget):
         lam = 1e-3
-        H, g, *_, dc = tp.normals(Q, stretch)
-        cost = tp.cost(Q, dc)
+        nrm = tp.normals(X, stretch)
+        cost = tp.cost(X, nrm.cost)
         for _ in range(iters):
             it_total += 1
             improved = False
             # a stretched stage only has to bring the pose near the detections: it ends at its
             # first failed step instead of raising the damping until one succeeds
             for _try in range(10 if stretch == stretches[-1] else 1):
-                Qn = np.clip(tp.solve_linear(Q, H, g, lam), lower, upper)
-                Hn, gn, *_, dcn = tp.normals(Qn, stretch)
-                new_cost = tp.cost(Qn, dcn)
+                Xn = tp.step(X, nrm, lam)
+                nrm_n = tp.normals(Xn, stretch)
+                new_cost = tp.cost(Xn, nrm_n.cost)
                 if new_cost <= cost:
                     improved = True
                     break
                 lam *= 10.0
             if not improved:
                 break
-            step = np.max(np.abs(Qn - Q))
+            step = tp.change(X, Xn)
             rel = (cost - new_cost) / max(cost, 1e-12)
-            Q, H, g, cost = Qn, Hn, gn, new_cost
+            X, nrm, cost = Xn, nrm_n, new_cost
             lam = max(lam / 10.0, 1e-6)
             if progress:
                 progress(Progress(stage="optimise", fraction=0.1 + 0.85 * min(1.0, it_total / total_budget),
                                   iteration=it_total, cost=cost))
             if rel < tol or step < 1e-6:
                 break
-    return Q, it_total, cost
+    return X, it_total, cost
 
 
 NOISE_TOLERANCE = 0.1  # re-solve when the measured noise moved by more than this fraction
@@ -251,7 +284,7 @@ def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, cost: float, max_itera
     iterations = 0
     for _ in range(NOISE_ROUNDS):
         s = tp.normals(Q).s
-        sigma = scatter_px(np.where(tp.prob.valid, s * tp.sigma_px, np.nan))
+        sigma = scatter_px(np.where(tp.prob.valid & np.isfinite(s), s * tp.sigma_px, np.nan))
         if not np.isfinite(sigma) or abs(sigma / tp.sigma_px - 1.0) <= NOISE_TOLERANCE:
             break
         tp.sigma_px = float(np.clip(sigma, *AUTO_RANGE_PX))
@@ -314,29 +347,24 @@ def solve_fte(prob: Problem, progress: ProgressCallback | None = None) -> Result
 BOUND_TOLERANCE = 1e-3  # a parameter this close to a joint limit counts as held by it
 
 
-def trajectory_result(tp: TrajectoryProblem, Q: np.ndarray, method: str, *, seconds: dict[str, float],
+def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[str, float],
                       iterations: int, cost: float | None = None, causal: np.ndarray | None = None,
-                      per_frame_ms: dict[str, float] | None = None) -> Result:
-    """The :class:`Result` of a smoothed trajectory ``Q`` (N, P) of ``tp``'s problem (``fte`` and
-    ``ekf``): markers by forward kinematics, reprojections and residuals at ``Q``, and, when the
-    options ask for it, the marginal covariance ``Sigma_n`` of every pose
-    (:meth:`TrajectoryProblem.marginal_covariances` of the undamped information at ``Q``), each
-    marker's 3D sd (:func:`marker_std`) and each parameter's ``sqrt(diag Sigma_n)``. ``cost`` is
-    computed at ``Q`` when not given; ``causal`` (N, P) are an online method's per-frame poses.
-    A free point never seen by two cameras has no estimate (NaN)."""
+                      per_frame_ms: dict[str, float] | None = None, notes: list[str] | None = None) -> Result:
+    """The :class:`Result` of a smoothed state ``X`` of ``tp`` (``fte`` and ``ekf``): markers by
+    forward kinematics, reprojections and residuals at ``X``, and, when the options ask for it,
+    the uncertainties (:meth:`TrajectoryProblem.estimate`). ``cost`` is computed at ``X`` when not
+    given; ``causal`` (N, P) are an online method's per-frame poses. A free point never seen by
+    two cameras has no estimate (NaN)."""
     prob = tp.prob
     t1 = time.perf_counter()
-    pos, dpos = kernels.fk_jacobian_batch(Q, *tp.sk_args)
-    normals = tp.normals(Q)
+    normals = tp.normals(X)
     if cost is None:
-        cost = tp.cost(Q, normals.cost)
-    if prob.options.uncertainty:
-        Sigma = tp.marginal_covariances(normals.H)
-        std = marker_std(dpos, Sigma)
-        params_std = np.sqrt(np.maximum(np.diagonal(Sigma, axis1=-2, axis2=-1), 0.0))
-    else:
-        std = np.full(pos.shape, np.nan)
-        params_std = None
+        cost = tp.cost(X, normals.cost)
+    Q = tp.poses(X)
+    est = tp.estimate(X, normals, prob.options.uncertainty)
+    pos, std, params_std = est.positions, est.std, est.params_std
+    report = dict(est.report or {})
+    report["warnings"] = list(notes or []) + report.get("warnings", [])
     causal_pos = prob.skeleton.positions(causal) if causal is not None else None
     if prob.skeleton.kind == "points":
         never = prob.views().max(axis=0) < 2
@@ -350,4 +378,4 @@ def trajectory_result(tp: TrajectoryProblem, Q: np.ndarray, method: str, *, seco
                         outlier=s >= OUTLIER_S, sigma_px=tp.sigma_px,
                         seconds={**seconds, "uncertainty": time.perf_counter() - t1}, iterations=iterations,
                         cost=cost, params=Q, params_std=params_std, causal_positions=causal_pos,
-                        per_frame_ms=per_frame_ms, bounds_active=active)
+                        per_frame_ms=per_frame_ms, bounds_active=active, report=report)

@@ -63,17 +63,12 @@ def _mul3(A, B, out):
 
 
 @njit(cache=True)
-def fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
-                marker_dep):
-    """Marker positions (M, 3) and their Jacobian d p / d q (M, 3, P) for one pose ``q`` (P,).
-
-    ``d RI_k / d q_j = d Rloc_k / d q_j RI_parent`` for the segment's own parameters and
-    ``Rloc_k d RI_parent / d q_j`` for its ancestors';
-    ``d p / d q_j = d p_base / d q_j + (d RI_seg / d q_j)^T offset``.
-    """
+def _segment_rotations(q, seg_parent, seg_axis, seg_param):
+    """Every segment's rotation ``RI_k`` (S, 3, 3), its derivatives ``d RI_k / d q_j`` (S, P, 3, 3)
+    and which of them are not zero (S, P): ``d RI_k / d q_j = d Rloc_k / d q_j RI_parent`` for the
+    segment's own parameters and ``Rloc_k d RI_parent / d q_j`` for its ancestors'."""
     P = q.shape[0]
     S = seg_parent.shape[0]
-    K = pt_base.shape[0]
     RI = np.zeros((S, 3, 3))
     dRI = np.zeros((S, P, 3, 3))
     has = np.zeros((S, P), dtype=np.bool_)
@@ -120,8 +115,33 @@ def fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt
                 for b in range(3):
                     dRI[k, p, a, b] += T1[a, b]
             has[k, p] = True
+    return RI, dRI, has
+
+
+@njit(cache=True)
+def fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
+                marker_dep):
+    """Marker positions (M, 3) and their Jacobian d p / d q (M, 3, P) for one pose ``q`` (P,):
+    ``d p / d q_j = d p_base / d q_j + (d RI_seg / d q_j)^T offset`` (:func:`_segment_rotations`).
+    """
+    pos, dpos, _ = fk_body_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
+                                    marker_point, np.full(pt_base.shape[0], -1, dtype=np.int64), 0)
+    return pos, dpos
+
+
+@njit(cache=True)
+def fk_body_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
+                     pt_group, G):
+    """:func:`fk_jacobian`, and the Jacobian ``d p / d l`` (M, 3, G) with respect to the log scale
+    ``l_g`` of each length group (offset ``exp(l_g) u_k``, so ``d offset_k / d l_g = offset_k`` for
+    the points of group g): ``d p_k / d l_g = d p_base / d l_g + [group(k) = g] RI_seg^T offset_k``.
+    ``pt_group`` (K,) is each point's group (-1: none)."""
+    P = q.shape[0]
+    K = pt_base.shape[0]
+    RI, dRI, has = _segment_rotations(q, seg_parent, seg_axis, seg_param)
     pos = np.zeros((K, 3))
     dpos = np.zeros((K, 3, P))
+    dlen = np.zeros((K, 3, G))
     for k in range(K):
         b = pt_base[k]
         if b < 0:
@@ -132,7 +152,12 @@ def fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt
             s = pt_seg[k]
             off = pt_offset[k]
             for c in range(3):
-                pos[k, c] = pos[b, c] + RI[s, 0, c] * off[0] + RI[s, 1, c] * off[1] + RI[s, 2, c] * off[2]
+                arm = RI[s, 0, c] * off[0] + RI[s, 1, c] * off[1] + RI[s, 2, c] * off[2]
+                pos[k, c] = pos[b, c] + arm
+                for gi in range(G):
+                    dlen[k, c, gi] = dlen[b, c, gi]
+                if pt_group[k] >= 0 and pt_group[k] < G:
+                    dlen[k, c, pt_group[k]] += arm
             for p in range(P):
                 for c in range(3):
                     dpos[k, c, p] = dpos[b, c, p]
@@ -142,10 +167,12 @@ def fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt
     M = marker_point.shape[0]
     out = np.zeros((M, 3))
     dout = np.zeros((M, 3, P))
+    dl = np.zeros((M, 3, G))
     for m in range(M):
         out[m] = pos[marker_point[m]]
         dout[m] = dpos[marker_point[m]]
-    return out, dout
+        dl[m] = dlen[marker_point[m]]
+    return out, dout, dl
 
 
 @njit(cache=True)
@@ -567,3 +594,193 @@ def triangulate_points(norm, z, ok, intr, Rc, tc, Pm, sigma, iterations):
         X[k] = x
         Hout[k] = H
     return X, Hout
+
+
+@njit(cache=True, parallel=True)
+def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shift, frac, tau_col, pt_group, G,
+                   seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point, marker_dep,
+                   bones, bone_len, bone_sigma, bone_col):
+    """The robust reprojection cost's normal equations with unknowns shared by all frames: the
+    body's length scales and the cameras' time offsets (``G`` of them, the vector ``W``).
+
+    Camera c's frame ``m`` was taken at time ``m - shift_c - frac_c`` on the trajectory's clock
+    (the offset ``tau_c = shift_c + frac_c`` frames, ``shift_c`` whole, ``0 <= frac_c < 1``): its
+    detections there are those of window ``n = m - shift_c``, seen at the pose interpolated between
+    frames n and n+1::
+
+        q(n + f) = (1 - f) q_n + f q_{n+1},     d q / d tau = q_{n+1} - q_n
+
+    (``f = frac_c``; at ``f = 0`` the pose is frame n's own). With ``J = d e / d q`` of the whitened
+    residual e at that pose (:func:`frame_normal`), the detection adds ``w (1-f)^2 J^T J`` to frame
+    n's information, ``w f^2 J^T J`` to frame n+1's and ``w (1-f) f J^T J`` between them, and with
+    ``J_W = [d e / d l, d e / d tau_c]`` (the length groups of the marker's chain,
+    :func:`fk_body_jacobian`; the column ``tau_col[c]``, -1 for a camera whose offset is given)
+    the blocks to and of ``W``. Bone rows of a points skeleton are frame n's own, with the bone's
+    log length ``bone_col[i] >= 0`` a column of ``W`` (``e = (|p_a - p_b| - bone_len_i) / sigma``).
+
+    Returns, per window n: ``Ha, Hb, Hab`` (N, P, P): frame n's, frame n+1's and their cross
+    information; ``ga, gb`` (N, P); ``HaW, HbW`` (N, P, G); ``HWW`` (N, G, G), ``gW`` (N, G); and per
+    camera frame (the detections' own indexing) ``uv`` (N, C, M, 2), ``s`` and ``w`` (N, C, M); the
+    cost (N,). A detection whose time falls outside the trajectory is not used (s NaN).
+    """
+    N, P = Q.shape
+    C = meas.shape[1]
+    M = meas.shape[2]
+    D = marker_dep.shape[1]
+    Ha = np.zeros((N, P, P))
+    Hb = np.zeros((N, P, P))
+    Hab = np.zeros((N, P, P))
+    ga = np.zeros((N, P))
+    gb = np.zeros((N, P))
+    HaW = np.zeros((N, P, G))
+    HbW = np.zeros((N, P, G))
+    HWW = np.zeros((N, G, G))
+    gW = np.zeros((N, G))
+    uv_out = np.full((N, C, M, 2), np.nan)
+    s_out = np.full((N, C, M), np.nan)
+    w_out = np.zeros((N, C, M))
+    cost = np.zeros(N)
+    for n in prange(N):
+        q = np.empty(P)
+        vel = np.empty(P)
+        uv = np.zeros(2)
+        Jx = np.zeros((2, 3))
+        Jr = np.zeros((2, D))
+        JW = np.zeros((2, G))
+        last_f = -1.0
+        pos = np.zeros((M, 3))
+        dpos = np.zeros((M, 3, P))
+        dlen = np.zeros((M, 3, G))
+        if n + 1 < N:
+            for p in range(P):
+                vel[p] = Q[n + 1, p] - Q[n, p]
+        else:
+            for p in range(P):
+                vel[p] = Q[n, p] - Q[n - 1, p] if n > 0 else 0.0
+        for c in range(C):
+            m_frame = n + shift[c]
+            f = frac[c]
+            if m_frame < 0 or m_frame >= N or (f > 0.0 and n + 1 >= N):
+                continue
+            if f != last_f:
+                for p in range(P):
+                    q[p] = Q[n, p] if f == 0.0 else (1.0 - f) * Q[n, p] + f * Q[n + 1, p]
+                pos, dpos, dlen = fk_body_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root,
+                                                   pt_offset, marker_point, pt_group, G)
+                last_f = f
+            tcol = tau_col[c]
+            for mk in range(M):
+                ok = project_point(intr[c], Rc[c], tc[c], pos[mk], uv, Jx)
+                uv_out[m_frame, c, mk, 0] = uv[0]
+                uv_out[m_frame, c, mk, 1] = uv[1]
+                if not valid[m_frame, c, mk]:
+                    continue
+                if not ok:
+                    if robust:
+                        rho, _ = redescending(1e9, ra, rb, rc)
+                        cost[n] += rho
+                    continue
+                ex = (uv[0] - meas[m_frame, c, mk, 0]) / sigma
+                ey = (uv[1] - meas[m_frame, c, mk, 1]) / sigma
+                s = np.sqrt(ex * ex + ey * ey)
+                if robust:
+                    rho, w = redescending(s, ra, rb, rc)
+                else:
+                    rho, w = 0.5 * s * s, 1.0
+                cost[n] += rho
+                s_out[m_frame, c, mk] = s
+                w_out[m_frame, c, mk] = w
+                if w <= 0.0:
+                    continue
+                nd = 0
+                for d in range(D):
+                    p = marker_dep[mk, d]
+                    if p < 0:
+                        break
+                    Jr[0, d] = (Jx[0, 0] * dpos[mk, 0, p] + Jx[0, 1] * dpos[mk, 1, p] + Jx[0, 2] * dpos[mk, 2, p]) / sigma
+                    Jr[1, d] = (Jx[1, 0] * dpos[mk, 0, p] + Jx[1, 1] * dpos[mk, 1, p] + Jx[1, 2] * dpos[mk, 2, p]) / sigma
+                    nd += 1
+                for r in range(2):
+                    for gi in range(G):
+                        JW[r, gi] = (Jx[r, 0] * dlen[mk, 0, gi] + Jx[r, 1] * dlen[mk, 1, gi]
+                                     + Jx[r, 2] * dlen[mk, 2, gi]) / sigma
+                    if tcol >= 0:
+                        acc = 0.0
+                        for i in range(nd):
+                            acc += Jr[r, i] * vel[marker_dep[mk, i]]
+                        JW[r, tcol] += acc
+                a = 1.0 - f
+                for i in range(nd):
+                    pi = marker_dep[mk, i]
+                    gi_ = w * (Jr[0, i] * ex + Jr[1, i] * ey)
+                    ga[n, pi] += a * gi_
+                    gb[n, pi] += f * gi_
+                    for j in range(nd):
+                        pj = marker_dep[mk, j]
+                        h = w * (Jr[0, i] * Jr[0, j] + Jr[1, i] * Jr[1, j])
+                        Ha[n, pi, pj] += a * a * h
+                        if f > 0.0:
+                            Hb[n, pi, pj] += f * f * h
+                            Hab[n, pi, pj] += a * f * h
+                    for gj in range(G):
+                        h = w * (Jr[0, i] * JW[0, gj] + Jr[1, i] * JW[1, gj])
+                        HaW[n, pi, gj] += a * h
+                        HbW[n, pi, gj] += f * h
+                for gi in range(G):
+                    gW[n, gi] += w * (JW[0, gi] * ex + JW[1, gi] * ey)
+                    for gj in range(G):
+                        HWW[n, gi, gj] += w * (JW[0, gi] * JW[0, gj] + JW[1, gi] * JW[1, gj])
+        # bone-length rows at frame n's own pose
+        if bones.shape[0] > 0:
+            pos0, dpos0, _ = fk_body_jacobian(Q[n], seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root,
+                                              pt_offset, marker_point, pt_group, 0)
+            jb = np.zeros(P)
+            for i in range(bones.shape[0]):
+                if not (bone_len[i] > 0):
+                    continue
+                ia = bones[i, 0]
+                ib = bones[i, 1]
+                dx = pos0[ia, 0] - pos0[ib, 0]
+                dy = pos0[ia, 1] - pos0[ib, 1]
+                dz = pos0[ia, 2] - pos0[ib, 2]
+                L = np.sqrt(dx * dx + dy * dy + dz * dz)
+                if L < 1e-12:
+                    continue
+                e = (L - bone_len[i]) / bone_sigma[i]
+                cost[n] += 0.5 * e * e
+                for p in range(P):
+                    jb[p] = (dx * (dpos0[ia, 0, p] - dpos0[ib, 0, p]) + dy * (dpos0[ia, 1, p] - dpos0[ib, 1, p])
+                             + dz * (dpos0[ia, 2, p] - dpos0[ib, 2, p])) / (L * bone_sigma[i])
+                col = bone_col[i]
+                jl = -bone_len[i] / bone_sigma[i]  # d e / d log(bone_len)
+                for p in range(P):
+                    if jb[p] == 0.0:
+                        continue
+                    ga[n, p] += jb[p] * e
+                    for p2 in range(P):
+                        Ha[n, p, p2] += jb[p] * jb[p2]
+                    if col >= 0:
+                        HaW[n, p, col] += jb[p] * jl
+                if col >= 0:
+                    gW[n, col] += jl * e
+                    HWW[n, col, col] += jl * jl
+    return Ha, Hb, Hab, ga, gb, HaW, HbW, HWW, gW, uv_out, s_out, w_out, cost
+
+
+@njit(cache=True)
+def fk_body_jacobian_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
+                           pt_group, G):
+    """:func:`fk_body_jacobian` for poses (N, P): positions (N, M, 3), ``d p / d q`` (N, M, 3, P)
+    and ``d p / d l`` (N, M, 3, G)."""
+    N, P = Q.shape
+    M = marker_point.shape[0]
+    pos = np.empty((N, M, 3))
+    dpos = np.empty((N, M, 3, P))
+    dlen = np.empty((N, M, 3, G))
+    for n in range(N):
+        p, dp, dl = fk_body_jacobian(Q[n], seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
+                                     marker_point, pt_group, G)
+        pos[n] = p
+        dpos[n] = dp
+        dlen[n] = dl
+    return pos, dpos, dlen

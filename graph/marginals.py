@@ -60,12 +60,10 @@ def _schur(J, keep):
 
 
 @njit(cache=True)
-def chain_marginals(G, w2):
-    """Marginal covariances (N, d, d) of a chain with per-frame information ``G`` (N, d, d) and
-    third-difference weights ``w2`` (d,) (``1/sigma_3^2``); see the module docstring."""
+def chain_band(G, w2):
+    """The information of a chain as its blocks ``band[n, k]`` = (n, n + k), k = 0..3 (N, 4, d, d):
+    per-frame information ``G`` (N, d, d) and third-difference weights ``w2`` (d,)."""
     N, d = G.shape[0], G.shape[1]
-    out = np.zeros((N, d, d))
-    # band[n, k]: the block (n, n + k) of the information matrix, k = 0..3
     band = np.zeros((N, 4, d, d))
     for n in range(N):
         band[n, 0] += G[n]
@@ -74,22 +72,82 @@ def chain_marginals(G, w2):
             for b in range(a, 4):
                 for i in range(d):
                     band[j + a, b - a, i, i] += D3[a] * D3[b] * w2[i]
+    return band
+
+
+@njit(cache=True)
+def chain_marginals(G, w2):
+    """Marginal covariances (N, d, d) of a chain with per-frame information ``G`` (N, d, d) and
+    third-difference weights ``w2`` (d,) (``1/sigma_3^2``); see the module docstring."""
+    N, d = G.shape[0], G.shape[1]
+    out, _, _ = banded_marginals(chain_band(G, w2), np.zeros((N, d, 0)), np.zeros((0, 0)))
+    return out
+
+
+@njit(cache=True)
+def eliminated_tail(band, B, Dw):
+    """The information left on the shared unknowns ``W`` when every frame of the chain is
+    eliminated: ``Dw - B^T A^-1 B`` for the chain's information ``A`` (``band``), its coupling
+    ``B`` (N, d, G) to ``W`` and ``W``'s own information ``Dw`` (G, G); see :func:`banded_marginals`."""
+    N, d, G = B.shape
+    band = band.copy()
+    B = B.copy()
+    Dw = Dw.copy()
+    for n in range(N):
+        k_max = min(3, N - 1 - n)
+        m = k_max * d + G
+        U = np.empty((d, m))
+        for k in range(k_max):
+            U[:, k * d:(k + 1) * d] = band[n, k + 1]
+        U[:, k_max * d:] = B[n]
+        W = _lower_solve(np.linalg.cholesky(band[n, 0]), U)
+        for i in range(1, k_max + 1):
+            Wi = np.ascontiguousarray(W[:, (i - 1) * d:i * d])
+            for j in range(i, k_max + 1):
+                band[n + i, j - i] -= Wi.T @ np.ascontiguousarray(W[:, (j - 1) * d:j * d])
+            B[n + i] -= Wi.T @ np.ascontiguousarray(W[:, k_max * d:])
+        Wg = np.ascontiguousarray(W[:, k_max * d:])
+        Dw -= Wg.T @ Wg
+    return Dw
+
+
+@njit(cache=True)
+def banded_marginals(band, B, Dw):
+    """Marginal covariances of a chain of frames and of unknowns ``W`` that every frame shares
+    (the arrow-head: body lengths, time offsets). ``band`` (N, 4, d, d) holds the frames'
+    information blocks (n, n + k), k = 0..3, ``B`` (N, d, G) each frame's coupling to ``W`` and
+    ``Dw`` (G, G) ``W``'s own. Returns ``Sigma_n`` (N, d, d), the covariances ``Sigma_nW`` (N, d, G)
+    between each frame and ``W``, and ``Sigma_W`` (G, G), each marginal over everything else. The recursion of the module docstring with ``W`` appended to every
+    separator, ``s_n = (q_{n+1}, q_{n+2}, q_{n+3}, W)``: eliminating frames in time order leaves
+    ``W`` last, and the work stays linear in N. With G = 0 it is the plain chain."""
+    N, d = band.shape[0], band.shape[2]
+    G = B.shape[2]
+    out = np.zeros((N, d, d))
+    cross = np.zeros((N, d, G))
+    band = band.copy()
+    B = B.copy()
+    Dw = Dw.copy()
     if N <= 4:  # too short for the recursion: invert the whole (small) matrix
-        full = np.zeros((N * d, N * d))
+        T = N * d + G
+        full = np.zeros((T, T))
         for n in range(N):
             for k in range(4):
                 if n + k < N:
                     full[n * d:(n + 1) * d, (n + k) * d:(n + k + 1) * d] = band[n, k]
                     if k > 0:
                         full[(n + k) * d:(n + k + 1) * d, n * d:(n + 1) * d] = band[n, k].T
+            full[n * d:(n + 1) * d, N * d:] = B[n]
+            full[N * d:, n * d:(n + 1) * d] = B[n].T
+        full[N * d:, N * d:] = Dw
         inv = np.linalg.inv(full)
         for n in range(N):
             out[n] = inv[n * d:(n + 1) * d, n * d:(n + 1) * d]
-        return out
+            cross[n] = inv[n * d:(n + 1) * d, N * d:]
+        return out, cross, np.ascontiguousarray(inv[N * d:, N * d:])
 
     # forward elimination of frames 0 .. N-4, as a block Cholesky factorisation: with
-    # C = chol(D_n) and W = C^-1 U_n, the band loses W^T W
-    m = 3 * d
+    # C = chol(D_n) and W = C^-1 U_n, U_n = [band[n, 1..3], B_n], the band and the tail lose W^T W
+    m = 3 * d + G
     Ds = np.empty((N - 3, d, d))
     Ws = np.empty((N - 3, d, m))
     U = np.empty((d, m))
@@ -97,16 +155,20 @@ def chain_marginals(G, w2):
     for n in range(N - 3):
         for k in range(3):
             U[:, k * d:(k + 1) * d] = band[n, k + 1]
+        U[:, 3 * d:] = B[n]
         W = _lower_solve(np.linalg.cholesky(band[n, 0]), U)
         for i in range(3):
             Wb[i] = W[:, i * d:(i + 1) * d]
+        Wg = np.ascontiguousarray(W[:, 3 * d:])
         for i in range(1, 4):
             for j in range(i, 4):
                 band[n + i, j - i] -= Wb[i - 1].T @ Wb[j - 1]
+            B[n + i] -= Wb[i - 1].T @ Wg
+        Dw -= Wg.T @ Wg
         Ds[n] = band[n, 0]
         Ws[n] = W
 
-    # marginal information of the last three frames, and their covariances
+    # marginal information of the last three frames and W, and their covariances
     M = np.zeros((m, m))
     for i in range(3):
         for j in range(i, 3):
@@ -114,13 +176,22 @@ def chain_marginals(G, w2):
             M[i * d:(i + 1) * d, j * d:(j + 1) * d] = blk
             if j != i:
                 M[j * d:(j + 1) * d, i * d:(i + 1) * d] = blk.T
+        M[i * d:(i + 1) * d, 3 * d:] = B[N - 3 + i]
+        M[3 * d:, i * d:(i + 1) * d] = B[N - 3 + i].T
+    M[3 * d:, 3 * d:] = Dw
     Minv = np.linalg.inv(M)
     for i in range(3):
         out[N - 3 + i] = Minv[i * d:(i + 1) * d, i * d:(i + 1) * d]
+        cross[N - 3 + i] = Minv[i * d:(i + 1) * d, 3 * d:]
+    Sigma_W = np.ascontiguousarray(Minv[3 * d:, 3 * d:])
 
     # backward: M_n from the conditional of q_n and M_{n+1}; the joint information of (q_n, s_n)
-    # is [[D_n, U_n], [U_n^T, W_n^T W_n + M_{n+1}]], with U_n = chol(D_n) W_n
+    # is [[D_n, U_n], [U_n^T, W_n^T W_n + M_{n+1}]], with U_n = chol(D_n) W_n; q_{n+3} is moved
+    # last and marginalised out, leaving (q_n, q_{n+1}, q_{n+2}, W)
     J = np.zeros((m + d, m + d))
+    order = np.concatenate((np.arange(3 * d), np.arange(4 * d, m + d), np.arange(3 * d, 4 * d)))
+    # (q_n, q_{n+1}, q_{n+2}, W) -> (q_n, W, q_{n+1}, q_{n+2}), to keep (q_n, W)
+    keep = np.concatenate((np.arange(d), np.arange(3 * d, m), np.arange(d, 3 * d)))
     for n in range(N - 4, -1, -1):
         W = Ws[n]
         J[:d, :d] = Ds[n]
@@ -128,9 +199,23 @@ def chain_marginals(G, w2):
         J[:d, d:] = Un
         J[d:, :d] = Un.T
         J[d:, d:] = W.T @ W + M
-        M = _schur(J, m)  # q_{n+3} marginalised out: (q_n, q_{n+1}, q_{n+2})
+        Jp = np.empty_like(J)
+        for i in range(m + d):
+            for j in range(m + d):
+                Jp[i, j] = J[order[i], order[j]]
+        M = _schur(Jp, m)  # q_{n+3} marginalised out: (q_n, q_{n+1}, q_{n+2}, W)
         M = 0.5 * (M + M.T)
-        # q_n's marginal information: q_{n+1}, q_{n+2} out; reordered so that they come last
-        S = np.linalg.inv(_schur(M, d))
-        out[n] = 0.5 * (S + S.T)
-    return out
+        # the marginal information of q_n (and W): the rest out
+        if G == 0:
+            S = np.linalg.inv(_schur(M, d))
+            out[n] = 0.5 * (S + S.T)
+            continue
+        Mp = np.empty_like(M)
+        for i in range(m):
+            for j in range(m):
+                Mp[i, j] = M[keep[i], keep[j]]
+        S = np.linalg.inv(_schur(Mp, d + G))
+        S = 0.5 * (S + S.T)
+        out[n] = S[:d, :d]
+        cross[n] = S[:d, d:]
+    return out, cross, Sigma_W

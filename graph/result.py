@@ -19,9 +19,10 @@ from graph.types import Result, SolveReport
 
 def build_result(prob: Problem, method: str, *, positions, std, reprojections, s, outlier, seconds, iterations,
                  cost=float("nan"), sigma_px: float | None = None, params=None, params_std=None,
-                 causal_positions=None, per_frame_ms=None, bounds_active=0) -> Result:
+                 causal_positions=None, per_frame_ms=None, bounds_active=0, report: dict | None = None) -> Result:
     """``s`` and ``outlier`` are (N, C, M); ``reprojections`` (C, N, M, 2). ``sigma_px`` is the
-    detection noise ``s`` is normalised by (default: the problem's)."""
+    detection noise ``s`` is normalised by (default: the problem's); ``report`` more report fields
+    (the body's lengths, the cameras' offsets) and their ``warnings``."""
     sk = prob.skeleton
     valid = prob.valid
     sigma_px = prob.sigma_px if sigma_px is None else sigma_px
@@ -39,6 +40,10 @@ def build_result(prob: Problem, method: str, *, positions, std, reprojections, s
     if mismatch:
         notes.append(mismatch)
         warnings.warn(mismatch, stacklevel=3)
+    extra = dict(report or {})
+    for note in extra.pop("warnings", []):
+        notes.append(note)
+        warnings.warn(note, stacklevel=3)
     um, uf = prob.unconstrained()
     rates = None
     if params is not None and params.shape[0] > 1:
@@ -49,7 +54,7 @@ def build_result(prob: Problem, method: str, *, positions, std, reprojections, s
         iterations=int(iterations), cost=float(cost), reprojection_rmse_px=rmse, per_frame_ms=per_frame_ms,
         outliers=int(out.sum()), observations=int(valid.sum()), unconstrained_markers=um,
         unconstrained_frames=uf, bounds_active=int(bounds_active), sigma_px=float(sigma_px), noise_px=noise,
-        warnings=notes)
+        warnings=notes, **extra)
     return Result(
         method=method, skeleton=sk.name, markers=list(sk.markers), positions=positions, std=std,
         reprojections=reprojections, residuals=res_px, ncams=ncams, score=score, outlier=out,

@@ -49,6 +49,7 @@ Each marker is projected with each camera (``Calibration.project``), then, per c
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import shutil
@@ -68,6 +69,7 @@ MAX_TILT_DEG = 15.0  # rigs whose up axis is further than this from +z get a not
 GOOD_LIKELIHOOD = (0.8, 1.0)
 LOW_LIKELIHOOD = (0.02, 0.45)
 CONFIDENT_OUTLIERS = 0.3  # the share of outliers that keep a high likelihood by default
+BODY_STREAM = 7919  # the body proportions draw from default_rng([seed, BODY_STREAM]), apart from the run
 GALLOP_PHASES = {"l_front": 0.0, "r_front": 0.12, "l_back": 0.55, "r_back": 0.65}  # in cycles
 
 
@@ -131,6 +133,8 @@ class SimulatedRun:
     bones: list[tuple[str, str]] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     noise_seed: int | None = None  # the detections' own seed, if any (module docstring)
+    time_offsets: np.ndarray | None = None  # (C,) frames: camera c's frame n is the truth at n + offset
+    true_lengths: dict[str, float] = field(default_factory=dict)  # the animal's length of each group (m)
 
     @property
     def frames(self) -> int:
@@ -220,12 +224,14 @@ def _in_image(calibration: Calibration, uv: np.ndarray) -> np.ndarray:
 
 
 def cheetah_motion(skeleton: Skeleton, stage: Stage, frames: int, fps: float, rng: np.random.Generator,
-                   speed: float = 4.0, stride_hz: float = 2.5) -> np.ndarray:
-    """True pose parameters (N, P) of a cheetah running a figure of eight (module docstring)."""
+                   speed: float = 4.0, stride_hz: float = 2.5, times: np.ndarray | None = None) -> np.ndarray:
+    """True pose parameters (N, P) of a cheetah running a figure of eight (module docstring), at
+    frames ``0 .. frames-1`` or at ``times`` (frames, any reals): the run is a smooth function of
+    time, and the same ``rng`` state gives the same run on any clock."""
     if frames < 1:
         raise ValueError("frames must be at least 1")
-    t = np.arange(frames) / fps
-    tp = t - t[-1] / 2.0
+    t = (np.arange(frames) if times is None else np.asarray(times, dtype=float)) / fps
+    tp = t - (frames - 1) / fps / 2.0
     a = rng.uniform(0.75, 0.85) * stage.half_length
     b = rng.uniform(0.25, 0.45) * a
     v = speed * rng.uniform(0.9, 1.1)
@@ -295,12 +301,16 @@ def cheetah_motion(skeleton: Skeleton, stage: Stage, frames: int, fps: float, rn
 
 def observe(calibration: Calibration, positions: np.ndarray, markers: list[str], fps: float,
             model: ObservationModel, rng: np.random.Generator):
-    """Detections of true ``positions`` (N, M, 3) in every camera (module docstring).
+    """Detections of true ``positions`` (N, M, 3), or (C, N, M, 3) when each camera sees the run on
+    a clock of its own, in every camera (module docstring).
 
     Returns ``(keypoints, projections, outlier, swapped, dropout)``; the masks are (C, N, M).
     """
-    N, M, _ = positions.shape
-    proj = _project(calibration, positions)  # (C, N, M, 2)
+    N, M = positions.shape[-3:-1]
+    if positions.ndim == 4:
+        proj = np.stack([_project(Calibration([cam]), positions[c])[0] for c, cam in enumerate(calibration.cameras)])
+    else:
+        proj = _project(calibration, positions)  # (C, N, M, 2)
     inside = _in_image(calibration, proj)
     proj = np.where(inside[..., None], proj, np.nan)
     C = proj.shape[0]
@@ -354,7 +364,8 @@ def simulate_run(calibration: Calibration, frames: int = 200, fps: float = 120.0
                  outliers: float = 0.1, outlier_std: float = 100.0, swaps: float = 0.0, dropouts: int = 0,
                  seed: int = 0, *, confident_outliers: float = CONFIDENT_OUTLIERS,
                  dropout_seconds: float = 0.25, speed: float = 4.0, bodyparts: list[str] | None = None,
-                 skeleton: str | Skeleton = "cheetah", noise_seed: int | None = None) -> SimulatedRun:
+                 skeleton: str | Skeleton = "cheetah", noise_seed: int | None = None, body_scale: float = 1.0,
+                 body_variation: float = 0.0, time_offsets: list[float] | np.ndarray | None = None) -> SimulatedRun:
     """Simulate a cheetah run across ``calibration``'s cameras and what DeepLabCut would detect.
 
     ``noise`` sigma_n (px), ``outliers`` p_o, ``outlier_std`` sigma_o (px), ``swaps`` p_s,
@@ -363,6 +374,12 @@ def simulate_run(calibration: Calibration, frames: int = 200, fps: float = 120.0
     detections from ``numpy.random.default_rng((seed, noise_seed))`` instead of continuing the
     truth's generator: runs with the same ``seed`` and different ``noise_seed`` have the same truth
     and independent detections.
+
+    The animal: ``body_scale`` multiplies every length of the model, and each length group is also
+    drawn within ``1 +- body_variation`` (uniform, from a generator of its own seeded with ``seed``,
+    so the motion stays that of the model's run); the true lengths are ``true_lengths``. The
+    clocks: camera c's frame n is the truth at time ``n + time_offsets[c]`` frames (the truth is on
+    camera 1's clock: the offsets are taken relative to the first).
     """
     if frames < 1:
         raise ValueError("frames must be at least 1")
@@ -381,8 +398,23 @@ def simulate_run(calibration: Calibration, frames: int = 200, fps: float = 120.0
     if stage.cameras_seeing_all < len(calibration):
         notes.append(f"no floor is seen by all {len(calibration)} cameras; the run is centred where "
                      f"{stage.cameras_seeing_all} see it")
+    if not (body_scale > 0 and 0 <= body_variation < 1):
+        raise ValueError("body scale must be positive and body variation in [0, 1)")
+    factors = body_scale * np.random.default_rng([seed, BODY_STREAM]).uniform(
+        1 - body_variation, 1 + body_variation, len(sk.length_groups))
+    true_sk = sk.scaled(factors) if sk.length_groups else sk
+    motion_rng = copy.deepcopy(rng)
     params = cheetah_motion(sk, stage, frames, fps, rng, speed=speed)
-    positions = sk.positions(params)
+    positions = true_sk.positions(params)
+    offsets = np.zeros(len(calibration)) if time_offsets is None else np.asarray(time_offsets, dtype=float)
+    if offsets.shape != (len(calibration),) or not np.isfinite(offsets).all():
+        raise ValueError(f"time offsets: one finite number of frames per camera ({len(calibration)})")
+    offsets = offsets - offsets[0]
+    seen = positions
+    if np.any(offsets != 0):
+        seen = np.stack([positions if tau == 0 else true_sk.positions(cheetah_motion(
+            sk, stage, frames, fps, copy.deepcopy(motion_rng), speed=speed, times=np.arange(frames) + tau))
+            for tau in offsets])
     markers = list(sk.markers)
     bones = list(sk.bones)
     if bodyparts is not None:
@@ -391,15 +423,17 @@ def simulate_run(calibration: Calibration, frames: int = 200, fps: float = 120.0
             raise InputError(f"unknown bodyparts for the simulated cheetah: {', '.join(unknown)}")
         keep = [markers.index(b) for b in bodyparts]
         positions = positions[:, keep]
+        seen = seen[..., keep, :]
         markers = list(bodyparts)
         bones = [(a, b) for a, b in bones if a in markers and b in markers]
     obs_rng = rng if noise_seed is None else np.random.default_rng((seed, noise_seed))
-    kps, proj, outlier, swapped, dropout = observe(calibration, positions, markers, fps, model, obs_rng)
+    kps, proj, outlier, swapped, dropout = observe(calibration, seen, markers, fps, model, obs_rng)
     return SimulatedRun(skeleton=sk.name, markers=markers, positions=positions, params=params,
                         param_names=list(sk.param_names), keypoints=kps, calibration=calibration, fps=fps,
                         projections=proj, outlier=outlier, swapped=swapped, dropout=dropout,
                         observation=model, stage=stage, seed=seed, bones=bones, notes=notes,
-                        noise_seed=noise_seed)
+                        noise_seed=noise_seed, time_offsets=offsets,
+                        true_lengths={g: float(L) for g, L in zip(true_sk.length_groups, true_sk.model_lengths)})
 
 
 # ---------------------------------------------------------------------------------------- writing

@@ -11,6 +11,12 @@ axes, applied after its parent's (passive rotations)::
 A point is either a root, whose position is three parameters, or
 ``p = p_base + RI_segment^T offset``. Markers are the named points DeepLabCut tracks.
 
+Body proportions: every point with an offset belongs to a *length group* whose one scale factor
+``s_g`` multiplies its offset (``offset_k = s_g u_k``, the spec's offset ``u_k`` giving the
+direction and the model's length). A point's group is its ``length_group`` in the spec, by default
+its name without an ``l_``/``r_`` side prefix, so that left and right share one length.
+:meth:`Skeleton.scaled` is the skeleton of another animal's proportions.
+
 The *points* skeleton makes every marker a root point of its own: the same motion model and robust
 loss, no kinematics; optional soft bone-length terms tie pairs of markers.
 
@@ -23,7 +29,7 @@ from __future__ import annotations
 import math
 import re
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -32,6 +38,7 @@ import numpy as np
 from graph.errors import InputError
 
 AXES = {"x": 0, "y": 1, "z": 2}
+SIDE_PREFIXES = ("l_", "r_")
 POINTS_PROCESS_NOISE = 60.0  # std of the per-frame change of a free point's acceleration (m/s^2)
 
 
@@ -93,6 +100,27 @@ class Skeleton:
     segments: list[str] = field(default_factory=list)
     description: str = ""
     measurement_std_px: float = 5.0
+    length_groups: list[str] = field(default_factory=list)  # G body-proportion groups
+    point_group: np.ndarray | None = None  # (K,) each point's length group, -1 for none (a root)
+
+    @property
+    def model_lengths(self) -> np.ndarray:
+        """The model's length (m) of each length group (G,): its first point's offset length."""
+        K = len(self.arrays.pt_base)
+        out = np.zeros(len(self.length_groups))
+        for k in range(K - 1, -1, -1):
+            if self.point_group is not None and self.point_group[k] >= 0:
+                out[self.point_group[k]] = float(np.linalg.norm(self.arrays.pt_offset[k]))
+        return out
+
+    def scaled(self, scales: np.ndarray) -> "Skeleton":
+        """The skeleton with each length group's offsets multiplied by ``scales`` (G,)."""
+        scales = np.asarray(scales, dtype=float)
+        if scales.shape != (len(self.length_groups),):
+            raise ValueError(f"{len(self.length_groups)} length scales needed, not {scales.shape}")
+        factor = np.where(self.point_group >= 0, scales[np.maximum(self.point_group, 0)], 1.0)
+        arrays = replace(self.arrays, pt_offset=self.arrays.pt_offset * factor[:, None])
+        return replace(self, arrays=arrays)
 
     @property
     def n_params(self) -> int:
@@ -233,6 +261,8 @@ def _from_spec(data: dict, where: str) -> Skeleton:
     pt_root = np.full((len(pts), 3), -1, dtype=np.int64)
     pt_offset = np.zeros((len(pts), 3))
     markers, marker_point = [], []
+    groups: list[str] = []
+    pt_group = np.full(len(pts), -1, dtype=np.int64)
     for k, p in enumerate(pts):
         if "root" in p:
             pt_root[k] = [pidx[n] for n in p["root"]]
@@ -244,6 +274,11 @@ def _from_spec(data: dict, where: str) -> Skeleton:
             pt_base[k] = kidx[p["base"]]
             pt_seg[k] = sidx[p["segment"]]
             pt_offset[k] = np.asarray(p["offset"], dtype=float)
+            if np.linalg.norm(pt_offset[k]) > 0:
+                group = str(p.get("length_group", _side_free(p["name"])))
+                if group not in groups:
+                    groups.append(group)
+                pt_group[k] = groups.index(group)
         kidx[p["name"]] = k
         if p.get("marker", True):
             markers.append(p["name"])
@@ -257,7 +292,13 @@ def _from_spec(data: dict, where: str) -> Skeleton:
     return Skeleton(name=data.get("name", where.removesuffix(".toml")), kind="kinematic", param_names=names,
                     process_noise=noise, lower=lower, upper=upper, markers=markers, arrays=arrays,
                     bones=bones, segments=list(sidx), description=data.get("description", ""),
-                    measurement_std_px=float(data.get("measurement_std_px", 5.0)))
+                    measurement_std_px=float(data.get("measurement_std_px", 5.0)), length_groups=groups,
+                    point_group=pt_group)
+
+
+def _side_free(name: str) -> str:
+    """A point's default length group: its name without a side prefix (``l_eye`` -> ``eye``)."""
+    return name[2:] if name.startswith(SIDE_PREFIXES) and len(name) > 2 else name
 
 
 def points_skeleton(bodyparts: list[str], bone_pairs: list[tuple[str, str]] | None = None,
@@ -276,4 +317,5 @@ def points_skeleton(bodyparts: list[str], bone_pairs: list[tuple[str, str]] | No
         pt_offset=np.zeros((M, 3)), marker_point=np.arange(M, dtype=np.int64))
     return Skeleton(name="points", kind="points", param_names=names, process_noise=np.full(3 * M, noise),
                     lower=np.full(3 * M, -np.inf), upper=np.full(3 * M, np.inf), markers=list(bodyparts),
-                    arrays=arrays, bones=bones, description="free 3D points, one per bodypart")
+                    arrays=arrays, bones=bones, description="free 3D points, one per bodypart",
+                    point_group=np.full(M, -1, dtype=np.int64))

@@ -15,6 +15,10 @@ import numpy as np
 from graph.calibration import CALIBRATION_UNITS
 
 Method = Literal["tri", "ekf", "fte"]
+Body = Literal["model", "estimate", "given"]
+BODIES: tuple[str, ...] = get_args(Body)
+Sync = Literal["given", "estimate"]
+SYNCS: tuple[str, ...] = get_args(Sync)
 METHODS: tuple[str, ...] = get_args(Method)  # graph.api.SOLVERS has one solver for each
 
 # The stages a solve reports through :class:`Progress`, in the order they come (each method skips
@@ -40,6 +44,13 @@ class SolveOptions:
     lag_seconds: float = 0.25  # "ekf": the fixed-lag window
     uncertainty: bool = True  # per-marker 3D std from the marginals ("fte": about a third of the time)
     calibration_units: str = "auto"  # "m", "cm", "mm", or "auto" (a rig measured in mm is recognised)
+    # the body's proportions: the skeleton's ("model"), estimated with the trajectory ("estimate"), or
+    # ``body_lengths`` ("given": metres per length group, or per bone "a-b" for points, as a report has them)
+    body: Body = "model"
+    body_lengths: dict[str, float] | None = None
+    # the cameras' clocks: ``time_offsets`` (frames per camera; none: all 0) as given, or estimated
+    sync: Sync = "given"
+    time_offsets: list[float] | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -56,6 +67,18 @@ class SolveOptions:
             raise ValueError(f"calibration_units must be one of {', '.join(CALIBRATION_UNITS)}")
         if self.max_iterations < 1:
             raise ValueError("max_iterations must be at least 1")
+        if self.body not in BODIES:
+            raise ValueError(f"body must be one of {', '.join(BODIES)}, not {self.body!r}")
+        if self.body == "given" and not self.body_lengths:
+            raise ValueError("body 'given' needs body_lengths (metres per length group)")
+        if self.body_lengths is not None and not all(
+                isinstance(v, (int, float)) and 0 < v < float("inf") for v in self.body_lengths.values()):
+            raise ValueError("body_lengths must be positive lengths in metres")
+        if self.sync not in SYNCS:
+            raise ValueError(f"sync must be one of {', '.join(SYNCS)}, not {self.sync!r}")
+        if self.time_offsets is not None and not all(
+                isinstance(v, (int, float)) and abs(v) < float("inf") for v in self.time_offsets):
+            raise ValueError("time_offsets must be finite numbers of frames, one per camera")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -95,6 +118,12 @@ class SolveReport:
     bounds_active: int = 0
     sigma_px: float = float("nan")  # the detection noise the loss and the uncertainties assumed (px)
     noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.noise)
+    # the body's lengths, where estimated: {group or bone: {length_m, std_m, model_m}}
+    body_lengths: dict[str, dict[str, float]] | None = None
+    # the cameras' offsets (frames, camera 1 = 0), where estimated or given, and their sd
+    time_offsets_frames: list[float] | None = None
+    time_offsets_std_frames: list[float] | None = None
+    offsets_not_identified: list[str] = field(default_factory=list)  # cameras the motion did not time
     warnings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:

@@ -2,13 +2,18 @@
  * and pose parameters over time with their uncertainty, and what the solver flagged.
  *
  * Draws from the payload of graph.plot.result_payload (the service's result?format=json). Used by
- * the job page and inlined into the HTML file `acinoset plot` writes; needs only Plotly.
+ * the job page and inlined into the HTML file `acinoset plot` writes; needs Plotly and dom.js.
  *
  *   const view = AcinoResultView.render(containerElement, payload, {});
  *   view.setFrame(42);
+ *
+ * render() builds one panel after another (summary, 3D playback, error heat map, over time,
+ * flags), each by its own function below, then wires the frame control that they all follow.
  */
 (function () {
   "use strict";
+
+  const { el } = window.AcinoDom;
 
   // Okabe-Ito colours (safe for colour-blind readers); sides also differ by line style.
   const COLOR = { left: "#0072B2", right: "#D55E00", mid: "#333333", flag: "#CC0000",
@@ -17,26 +22,11 @@
   // Light (small error) to dark (large error), the light half of magma: numbers stay readable.
   const ERROR_SCALE = [[0, "#fcfdbf"], [0.25, "#feb078"], [0.5, "#f1605d"], [0.75, "#b73779"], [1, "#51127c"]];
 
-  function el(tag, attrs, ...children) {
-    const node = document.createElement(tag);
-    for (const [k, v] of Object.entries(attrs || {})) {
-      if (v === null || v === undefined || v === false) continue;
-      if (k === "class") node.className = v;
-      else if (k === "text") node.textContent = v;
-      else if (k.startsWith("on")) node.addEventListener(k.slice(2), v);
-      else node.setAttribute(k, v === true ? "" : v);
-    }
-    for (const c of children.flat()) {
-      if (c === null || c === undefined || c === false) continue;
-      node.append(c instanceof Node ? c : document.createTextNode(String(c)));
-    }
-    return node;
-  }
-
   let uid = 0;
   const newId = (stem) => `${stem}-${++uid}`;
   const fmt = (v, d) => (v === null || v === undefined || !isFinite(v) ? "–" : Number(v).toFixed(d));
   const side = (name) => (/^(l_|left)/i.test(name) ? "left" : /^(r_|right)/i.test(name) ? "right" : "mid");
+  const seen = (p) => p && p[0] !== null;
 
   function ranges(frames) {
     const fs = Array.from(new Set(frames)).sort((a, b) => a - b);
@@ -50,14 +40,42 @@
 
   function plural(n, one, many) { return `${n} ${n === 1 ? one : (many || one + "s")}`; }
 
-  function render(container, P, opts) {
-    opts = opts || {};
-    container.replaceChildren();
-    if (!P || !Array.isArray(P.positions) || !Array.isArray(P.markers)) {
-      container.append(el("p", { class: "notice", text: "This result holds no 3D positions to draw." }));
-      return null;
-    }
-    // Older or partial payloads: fill what the view needs with "unknown".
+  /** A card section headed by its title, labelled by that heading. */
+  function card(title) {
+    const section = el("section", { class: "card", "aria-labelledby": newId("h") });
+    section.append(el("h2", { id: section.getAttribute("aria-labelledby"), text: title }));
+    return section;
+  }
+
+  /** Call fn with the first clicked point of a Plotly plot; hooked once however often it is redrawn. */
+  function onPlotClick(plot, fn) {
+    if (plot._acinoClick) return;
+    plot._acinoClick = true;
+    plot.on("plotly_click", (ev) => { if (ev.points && ev.points.length) fn(ev.points[0]); });
+  }
+
+  function bbox(pts) {
+    const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    for (const p of pts) for (let k = 0; k < 3; k++) { lo[k] = Math.min(lo[k], p[k]); hi[k] = Math.max(hi[k], p[k]); }
+    if (!pts.length) return { lo: [-1, -1, -1], hi: [1, 1, 1] };
+    return { lo, hi };
+  }
+
+  function cube(lo, hi, minExtent) {
+    const mid = [0, 1, 2].map((k) => (lo[k] + hi[k]) / 2);
+    let ext = [0, 1, 2].map((k) => Math.max(hi[k] - lo[k], minExtent) * 1.1);
+    const big = Math.max(...ext);
+    ext = ext.map((e) => Math.max(e, 0.2 * big));
+    return {
+      ranges: [0, 1, 2].map((k) => [mid[k] - ext[k] / 2, mid[k] + ext[k] / 2]),
+      aspect: { x: ext[0] / big, y: ext[1] / big, z: ext[2] / big },
+    };
+  }
+
+  // ------------------------------------------------------------------ the payload and its facts
+
+  /** Older or partial payloads: fill what the view needs with "unknown". */
+  function fillGaps(P) {
     const blank = (v) => P.positions.map((f) => f.map(() => v));
     P.cameras = P.cameras || P.camera_names || [];
     P.std = P.std || blank([null, null, null]);
@@ -68,54 +86,85 @@
       observations: P.cameras.map(() => P.markers.map(() => 0)), outliers: P.cameras.map(() => P.markers.map(() => 0)) };
     P.param_names = P.param_names || [];
     P.param_units = P.param_units || P.param_names.map((p) => (/^[xyz]_/.test(p) ? "m" : "rad"));
+  }
+
+  /** What every panel reads: sizes, lookups, the flags per frame and the shared playback state. */
+  function context(P) {
     const N = P.frames, M = P.markers.length, C = P.cameras.length;
     const markerIndex = new Map(P.markers.map((m, i) => [m, i]));
     const boneIdx = (P.bones || []).map(([a, b]) => [markerIndex.get(a), markerIndex.get(b)])
       .filter(([a, b]) => a !== undefined && b !== undefined);
-    const fps = P.fps || 1;
     const report = P.report || {};
-    const state = { frame: 0, playing: false, speed: 1, view: "run", last: 0, acc: 0, lastSync: 0 };
-
-    // ---------------------------------------------------------------- per-frame facts
     const outByFrame = Array.from({ length: N }, () => []);
     for (const [c, n, m] of P.outliers) outByFrame[n].push([c, m]);
-    const unconstrainedFrames = new Set(report.unconstrained_frames || []);
-    const unconstrainedMarkers = new Set(report.unconstrained_markers || []);
-
-    function markerFlags(n) {
-      /* Per marker in frame n: {missing, weak (cameras < 2), rejected: [camera names]}. */
-      const flags = P.markers.map(() => ({ missing: false, weak: false, cams: 0, rejected: [] }));
-      for (let m = 0; m < M; m++) {
-        const p = P.positions[n][m];
-        flags[m].missing = !p || p[0] === null;
-        flags[m].cams = P.ncams[n][m];
-        flags[m].weak = flags[m].cams < 2;
-      }
-      for (const [c, m] of outByFrame[n]) flags[m].rejected.push(P.cameras[c]);
-      return flags;
+    // The best-observed marker: its path orients the 3D view and it is plotted over time first.
+    let track = 0, best = -1;
+    for (let m = 0; m < M; m++) {
+      let k = 0;
+      for (let n = 0; n < N; n++) if (seen(P.positions[n][m])) k++;
+      if (k > best) { best = k; track = m; }
     }
+    return {
+      P, N, M, C, markerIndex, boneIdx, report, outByFrame, track,
+      fps: P.fps || 1,
+      frames: Array.from({ length: N }, (_, i) => i),
+      unconstrainedFrames: new Set(report.unconstrained_frames || []),
+      unconstrainedMarkers: new Set(report.unconstrained_markers || []),
+      state: { frame: 0, playing: false, speed: 1, view: "run", last: 0, acc: 0, lastSync: 0 },
+    };
+  }
 
-    function frameSummary(n) {
-      const flags = markerFlags(n);
-      const have = flags.filter((f) => !f.missing).length;
-      const blind = unconstrainedFrames.has(n);  // then every marker is weak: said once, below
-      const notes = [];
-      flags.forEach((f, m) => {
-        const bits = [];
-        if (f.missing) bits.push("no estimate");
-        else if (f.weak && !blind) bits.push(`seen by ${plural(f.cams, "camera")}`);
-        if (f.rejected.length) bits.push(`rejected in ${f.rejected.join(", ")}`);
-        if (bits.length) notes.push(`${P.markers[m]}: ${bits.join("; ")}`);
-      });
-      let text = `Frame ${n} of ${N - 1} (${(n / fps).toFixed(3)} s). ${have} of ${M} markers estimated.`;
-      if (P.frame_error && P.frame_error[n] !== null) text += ` Reprojection error ${fmt(P.frame_error[n], 1)} px.`;
-      if (unconstrainedFrames.has(n)) text += " No marker was seen by two cameras in this frame.";
-      return { text, notes };
+  /** Per marker in frame n: {missing, weak (cameras < 2), cams, rejected: [camera names]}. */
+  function markerFlags(ctx, n) {
+    const { P, M } = ctx;
+    const flags = P.markers.map(() => ({ missing: false, weak: false, cams: 0, rejected: [] }));
+    for (let m = 0; m < M; m++) {
+      flags[m].missing = !seen(P.positions[n][m]);
+      flags[m].cams = P.ncams[n][m];
+      flags[m].weak = flags[m].cams < 2;
     }
+    for (const [c, m] of ctx.outByFrame[n]) flags[m].rejected.push(P.cameras[c]);
+    return flags;
+  }
 
-    // ---------------------------------------------------------------- summary
-    const summary = el("section", { class: "card", "aria-labelledby": newId("h") });
-    summary.append(el("h2", { id: summary.getAttribute("aria-labelledby"), text: "Summary" }));
+  /** Frame n in words: one sentence, and a note per flagged marker. */
+  function frameSummary(ctx, n) {
+    const { P, N, M, fps } = ctx;
+    const flags = markerFlags(ctx, n);
+    const have = flags.filter((f) => !f.missing).length;
+    const blind = ctx.unconstrainedFrames.has(n);  // then every marker is weak: said once, below
+    const notes = [];
+    flags.forEach((f, m) => {
+      const bits = [];
+      if (f.missing) bits.push("no estimate");
+      else if (f.weak && !blind) bits.push(`seen by ${plural(f.cams, "camera")}`);
+      if (f.rejected.length) bits.push(`rejected in ${f.rejected.join(", ")}`);
+      if (bits.length) notes.push(`${P.markers[m]}: ${bits.join("; ")}`);
+    });
+    let text = `Frame ${n} of ${N - 1} (${(n / fps).toFixed(3)} s). ${have} of ${M} markers estimated.`;
+    if (P.frame_error && P.frame_error[n] !== null) text += ` Reprojection error ${fmt(P.frame_error[n], 1)} px.`;
+    if (blind) text += " No marker was seen by two cameras in this frame.";
+    return { text, notes };
+  }
+
+  /** Grey bands over the frames where no marker was seen by two cameras. */
+  function hatchShapes(ctx, yref) {
+    return ranges([...ctx.unconstrainedFrames]).map(([a, b]) => ({ type: "rect", xref: "x", yref, x0: a - 0.5, x1: b + 0.5,
+      y0: 0, y1: 1, fillcolor: "rgba(120,120,120,0.25)", line: { width: 0 }, layer: "below" }));
+  }
+
+  /** The dotted line at the current frame. */
+  function cursorShape(ctx) {
+    const f = ctx.state.frame;
+    return { type: "line", xref: "x", yref: "paper", x0: f, x1: f, y0: 0, y1: 1,
+      line: { color: "#000", width: 1.5, dash: "dot" }, name: "cursor" };
+  }
+
+  // ------------------------------------------------------------------ summary
+
+  function summaryPanel(ctx) {
+    const { P, N, M, fps, report } = ctx;
+    const section = card("Summary");
     const dl = el("dl", { class: "facts" });
     const fact = (k, v) => dl.append(el("dt", { text: k }), el("dd", { text: v }));
     fact("Method", `${P.method} (${P.skeleton} skeleton)`);
@@ -130,21 +179,26 @@
       if (!measuredNoise && report.noise_px > 0) noise += `; the residuals scatter ${fmt(report.noise_px, 2)} px`;
       fact("Detection noise", noise);
     }
+    const { unconstrainedMarkers, unconstrainedFrames } = ctx;
     fact("Never seen by two cameras", unconstrainedMarkers.size ? [...unconstrainedMarkers].join(", ") : "none");
     fact("Frames with no marker seen twice", unconstrainedFrames.size
       ? ranges([...unconstrainedFrames]).map(([a, b]) => (a === b ? `${a}` : `${a}–${b}`)).join(", ") : "none");
     if (report.iterations) fact("Iterations", String(report.iterations));
     if (report.seconds && report.seconds.total) fact("Solve time", `${fmt(report.seconds.total, 2)} s`);
-    summary.append(dl);
+    section.append(dl);
     if (report.warnings && report.warnings.length) {
-      summary.append(el("h3", { text: "Warnings" }), el("ul", {}, report.warnings.map((w) => el("li", { text: w }))));
+      section.append(el("h3", { text: "Warnings" }), el("ul", {}, report.warnings.map((w) => el("li", { text: w }))));
     }
-    container.append(summary);
+    return section;
+  }
 
-    // ---------------------------------------------------------------- 3D playback
-    const play = el("section", { class: "card", "aria-labelledby": newId("h") });
-    play.append(el("h2", { id: play.getAttribute("aria-labelledby"), text: "3D playback" }));
-    play.append(el("p", { class: "hint", text:
+  // ------------------------------------------------------------------ 3D playback
+
+  /** The 3D playback card: the plot's box, the playback controls and the frame's description. */
+  function playbackPanel(ctx) {
+    const { P, N, M, C, state } = ctx;
+    const section = card("3D playback");
+    section.append(el("p", { class: "hint", text:
       "Drag to rotate, scroll to zoom. Bones: left side solid blue, right side dashed orange, midline grey. " +
       "Markers drawn as an open diamond are flagged in this frame (seen by fewer than two cameras, or a detection " +
       "was rejected); they are named beside it and listed below." }));
@@ -178,46 +232,38 @@
       el("label", { for: speedId }, "Speed ", speed),
       el("label", { for: viewId }, "View ", view));
     const timeLabel = el("span", { class: "time" });
-    play.append(plot3d, controls, timeLabel, status, notes);
-    container.append(play);
+    section.append(plot3d, controls, timeLabel, status, notes);
 
-    // Scene extents.
+    /** The frame in words under the plot, and on the slider for screen readers. */
+    function describe(n) {
+      const s = frameSummary(ctx, n);
+      status.textContent = s.text + (s.notes.length ? ` ${plural(s.notes.length, "marker")} flagged:` : " No marker flagged.");
+      notes.replaceChildren(...s.notes.slice(0, 30).map((t) => el("li", { text: t })));
+      if (s.notes.length > 30) notes.append(el("li", { text: `and ${s.notes.length - 30} more` }));
+      showTime(n);
+      slider.setAttribute("aria-valuetext", `Frame ${n} of ${N - 1}, ${(n / ctx.fps).toFixed(3)} seconds`);
+    }
+
+    function showTime(n) { timeLabel.textContent = `${(n / ctx.fps).toFixed(3)} s`; }
+
+    return { section, plot3d, playBtn, prevBtn, nextBtn, slider, number, speed, view, status, describe, showTime };
+  }
+
+  /** The skeleton, the cameras and the tracked marker's path drawn into plot3d; draw(n) moves to frame n. */
+  function skeletonScene(ctx, plot3d) {
+    const { P, N, M, boneIdx, track, state } = ctx;
     const all = [];
-    for (const fr of P.positions) for (const p of fr) if (p && p[0] !== null) all.push(p);
-    const bbox = (pts) => {
-      const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
-      for (const p of pts) for (let k = 0; k < 3; k++) { lo[k] = Math.min(lo[k], p[k]); hi[k] = Math.max(hi[k], p[k]); }
-      if (!pts.length) return { lo: [-1, -1, -1], hi: [1, 1, 1] };
-      return { lo, hi };
-    };
-    const cube = (lo, hi, minExtent) => {
-      const mid = [0, 1, 2].map((k) => (lo[k] + hi[k]) / 2);
-      let ext = [0, 1, 2].map((k) => Math.max(hi[k] - lo[k], minExtent) * 1.1);
-      const big = Math.max(...ext);
-      ext = ext.map((e) => Math.max(e, 0.2 * big));
-      return {
-        ranges: [0, 1, 2].map((k) => [mid[k] - ext[k] / 2, mid[k] + ext[k] / 2]),
-        aspect: { x: ext[0] / big, y: ext[1] / big, z: ext[2] / big },
-      };
-    };
+    for (const fr of P.positions) for (const p of fr) if (seen(p)) all.push(p);
     const runBox = bbox(all);
     const animalSize = (() => {
       let s = 0.5;
       for (let n = 0; n < N; n += Math.max(1, Math.floor(N / 20))) {
-        const b = bbox(P.positions[n].filter((p) => p && p[0] !== null));
+        const b = bbox(P.positions[n].filter(seen));
         if (isFinite(b.lo[0])) s = Math.max(s, ...[0, 1, 2].map((k) => b.hi[k] - b.lo[k]));
       }
       return s;
     })();
     const sceneBox = P.camera_centers ? bbox(all.concat(P.camera_centers)) : runBox;
-
-    // The best-observed marker's path, for orientation.
-    let track = 0, best = -1;
-    for (let m = 0; m < M; m++) {
-      let k = 0;
-      for (let n = 0; n < N; n++) if (P.positions[n][m] && P.positions[n][m][0] !== null) k++;
-      if (k > best) { best = k; track = m; }
-    }
 
     const bonesBySide = { left: [], right: [], mid: [] };
     for (const [a, b] of boneIdx) bonesBySide[side(P.markers[b]) !== "mid" ? side(P.markers[b]) : side(P.markers[a])].push([a, b]);
@@ -226,16 +272,15 @@
       const x = [], y = [], z = [];
       for (const [a, b] of list) {
         const pa = P.positions[n][a], pb = P.positions[n][b];
-        if (!pa || !pb || pa[0] === null || pb[0] === null) continue;
+        if (!seen(pa) || !seen(pb)) continue;
         x.push(pa[0], pb[0], null); y.push(pa[1], pb[1], null); z.push(pa[2], pb[2], null);
       }
       return { x, y, z };
     }
 
     function markerXYZ(n, flagged) {
-      const flags = markerFlags(n);
       const x = [], y = [], z = [], text = [], hover = [];
-      flags.forEach((f, m) => {
+      markerFlags(ctx, n).forEach((f, m) => {
         const isFlag = f.weak || f.rejected.length > 0;
         if (f.missing || isFlag !== flagged) return;
         const p = P.positions[n][m], s = P.std[n][m];
@@ -296,11 +341,12 @@
       text: fl0.text, hovertext: fl0.hover, hovertemplate: "%{hovertext}<extra></extra>", textposition: "top center",
       textfont: { color: COLOR.flag, size: 11 }, marker: { size: 9, symbol: "diamond-open", color: COLOR.flag } });
 
+    /** Axis ranges of the chosen view ("run", "follow" the animal at frame n, or the "scene" with cameras). */
     function sceneLayout(n) {
       let box;
       if (state.view === "scene") box = cube(sceneBox.lo, sceneBox.hi, 0.5);
       else if (state.view === "follow") {
-        const b = bbox(P.positions[n].filter((p) => p && p[0] !== null));
+        const b = bbox(P.positions[n].filter(seen));
         const mid = [0, 1, 2].map((k) => (isFinite(b.lo[k]) ? (b.lo[k] + b.hi[k]) / 2 : 0));
         const h = 0.6 * animalSize;
         box = cube(mid.map((v) => v - h), mid.map((v) => v + h), 0.3);
@@ -327,9 +373,9 @@
     layout3d.scene.yaxis.range = first["scene.yaxis.range"];
     layout3d.scene.zaxis.range = first["scene.zaxis.range"];
     layout3d.scene.aspectratio = first["scene.aspectratio"];
-    let plot3dReady = Plotly.newPlot(plot3d, traces, layout3d, PLOT_CONFIG);
+    const ready = Plotly.newPlot(plot3d, traces, layout3d, PLOT_CONFIG);
 
-    function draw3d(n) {
+    function draw(n) {
       const L = boneXYZ(n, bonesBySide.left), R = boneXYZ(n, bonesBySide.right), D = boneXYZ(n, bonesBySide.mid);
       const mk = markerXYZ(n, false), fl = markerXYZ(n, true);
       const upd = {
@@ -340,42 +386,51 @@
       return Plotly.update(plot3d, upd, lay, [idx.left, idx.right, idx.mid, idx.markers, idx.flagged]);
     }
 
-    // ---------------------------------------------------------------- reprojection error heat map
-    const heat = el("section", { class: "card", "aria-labelledby": newId("h") });
-    heat.append(el("h2", { id: heat.getAttribute("aria-labelledby"), text: "Reprojection error per marker and camera" }));
-    heat.append(el("p", { class: "hint", text:
-      "Pixel distance between each camera's detection and the 3D estimate drawn into that camera. " +
-      "Every cell is labelled with its number; (n×) counts detections the robust loss rejected as outliers. " +
-      "Click a cell to plot that marker over time." }));
+    /** Apply a change of state.view. */
+    function reframe() { return Plotly.relayout(plot3d, sceneLayout(state.frame)); }
+
+    return { ready, draw, reframe };
+  }
+
+  // ------------------------------------------------------------------ reprojection error heat map
+
+  /** Reprojection error per marker and camera, over the run or in the current frame; a click on a
+   * cell calls showMarker(m). */
+  function errorPanel(ctx, showMarker) {
+    const { P, M, C, state, markerIndex } = ctx;
+    const section = card("Reprojection error per marker and camera");
     // the noise the solve assumed: measured when the option was "auto" (the report has it)
     const optSigma = P.options && Number(P.options.measurement_std_px);
     const sigmaPx = (P.report && P.report.sigma_px > 0) ? Number(P.report.sigma_px.toFixed(2))
       : (optSigma > 0 ? optSigma : 5);
-    heat.querySelector(".hint").textContent += ` The colours run from 0 to at least twice the expected detection noise ` +
-      `(${sigmaPx} px): light is as good as the detections allow, dark is worse.`;
-    const heatModeId = newId("heat-mode");
-    const heatMode = el("select", { id: heatModeId },
+    section.append(el("p", { class: "hint", text:
+      "Pixel distance between each camera's detection and the 3D estimate drawn into that camera. " +
+      "Every cell is labelled with its number; (n×) counts detections the robust loss rejected as outliers. " +
+      "Click a cell to plot that marker over time." +
+      ` The colours run from 0 to at least twice the expected detection noise ` +
+      `(${sigmaPx} px): light is as good as the detections allow, dark is worse.` }));
+    const modeId = newId("heat-mode");
+    const mode = el("select", { id: modeId },
       el("option", { value: "run", text: "Whole run: median over frames" }),
       el("option", { value: "frame", text: "Current frame" }));
-    heat.append(el("div", { class: "controls" }, el("label", { for: heatModeId }, "Show ", heatMode)));
-    const heatPlot = el("div", { class: "plot", role: "img", "data-testid": "heatmap",
+    section.append(el("div", { class: "controls" }, el("label", { for: modeId }, "Show ", mode)));
+    const plot = el("div", { class: "plot", role: "img", "data-testid": "heatmap",
       "aria-label": "Heat map of reprojection error, markers by cameras; the same numbers are in the table below" });
-    const heatTable = el("table", { class: "data" });
-    heat.append(heatPlot, el("details", {}, el("summary", { text: "Show the numbers as a table" }), heatTable));
-    container.append(heat);
+    const table = el("table", { class: "data" });
+    section.append(plot, el("details", {}, el("summary", { text: "Show the numbers as a table" }), table));
 
-    function heatData(mode, n) {
+    function cells(which, n) {
       const z = [], text = [];
       for (let m = 0; m < M; m++) {
         const zr = [], tr = [];
         for (let c = 0; c < C; c++) {
-          if (mode === "run") {
+          if (which === "run") {
             const v = P.error_table.median[c][m], nobs = P.error_table.observations[c][m], nout = P.error_table.outliers[c][m];
             zr.push(v);
             tr.push(nobs === 0 ? "not seen" : (v === null ? "all rejected" : fmt(v, 1)) + (nout ? ` (${nout}×)` : ""));
           } else {
             const v = P.residuals[c][n][m];
-            const rej = outByFrame[n].some(([cc, mm]) => cc === c && mm === m);
+            const rej = ctx.outByFrame[n].some(([cc, mm]) => cc === c && mm === m);
             zr.push(v);
             tr.push(v === null ? "not seen" : fmt(v, 1) + (rej ? " rejected" : ""));
           }
@@ -385,43 +440,43 @@
       return { z, text };
     }
 
-    function drawHeat() {
-      const d = heatData(heatMode.value, state.frame);
+    function draw() {
+      const d = cells(mode.value, state.frame);
       const trace = { type: "heatmap", z: d.z, x: P.cameras, y: P.markers, text: d.text,
         texttemplate: "%{text}", textfont: { size: 11 }, colorscale: ERROR_SCALE, zmin: 0,
         colorbar: { title: { text: "px" } }, hoverongaps: false, xgap: 1, ygap: 1,
         hovertemplate: "%{y} in %{x}: %{text} px<extra></extra>" };
-      if (heatMode.value === "run") {
+      if (mode.value === "run") {
         const vals = d.z.flat().filter((v) => v !== null).sort((a, b) => a - b);
         trace.zmax = Math.max(2 * sigmaPx, vals.length ? vals[Math.floor(0.98 * (vals.length - 1))] : 1);
       } else trace.zmax = 4 * sigmaPx;
       const lay = { margin: { l: 110, r: 10, t: 10, b: 40 }, height: Math.max(260, 24 * M + 70),
         yaxis: { autorange: "reversed", automargin: true }, xaxis: { side: "bottom" }, plot_bgcolor: "#eeeeee" };
-      Plotly.react(heatPlot, [trace], lay, PLOT_CONFIG).then(() => {
-        if (heatPlot._acinoClick) return;
-        heatPlot._acinoClick = true;
-        heatPlot.on("plotly_click", (ev) => {
-          const m = ev.points && ev.points.length ? markerIndex.get(ev.points[0].y) : undefined;
-          if (m === undefined) return;
-          what.value = `m:${m}`;
-          drawSeries();
-          series.scrollIntoView({ block: "start" });
-        });
-      });
-      heatTable.replaceChildren(
-        el("caption", { text: heatMode.value === "run" ? "Median reprojection error (px), whole run"
+      Plotly.react(plot, [trace], lay, PLOT_CONFIG).then(() => onPlotClick(plot, (pt) => {
+        const m = markerIndex.get(pt.y);
+        if (m !== undefined) showMarker(m);
+      }));
+      table.replaceChildren(
+        el("caption", { text: mode.value === "run" ? "Median reprojection error (px), whole run"
           : `Reprojection error (px), frame ${state.frame}` }),
         el("thead", {}, el("tr", {}, el("th", { scope: "col", text: "Marker" }),
           P.cameras.map((c) => el("th", { scope: "col", text: c })))),
         el("tbody", {}, P.markers.map((m, i) => el("tr", {}, el("th", { scope: "row", text: m }),
           d.text[i].map((t) => el("td", { text: t }))))));
     }
-    heatMode.addEventListener("change", drawHeat);
+    mode.addEventListener("change", draw);
 
-    // ---------------------------------------------------------------- over time
-    const series = el("section", { class: "card", "aria-labelledby": newId("h") });
-    series.append(el("h2", { id: series.getAttribute("aria-labelledby"), text: "Over time" }));
-    series.append(el("p", { class: "hint", text:
+    return { section, draw, followsFrame: () => mode.value === "frame" };
+  }
+
+  // ------------------------------------------------------------------ over time
+
+  /** A marker's coordinates, a pose parameter or the fit per frame, with ±2 sd bands; a click
+   * calls setFrame. */
+  function seriesPanel(ctx, setFrame) {
+    const { P, C, fps, frames, outByFrame, track } = ctx;
+    const section = card("Over time");
+    section.append(el("p", { class: "hint", text:
       "The estimate with a band of ±2 standard deviations. Hatched grey: frames with no marker seen by two " +
       "cameras. The vertical line is the current frame; click the plot to go to a frame." }));
     const whatId = newId("what");
@@ -433,13 +488,11 @@
           text: `${p} (${P.param_units[i] === "m" ? "m" : "degrees"})` }))) : null,
       el("optgroup", { label: "Fit" }, el("option", { value: "err", text: "Reprojection error per frame" })));
     what.value = `m:${track}`;
-    series.append(el("div", { class: "controls" }, el("label", { for: whatId }, "Plot ", what)));
-    const seriesPlot = el("div", { class: "plot", role: "img", "data-testid": "series",
+    section.append(el("div", { class: "controls" }, el("label", { for: whatId }, "Plot ", what)));
+    const plot = el("div", { class: "plot", role: "img", "data-testid": "series",
       "aria-label": "Selected quantity over frames with its uncertainty band" });
-    series.append(seriesPlot);
-    container.append(series);
+    section.append(plot);
 
-    const frames = Array.from({ length: N }, (_, i) => i);
     function band(y, s, k, axis, color, fill, name) {
       const up = y.map((v, i) => (v === null || s[i] === null ? null : v + k * s[i]));
       const lo = y.map((v, i) => (v === null || s[i] === null ? null : v - k * s[i]));
@@ -453,132 +506,95 @@
       ];
     }
 
-    function hatchShapes(yref) {
-      return ranges([...unconstrainedFrames]).map(([a, b]) => ({ type: "rect", xref: "x", yref, x0: a - 0.5, x1: b + 0.5,
-        y0: 0, y1: 1, fillcolor: "rgba(120,120,120,0.25)", line: { width: 0 }, layer: "below" }));
-    }
+    const base = () => ({ margin: { l: 60, r: 10, t: 10, b: 40 }, showlegend: false, hovermode: "x" });
+    const frameAxis = () => ({ title: { text: `frame (${fps} fps)` } });
 
-    function cursorShape() {
-      return { type: "line", xref: "x", yref: "paper", x0: state.frame, x1: state.frame, y0: 0, y1: 1,
-        line: { color: "#000", width: 1.5, dash: "dot" }, name: "cursor" };
-    }
-
-    let seriesShapes = [];
-    function drawSeries() {
-      const v = what.value;
-      let data = [], layout = { margin: { l: 60, r: 10, t: 10, b: 40 }, showlegend: false, hovermode: "x" };
-      if (v.startsWith("m:")) {
-        const m = Number(v.slice(2));
-        const axes = ["x", "y", "z"];
-        axes.forEach((a, k) => {
-          const y = P.positions.map((f) => (f[m] ? f[m][k] : null));
-          const s = P.std.map((f) => (f[m] ? f[m][k] : null));
-          data.push(...band(y, s, 2, { x: "x", y: k ? `y${k + 1}` : "y" }, COLOR.left, COLOR.band, `${P.markers[m]} ${a} (m)`));
-        });
-        const nc = P.ncams.map((f) => f[m]);
-        data.push({ x: frames, y: nc, xaxis: "x", yaxis: "y4", mode: "lines", line: { shape: "hvh", color: "#555" },
-          name: "cameras", hovertemplate: "seen by %{y} cameras<br>frame %{x}<extra></extra>" });
-        const rej = [];
-        P.outliers.forEach(([c, n, mm]) => { if (mm === m) rej.push([n, P.cameras[c]]); });
-        data.push({ x: rej.map((r) => r[0]), y: rej.map((r) => P.ncams[r[0]][m]), xaxis: "x", yaxis: "y4",
-          mode: "markers", marker: { symbol: "x", size: 8, color: COLOR.flag }, text: rej.map((r) => r[1]),
-          name: "rejected", hovertemplate: "rejected in %{text}<br>frame %{x}<extra></extra>" });
-        layout = { ...layout, height: 620,
-          grid: { rows: 4, columns: 1, pattern: "coupled", roworder: "top to bottom" },
-          yaxis: { title: { text: "x (m)" } }, yaxis2: { title: { text: "y (m)" } }, yaxis3: { title: { text: "z (m)" } },
-          yaxis4: { title: { text: "cameras" }, range: [-0.3, C + 0.3], dtick: 1 },
-          xaxis: { title: { text: `frame (${fps} fps)` } } };
-        seriesShapes = ["y domain", "y2 domain", "y3 domain"].flatMap(hatchShapes);
-      } else if (v.startsWith("p:")) {
-        const p = Number(v.slice(2));
-        const k = P.param_units[p] === "m" ? 1 : 180 / Math.PI;
-        const y = P.params.map((r) => (r[p] === null ? null : r[p] * k));
-        const s = P.params_std ? P.params_std.map((r) => (r[p] === null ? null : r[p] * k)) : y.map(() => null);
-        const unit = P.param_units[p] === "m" ? "m" : "degrees";
-        data = band(y, s, 2, { x: "x", y: "y" }, COLOR.left, COLOR.band, `${P.param_names[p]} (${unit})`);
-        layout = { ...layout, height: 320, yaxis: { title: { text: `${P.param_names[p]} (${unit})` } },
-          xaxis: { title: { text: `frame (${fps} fps)` } } };
-        seriesShapes = hatchShapes("y domain");
-      } else {
-        const nrej = frames.map((n) => outByFrame[n].length);
-        data = [
-          { x: frames, y: P.frame_error, mode: "lines", line: { color: "#000", width: 1.5 }, name: "RMSE (px)",
-            hovertemplate: "RMSE %{y:.2f} px<br>frame %{x}<extra></extra>" },
-          { x: frames, y: nrej, yaxis: "y2", type: "bar", marker: { color: "rgba(204,0,0,0.35)" },
-            name: "rejected detections", hovertemplate: "%{y} rejected<br>frame %{x}<extra></extra>" },
-        ];
-        layout = { ...layout, height: 320, showlegend: true, legend: { orientation: "h", y: 1.12 },
-          yaxis: { title: { text: "reprojection RMSE (px)" } },
-          yaxis2: { title: { text: "rejected" }, overlaying: "y", side: "right", showgrid: false },
-          xaxis: { title: { text: `frame (${fps} fps)` } }, margin: { l: 60, r: 60, t: 30, b: 40 } };
-        seriesShapes = hatchShapes("y domain");
-      }
-      layout.shapes = [...seriesShapes, cursorShape()];
-      Plotly.react(seriesPlot, data, layout, PLOT_CONFIG).then(() => {
-        if (!seriesPlot._acinoClick) {
-          seriesPlot._acinoClick = true;
-          seriesPlot.on("plotly_click", (ev) => { if (ev.points && ev.points.length) setFrame(ev.points[0].x); });
-        }
+    function markerFigure(m) {
+      const data = [];
+      ["x", "y", "z"].forEach((a, k) => {
+        const y = P.positions.map((f) => (f[m] ? f[m][k] : null));
+        const s = P.std.map((f) => (f[m] ? f[m][k] : null));
+        data.push(...band(y, s, 2, { x: "x", y: k ? `y${k + 1}` : "y" }, COLOR.left, COLOR.band, `${P.markers[m]} ${a} (m)`));
       });
+      const nc = P.ncams.map((f) => f[m]);
+      data.push({ x: frames, y: nc, xaxis: "x", yaxis: "y4", mode: "lines", line: { shape: "hvh", color: "#555" },
+        name: "cameras", hovertemplate: "seen by %{y} cameras<br>frame %{x}<extra></extra>" });
+      const rej = [];
+      P.outliers.forEach(([c, n, mm]) => { if (mm === m) rej.push([n, P.cameras[c]]); });
+      data.push({ x: rej.map((r) => r[0]), y: rej.map((r) => P.ncams[r[0]][m]), xaxis: "x", yaxis: "y4",
+        mode: "markers", marker: { symbol: "x", size: 8, color: COLOR.flag }, text: rej.map((r) => r[1]),
+        name: "rejected", hovertemplate: "rejected in %{text}<br>frame %{x}<extra></extra>" });
+      const layout = { ...base(), height: 620,
+        grid: { rows: 4, columns: 1, pattern: "coupled", roworder: "top to bottom" },
+        yaxis: { title: { text: "x (m)" } }, yaxis2: { title: { text: "y (m)" } }, yaxis3: { title: { text: "z (m)" } },
+        yaxis4: { title: { text: "cameras" }, range: [-0.3, C + 0.3], dtick: 1 },
+        xaxis: frameAxis() };
+      return { data, layout, shapes: ["y domain", "y2 domain", "y3 domain"].flatMap((r) => hatchShapes(ctx, r)) };
     }
-    what.addEventListener("change", drawSeries);
 
-    // ---------------------------------------------------------------- flags
-    const flags = el("section", { class: "card", "aria-labelledby": newId("h") });
-    flags.append(el("h2", { id: flags.getAttribute("aria-labelledby"), text: "Flagged by the solver" }));
-    const nFramesRej = outByFrame.filter((o) => o.length).length;
-    flags.append(el("p", { text:
-      `${plural(P.outliers.length, "detection")} rejected as outliers in ${plural(nFramesRej, "frame")}; ` +
-      `${plural(unconstrainedFrames.size, "frame")} with no marker seen by two cameras; ` +
-      `${plural(unconstrainedMarkers.size, "marker")} never seen by two cameras.` }));
-    const goto = (n, label) => el("button", { type: "button", class: "link", text: label || `frame ${n}`,
-      "aria-label": `Go to frame ${n}`, onclick: () => { setFrame(n); plot3d.scrollIntoView({ block: "center" }); } });
-    if (unconstrainedMarkers.size) {
-      flags.append(el("h3", { text: "Markers never seen by two cameras" }),
-        el("p", { text: [...unconstrainedMarkers].join(", ") + ": their 3D positions rest on the motion model alone." }));
+    function parameterFigure(p) {
+      const k = P.param_units[p] === "m" ? 1 : 180 / Math.PI;
+      const y = P.params.map((r) => (r[p] === null ? null : r[p] * k));
+      const s = P.params_std ? P.params_std.map((r) => (r[p] === null ? null : r[p] * k)) : y.map(() => null);
+      const unit = P.param_units[p] === "m" ? "m" : "degrees";
+      const data = band(y, s, 2, { x: "x", y: "y" }, COLOR.left, COLOR.band, `${P.param_names[p]} (${unit})`);
+      const layout = { ...base(), height: 320, yaxis: { title: { text: `${P.param_names[p]} (${unit})` } },
+        xaxis: frameAxis() };
+      return { data, layout, shapes: hatchShapes(ctx, "y domain") };
     }
-    if (unconstrainedFrames.size) {
-      flags.append(el("h3", { text: "Frames with no marker seen by two cameras" }),
-        el("p", { class: "buttons" }, ranges([...unconstrainedFrames]).slice(0, 40).map(([a, b]) =>
-          goto(a, a === b ? `frame ${a}` : `frames ${a}–${b}`))));
+
+    function fitFigure() {
+      const nrej = frames.map((n) => outByFrame[n].length);
+      const data = [
+        { x: frames, y: P.frame_error, mode: "lines", line: { color: "#000", width: 1.5 }, name: "RMSE (px)",
+          hovertemplate: "RMSE %{y:.2f} px<br>frame %{x}<extra></extra>" },
+        { x: frames, y: nrej, yaxis: "y2", type: "bar", marker: { color: "rgba(204,0,0,0.35)" },
+          name: "rejected detections", hovertemplate: "%{y} rejected<br>frame %{x}<extra></extra>" },
+      ];
+      const layout = { ...base(), height: 320, showlegend: true, legend: { orientation: "h", y: 1.12 },
+        yaxis: { title: { text: "reprojection RMSE (px)" } },
+        yaxis2: { title: { text: "rejected" }, overlaying: "y", side: "right", showgrid: false },
+        xaxis: frameAxis(), margin: { l: 60, r: 60, t: 30, b: 40 } };
+      return { data, layout, shapes: hatchShapes(ctx, "y domain") };
     }
-    // Frames with the most rejected detections.
-    const worst = frames.filter((n) => outByFrame[n].length).sort((a, b) => outByFrame[b].length - outByFrame[a].length || a - b).slice(0, 10);
-    if (worst.length) {
-      flags.append(el("h3", { text: "Frames with the most rejected detections" }));
-      flags.append(el("table", { class: "data" },
-        el("thead", {}, el("tr", {}, ["Frame", "Rejected", "Which (marker in camera)"].map((t) => el("th", { scope: "col", text: t })))),
-        el("tbody", {}, worst.map((n) => el("tr", {},
-          el("td", {}, goto(n, String(n))), el("td", { text: String(outByFrame[n].length) }),
-          el("td", { text: outByFrame[n].map(([c, m]) => `${P.markers[m]} in ${P.cameras[c]}`).join(", ") }))))));
+
+    let shapes = [];
+    function draw() {
+      const v = what.value;
+      const fig = v.startsWith("m:") ? markerFigure(Number(v.slice(2)))
+        : v.startsWith("p:") ? parameterFigure(Number(v.slice(2))) : fitFigure();
+      shapes = fig.shapes;
+      fig.layout.shapes = [...shapes, cursorShape(ctx)];
+      Plotly.react(plot, fig.data, fig.layout, PLOT_CONFIG).then(() => onPlotClick(plot, (pt) => setFrame(pt.x)));
     }
-    // Per marker: rejected detections and frames seen by fewer than two cameras.
-    const perMarkerBox = el("details", {}, el("summary", { text: "Counts per marker" }));
-    flags.append(perMarkerBox);
-    const perMarker = P.markers.map((name, m) => {
-      let rej = 0, weak = 0, missing = 0;
-      for (let n = 0; n < N; n++) {
-        if (P.ncams[n][m] < 2) weak++;
-        const p = P.positions[n][m];
-        if (!p || p[0] === null) missing++;
-      }
-      for (const [, , mm] of P.outliers) if (mm === m) rej++;
-      return { name, rej, weak, missing };
-    });
-    perMarkerBox.append(el("table", { class: "data", "data-testid": "per-marker" },
-      el("thead", {}, el("tr", {}, ["Marker", "Rejected detections", "Frames seen by fewer than 2 cameras", "Frames without estimate"]
-        .map((t) => el("th", { scope: "col", text: t })))),
-      el("tbody", {}, perMarker.map((r) => el("tr", {}, el("th", { scope: "row", text: r.name }),
-        el("td", { text: String(r.rej) }), el("td", { text: String(r.weak) }), el("td", { text: String(r.missing) }))))));
-    const raster = el("div", { class: "plot", role: "img",
+    what.addEventListener("change", draw);
+
+    /** Plot marker m and bring the panel into view. */
+    function showMarker(m) {
+      what.value = `m:${m}`;
+      draw();
+      section.scrollIntoView({ block: "start" });
+    }
+
+    function moveCursor() {
+      if (plot.layout) Plotly.relayout(plot, { shapes: [...shapes, cursorShape(ctx)] });
+    }
+
+    return { section, draw, showMarker, moveCursor };
+  }
+
+  // ------------------------------------------------------------------ flags
+
+  /** Cameras that saw each marker in each frame, rejected detections as crosses; a click calls setFrame. */
+  function cameraRaster(ctx, setFrame) {
+    const { P, N, M, C, frames } = ctx;
+    const plot = el("div", { class: "plot", role: "img",
       "aria-label": "Cameras that saw each marker in each frame, with rejected detections as crosses; the table above has the counts" });
-    const nFlagText = flags.children[1];
-    nFlagText.after(el("h3", { text: "Cameras per marker and frame" }),
+    const nodes = [el("h3", { text: "Cameras per marker and frame" }),
       el("p", { class: "hint", text: "Darker: fewer cameras saw the marker. Crosses: rejected detections. Hatched grey: " +
-        "frames with no marker seen by two cameras. Click to go to a frame." }), raster);
-    container.append(flags);
+        "frames with no marker seen by two cameras. Click to go to a frame." }), plot];
 
-    function drawRaster() {
+    function draw() {
       const z = P.markers.map((_, m) => P.ncams.map((f) => f[m]));
       const xs = P.outliers.map(([, n]) => n), ys = P.outliers.map(([, , m]) => P.markers[m]);
       const data = [
@@ -590,45 +606,85 @@
       ];
       const layout = { margin: { l: 110, r: 10, t: 10, b: 40 }, height: Math.max(240, 18 * M + 70), showlegend: false,
         yaxis: { autorange: "reversed", automargin: true, type: "category" }, xaxis: { title: { text: "frame" }, range: [-0.5, N - 0.5] },
-        shapes: [...hatchShapes("paper"), cursorShape()] };
-      Plotly.react(raster, data, layout, PLOT_CONFIG).then(() => {
-        if (!raster._acinoClick) {
-          raster._acinoClick = true;
-          raster.on("plotly_click", (ev) => { if (ev.points && ev.points.length) setFrame(ev.points[0].x); });
-        }
-      });
+        shapes: [...hatchShapes(ctx, "paper"), cursorShape(ctx)] };
+      Plotly.react(plot, data, layout, PLOT_CONFIG).then(() => onPlotClick(plot, (pt) => setFrame(pt.x)));
     }
 
-    // ---------------------------------------------------------------- frame control
-    function describe(n) {
-      const s = frameSummary(n);
-      status.textContent = s.text + (s.notes.length ? ` ${plural(s.notes.length, "marker")} flagged:` : " No marker flagged.");
-      notes.replaceChildren(...s.notes.slice(0, 30).map((t) => el("li", { text: t })));
-      if (s.notes.length > 30) notes.append(el("li", { text: `and ${s.notes.length - 30} more` }));
-      timeLabel.textContent = `${(n / fps).toFixed(3)} s`;
-      slider.setAttribute("aria-valuetext", `Frame ${n} of ${N - 1}, ${(n / fps).toFixed(3)} seconds`);
+    function moveCursor() {
+      if (plot.layout) Plotly.relayout(plot, { shapes: [...hatchShapes(ctx, "paper"), cursorShape(ctx)] });
     }
+
+    return { nodes, draw, moveCursor };
+  }
+
+  /** Per marker: rejected detections, frames seen by fewer than two cameras, frames without estimate. */
+  function perMarkerTable(ctx) {
+    const { P, N } = ctx;
+    const rows = P.markers.map((name, m) => {
+      let rej = 0, weak = 0, missing = 0;
+      for (let n = 0; n < N; n++) {
+        if (P.ncams[n][m] < 2) weak++;
+        if (!seen(P.positions[n][m])) missing++;
+      }
+      for (const [, , mm] of P.outliers) if (mm === m) rej++;
+      return { name, rej, weak, missing };
+    });
+    return el("details", {}, el("summary", { text: "Counts per marker" }),
+      el("table", { class: "data", "data-testid": "per-marker" },
+        el("thead", {}, el("tr", {}, ["Marker", "Rejected detections", "Frames seen by fewer than 2 cameras", "Frames without estimate"]
+          .map((t) => el("th", { scope: "col", text: t })))),
+        el("tbody", {}, rows.map((r) => el("tr", {}, el("th", { scope: "row", text: r.name }),
+          el("td", { text: String(r.rej) }), el("td", { text: String(r.weak) }), el("td", { text: String(r.missing) }))))));
+  }
+
+  /** What the solver flagged: counts, the raster, the blind frames and the frames with most rejections;
+   * their buttons call showFrame. */
+  function flagsPanel(ctx, setFrame, showFrame) {
+    const { P, frames, outByFrame, unconstrainedFrames, unconstrainedMarkers } = ctx;
+    const section = card("Flagged by the solver");
+    const nFramesRej = outByFrame.filter((o) => o.length).length;
+    section.append(el("p", { text:
+      `${plural(P.outliers.length, "detection")} rejected as outliers in ${plural(nFramesRej, "frame")}; ` +
+      `${plural(unconstrainedFrames.size, "frame")} with no marker seen by two cameras; ` +
+      `${plural(unconstrainedMarkers.size, "marker")} never seen by two cameras.` }));
+    const raster = cameraRaster(ctx, setFrame);
+    section.append(...raster.nodes);
+    const goto = (n, label) => el("button", { type: "button", class: "link", text: label || `frame ${n}`,
+      "aria-label": `Go to frame ${n}`, onclick: () => showFrame(n) });
+    if (unconstrainedMarkers.size) {
+      section.append(el("h3", { text: "Markers never seen by two cameras" }),
+        el("p", { text: [...unconstrainedMarkers].join(", ") + ": their 3D positions rest on the motion model alone." }));
+    }
+    if (unconstrainedFrames.size) {
+      section.append(el("h3", { text: "Frames with no marker seen by two cameras" }),
+        el("p", { class: "buttons" }, ranges([...unconstrainedFrames]).slice(0, 40).map(([a, b]) =>
+          goto(a, a === b ? `frame ${a}` : `frames ${a}–${b}`))));
+    }
+    // Frames with the most rejected detections.
+    const worst = frames.filter((n) => outByFrame[n].length).sort((a, b) => outByFrame[b].length - outByFrame[a].length || a - b).slice(0, 10);
+    if (worst.length) {
+      section.append(el("h3", { text: "Frames with the most rejected detections" }));
+      section.append(el("table", { class: "data" },
+        el("thead", {}, el("tr", {}, ["Frame", "Rejected", "Which (marker in camera)"].map((t) => el("th", { scope: "col", text: t })))),
+        el("tbody", {}, worst.map((n) => el("tr", {},
+          el("td", {}, goto(n, String(n))), el("td", { text: String(outByFrame[n].length) }),
+          el("td", { text: outByFrame[n].map(([c, m]) => `${P.markers[m]} in ${P.cameras[c]}`).join(", ") }))))));
+    }
+    section.append(perMarkerTable(ctx));
+    return { section, drawRaster: raster.draw, moveCursor: raster.moveCursor };
+  }
+
+  // ------------------------------------------------------------------ frame control
+
+  /** Playback, stepping and the keyboard: every panel follows the current frame. */
+  function frameControl(ctx, play, scene, heat, series, flags) {
+    const { N, fps, state } = ctx;
+    const { slider, number, playBtn, status } = play;
 
     function syncOthers() {
-      const shape = cursorShape();
-      if (seriesPlot.layout) Plotly.relayout(seriesPlot, { shapes: [...seriesShapes, shape] });
-      if (raster.layout) Plotly.relayout(raster, { shapes: [...hatchShapes("paper"), shape] });
-      if (heatMode.value === "frame") drawHeat();
-    }
-
-    function setFrame(n, fromPlayback) {
-      n = Math.max(0, Math.min(N - 1, Math.round(Number(n) || 0)));
-      state.frame = n;
-      slider.value = String(n);
-      if (document.activeElement !== number) number.value = String(n);
-      plot3d.dataset.frame = String(n);
-      draw3d(n);
-      if (!fromPlayback) { describe(n); scheduleSync(); }
-      else {
-        timeLabel.textContent = `${(n / fps).toFixed(3)} s`;
-        const now = performance.now();
-        if (now - state.lastSync > 400) { state.lastSync = now; syncOthers(); describe(n); }
-      }
+      series.moveCursor();
+      flags.moveCursor();
+      if (heat.followsFrame()) heat.draw();
     }
 
     // The other plots follow the frame once stepping pauses: redrawing a long run's raster on
@@ -637,6 +693,21 @@
     function scheduleSync() {
       clearTimeout(syncTimer);
       syncTimer = setTimeout(syncOthers, 150);
+    }
+
+    function setFrame(n, fromPlayback) {
+      n = Math.max(0, Math.min(N - 1, Math.round(Number(n) || 0)));
+      state.frame = n;
+      slider.value = String(n);
+      if (document.activeElement !== number) number.value = String(n);
+      play.plot3d.dataset.frame = String(n);
+      scene.draw(n);
+      if (!fromPlayback) { play.describe(n); scheduleSync(); }
+      else {
+        play.showTime(n);
+        const now = performance.now();
+        if (now - state.lastSync > 400) { state.lastSync = now; syncOthers(); play.describe(n); }
+      }
     }
 
     function tick(now) {
@@ -658,20 +729,20 @@
       playBtn.setAttribute("aria-pressed", String(state.playing));
       status.setAttribute("aria-live", state.playing ? "off" : "polite");
       if (state.playing) { state.last = performance.now(); state.acc = 0; requestAnimationFrame(tick); }
-      else describe(state.frame);
+      else play.describe(state.frame);
     }
 
     playBtn.addEventListener("click", () => setPlaying(!state.playing));
-    prevBtn.addEventListener("click", () => { setPlaying(false); setFrame(state.frame - 1); });
-    nextBtn.addEventListener("click", () => { setPlaying(false); setFrame(state.frame + 1); });
+    play.prevBtn.addEventListener("click", () => { setPlaying(false); setFrame(state.frame - 1); });
+    play.nextBtn.addEventListener("click", () => { setPlaying(false); setFrame(state.frame + 1); });
     slider.addEventListener("input", () => { setPlaying(false); setFrame(slider.value); });
     number.addEventListener("change", () => { setPlaying(false); setFrame(number.value); });
-    speed.addEventListener("change", () => { state.speed = Number(speed.value); });
-    view.addEventListener("change", () => {
-      state.view = view.value;
-      Plotly.relayout(plot3d, sceneLayout(state.frame));
+    play.speed.addEventListener("change", () => { state.speed = Number(play.speed.value); });
+    play.view.addEventListener("change", () => {
+      state.view = play.view.value;
+      scene.reframe();
     });
-    play.addEventListener("keydown", (ev) => {
+    play.section.addEventListener("keydown", (ev) => {
       const t = ev.target;
       if (t.tagName === "INPUT" || t.tagName === "SELECT" || t.tagName === "TEXTAREA") return;
       if (ev.key === " " && t.tagName !== "BUTTON") { ev.preventDefault(); setPlaying(!state.playing); }
@@ -680,17 +751,48 @@
       else if (ev.key === "Home") { ev.preventDefault(); setFrame(0); }
       else if (ev.key === "End") { ev.preventDefault(); setFrame(N - 1); }
     });
-    plot3d.tabIndex = 0;
-    plot3d.setAttribute("aria-describedby", status.id = newId("status"));
+    play.plot3d.tabIndex = 0;
+    play.plot3d.setAttribute("aria-describedby", status.id = newId("status"));
+
+    return { setFrame, setPlaying };
+  }
+
+  // ------------------------------------------------------------------ the whole view
+
+  function render(container, P, opts) {
+    opts = opts || {};
+    container.replaceChildren();
+    if (!P || !Array.isArray(P.positions) || !Array.isArray(P.markers)) {
+      container.append(el("p", { class: "notice", text: "This result holds no 3D positions to draw." }));
+      return null;
+    }
+    fillGaps(P);
+    const ctx = context(P);
+    // The panels' clicks go through the frame control, made last (it drives them all).
+    let control = null;
+    const setFrame = (n) => control.setFrame(n);
+
+    container.append(summaryPanel(ctx));
+    const play = playbackPanel(ctx);
+    container.append(play.section);
+    const scene = skeletonScene(ctx, play.plot3d);
+    const heat = errorPanel(ctx, (m) => series.showMarker(m));
+    container.append(heat.section);
+    const series = seriesPanel(ctx, setFrame);
+    container.append(series.section);
+    const flags = flagsPanel(ctx, setFrame, (n) => { setFrame(n); play.plot3d.scrollIntoView({ block: "center" }); });
+    container.append(flags.section);
+    control = frameControl(ctx, play, scene, heat, series, flags);
 
     let firstFrame = 0;
-    for (let n = 0; n < N; n++) if (P.positions[n].some((p) => p && p[0] !== null)) { firstFrame = n; break; }
-    drawHeat();
-    drawSeries();
-    drawRaster();
-    plot3dReady.then(() => { setFrame(firstFrame); container.dataset.ready = "true"; });
+    for (let n = 0; n < ctx.N; n++) if (P.positions[n].some(seen)) { firstFrame = n; break; }
+    heat.draw();
+    series.draw();
+    flags.drawRaster();
+    scene.ready.then(() => { control.setFrame(firstFrame); container.dataset.ready = "true"; });
 
-    return { setFrame, play: () => setPlaying(true), pause: () => setPlaying(false), state };
+    return { setFrame: control.setFrame, play: () => control.setPlaying(true), pause: () => control.setPlaying(false),
+      state: ctx.state };
   }
 
   window.AcinoResultView = { render };

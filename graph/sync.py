@@ -1,0 +1,146 @@
+"""The cameras' clocks: per-camera time offsets, found in whole frames before the joint solve.
+
+Camera c's frame ``m`` was taken at time ``m + tau_c`` frames on the trajectory's clock (camera 1's:
+``tau_1 = 0``). The joint solve (:mod:`graph.joint`) refines every ``tau_c`` below a frame with the
+trajectory; it needs a start within about a frame, which this module finds for offsets of any size
+from the calibration alone.
+
+Whole frames, by epipolar geometry. Two cameras a and c see a marker at the same instant when
+camera c's frame ``n + d`` pairs with camera a's frame n, ``d = tau_a - tau_c``. For such a pair the
+normalised image points satisfy ``x_c^T E x_a = 0`` with the essential matrix ``E = [t]_x R`` of
+the relative pose (``R = R_c R_a^T``, ``t = t_c - R t_a``); their Sampson distance
+
+    e = (x_c^T E x_a)^2 / ((E x_a)_1^2 + (E x_a)_2^2 + (E^T x_c)_1^2 + (E^T x_c)_2^2)
+
+grows with the motion between the two instants. For every lag ``d`` within ``max_lag`` the median
+of ``sqrt(e)`` over every marker both cameras saw confidently is the lag's cost; the best lag is
+refined below a frame by a parabola through it and its neighbours. A lag is *decisive* when its
+cost is below :data:`DECISIVE` times the median cost of all lags: an animal that stands still, or a
+pair that shares too few detections, leaves every lag alike, and the offset stays at 0. Cameras are
+placed one at a time, each against the placed camera it shares most detections with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from graph.camera import Calibration, undistort_points
+
+DECISIVE = 0.6  # a lag counts when its cost is below this fraction of the median lag's
+MIN_PAIRS = 30  # co-detections a lag needs to be scored
+
+
+@dataclass
+class CoarseOffsets:
+    """Per-camera offsets (C,) in frames (camera 1 = 0) and whether each was decided by the data."""
+
+    frames: np.ndarray
+    decided: np.ndarray  # (C,) bool; camera 1 is True
+    against: list[int]  # the camera each was placed against (-1 for camera 1)
+
+
+def default_max_lag(frames: int, fps: float) -> int:
+    """Lags searched either way: a quarter of a second, at least 10 frames, at most a third of the run."""
+    return int(max(1, min(max(10, round(0.25 * fps)), frames // 3)))
+
+
+def _essential(calibration: Calibration, a: int, c: int) -> np.ndarray:
+    ca, cc = calibration.cameras[a], calibration.cameras[c]
+    R = cc.R @ ca.R.T
+    t = cc.t - R @ ca.t
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return tx @ R
+
+
+def lag_costs(xa: np.ndarray, xc: np.ndarray, E: np.ndarray, lags: np.ndarray) -> np.ndarray:
+    """Median Sampson distance (normalised units) of camera a's points ``xa`` (N, M, 2) paired with
+    camera c's ``xc`` (N, M, 2) ``d`` frames later, for each lag d; NaN where too few pairs."""
+    N = xa.shape[0]
+    out = np.full(len(lags), np.nan)
+    ha = np.concatenate([xa, np.ones(xa.shape[:-1] + (1,))], axis=-1)
+    hc = np.concatenate([xc, np.ones(xc.shape[:-1] + (1,))], axis=-1)
+    for i, d in enumerate(lags):
+        lo, hi = max(0, -d), min(N, N - d)
+        if hi - lo <= 0:
+            continue
+        pa, pc = ha[lo:hi].reshape(-1, 3), hc[lo + d:hi + d].reshape(-1, 3)
+        ok = np.isfinite(pa).all(-1) & np.isfinite(pc).all(-1)
+        if ok.sum() < MIN_PAIRS:
+            continue
+        pa, pc = pa[ok], pc[ok]
+        Ea = pa @ E.T  # E x_a
+        Ec = pc @ E  # E^T x_c
+        num = np.einsum("ij,ij->i", pc, Ea) ** 2
+        den = Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Ec[:, 0] ** 2 + Ec[:, 1] ** 2
+        out[i] = float(np.median(np.sqrt(num / np.maximum(den, 1e-300))))
+    return out
+
+
+def _best_lag(costs: np.ndarray, lags: np.ndarray) -> tuple[float, bool]:
+    """The best lag, below a frame by a parabola through its neighbours, and whether it is decisive."""
+    if not np.isfinite(costs).any():
+        return 0.0, False
+    i = int(np.nanargmin(costs))
+    decisive = bool(costs[i] < DECISIVE * np.nanmedian(costs))
+    lag = float(lags[i])
+    if 0 < i < len(costs) - 1 and np.isfinite(costs[i - 1:i + 2]).all():
+        c0, c1, c2 = costs[i - 1:i + 2]
+        curv = c0 - 2 * c1 + c2
+        if curv > 0:
+            lag += float(np.clip(0.5 * (c0 - c2) / curv, -0.5, 0.5))
+    return lag, decisive
+
+
+def coarse_offsets(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, fps: float,
+                   max_lag: int | None = None) -> CoarseOffsets:
+    """Each camera's offset from detections ``meas`` (N, C, M, 2) where ``valid`` (N, C, M)
+    (module docstring). A camera whose best lag is not decisive keeps 0."""
+    N, C = meas.shape[:2]
+    max_lag = default_max_lag(N, fps) if max_lag is None else max_lag
+    lags = np.arange(-max_lag, max_lag + 1)
+    norm = np.stack([undistort_points(cam, np.where(valid[:, c, :, None], meas[:, c], np.nan))
+                     for c, cam in enumerate(calibration.cameras)], axis=1)  # (N, C, M, 2)
+    seen = np.isfinite(norm).all(-1)  # (N, C, M)
+    tau = np.zeros(C)
+    decided = np.zeros(C, dtype=bool)
+    decided[0] = True
+    against = [-1] * C
+    placed = [0]
+    todo = list(range(1, C))
+    shared = np.einsum("nam,ncm->ac", seen.astype(float), seen.astype(float))
+    while todo:
+        # the unplaced camera sharing most detections with a placed one goes next
+        c, a = max(((c, a) for c in todo for a in placed), key=lambda ca: shared[ca[1], ca[0]])
+        lag, ok = _best_lag(lag_costs(norm[:, a], norm[:, c], _essential(calibration, a, c), lags), lags)
+        # camera c's frame n + lag pairs with camera a's frame n: tau_c = tau_a - lag
+        tau[c] = tau[a] - lag if ok else tau[a] if decided[a] else 0.0
+        decided[c] = ok and decided[a]
+        against[c] = a
+        placed.append(c)
+        todo.remove(c)
+    return CoarseOffsets(frames=tau, decided=decided, against=against)
+
+
+def shift_and_fraction(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera frame ``m`` is at time ``m + tau`` = window ``n + f``: ``m = n + shift``,
+    ``shift = -floor(tau)``, ``f = tau - floor(tau)`` in [0, 1) (what :func:`graph.kernels.window_normals` takes)."""
+    whole = np.floor(tau)
+    return (-whole).astype(np.int64), (tau - whole).astype(np.float64)
+
+
+def on_reference_clock(meas: np.ndarray, valid: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The detections re-indexed to the nearest frame of the reference clock: camera c's frame
+    ``n - round(tau_c)`` as frame n (NaN, not valid, where that frame does not exist). For the
+    triangulation that starts a solve."""
+    N, C = meas.shape[:2]
+    out = np.full_like(meas, np.nan)
+    ok = np.zeros_like(valid)
+    for c in range(C):
+        k = int(round(float(tau[c])))
+        lo, hi = max(0, k), min(N, N + k)  # frames n whose camera frame n - k exists
+        if hi > lo:
+            out[lo:hi, c] = meas[lo - k:hi - k, c]
+            ok[lo:hi, c] = valid[lo - k:hi - k, c]
+    return out, ok
