@@ -2,23 +2,31 @@
 
 Plain HTML and JavaScript (``service/templates``, ``service/static``) that call the REST API v1 with
 the user's token, which the browser keeps in localStorage. Nothing is fetched from outside the
-server: plotly.js comes from the plotly wheel (:func:`graph.plot.plotly_js_path`). The app includes
+server: plotly.js comes from the plotly wheel (:func:`graph.plot.plotly_js_path`), the result view
+and its stylesheet from the library (:mod:`graph.viewer`), both under ``/static/``. The app includes
 :data:`router` with ``include_in_schema=False``: pages are not part of the REST contract.
+
+A template's ``{{viewer_styles}}`` and ``{{viewer_scripts}}`` become the tags loading
+:data:`graph.viewer.STYLES` and :data:`graph.viewer.SCRIPTS`.
 """
 
 from __future__ import annotations
 
+import html
 import re
 from pathlib import Path
 
 from fastapi import APIRouter, HTTPException
 from fastapi.responses import FileResponse, HTMLResponse
 
+from graph import viewer
 from graph.plot import plotly_js_path
 
 HERE = Path(__file__).resolve().parent
 TEMPLATES = HERE / "templates"
 STATIC = HERE / "static"
+# The result view's files, served beside service/static (a name there never shadows one of these).
+VIEWER_FILES = frozenset(viewer.SCRIPTS + viewer.STYLES)
 
 router = APIRouter(include_in_schema=False)
 
@@ -32,9 +40,21 @@ _PAGE_HEADERS = {"Cache-Control": "no-cache", "X-Content-Type-Options": "nosniff
 _PLOTLY_HEADERS = {"Cache-Control": "public, max-age=86400", "X-Content-Type-Options": "nosniff"}
 
 
+# What the {{name}} marks of the templates stand for.
+_FILLS = {
+    "viewer_styles": "\n".join(f'<link rel="stylesheet" href="/static/{html.escape(n)}">' for n in viewer.STYLES),
+    "viewer_scripts": "\n".join(f'<script src="/static/{html.escape(n)}"></script>' for n in viewer.SCRIPTS),
+}
+_MARK = re.compile(r"\{\{(\w+)\}\}")
+
+
+def render_template(name: str) -> str:
+    """A page template with its marks filled; a mark nobody fills is an error, not left in the page."""
+    return _MARK.sub(lambda m: _FILLS[m.group(1)], (TEMPLATES / name).read_text(encoding="utf-8"))
+
+
 def _page(name: str, status_code: int = 200) -> HTMLResponse:
-    return HTMLResponse((TEMPLATES / name).read_text(encoding="utf-8"), status_code=status_code,
-                        headers=_PAGE_HEADERS)
+    return HTMLResponse(render_template(name), status_code=status_code, headers=_PAGE_HEADERS)
 
 
 @router.get("/", response_class=HTMLResponse)
@@ -68,9 +88,10 @@ def plotly_js() -> FileResponse:
 
 @router.get("/static/{name}")
 def static_file(name: str) -> FileResponse:
-    """A script or stylesheet of the pages; nothing outside ``service/static``."""
+    """A script or stylesheet of the pages: one of the result view's files, or one in
+    ``service/static``; nothing else."""
     m = _STATIC_NAME.match(name)
-    path = STATIC / name
+    path = (viewer.viewer_dir() if name in VIEWER_FILES else STATIC) / name
     if not m or not path.is_file():
         raise HTTPException(404, f"no static file {name!r}")
     return FileResponse(path, media_type=_MEDIA[m.group(1)], headers=_PAGE_HEADERS)

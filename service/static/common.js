@@ -1,5 +1,5 @@
 /* Shared by every page: the API token (kept in this browser's localStorage), calls to the REST API
- * v1 with it, the page header, and small formatting helpers. */
+ * v1 with it, the page header, and small formatting helpers. Needs dom.js. */
 (function () {
   "use strict";
 
@@ -12,21 +12,7 @@
     }
   }
 
-  function el(tag, attrs, ...children) {
-    const node = document.createElement(tag);
-    for (const [k, v] of Object.entries(attrs || {})) {
-      if (v === null || v === undefined || v === false) continue;
-      if (k === "class") node.className = v;
-      else if (k === "text") node.textContent = v;
-      else if (k.startsWith("on")) node.addEventListener(k.slice(2), v);
-      else node.setAttribute(k, v === true ? "" : v);
-    }
-    for (const c of children.flat()) {
-      if (c === null || c === undefined || c === false) continue;
-      node.append(c instanceof Node ? c : document.createTextNode(String(c)));
-    }
-    return node;
-  }
+  const { el } = window.AcinoDom;
 
   function token() {
     try { return localStorage.getItem(TOKEN_KEY); } catch (e) { return null; }
