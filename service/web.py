@@ -7,12 +7,15 @@ and its stylesheet from the library (:mod:`graph.viewer`), both under ``/static/
 :data:`router` with ``include_in_schema=False``: pages are not part of the REST contract.
 
 A template's ``{{viewer_styles}}`` and ``{{viewer_scripts}}`` become the tags loading
-:data:`graph.viewer.STYLES` and :data:`graph.viewer.SCRIPTS`.
+:data:`graph.viewer.STYLES` and :data:`graph.viewer.SCRIPTS`; ``{{job_statuses}}`` becomes the job
+statuses of :mod:`service.store` as JSON (``<script type="application/json" id="job-statuses">``),
+which the page scripts read instead of naming them again.
 """
 
 from __future__ import annotations
 
 import html
+import json
 import re
 from pathlib import Path
 
@@ -21,6 +24,7 @@ from fastapi.responses import FileResponse, HTMLResponse
 
 from graph import viewer
 from graph.plot import plotly_js_path
+from service.store import ACTIVE, STATUSES
 
 HERE = Path(__file__).resolve().parent
 TEMPLATES = HERE / "templates"
@@ -40,10 +44,17 @@ _PAGE_HEADERS = {"Cache-Control": "no-cache", "X-Content-Type-Options": "nosniff
 _PLOTLY_HEADERS = {"Cache-Control": "public, max-age=86400", "X-Content-Type-Options": "nosniff"}
 
 
+def _json_script(element_id: str, value) -> str:
+    """Value as JSON in a ``<script type="application/json">``; no ``<`` can end it early."""
+    text = json.dumps(value, separators=(",", ":")).replace("<", "\\u003c")
+    return f'<script type="application/json" id="{element_id}">{text}</script>'
+
+
 # What the {{name}} marks of the templates stand for.
 _FILLS = {
     "viewer_styles": "\n".join(f'<link rel="stylesheet" href="/static/{html.escape(n)}">' for n in viewer.STYLES),
     "viewer_scripts": "\n".join(f'<script src="/static/{html.escape(n)}"></script>' for n in viewer.SCRIPTS),
+    "job_statuses": _json_script("job-statuses", {"all": list(STATUSES), "active": list(ACTIVE)}),
 }
 _MARK = re.compile(r"\{\{(\w+)\}\}")
 

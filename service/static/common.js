@@ -1,5 +1,5 @@
 /* Shared by every page: the API token (kept in this browser's localStorage), calls to the REST API
- * v1 with it, the page header, and small formatting helpers. Needs dom.js. */
+ * v1 with it, the page header, the job statuses, and small formatting helpers. Needs dom.js. */
 (function () {
   "use strict";
 
@@ -81,20 +81,39 @@
     setTimeout(() => URL.revokeObjectURL(url), 60000);
   }
 
-  const STATUS = {
-    queued: ["◷", "queued"],
-    running: ["⟳", "running"],
-    succeeded: ["✓", "succeeded"],
-    failed: ["✕", "failed"],
-    cancelled: ["⊘", "cancelled"],
+  /** The job statuses the server knows, from the page (the server writes them in as JSON):
+   * {all: [...], active: [...]}. Empty lists when the page has none. */
+  function readStatuses() {
+    const node = document.getElementById("job-statuses");
+    let s = null;
+    try { s = node ? JSON.parse(node.textContent) : null; } catch (e) { /* left empty */ }
+    return { all: (s && Array.isArray(s.all)) ? s.all : [], active: (s && Array.isArray(s.active)) ? s.active : [] };
+  }
+  const STATUSES = readStatuses();
+
+  /** Whether a job in this status may still change (queued or running, as the server says). */
+  function isActive(status) { return STATUSES.active.includes(status); }
+
+  // How each status looks: an icon beside the word (never colour alone), and a sentence for the
+  // job page. A status not listed here still shows, as "?" and its name.
+  const LOOK = {
+    queued: ["◷", "Waiting in the queue."],
+    running: ["⟳", "Solving."],
+    succeeded: ["✓", "Done."],
+    failed: ["✕", "Stopped with an error."],
+    cancelled: ["⊘", "Cancelled."],
   };
+  const statusWord = (status) => String(status).replace(/_/g, " ");
 
   /** A status as icon and word (never colour alone). */
   function statusBadge(status) {
-    const [icon, word] = STATUS[status] || ["?", status];
+    const [icon] = LOOK[status] || ["?"];
     return el("span", { class: `status status-${status}`, "data-status": status },
-      el("span", { "aria-hidden": "true", text: icon }), word);
+      el("span", { "aria-hidden": "true", text: icon }), statusWord(status));
   }
+
+  /** A status in a sentence, for the job page ("" for a status without one). */
+  function statusSentence(status) { return (LOOK[status] || [null, ""])[1]; }
 
   function fmtDate(iso) {
     if (!iso) return "–";
@@ -144,7 +163,7 @@
     }
   }
 
-  window.Acino = { TOKEN_KEY, ApiError, el, token, requireToken, api, download, statusBadge, fmtDate, fmtSeconds,
-    progressText, header, toLogin,
+  window.Acino = { TOKEN_KEY, ApiError, el, token, requireToken, api, download, STATUSES, isActive, statusBadge,
+    statusWord, statusSentence, fmtDate, fmtSeconds, progressText, header, toLogin,
     setToken(t) { localStorage.setItem(TOKEN_KEY, t); } };
 })();

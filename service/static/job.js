@@ -20,7 +20,6 @@
   const downloadButtons = document.getElementById("download-buttons");
   const downloadError = document.getElementById("download-error");
   const resultBox = document.getElementById("result");
-  const ACTIVE = new Set(["queued", "running"]);
   const FORMATS = {
     csv: ["CSV", "Anipose 3D table: x, y, z, error, cameras and score per marker and frame", "csv"],
     h5: ["HDF5", "everything: positions, uncertainty, reprojections, residuals, pose parameters", "h5"],
@@ -84,13 +83,13 @@
       alertBox.append(box);
     } else if (job.status === "cancelled") {
       alertBox.append(el("p", { class: "notice", text: "This job was cancelled; it has no result." }));
-    } else if (job.interruption && ACTIVE.has(job.status)) {
+    } else if (job.interruption && A.isActive(job.status)) {
       alertBox.append(el("p", { class: "notice", text: `An earlier run of this job was interrupted (${job.interruption}); it is being run again.` }));
     }
   }
 
   function drawProgress(job) {
-    const active = ACTIVE.has(job.status);
+    const active = A.isActive(job.status);
     progressBox.hidden = !active;
     if (!active) return;
     const f = job.progress && job.progress.fraction != null ? job.progress.fraction : null;
@@ -100,7 +99,7 @@
   }
 
   function drawActions(job) {
-    const active = ACTIVE.has(job.status);
+    const active = A.isActive(job.status);
     actions.replaceChildren(el("button", { type: "button", class: active ? "" : "danger",
       text: active ? "Cancel this job" : "Delete this job", onclick: async () => {
         if (!confirm(active ? `Cancel job ${short}?` : `Delete job ${short} and its result files?`)) return;
@@ -160,9 +159,7 @@
     }
     document.title = `Job ${short} · ${job.status} · acinoset`;
     if (job.status !== lastStatus) {
-      statusLine.replaceChildren(A.statusBadge(job.status), " ",
-        { queued: "Waiting in the queue.", running: "Solving.", succeeded: "Done.", failed: "Stopped with an error.",
-          cancelled: "Cancelled." }[job.status] || "");
+      statusLine.replaceChildren(A.statusBadge(job.status), " ", A.statusSentence(job.status));
       drawAlert(job);
       drawActions(job);
       lastStatus = job.status;
@@ -171,7 +168,7 @@
     drawFacts(job);
     drawDownloads(job);
     if (job.status === "succeeded" && !resultShown) showResult(job);
-    if (ACTIVE.has(job.status)) timer = setTimeout(refresh, 1000);
+    if (A.isActive(job.status)) timer = setTimeout(refresh, 1000);
   }
 
   refresh();

@@ -11,15 +11,21 @@
   const counts = document.getElementById("counts");
   const updated = document.getElementById("updated");
   const errorBox = document.getElementById("list-error");
-  const ACTIVE = new Set(["queued", "running"]);
   const params = new URLSearchParams(location.search);
+  // The filter: all jobs, the active ones together, then each other status the server knows.
+  const { active, all } = A.STATUSES;
+  if (active.length) {
+    filter.append(el("option", { value: "active",
+      text: new Intl.ListFormat("en", { type: "conjunction" }).format(active.map(A.statusWord)) }));
+  }
+  filter.append(...all.filter((s) => !active.includes(s)).map((s) => el("option", { value: s, text: A.statusWord(s) })));
   filter.value = params.get("status") || "";
   let limit = 50;
   let timer = null;
 
   function query() {
     const q = new URLSearchParams({ limit: String(limit) });
-    if (filter.value === "active") { q.append("status", "queued"); q.append("status", "running"); }
+    if (filter.value === "active") for (const s of A.STATUSES.active) q.append("status", s);
     else if (filter.value) q.append("status", filter.value);
     return q.toString();
   }
@@ -52,7 +58,7 @@
   }
 
   async function act(job) {
-    const active = ACTIVE.has(job.status);
+    const active = A.isActive(job.status);
     const what = active ? "Cancel" : "Delete";
     if (!confirm(`${what} job ${job.id.slice(0, 8)}?` + (active ? "" : " Its result files are removed."))) return;
     try {
@@ -66,7 +72,7 @@
   function row(job) {
     const opts = job.options || {};
     const short = job.id.slice(0, 8);
-    const active = ACTIVE.has(job.status);
+    const active = A.isActive(job.status);
     return el("tr", { "data-job": job.id, "data-status": job.status },
       el("td", {}, el("a", { href: `/jobs/${encodeURIComponent(job.id)}`, "aria-label": `Job ${short}, open`, text: short })),
       el("td", { text: A.fmtDate(job.timings && job.timings.created_at) }),
@@ -104,7 +110,7 @@
         const again = body.querySelector(`tr[data-job="${CSS.escape(focusJob)}"] [aria-label="${CSS.escape(focusLabel)}"]`);
         if (again) again.focus();
       }
-      const active = jobs.filter((j) => ACTIVE.has(j.status)).length;
+      const active = jobs.filter((j) => A.isActive(j.status)).length;
       counts.textContent = `${jobs.length} of ${data.total} shown` + (active ? `, ${active} in progress` : "");
       more.hidden = !(data.total > jobs.length && limit < 500);
       updated.textContent = `Updated ${new Date().toLocaleTimeString()}`;
