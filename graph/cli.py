@@ -85,15 +85,14 @@ def build_parser(commands: tuple[Command, ...] = COMMANDS, only: str | None = No
     action = parser.add_subparsers(dest="command", metavar="COMMAND")
     action.required = True
     sub = _Subparsers(action, {c.name: c.help for c in commands})
-    loaded: list[str] = []
-    for c in commands:
-        if c.name in action.choices:
-            continue
-        if only is None or c.name == only:
-            module = None if c.module in loaded else _optional_module(c.module)
+    loaded: set[str] = set()
+    for c in commands:  # the modules first (one may add several commands), then the rest listed
+        if (only is None or c.name == only) and c.module not in loaded:
+            loaded.add(c.module)
+            module = _optional_module(c.module)
             if module is not None and hasattr(module, "register"):
                 module.register(sub)
-                loaded.append(c.module)
+    for c in commands:
         if c.name not in action.choices:
             action.add_parser(c.name, help=c.help, add_help=False)  # listed; its module is not loaded
     return parser
@@ -179,6 +178,13 @@ def register(sub) -> None:
                    help="skip the per-marker standard deviations (fte: about a third faster)")
     p.add_argument("--bones", default=None, metavar="A-B,C-D",
                    help="points skeleton: soft bone-length terms between these bodypart pairs")
+    p.add_argument("--body", default=defaults.body, metavar="model|estimate|FILE",
+                   help="the animal's proportions: the skeleton's (model), estimated with the trajectory "
+                        "(estimate), or a body estimated earlier: a report JSON or an H5 of this animal")
+    p.add_argument("--sync", choices=["given", "estimate"], default=defaults.sync,
+                   help="the cameras' clocks: as given (in sync, or --time-offsets) or estimated with the trajectory")
+    p.add_argument("--time-offsets", default=None, metavar="T1,T2,...",
+                   help="each camera's time offset in frames (camera frame n is at n + T), camera 1 the reference")
     p.add_argument("--out", required=True, metavar="OUT.csv", help="3D result in Anipose's CSV layout")
     p.add_argument("--h5", default=None, metavar="OUT.h5", help="also write everything as HDF5")
     p.add_argument("--report", default=None, metavar="REPORT.json", help="also write the solver report")
@@ -200,6 +206,25 @@ def _noise_option(text: str):
     return value
 
 
+def _body_option(text: str) -> tuple[str, dict[str, float] | None]:
+    """``--body``: ``model``, ``estimate``, or a file holding ``body_lengths`` (:func:`graph.io.read_body`)."""
+    if text in ("model", "estimate"):
+        return text, None
+    from graph.io import read_body
+
+    return "given", read_body(text)
+
+
+def _offsets_option(text: str | None) -> list[float] | None:
+    """``--time-offsets``: comma-separated frames, one per camera."""
+    if text is None:
+        return None
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--time-offsets takes numbers of frames as 0,0.4,-1.2, not {text!r}") from None
+
+
 def run_solve(args: argparse.Namespace) -> int:
     from graph import api
     from graph.calibration import load_calibration
@@ -212,7 +237,10 @@ def run_solve(args: argparse.Namespace) -> int:
             if any(len(b) != 2 or not all(b) for b in bones):
                 raise ValueError("--bones takes pairs of bodyparts as A-B,C-D")
         std_px = _noise_option(args.measurement_std)
-        options = api.SolveOptions(method=args.method, fps=args.fps, skeleton=args.skeleton,
+        body, lengths = _body_option(args.body)
+        offsets = _offsets_option(args.time_offsets)
+        options = api.SolveOptions(body=body, body_lengths=lengths, sync=args.sync, time_offsets=offsets,
+                                   method=args.method, fps=args.fps, skeleton=args.skeleton,
                                    measurement_std_px=std_px,
                                    likelihood_threshold=args.likelihood_threshold, individual=args.individual,
                                    calibration_units=args.calibration_units, bone_lengths=bones,

@@ -357,3 +357,9 @@ COMMANDS: tuple[Command, ...] = (*LIBRARY_COMMANDS, *(Command(name, __name__, te
 
 def main(argv: list[str] | None = None) -> int:
     return cli_main(argv, COMMANDS)
+
+
+if __name__ == "__main__":  # ``python -m service.cli``, as ``python -m service``
+    from service.cli import main as service_main
+
+    sys.exit(service_main())
