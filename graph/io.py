@@ -136,7 +136,6 @@ def write_h5(path: str | Path, result: Result) -> None:
     """Everything in ``result`` as plain HDF5 (readable from any language; no pickles)."""
     import h5py
 
-
     with h5py.File(path, "w") as f:
         f.attrs["format"] = RESULT_FORMAT
         f.attrs["format_version"] = RESULT_FORMAT_VERSION
@@ -160,6 +159,16 @@ def write_h5(path: str | Path, result: Result) -> None:
             f.create_dataset(name, data=a.astype(np.uint8) if a.dtype == bool else a, **kw)
             if a.dtype == bool:
                 f[name].attrs["dtype"] = "bool"
+        rep = result.report
+        if rep.body_lengths:
+            # the body the solve used, one row per length group (or bone): also in the report attribute
+            g = f.create_group("body_lengths")
+            _strings(g, "names", list(rep.body_lengths))
+            for col in ("length_m", "std_m", "model_m"):
+                g.create_dataset(col, data=np.array([float(v[col]) for v in rep.body_lengths.values()]))
+        if rep.time_offsets_frames is not None:
+            f.create_dataset("time_offsets_frames", data=np.asarray(rep.time_offsets_frames, dtype=float))
+            f.create_dataset("time_offsets_std_frames", data=np.asarray(rep.time_offsets_std_frames, dtype=float))
 
 
 def read_result(path: str | Path) -> Result:
@@ -274,3 +283,38 @@ def write_reprojections_dlc(directory: str | Path, result: Result, stems: list[s
 
 def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("._") or "camera"
+
+
+# ----------------------------------------------------------------------------------- a body, reused
+
+def read_body(path: str | Path) -> dict[str, float]:
+    """The body lengths (m per length group or bone) of an earlier solve, to solve more runs of the
+    same animal with (``body="given"``): its report JSON or result H5 (``body_lengths``: ``{name:
+    {length_m, std_m, model_m}}``), or a JSON object ``{name: length_m}``."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("no such body file (give model, estimate, or a report JSON or result H5 "
+                         "with body_lengths)", path)
+    if path.read_bytes()[:8] == b"\x89HDF\r\n\x1a\n":
+        import h5py
+
+        try:
+            with h5py.File(path, "r") as f:
+                data = json.loads(_attr(f, "report") or "{}")
+        except (OSError, ValueError):
+            raise InputError("not a result file written by acinoset", path) from None
+    else:
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (UnicodeDecodeError, ValueError) as e:
+            raise InputError(f"not JSON ({type(e).__name__})", path) from None
+    lengths = data.get("body_lengths", data) if isinstance(data, dict) else None
+    if not isinstance(lengths, dict) or not lengths:
+        raise InputError("holds no body_lengths (solve one run with --body estimate and give its report)", path)
+    out = {}
+    for name, v in lengths.items():
+        L = v.get("length_m") if isinstance(v, dict) else v
+        if not isinstance(L, (int, float)) or isinstance(L, bool) or not 0 < L < float("inf"):
+            raise InputError(f"body length {name!r} is not a positive number of metres", path)
+        out[str(name)] = float(L)
+    return out

@@ -105,6 +105,22 @@ class JointNormals(NamedTuple):
     cost: np.ndarray  # (N,)
 
 
+def _marker_columns(pt_base: np.ndarray, marker_point: np.ndarray, pt_col: np.ndarray) -> np.ndarray:
+    """The columns of W (length groups) on each marker's chain (M, D), padded with -1."""
+    cols = []
+    for k in marker_point:
+        own, p = set(), int(k)
+        while p >= 0:
+            if pt_col[p] >= 0:
+                own.add(int(pt_col[p]))
+            p = int(pt_base[p])
+        cols.append(sorted(own))
+    out = np.full((len(cols), max(1, max((len(c) for c in cols), default=0))), -1, dtype=np.int64)
+    for m, c in enumerate(cols):
+        out[m, :len(c)] = c
+    return out
+
+
 class JointTrajectoryProblem(TrajectoryProblem):
     """:class:`graph.fte.TrajectoryProblem` with the shared unknowns ``W`` (module docstring).
     ``bone_len`` are the bones' starting lengths (their sds stay those of the start)."""
@@ -119,6 +135,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
         self.point_group = pg
         col = {g: i for i, g in enumerate(unknowns.groups)}
         self.pt_col = np.array([col.get(int(g), -1) for g in pg], dtype=np.int64)
+        self.marker_wdep = _marker_columns(sk.arrays.pt_base, sk.arrays.marker_point, self.pt_col)
         b0 = len(unknowns.groups)
         bcol = {b: b0 + i for i, b in enumerate(unknowns.bones)}
         self.bone_col = np.array([bcol.get(i, -1) for i in range(len(self.bones))], dtype=np.int64)
@@ -144,7 +161,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
         bl[self.bone_col >= 0] = bone_len
         Ha, Hb, Hab, ga, gb, HaW, HbW, HWW, gW, uv, s, w, cost = kernels.window_normals(
             X.Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_px, self.prob.options.robust,
-            RA * stretch, RB * stretch, RC * stretch, shift, frac, self.tau_col, self.pt_col, self.G,
+            RA * stretch, RB * stretch, RC * stretch, shift, frac, self.tau_col, self.pt_col, self.G, self.marker_wdep,
             *self._kernel_skeleton(scales), self.bones, bl, self.bone_sigma, self.bone_col)
         H, g, HW = Ha.copy(), ga.copy(), HaW.copy()
         H[1:] += Hb[:-1]

@@ -13,7 +13,8 @@ the relative pose (``R = R_c R_a^T``, ``t = t_c - R t_a``); their Sampson distan
     e = (x_c^T E x_a)^2 / ((E x_a)_1^2 + (E x_a)_2^2 + (E^T x_c)_1^2 + (E^T x_c)_2^2)
 
 grows with the motion between the two instants. For every lag ``d`` within ``max_lag`` the median
-of ``sqrt(e)`` over every marker both cameras saw confidently is the lag's cost; the best lag is
+of ``sqrt(e)`` over the markers both cameras saw confidently (in every frame, or every k-th of a
+long run: about :data:`PAIRS_PER_LAG` of them) is the lag's cost; the best lag is
 refined below a frame by a parabola through it and its neighbours. A lag is *decisive* when its
 cost is below :data:`DECISIVE` times the median cost of all lags: an animal that stands still, or a
 pair that shares too few detections, leaves every lag alike, and the offset stays at 0. Cameras are
@@ -30,6 +31,7 @@ from graph.camera import Calibration, undistort_points
 
 DECISIVE = 0.6  # a lag counts when its cost is below this fraction of the median lag's
 MIN_PAIRS = 30  # co-detections a lag needs to be scored
+PAIRS_PER_LAG = 4000  # a lag's median is taken over about this many co-detections (frames strided)
 
 
 @dataclass
@@ -57,15 +59,16 @@ def _essential(calibration: Calibration, a: int, c: int) -> np.ndarray:
 def lag_costs(xa: np.ndarray, xc: np.ndarray, E: np.ndarray, lags: np.ndarray) -> np.ndarray:
     """Median Sampson distance (normalised units) of camera a's points ``xa`` (N, M, 2) paired with
     camera c's ``xc`` (N, M, 2) ``d`` frames later, for each lag d; NaN where too few pairs."""
-    N = xa.shape[0]
+    N, M = xa.shape[:2]
     out = np.full(len(lags), np.nan)
+    stride = max(1, N * M // PAIRS_PER_LAG)
     ha = np.concatenate([xa, np.ones(xa.shape[:-1] + (1,))], axis=-1)
     hc = np.concatenate([xc, np.ones(xc.shape[:-1] + (1,))], axis=-1)
     for i, d in enumerate(lags):
         lo, hi = max(0, -d), min(N, N - d)
         if hi - lo <= 0:
             continue
-        pa, pc = ha[lo:hi].reshape(-1, 3), hc[lo + d:hi + d].reshape(-1, 3)
+        pa, pc = ha[lo:hi:stride].reshape(-1, 3), hc[lo + d:hi + d:stride].reshape(-1, 3)
         ok = np.isfinite(pa).all(-1) & np.isfinite(pc).all(-1)
         if ok.sum() < MIN_PAIRS:
             continue
