@@ -21,14 +21,17 @@ banded chain, linear in frames. The marginals, of the poses and of ``W``, come f
 structure in one compiled pass (:func:`graph.marginals.banded_marginals`); a marker's sd includes
 the lengths' own uncertainty, ``Var p = [J_q J_l] Cov(q_n, l) [J_q J_l]^T``.
 
-An offset is reported *not identified* when the data shrink its prior sd by less than half (a still
-animal, a camera that sees little): it then stays near its start, and the report names the camera.
+An offset is *not identified* when no whole-frame lag stands out for its camera (a still animal, a
+camera that shares too little with the others: it then stays at its start, 0 or the one of the
+camera it was placed against), or when the data shrink its prior sd by less than half; the report
+names those cameras.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import gtsam
@@ -69,6 +72,7 @@ class SharedUnknowns:
     upper: np.ndarray
     scales: np.ndarray  # (G_all,) the length groups' scales when not estimated
     tau: np.ndarray  # (C,) the offsets when not estimated
+    untimed: list[int] = field(default_factory=list)  # cameras whose offsets were to be estimated, but stay
 
     @property
     def size(self) -> int:
@@ -301,12 +305,12 @@ class JointTrajectoryProblem(TrajectoryProblem):
         t0 = len(u.groups) + len(u.bones)
         tau_sd = np.zeros(len(tau))
         names = self.prob.calibration.names
-        lost = []
+        lost = [names[c] for c in u.untimed]
         for i, c in enumerate(u.offset_cameras):
             tau_sd[c] = sd[t0 + i]
             if not (sd[t0 + i] < IDENTIFIED_SHRINK * u.sd[t0 + i]):
                 lost.append(names[c])
-        if u.offset_cameras or np.any(tau != 0):
+        if u.offset_cameras or u.untimed or np.any(tau != 0):
             out["time_offsets_frames"] = [float(t) for t in tau]
             out["time_offsets_std_frames"] = [float(t) for t in tau_sd]
         if lost:
@@ -355,9 +359,10 @@ def body_scale_from_points(prob: Problem, X: np.ndarray) -> float:
     return float(np.clip(np.median(ratios), *SCALE_RANGE)) if ratios else 1.0
 
 
-def shared_unknowns(prob: Problem, X: np.ndarray, tau0: np.ndarray, bone_len: np.ndarray | None
-                    ) -> tuple[SharedUnknowns, np.ndarray, np.ndarray | None]:
-    """The layout of W for the options, its start, and the bones' fixed lengths when given."""
+def shared_unknowns(prob: Problem, X: np.ndarray, tau0: np.ndarray, bone_len: np.ndarray | None,
+                    timed: np.ndarray | None = None) -> tuple[SharedUnknowns, np.ndarray, np.ndarray | None]:
+    """The layout of W for the options, its start, and the bones' fixed lengths when given. With
+    ``sync="estimate"`` the offsets of the cameras ``timed`` (C,) marks are unknowns; the others stay."""
     o, sk = prob.options, prob.skeleton
     G_all = len(sk.length_groups)
     scales = np.ones(G_all)
@@ -398,7 +403,7 @@ def shared_unknowns(prob: Problem, X: np.ndarray, tau0: np.ndarray, bone_len: np
                 start.append(s0)
     cams: list[int] = []
     if o.sync == "estimate":
-        cams = list(range(1, prob.cameras))
+        cams = [c for c in range(1, prob.cameras) if timed is None or timed[c]]
         for c in cams:
             mean.append(tau0[c])
             sd.append(OFFSET_PRIOR_SD)
@@ -407,7 +412,8 @@ def shared_unknowns(prob: Problem, X: np.ndarray, tau0: np.ndarray, bone_len: np
             start.append(tau0[c])
     arr = lambda v: np.asarray(v, dtype=float)  # noqa: E731
     u = SharedUnknowns(groups=groups, bones=bones, offset_cameras=cams, mean=arr(mean), sd=arr(sd), lower=arr(lo),
-                       upper=arr(hi), scales=scales, tau=tau0.copy())
+                       upper=arr(hi), scales=scales, tau=tau0.copy(),
+                       untimed=[c for c in range(1, prob.cameras) if o.sync == "estimate" and c not in cams])
     return u, arr(start), bone_len
 
 
@@ -423,22 +429,25 @@ def solve_fte_joint(prob: Problem, progress: ProgressCallback | None = None) -> 
     if progress:
         progress(Progress(stage="initialise", fraction=0.0))
     tau0 = given_offsets(prob)
-    notes: list[str] = []
+    timed = None
     if o.sync == "estimate":
         coarse = coarse_offsets(prob.calibration, prob.meas, prob.valid, o.fps)
-        tau0 = coarse.frames
-        undecided = [prob.calibration.names[c] for c in range(prob.cameras) if not coarse.decided[c]]
-        if undecided:
-            notes.append(f"no whole-frame time offset stands out for {', '.join(undecided)}: starting at 0")
+        tau0, timed = coarse.frames, coarse.decided
     meas_ref, valid_ref = on_reference_clock(prob.meas, prob.valid, tau0)
     X, _, _ = robust_points(prob.calibration, meas_ref, valid_ref, prob.sigma_px)
     bl = bone_lengths(prob, X) if prob.skeleton.kind == "points" else None
-    unknowns, W0, bl = shared_unknowns(prob, X, tau0, bl)
+    unknowns, W0, bl = shared_unknowns(prob, X, tau0, bl, timed)
     scales0, _, _ = unknowns.split(W0)
     start = replace(prob, skeleton=prob.skeleton.scaled(scales0) if prob.skeleton.kind != "points" else prob.skeleton,
                     meas=meas_ref, valid=valid_ref)
-    Q0 = initial_poses(start, X)
-    tp = JointTrajectoryProblem(prob, Q0, unknowns, bl)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # GTSAM's motion factors are built (holding the GIL) while the compiled inverse kinematics
+        # (which releases it) runs, as in graph.fte
+        building = pool.submit(JointTrajectoryProblem, prob, np.zeros((prob.frames, prob.skeleton.n_params)),
+                               unknowns, bl)
+        Q0 = initial_poses(start, X)
+        tp = building.result()
+    tp.Q0 = Q0
     t_init = time.perf_counter() - t0
     if progress:
         progress(Progress(stage="optimise", fraction=0.1))
@@ -451,7 +460,7 @@ def solve_fte_joint(prob: Problem, progress: ProgressCallback | None = None) -> 
     if progress:
         progress(Progress(stage="uncertainty", fraction=0.95, iteration=iterations, cost=cost))
     result = trajectory_result(tp, state, "fte", seconds={"init": t_init, "solve": t_solve}, iterations=iterations,
-                               cost=cost, notes=notes)
+                               cost=cost)
     if progress:
         progress(Progress(stage="done", fraction=1.0, iteration=iterations, cost=cost))
     return result

@@ -64,19 +64,19 @@ def lag_costs(xa: np.ndarray, xc: np.ndarray, E: np.ndarray, lags: np.ndarray) -
     stride = max(1, N * M // PAIRS_PER_LAG)
     ha = np.concatenate([xa, np.ones(xa.shape[:-1] + (1,))], axis=-1)
     hc = np.concatenate([xc, np.ones(xc.shape[:-1] + (1,))], axis=-1)
+    Ea = ha @ E.T  # E x_a, (N, M, 3)
+    Ec = hc @ E  # E^T x_c
+    ok_a, ok_c = np.isfinite(xa).all(-1), np.isfinite(xc).all(-1)
     for i, d in enumerate(lags):
         lo, hi = max(0, -d), min(N, N - d)
         if hi - lo <= 0:
             continue
-        pa, pc = ha[lo:hi:stride].reshape(-1, 3), hc[lo + d:hi + d:stride].reshape(-1, 3)
-        ok = np.isfinite(pa).all(-1) & np.isfinite(pc).all(-1)
+        ok = ok_a[lo:hi:stride] & ok_c[lo + d:hi + d:stride]
         if ok.sum() < MIN_PAIRS:
             continue
-        pa, pc = pa[ok], pc[ok]
-        Ea = pa @ E.T  # E x_a
-        Ec = pc @ E  # E^T x_c
-        num = np.einsum("ij,ij->i", pc, Ea) ** 2
-        den = Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Ec[:, 0] ** 2 + Ec[:, 1] ** 2
+        ea, pc, ec = Ea[lo:hi:stride][ok], hc[lo + d:hi + d:stride][ok], Ec[lo + d:hi + d:stride][ok]
+        num = np.einsum("ij,ij->i", pc, ea) ** 2
+        den = ea[:, 0] ** 2 + ea[:, 1] ** 2 + ec[:, 0] ** 2 + ec[:, 1] ** 2
         out[i] = float(np.median(np.sqrt(num / np.maximum(den, 1e-300))))
     return out
 
