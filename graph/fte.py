@@ -266,7 +266,9 @@ def optimise(tp: TrajectoryProblem, X, max_iterations: int = 50, progress=None,
             if progress:
                 progress(Progress(stage="optimise", fraction=0.1 + 0.85 * min(1.0, it_total / total_budget),
                                   iteration=it_total, cost=cost))
-            if rel < tol or step < 1e-6:
+            # converged: a small gain from an undamped step (one that needed more damping to
+            # succeed says nothing of the optimum's nearness)
+            if (rel < tol and _try == 0) or step < 1e-6:
                 break
     return X, it_total, cost
 

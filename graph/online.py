@@ -37,8 +37,10 @@ import numpy as np
 from graph import kernels
 from graph.fte import PRIOR_SIGMA, TrajectoryProblem, bone_lengths, optimise, trajectory_result
 from graph.initial import initial_poses
+from graph.joint import shares_unknowns, solve_fte_joint
 from graph.problem import Problem
 from graph.robust import A as RA, B as RB, C as RC
+from graph.sync import off_reference_clock, on_reference_clock
 from graph.triangulate import robust_points
 from graph.types import Progress, ProgressCallback, Result
 
@@ -204,8 +206,52 @@ class OnlineSmoother:
         return np.stack(self.history)
 
 
+SHARED_START_SECONDS = 2.0  # the batch that estimates the body and the clocks for the ekf
+
+
 def solve_ekf(prob: Problem, progress: ProgressCallback | None = None) -> Result:
-    """``--method ekf``: batch start on the first frames, then one smoother update per frame."""
+    """``--method ekf``: batch start on the first frames, then one smoother update per frame.
+
+    With the body or the clocks to estimate, the first :data:`SHARED_START_SECONDS` are solved as
+    one joint batch first (:func:`graph.joint.solve_fte_joint`); the stream then runs on that
+    body, each camera's detections taken on the nearest frame of the reference clock (the
+    sub-frame remainder, at most half a frame, is not modelled online). Given lengths and offsets
+    are used the same way."""
+    if shares_unknowns(prob.options):
+        return _ekf_with_shared(prob, progress)
+    return _ekf(prob, progress)
+
+
+def _ekf_with_shared(prob: Problem, progress: ProgressCallback | None) -> Result:
+    t0 = time.perf_counter()
+    o = prob.options
+    S = min(prob.frames, max(START_FRAMES, int(round(SHARED_START_SECONDS * o.fps))))
+    first = replace(prob, meas=prob.meas[:S], likelihood=prob.likelihood[:S], valid=prob.valid[:S])
+    start = solve_fte_joint(first)
+    rep = start.report
+    tau = np.asarray(rep.time_offsets_frames if rep.time_offsets_frames is not None else np.zeros(prob.cameras))
+    sk = prob.skeleton
+    if rep.body_lengths and sk.kind != "points":
+        model = sk.model_lengths
+        sk = sk.scaled(np.array([rep.body_lengths[g]["length_m"] / model[i] for i, g in enumerate(sk.length_groups)]))
+    meas, valid = on_reference_clock(prob.meas, prob.valid, tau)
+    lik, _ = on_reference_clock(prob.likelihood[..., None], prob.valid, tau)
+    stream = replace(prob, skeleton=sk, meas=meas, valid=valid, likelihood=np.nan_to_num(lik[..., 0]),
+                     options=replace(o, body="model", sync="given", time_offsets=None))
+    result = _ekf(stream, progress)
+    # back on each camera's own clock: what was drawn at reference frame n is camera frame n - round(tau)
+    result.reprojections = off_reference_clock(result.reprojections, tau)
+    result.residuals = off_reference_clock(result.residuals, tau)
+    result.outlier = off_reference_clock(result.outlier, tau)
+    result.options = o
+    for field_name in ("body_lengths", "time_offsets_frames", "time_offsets_std_frames", "offsets_not_identified"):
+        setattr(result.report, field_name, getattr(rep, field_name))
+    result.report.warnings += [w for w in rep.warnings if w not in result.report.warnings]
+    result.report.seconds["init"] += time.perf_counter() - t0 - result.report.seconds.get("total", 0.0)
+    return result
+
+
+def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     t0 = time.perf_counter()
     if progress:
         progress(Progress(stage="initialise", fraction=0.0))

@@ -147,3 +147,16 @@ def on_reference_clock(meas: np.ndarray, valid: np.ndarray, tau: np.ndarray) -> 
             out[lo:hi, c] = meas[lo - k:hi - k, c]
             ok[lo:hi, c] = valid[lo - k:hi - k, c]
     return out, ok
+
+
+def off_reference_clock(a: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`on_reference_clock` for per-camera arrays (C, N, ...): what stands at
+    reference frame n goes back to camera frame ``n - round(tau_c)`` (NaN or False where none)."""
+    out = np.full_like(a, False if a.dtype == bool else np.nan)
+    N = a.shape[1]
+    for c in range(a.shape[0]):
+        k = int(round(float(tau[c])))
+        lo, hi = max(0, k), min(N, N + k)
+        if hi > lo:
+            out[c, lo - k:hi - k] = a[c, lo:hi]
+    return out
