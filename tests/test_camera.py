@@ -4,14 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from graph.calibration import default_rig_path, load_calibration
 from graph.camera import FISHEYE, PINHOLE, Camera
 from graph.kernels import project_point
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return load_calibration(default_rig_path())
 
 
 def _points_in_front(cam, n=200, seed=0):

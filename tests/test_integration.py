@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 from graph.api import SolveOptions, solve
-from graph.calibration import default_rig_path, load_calibration
 from graph.cli import main
 from graph.io import read_anipose_csv
 from graph.metrics import evaluate, position_error
@@ -31,15 +30,8 @@ BOUNDS = {
 }
 
 
-@pytest.fixture(scope="module")
-def rig():
-    return load_calibration(default_rig_path())
-
-
-@pytest.fixture(scope="module")
-def run(rig):
-    return simulate_run(rig, frames=120, fps=120.0, noise=5.0, outliers=0.1, outlier_std=100.0, swaps=0.01,
-                        dropouts=1, seed=1)
+# the run of the ``run`` fixture (tests/conftest.py)
+SIMULATION = dict(frames=120, fps=120.0, noise=5.0, outliers=0.1, outlier_std=100.0, swaps=0.01, dropouts=1, seed=1)
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from graph.api import SolveOptions, solve
-from graph.calibration import default_rig_path, load_calibration
 from graph.fte import TrajectoryProblem
 from graph.joint import JointState, JointTrajectoryProblem, SharedUnknowns
 from graph.keypoints import Keypoints
@@ -18,11 +17,6 @@ from graph.simulate import simulate_run
 from graph.sync import coarse_offsets
 
 OFFSETS = [0.0, 0.4, -0.9, 1.3, -0.3, 0.7]
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return load_calibration(default_rig_path())
 
 
 def _problem(run, **options):

@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 from graph.api import SolveOptions, solve
-from graph.calibration import default_rig_path, load_calibration
 from graph.metrics import uncertainty_calibration
 from graph.noise import scatter_px, triangulation_dof
 from graph.simulate import simulate_run
@@ -34,11 +33,6 @@ def test_dof_correction_and_missing_values():
     with_nan = np.concatenate([r, np.full(100, np.nan)])
     assert scatter_px(with_nan) == pytest.approx(scatter_px(r))
     assert np.isnan(scatter_px(np.full(5, 1.0))) and np.isnan(triangulation_dof(np.array([1]))[0])
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return load_calibration(default_rig_path())
 
 
 @pytest.mark.parametrize("noise", [2.0, 10.0])

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from graph.calibration import default_rig_path, load_calibration
+from graph.calibration import load_calibration
 from graph.cli import main
 from graph.io import read_anipose_csv
 from graph.keypoints import read_keypoints
@@ -17,14 +17,8 @@ from graph.simulate import (GOOD_LIKELIHOOD, LOW_LIKELIHOOD, ObservationModel, l
 from graph.skeleton import load_skeleton
 
 
-@pytest.fixture(scope="module")
-def rig():
-    return load_calibration(default_rig_path())
-
-
-@pytest.fixture(scope="module")
-def run(rig):
-    return simulate_run(rig, frames=240, fps=120.0, noise=5.0, outliers=0.1, outlier_std=100.0, seed=7)
+# the run of the ``run`` fixture (tests/conftest.py)
+SIMULATION = dict(frames=240, fps=120.0, noise=5.0, outliers=0.1, outlier_std=100.0, seed=7)
 
 
 def test_stage_of_the_acinoset_rig(rig):

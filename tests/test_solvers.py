@@ -7,21 +7,14 @@ import numpy as np
 import pytest
 
 from graph.api import SolveOptions, solve
-from graph.calibration import default_rig_path, load_calibration
 from graph.fte import TrajectoryProblem
 from graph.problem import build
 from graph.robust import redescending
 from graph.simulate import simulate_run
 
 
-@pytest.fixture(scope="module")
-def rig():
-    return load_calibration(default_rig_path())
-
-
-@pytest.fixture(scope="module")
-def run(rig):
-    return simulate_run(rig, frames=90, fps=120, noise=3.0, outliers=0.1, outlier_std=100, seed=11)
+# the run of the ``run`` fixture (tests/conftest.py)
+SIMULATION = dict(frames=90, fps=120, noise=3.0, outliers=0.1, outlier_std=100, seed=11)
 
 
 def test_redescending_loss_pieces():

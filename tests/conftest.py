@@ -1,0 +1,26 @@
+"""Fixtures shared by the tests: the AcinoSet rig and a simulated run on it.
+
+Putting this file in ``tests/`` also puts that folder on ``sys.path``, so the service and page
+tests import their real servers from ``servers.py``.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from graph.calibration import default_rig_path, load_calibration
+from graph.simulate import simulate_run
+
+
+@pytest.fixture(scope="module")
+def rig():
+    """The AcinoSet rig's calibration, loaded once per test module."""
+    return load_calibration(default_rig_path())
+
+
+@pytest.fixture(scope="module")
+def run(rig, request):
+    """A simulated run on the rig, once per test module, made with that module's ``SIMULATION``:
+    the keyword arguments of :func:`graph.simulate.simulate_run` (each module sets its own frames,
+    noise and seed)."""
+    return simulate_run(rig, **request.module.SIMULATION)
