@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from service_helpers import Run, make_run
+from servers import Run, make_run
 
 
 @pytest.fixture(scope="session")

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service_helpers import (PY, ROOT, Server, add_user, submit, submit_ok, wait_finished)
+from servers import (PY, ROOT, Server, add_user, submit, submit_ok, wait_finished)
 
 
 @pytest.fixture(scope="module")

@@ -1,18 +1,29 @@
-"""``acinoset serve`` and ``acinoset users`` as an admin uses them (through ``graph.cli``, the
+"""``acinoset serve`` and ``acinoset users`` as an admin uses them (through ``service.cli``, the
 ``acinoset`` entry point)."""
 
 from __future__ import annotations
 
-import subprocess
-import time
+from pathlib import Path
 
 import httpx
 
-from service_helpers import PY, ROOT, Proc, free_port, submit_ok, wait_dead, wait_for, wait_solving
+from servers import (PY, ROOT, Proc, acinoset, free_port, submit_ok, wait_answering, wait_dead, wait_for,
+                     wait_solving)
 
 
-def acinoset(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([PY, "-m", "graph.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+def serve(data: str, log: Path) -> tuple[Proc, str]:
+    """``acinoset serve`` with only the flags an admin gives (port, data dir, workers), once it
+    answers; the process and its URL."""
+    port = free_port()
+    server = Proc([PY, "-m", "service", "serve", "--port", str(port), "--data-dir", data, "--workers", "1"],
+                  log).start()
+    url = f"http://127.0.0.1:{port}"
+    try:
+        wait_answering(url, server, ready=(200,))
+    except BaseException:
+        server.stop()
+        raise
+    return server, url
 
 
 def test_serve_and_users_as_an_admin_would(tmp_path, small_run, long_run):
@@ -25,18 +36,8 @@ def test_serve_and_users_as_an_admin_would(tmp_path, small_run, long_run):
     again = acinoset("users", "add", "lee", "--data-dir", data)
     assert again.returncode == 2 and "already exists" in again.stderr and again.stderr.count("\n") == 1
 
-    port = free_port()
-    server = Proc([PY, "-m", "graph.cli", "serve", "--port", str(port), "--data-dir", data, "--workers", "1"],
-                  tmp_path / "serve.log").start()
-    url = f"http://127.0.0.1:{port}"
+    server, url = serve(data, tmp_path / "serve.log")
     try:
-        deadline = time.time() + 60
-        while time.time() < deadline:
-            try:
-                if httpx.get(url + "/healthz").status_code == 200:
-                    break
-            except httpx.HTTPError:
-                time.sleep(0.1)
         banner = server.log()
         assert f"serving on {url}" in banner and "Authorization: Bearer TOKEN" in banner
         assert "acinoset users add NAME" in banner
@@ -90,18 +91,8 @@ def test_the_compose_file_runs_an_api_two_workers_and_a_durable_redis():
 def test_an_admin_lists_and_prunes_old_jobs_while_the_server_runs(tmp_path, small_run):
     data = str(tmp_path / "data")
     ana = acinoset("users", "add", "ana", "--data-dir", data).stdout.strip().splitlines()[-1]
-    port = free_port()
-    server = Proc([PY, "-m", "graph.cli", "serve", "--port", str(port), "--data-dir", data, "--workers", "1"],
-                  tmp_path / "serve.log").start()
-    url = f"http://127.0.0.1:{port}"
+    server, url = serve(data, tmp_path / "serve.log")
     try:
-        deadline = time.time() + 60
-        while time.time() < deadline:
-            try:
-                if httpx.get(url + "/healthz").status_code == 200:
-                    break
-            except httpx.HTTPError:
-                time.sleep(0.1)
         with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {ana}"}, timeout=60) as c:
             done = [submit_ok(c, small_run, {"method": "tri", "skeleton": "points"}) for _ in range(2)]
             for j in done:

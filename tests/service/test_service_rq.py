@@ -10,8 +10,8 @@ import time
 
 import pytest
 
-from service_helpers import (Redis, Server, add_user, children, have_redis, submit_ok, wait_dead, wait_finished,
-                             wait_for, wait_solving, worker)
+from servers import (Redis, Server, add_user, children, have_redis, submit_ok, wait_dead, wait_finished,
+                     wait_for, wait_solving, worker)
 
 pytestmark = pytest.mark.skipif(not have_redis(), reason="needs Debian's redis-server (.ci/run installs it)")
 

@@ -7,7 +7,7 @@ import re
 import httpx
 import pytest
 
-from service_helpers import Server
+from servers import Server
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,6 @@
-"""Real servers for the service tests: ``python -m service serve`` (and ``worker``, and Debian's
-``redis-server``) in subprocesses on free loopback ports, simulated runs written as a user would
-bring them, and a small HTTP client."""
+"""Real servers for the service and page tests: ``python -m service serve`` (and ``worker``, and
+Debian's ``redis-server``) in subprocesses on free loopback ports, the ``acinoset`` commands run as
+an admin runs them, simulated runs written as a user would bring them, and a small HTTP client."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import httpx
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
 
 
@@ -24,6 +24,11 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def acinoset(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    """``acinoset ARGS...`` (the service's command line, as ``python -m service``), run from the checkout."""
+    return subprocess.run([PY, "-m", "service", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
 
 
 # -- simulated runs ------------------------------------------------------------------------------
@@ -97,11 +102,14 @@ class Proc:
         """SIGKILL to the whole process group: the process and every child it forked."""
         if self.p is None:
             return
+        self._kill_group()
+        self.p.wait(timeout=30)
+
+    def _kill_group(self) -> None:
         try:
             os.killpg(self.p.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
-        self.p.wait(timeout=30)
 
     def stop(self, timeout: float = 30) -> int | None:
         if self.p is None or self.p.poll() is not None:
@@ -113,14 +121,26 @@ class Proc:
             self.kill9()
             return None
         finally:
-            # nothing of its process group may outlive the test
-            try:
-                os.killpg(self.p.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
+            self._kill_group()  # nothing of its process group may outlive the test
 
     def log(self) -> str:
         return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
+
+
+def wait_answering(url: str, proc: Proc, timeout: float = 60, ready: tuple[int, ...] = (200, 503)) -> None:
+    """Until the server ``proc`` at ``url`` answers ``/healthz`` with a status in ``ready``; its log
+    in the error when it exits or stays silent."""
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        if not proc.alive():
+            raise RuntimeError(f"server exited:\n{proc.log()}")
+        try:
+            if httpx.get(url + "/healthz", timeout=2).status_code in ready:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.1)
+    raise RuntimeError(f"server did not answer in {timeout} s:\n{proc.log()}")
 
 
 class Server(Proc):
@@ -138,20 +158,12 @@ class Server(Proc):
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def start(self, timeout: float = 60) -> "Server":
+    def start(self, timeout: float = 60, ready: tuple[int, ...] = (200, 503)) -> "Server":
+        """Start it and wait until ``/healthz`` answers with one of ``ready`` (503: up, its backend
+        not yet able to run jobs)."""
         super().start()
-        deadline = time.time() + timeout
-        while time.time() < deadline:
-            if not self.alive():
-                raise RuntimeError(f"server exited:\n{self.log()}")
-            try:
-                r = httpx.get(self.url + "/healthz", timeout=2)
-                if r.status_code in (200, 503):
-                    return self
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.1)
-        raise RuntimeError(f"server did not answer in {timeout} s:\n{self.log()}")
+        wait_answering(self.url, self, timeout, ready)
+        return self
 
     def client(self, token: str | None = None, timeout: float = 60) -> httpx.Client:
         headers = {"Authorization": f"Bearer {token}"} if token else {}
