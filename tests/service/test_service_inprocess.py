@@ -1,0 +1,91 @@
+"""The quick answers of the API in this process (fastapi's TestClient, the app's lifespan run): health,
+tokens, unknown jobs, bad options and the spec. The real-server tests beside these cover the rest."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from fastapi.testclient import TestClient
+
+import graph
+from servers import add_user
+from service.app import create_app
+from service.openapi import spec
+from service.settings import Settings
+
+
+@pytest.fixture(scope="module")
+def app_client(tmp_path_factory):
+    """A TestClient on an embedded app with its own data dir and one user (``tokens["ada"]``)."""
+    data = tmp_path_factory.mktemp("inprocess_data")
+    tokens = {"ada": add_user(data, "ada"), "root": add_user(data, "root", admin=True)}
+    app = create_app(Settings(data_dir=data, workers=1, upload_readers=0, warm_start=False))
+    with TestClient(app) as client:
+        client.tokens = tokens
+        yield client
+
+
+def _auth(client, name: str) -> dict:
+    return {"Authorization": f"Bearer {client.tokens[name]}"}
+
+
+def test_healthz_is_public_and_reports_an_idle_embedded_backend(app_client):
+    r = app_client.get("/healthz")
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["status"] == "ok" and body["backend"] == "embedded"
+    assert body["version"] == graph.__version__
+    assert body["workers"] == 1 and body["running"] == 0 and body["queued"] == 0
+
+
+def test_no_token_or_a_forged_one_is_401_with_a_bearer_challenge(app_client):
+    missing = app_client.get("/v1/jobs")
+    assert missing.status_code == 401
+    assert missing.headers["www-authenticate"] == "Bearer"
+    assert "Authorization: Bearer TOKEN" in missing.json()["detail"]
+    forged = app_client.get("/v1/jobs", headers={"Authorization": "Bearer acn_0123456789ab_not-a-real-secret"})
+    assert forged.status_code == 401 and forged.json()["detail"] == "invalid or revoked token"
+    # a scheme other than Bearer is no token at all
+    basic = app_client.get("/v1/me", headers={"Authorization": f"Basic {app_client.tokens['ada']}"})
+    assert basic.status_code == 401 and basic.json()["detail"].startswith("missing token")
+
+
+def test_me_names_the_caller_and_the_limits(app_client):
+    ada = app_client.get("/v1/me", headers=_auth(app_client, "ada")).json()
+    assert ada["name"] == "ada" and ada["admin"] is False and ada["active_jobs"] == 0
+    assert ada["limits"]["max_frames"] == Settings.model_fields["max_frames"].default
+    assert app_client.get("/v1/me", headers=_auth(app_client, "root")).json()["admin"] is True
+
+
+def test_an_unknown_job_is_404_naming_it(app_client):
+    job_id = "0123456789abcdef0123456789abcdef"
+    for path in (f"/v1/jobs/{job_id}", f"/v1/jobs/{job_id}/result"):
+        r = app_client.get(path, headers=_auth(app_client, "ada"))
+        assert r.status_code == 404, (path, r.text)
+        assert r.json()["detail"] == f"no job {job_id}"
+    assert app_client.delete(f"/v1/jobs/{job_id}", headers=_auth(app_client, "ada")).status_code == 404
+
+
+@pytest.mark.parametrize("options, says", [
+    ("{not json", "options: not valid JSON"),
+    ("[1, 2]", "options: must be a JSON object"),
+    (json.dumps({"methd": "fte"}), "options: unknown option 'methd'"),
+])
+def test_bad_options_are_422_before_any_file_is_read(app_client, options, says):
+    files = [("keypoints", ("cam1.csv", b"not read", "text/csv")),
+             ("calibration", ("calibration.toml", b"not read either", "application/octet-stream"))]
+    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=files, data={"options": options})
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"].startswith(says), r.json()
+    # nothing was stored: the caller still has no jobs
+    assert app_client.get("/v1/jobs", headers=_auth(app_client, "ada")).json()["total"] == 0
+
+
+def test_the_served_spec_is_the_generated_one_and_docs_are_html(app_client):
+    r = app_client.get("/openapi.json")
+    assert r.status_code == 200
+    assert r.json() == spec()
+    assert {"/v1/jobs", "/v1/jobs/{job_id}", "/healthz"} <= set(r.json()["paths"])
+    docs = app_client.get("/docs")
+    assert docs.status_code == 200 and docs.headers["content-type"].startswith("text/html")
