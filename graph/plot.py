@@ -11,6 +11,9 @@ People judge a 3D reconstruction by looking at it. Every picture here answers on
 - ``coordinates.png``: does any marker jump? x, y, z of every marker over time with a band of
   ``+-2 std`` (the estimate's marginal standard deviation).
 - ``parameters.png`` (kinematic skeletons only): the pose parameters over time, ``+-2 std``.
+- ``body_and_clocks.png`` (when the solve estimated or was given them): did the animal or the
+  clocks differ from what was assumed? The body's lengths against the model's, and each camera's
+  time offset, with their uncertainty.
 - ``flags.png``: what did the solver flag? Per frame and marker, how many cameras saw it (grey
   level), the detections rejected as outliers (crosses) and the frames no marker was seen twice in
   (hatched), above the per-frame reprojection error.
@@ -574,6 +577,50 @@ def plot_flags(result: Result, path: Path) -> Path:
     return path
 
 
+def plot_body_and_clocks(result: Result, path: Path) -> Path | None:
+    """Did the animal or the clocks differ from what was assumed? The body's lengths as estimated
+    (with +-2 sd) against the model's, per length group (or bone), and each camera's time offset
+    in frames (with +-2 sd; cameras the motion did not time are marked). None when the solve had
+    neither."""
+    rep = result.report
+    lengths = rep.body_lengths or {}
+    offsets = rep.time_offsets_frames
+    if not lengths and offsets is None:
+        return None
+    panels = int(bool(lengths)) + int(offsets is not None)
+    fig = _figure(11, 3.6 * panels)
+    axes = fig.subplots(panels, 1, squeeze=False)[:, 0]
+    k = 0
+    if lengths:
+        ax = axes[k]
+        k += 1
+        names = list(lengths)
+        x = np.arange(len(names))
+        est = np.array([lengths[n]["length_m"] for n in names]) * 100
+        sd = np.array([lengths[n]["std_m"] for n in names]) * 100
+        model = np.array([lengths[n]["model_m"] for n in names]) * 100
+        ax.bar(x - 0.2, model, width=0.4, color="0.75", label="model")
+        ax.bar(x + 0.2, est, width=0.4, color="tab:blue", yerr=2 * sd, capsize=3, label="estimated (+-2 sd)")
+        ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
+        ax.set_ylabel("length (cm)", fontsize=8)
+        ax.legend(fontsize=8)
+        ax.set_title(_title(result) + "\nthe body: each length as estimated against the model's", fontsize=10)
+    if offsets is not None:
+        ax = axes[k]
+        sd = np.asarray(rep.time_offsets_std_frames or np.zeros(len(offsets)), dtype=float)
+        x = np.arange(len(offsets))
+        lost = set(rep.offsets_not_identified or [])
+        colors = ["tab:red" if n in lost else "tab:blue" for n in result.camera_names]
+        ax.bar(x, offsets, color=colors, yerr=2 * sd, capsize=3)
+        ax.axhline(0.0, color="black", lw=0.8)
+        ax.set_xticks(x, result.camera_names, fontsize=8)
+        ax.set_ylabel("frames", fontsize=8)
+        ax.set_title("the clocks: each camera's time offset (frame n is at n + offset; +-2 sd"
+                     + ("; red: not identified by the motion" if lost else "") + ")", fontsize=10)
+    fig.savefig(path)
+    return path
+
+
 def write_figures(result: Result, out_dir: str | Path, calibration=None, snapshots: int = 5) -> list[Path]:
     """Write every PNG figure into ``out_dir``; returns the paths written."""
     out = Path(out_dir)
@@ -585,6 +632,9 @@ def write_figures(result: Result, out_dir: str | Path, calibration=None, snapsho
     if p is not None:
         written.append(p)
     written.append(plot_flags(result, out / "flags.png"))
+    p = plot_body_and_clocks(result, out / "body_and_clocks.png")
+    if p is not None:
+        written.append(p)
     return written
 
 

@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.calibration import default_rig_path, load_calibration, write_acinoset_json, write_anipose_toml
-from graph.camera import Calibration
+from graph.camera import PINHOLE, Calibration, Camera
 from graph.errors import InputError
 from graph.keypoints import Keypoints, write_dlc_csv
 from graph.skeleton import Skeleton, load_skeleton
@@ -294,6 +294,25 @@ def cheetah_motion(skeleton: Skeleton, stage: Stage, frames: int, fps: float, rn
     params = np.stack([q[n] for n in skeleton.param_names], axis=1)
     margin = 1e-3
     return np.clip(params, skeleton.lower + margin, skeleton.upper - margin)
+
+
+def ring_rig(cameras: int = 4, radius: float = 4.0, height: float = CAMERA_HEIGHT, focal_px: float = 1400.0,
+             size: tuple[int, int] = (1920, 1080)) -> Calibration:
+    """A synthetic rig: ``cameras`` pinhole cameras evenly on a circle of ``radius`` m, ``height``
+    m above the ground (z = 0), each looking at the centre at that height (a lab's ring, for
+    benchmarks on a rig other than the AcinoSet one)."""
+    cams = []
+    for k in range(cameras):
+        a = 2 * math.pi * k / cameras
+        C = np.array([radius * math.cos(a), radius * math.sin(a), height])
+        fwd = np.array([0.0, 0.0, height]) - C
+        fwd /= np.linalg.norm(fwd)
+        right = np.cross(fwd, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        R = np.stack([right, np.cross(fwd, right), fwd])
+        K = np.array([[focal_px, 0, size[0] / 2], [0, focal_px, size[1] / 2], [0, 0, 1]])
+        cams.append(Camera(K=K, dist=np.zeros(5), R=R, t=-R @ C, model=PINHOLE, size=size, name=f"cam{k + 1}"))
+    return Calibration(cams, source=f"ring of {cameras}")
 
 
 # ---------------------------------------------------------------------------------- observations
