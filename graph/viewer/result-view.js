@@ -192,6 +192,42 @@
     return section;
   }
 
+  /** The body and the clocks the solve estimated or was given: a table of lengths against the
+   *  model's, and each camera's time offset, with their sd; null when the solve had neither. */
+  function bodyAndClocksPanel(ctx) {
+    const { P, report } = ctx;
+    const lengths = report.body_lengths || null;
+    const offsets = report.time_offsets_frames || null;
+    if (!lengths && !offsets) return null;
+    const section = card("Body and clocks");
+    section.dataset.testid = "body-and-clocks";
+    const cm = (v) => (v == null ? "–" : `${fmt(v * 100, 1)} cm`);
+    if (lengths) {
+      const rows = Object.entries(lengths).map(([name, v]) => el("tr", {},
+        el("th", { scope: "row", text: name }), el("td", { text: cm(v.length_m) }),
+        el("td", { text: v.std_m ? `± ${cm(v.std_m)}` : "given" }), el("td", { text: cm(v.model_m) }),
+        el("td", { text: v.model_m ? `${fmt((v.length_m / v.model_m - 1) * 100, 1)} %` : "–" })));
+      section.append(el("table", { class: "data" },
+        el("caption", { text: "The body: each length (metres in the calibration's frame) against the model's" }),
+        el("thead", {}, el("tr", {}, ...["length", "estimated", "sd", "model", "difference"].map((t) => el("th", { scope: "col", text: t })))),
+        el("tbody", {}, ...rows)));
+    }
+    if (offsets) {
+      const sd = report.time_offsets_std_frames || [];
+      const lost = new Set(report.offsets_not_identified || []);
+      const rows = offsets.map((t, c) => el("tr", {},
+        el("th", { scope: "row", text: P.cameras[c] }), el("td", { text: `${fmt(t, 3)} frames` }),
+        el("td", { text: c === 0 ? "reference" : sd[c] ? `± ${fmt(sd[c], 3)}` : "given" }),
+        el("td", { text: `${fmt((t / (P.fps || 1)) * 1000, 2)} ms` }),
+        el("td", { text: lost.has(P.cameras[c]) ? "not identified by the motion" : "" })));
+      section.append(el("table", { class: "data" },
+        el("caption", { text: "The clocks: each camera's time offset (its frame n is at n + offset)" }),
+        el("thead", {}, el("tr", {}, ...["camera", "offset", "sd", "in time", ""].map((t) => el("th", { scope: "col", text: t })))),
+        el("tbody", {}, ...rows)));
+    }
+    return section;
+  }
+
   // ------------------------------------------------------------------ 3D playback
 
   /** The 3D playback card: the plot's box, the playback controls and the frame's description. */
@@ -773,6 +809,8 @@
     const setFrame = (n) => control.setFrame(n);
 
     container.append(summaryPanel(ctx));
+    const body = bodyAndClocksPanel(ctx);
+    if (body) container.append(body);
     const play = playbackPanel(ctx);
     container.append(play.section);
     const scene = skeletonScene(ctx, play.plot3d);
