@@ -323,10 +323,15 @@ class JointTrajectoryProblem(TrajectoryProblem):
 
 # -- the method ---------------------------------------------------------------------------------
 
-def shares_unknowns(options) -> bool:
-    """Whether a solve has shared unknowns or a body or clocks other than the model's."""
-    return (options.body != "model" or options.sync == "estimate"
-            or (options.time_offsets is not None and any(float(t) != 0.0 for t in options.time_offsets)))
+def shares_unknowns(prob: Problem) -> bool:
+    """Whether the solve has shared unknowns, or a body or clocks other than the model's: a body
+    to estimate (a kinematic skeleton's lengths, or a points skeleton's bones), a given body,
+    offsets to estimate, or offsets given that are not all zero."""
+    o, sk = prob.options, prob.skeleton
+    body = (o.body == "given" or o.body == "estimate" and (
+        bool(sk.bones) if sk.kind == "points" else bool(sk.length_groups)))
+    return (body or o.sync == "estimate"
+            or (o.time_offsets is not None and any(float(t) != 0.0 for t in o.time_offsets)))
 
 
 def given_offsets(prob: Problem) -> np.ndarray:
@@ -422,7 +427,7 @@ def solve_fte_joint(prob: Problem, progress: ProgressCallback | None = None) -> 
     and the clocks are in sync, else the joint solve of this module: the whole-frame offsets
     (:mod:`graph.sync`), the triangulation on the reference clock, a start of the body's size and
     the poses, then one optimisation of the trajectory with W."""
-    if not shares_unknowns(prob.options):
+    if not shares_unknowns(prob):
         return solve_fte(prob, progress)
     o = prob.options
     t0 = time.perf_counter()

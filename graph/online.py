@@ -217,7 +217,7 @@ def solve_ekf(prob: Problem, progress: ProgressCallback | None = None) -> Result
     body, each camera's detections taken on the nearest frame of the reference clock (the
     sub-frame remainder, at most half a frame, is not modelled online). Given lengths and offsets
     are used the same way."""
-    if shares_unknowns(prob.options):
+    if shares_unknowns(prob):
         return _ekf_with_shared(prob, progress)
     return _ekf(prob, progress)
 
