@@ -153,6 +153,8 @@ class JointTrajectoryProblem(TrajectoryProblem):
     # -- the cost -----------------------------------------------------------------------------
 
     def _kernel_skeleton(self, scales: np.ndarray) -> tuple:
+        if len(scales) == 0:  # no length groups (free points)
+            return self.sk_args
         factor = np.where(self.point_group >= 0, scales[np.maximum(self.point_group, 0)], 1.0)
         args = list(self.sk_args)
         args[6] = self.base_offset * factor[:, None]  # pt_offset

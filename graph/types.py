@@ -45,8 +45,9 @@ class SolveOptions:
     uncertainty: bool = True  # per-marker 3D std from the marginals ("fte": about a third of the time)
     calibration_units: str = "auto"  # "m", "cm", "mm", or "auto" (a rig measured in mm is recognised)
     # the body's proportions: the skeleton's ("model"), estimated with the trajectory ("estimate"), or
-    # ``body_lengths`` ("given": metres per length group, or per bone "a-b" for points, as a report has them)
-    body: Body = "model"
+    # ``body_lengths`` ("given": metres per length group, or per bone "a-b" for points, as a report has them).
+    # "estimate" by default: no animal has the model's proportions (bench/RESULTS.md, section 7)
+    body: Body = "estimate"
     body_lengths: dict[str, float] | None = None
     # the cameras' clocks: ``time_offsets`` (frames per camera; none: all 0) as given, or estimated
     sync: Sync = "given"
