@@ -369,10 +369,20 @@ def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[st
     report["warnings"] = list(notes or []) + report.get("warnings", [])
     causal_pos = prob.skeleton.positions(causal) if causal is not None else None
     if prob.skeleton.kind == "points":
-        never = prob.views().max(axis=0) < 2
+        # a free point in a frame fewer than two cameras see has no 3D estimate: its depth is only
+        # the motion model's guess, which drifts (a point bones tie to others is held by them)
+        few = prob.views() < 2
+        if len(prob.skeleton.bones):
+            tied = np.zeros(len(prob.markers), dtype=bool)
+            tied[np.unique(prob.skeleton.bone_index)] = True
+            few &= ~(tied[None] & (prob.views().max(axis=0) >= 2)[None])
         for a in (pos, std, causal_pos):
             if a is not None:
-                a[:, never] = np.nan
+                a[few] = np.nan
+        gaps = int(few.sum() - (prob.views().max(axis=0) < 2).sum() * prob.frames)
+        if gaps > 0:
+            report["warnings"].append(f"{gaps} marker positions in frames that fewer than two cameras see "
+                                      "confidently are left without an estimate (NaN)")
     sk = prob.skeleton
     active = int(np.sum((Q <= sk.lower + BOUND_TOLERANCE) | (Q >= sk.upper - BOUND_TOLERANCE)))
     s = normals.s

@@ -56,7 +56,7 @@ class _Frame:
 
     meas: np.ndarray  # (C, M, 2), NaN as 0
     valid: np.ndarray  # (C, M)
-    anchor: np.ndarray | None  # a start frame's weak anchor (its batch pose), else None
+    anchor: np.ndarray  # its weak anchor: a start frame's batch pose, a streamed frame's causal one
     q_lin: np.ndarray  # the pose its measurement factor is linearised at
     index: int = -1  # that factor's slot in the smoother
 
@@ -140,18 +140,19 @@ class OnlineSmoother:
             v.insert(k, np.zeros(self.P))
         return v
 
-    def _measurement_factor(self, graph, n, H, g, q, anchor=None) -> int:
+    def _measurement_factor(self, graph, n, H, g, q, anchor) -> int:
         """Frame n's measurement cost linearised at ``q``, in absolute form (see TrajectoryProblem),
-        with the weak anchor to ``anchor`` for a start frame, appended to ``graph``; returns its
-        position there."""
-        w = 1.0 / PRIOR_SIGMA**2 if anchor is not None else 0.0
-        G = H + (w + 1e-9) * self.eye
-        gv = H @ q - g + (w * anchor if anchor is not None else 0.0)
+        with fte's weak anchor (sigma PRIOR_SIGMA) to ``anchor``: a start frame's batch pose, a
+        streamed frame's causal one. It keeps the system determinate where the detections do not
+        (a free point seen by one camera has no depth); appended to ``graph``, returns its position."""
+        w = 1.0 / PRIOR_SIGMA**2
+        G = H + w * self.eye
+        gv = H @ q - g + w * anchor
         pos = graph.size()
         graph.push_back(gtsam.LinearContainerFactor(gtsam.HessianFactor(n, G, gv, 0.0), self._zero_values([n])))
         return pos
 
-    def _add_frame_factors(self, graph, n, H, g, q, anchor=None) -> int:
+    def _add_frame_factors(self, graph, n, H, g, q, anchor) -> int:
         """Frame n's linearised measurement factor and the motion factor ending at n; returns the
         measurement factor's position in ``graph``."""
         pos = self._measurement_factor(graph, n, H, g, q, anchor)
@@ -186,8 +187,8 @@ class OnlineSmoother:
                 break
         Hf, gf = self._normal(q, meas, valid)
         graph = gtsam.NonlinearFactorGraph()
-        placed = [(n, self._add_frame_factors(graph, n, Hf, gf, q))]
-        self.window[n] = _Frame(meas, valid.copy(), None, q.copy())
+        placed = [(n, self._add_frame_factors(graph, n, Hf, gf, q, anchor=q))]
+        self.window[n] = _Frame(meas, valid.copy(), q.copy(), q.copy())
         remove: list[int] = []
         if n % RELINEARISE_EVERY == 0:
             remove, more = self._relinearise(graph)
