@@ -27,6 +27,15 @@ Stage = Literal["initialise", "triangulate", "optimise", "filter", "uncertainty"
 STAGES: tuple[str, ...] = get_args(Stage)
 
 
+# Ranges of the options (NaN and infinity fall outside every one). A frame rate over MAX_FPS is a typo
+# or a unit slip (the motion model scales with 1/fps^2: at 1e5 fps its factors are singular).
+MAX_FPS = 10000.0
+MAX_NOISE_PX = 1000.0
+MAX_ITERATIONS = 10000
+MAX_MOTION_SCALE = 1e6
+MAX_LAG_SECONDS = 60.0
+
+
 @dataclass
 class SolveOptions:
     """What to solve and how. Every field has a sensible default."""
@@ -56,18 +65,22 @@ class SolveOptions:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {', '.join(METHODS)}, not {self.method!r}")
-        if not (self.fps > 0):
-            raise ValueError(f"fps must be positive, not {self.fps}")
+        if not (0 < self.fps <= MAX_FPS):
+            raise ValueError(f"fps must be positive and at most {MAX_FPS:g} (frames per second), not {self.fps}")
         if not (0.0 <= self.likelihood_threshold <= 1.0):
             raise ValueError(f"likelihood_threshold must be in [0, 1], not {self.likelihood_threshold}")
         if self.measurement_std_px != "auto" and not (isinstance(self.measurement_std_px, (int, float))
-                                                       and self.measurement_std_px > 0):
+                                                       and 0 < self.measurement_std_px <= MAX_NOISE_PX):
             raise ValueError(f"measurement_std_px must be a positive number of pixels or 'auto', "
                              f"not {self.measurement_std_px!r}")
         if self.calibration_units not in CALIBRATION_UNITS:
             raise ValueError(f"calibration_units must be one of {', '.join(CALIBRATION_UNITS)}")
-        if self.max_iterations < 1:
-            raise ValueError("max_iterations must be at least 1")
+        if not (1 <= self.max_iterations <= MAX_ITERATIONS):
+            raise ValueError(f"max_iterations must be from 1 to {MAX_ITERATIONS}, not {self.max_iterations}")
+        if not (0 < self.motion_scale <= MAX_MOTION_SCALE):
+            raise ValueError(f"motion_scale must be positive and at most {MAX_MOTION_SCALE:g}, not {self.motion_scale}")
+        if not (0 < self.lag_seconds <= MAX_LAG_SECONDS):
+            raise ValueError(f"lag_seconds must be positive and at most {MAX_LAG_SECONDS:g}, not {self.lag_seconds}")
         if self.body not in BODIES:
             raise ValueError(f"body must be one of {', '.join(BODIES)}, not {self.body!r}")
         if self.body == "given" and not self.body_lengths:
