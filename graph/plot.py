@@ -135,8 +135,27 @@ def _camera_directions(result: Result, calibration=None) -> np.ndarray | None:
 
 
 def _is_length_param(name: str) -> bool:
-    """Pose parameters named ``x_*``, ``y_*``, ``z_*`` are positions in metres; the rest are angles."""
-    return name.split("_", 1)[0] in ("x", "y", "z")
+    """Positions in metres: a kinematic skeleton's ``x_*``, ``y_*``, ``z_*`` (the root) and a points
+    skeleton's ``<marker>_x``, ``_y``, ``_z``; the rest are angles."""
+    return name.split("_", 1)[0] in ("x", "y", "z") or name.rsplit("_", 1)[-1] in ("x", "y", "z")
+
+
+def animal_size(result: Result) -> float:
+    """The animal's size (m): the median over frames of the largest extent of its markers (a fly's
+    is a fraction of a millimetre, a cheetah's a metre or two); the pictures scale with it."""
+    pos = np.asarray(result.positions)
+    ext = []
+    for P in pos[:: max(1, len(pos) // 50)]:
+        P = P[np.isfinite(P).all(axis=1)]
+        if len(P) >= 2:
+            ext.append(float(np.ptp(P, axis=0).max()))
+    size = float(np.median(ext)) if ext else 0.0
+    return size if size > 0 else 1.0
+
+
+def _position_decimals(result: Result) -> int:
+    """Decimals of metres that keep 1e-4 of the animal's size: 5 (10 um) for a cheetah, 8 for a fly."""
+    return int(np.clip(4 - np.floor(np.log10(animal_size(result))), _POS_DECIMALS, 10))
 
 
 # ------------------------------------------------------------------------------------ payload
@@ -193,6 +212,7 @@ def result_payload(result: Result, calibration=None) -> dict:
     cc = camera_centers(result, calibration)
     cd = _camera_directions(result, calibration)
     params = result.params
+    pos_dec = _position_decimals(result)
     return {
         "version": PAYLOAD_VERSION,
         "method": result.method,
@@ -202,10 +222,10 @@ def result_payload(result: Result, calibration=None) -> dict:
         "markers": list(result.markers),
         "bones": bones,
         "cameras": list(result.camera_names),
-        "camera_centers": _json_array(cc, _POS_DECIMALS),
+        "camera_centers": _json_array(cc, pos_dec),
         "camera_directions": _json_array(cd, 4),
-        "positions": _json_array(result.positions, _POS_DECIMALS),
-        "std": _json_array(result.std, _POS_DECIMALS),
+        "positions": _json_array(result.positions, pos_dec),
+        "std": _json_array(result.std, pos_dec),
         "ncams": _json_array(np.asarray(result.ncams).astype(np.int64)),
         "score": _json_array(result.score, _SCORE_DECIMALS),
         "reprojection_error_px": _json_array(result.error, _PX_DECIMALS),
@@ -217,8 +237,8 @@ def result_payload(result: Result, calibration=None) -> dict:
         "frame_error": _json_array(frame_error(result), _PX_DECIMALS),
         "param_names": list(result.param_names or []),
         "param_units": ["m" if _is_length_param(p) else "rad" for p in (result.param_names or [])],
-        "params": _json_array(params, _PARAM_DECIMALS) if params is not None else None,
-        "params_std": (_json_array(result.params_std, _PARAM_DECIMALS)
+        "params": _json_array(params, max(pos_dec, _PARAM_DECIMALS)) if params is not None else None,
+        "params_std": (_json_array(result.params_std, max(pos_dec, _PARAM_DECIMALS))
                        if result.params_std is not None else None),
         "report": jsonable(report),
         "options": jsonable(options),
@@ -323,7 +343,8 @@ def plot_skeleton(result: Result, path: Path, calibration=None, snapshots: int =
     else:
         ax.text2D(0.02, 0.02, "camera positions unknown (pass --calibration)", transform=ax.transAxes,
                   fontsize=8)
-    _set_equal_3d(ax, np.concatenate(scene), min_extent=0.5, min_ratio=0.25)
+    size = animal_size(result)
+    _set_equal_3d(ax, np.concatenate(scene), min_extent=size / 3, min_ratio=0.25)
     _label_axes(ax)
     ax.legend(loc="upper left", fontsize=7)
 
@@ -333,7 +354,7 @@ def plot_skeleton(result: Result, path: Path, calibration=None, snapshots: int =
         ax.text(0.5, 0.5, "no frame has an estimate", ha="center", va="center")
     else:
         span = np.nanmax([np.ptp(pos[f][np.isfinite(pos[f]).all(axis=1)], axis=0).max() for f in frames])
-        half = max(0.4, 0.6 * float(span))
+        half = max(0.3 * size, 0.6 * float(span))
         for k, f in enumerate(frames):
             ax = fig.add_subplot(rows, cols, k + 2, projection="3d")
             P = pos[f]

@@ -291,13 +291,14 @@
     const all = [];
     for (const fr of P.positions) for (const p of fr) if (seen(p)) all.push(p);
     const runBox = bbox(all);
+    // the animal's size (m), from the data: a fly's is a fraction of a millimetre, a cheetah's a metre
     const animalSize = (() => {
-      let s = 0.5;
+      let s = 0;
       for (let n = 0; n < N; n += Math.max(1, Math.floor(N / 20))) {
         const b = bbox(P.positions[n].filter(seen));
         if (isFinite(b.lo[0])) s = Math.max(s, ...[0, 1, 2].map((k) => b.hi[k] - b.lo[k]));
       }
-      return s;
+      return s > 0 ? s : 1;
     })();
     const sceneBox = P.camera_centers ? bbox(all.concat(P.camera_centers)) : runBox;
 
@@ -380,12 +381,12 @@
     /** Axis ranges of the chosen view ("run", "follow" the animal at frame n, or the "scene" with cameras). */
     function sceneLayout(n) {
       let box;
-      if (state.view === "scene") box = cube(sceneBox.lo, sceneBox.hi, 0.5);
+      if (state.view === "scene") box = cube(sceneBox.lo, sceneBox.hi, animalSize);
       else if (state.view === "follow") {
         const b = bbox(P.positions[n].filter(seen));
         const mid = [0, 1, 2].map((k) => (isFinite(b.lo[k]) ? (b.lo[k] + b.hi[k]) / 2 : 0));
         const h = 0.6 * animalSize;
-        box = cube(mid.map((v) => v - h), mid.map((v) => v + h), 0.3);
+        box = cube(mid.map((v) => v - h), mid.map((v) => v + h), 0.5 * animalSize);
       } else box = cube(runBox.lo, runBox.hi, animalSize * 0.6);
       return {
         "scene.xaxis.range": box.ranges[0], "scene.yaxis.range": box.ranges[1], "scene.zaxis.range": box.ranges[2],
