@@ -21,7 +21,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import graph
 from service.backends import make_backend
-from service.jobs import JobService
+from service.jobs import Forbidden, JobError, JobService, NotFound, NotReady, TooLarge, TooMany, Unprocessable
 from service.limits import UploadGuard
 from service.settings import Settings
 from service.store import Store
@@ -38,6 +38,11 @@ Submit one keypoint file per camera and the calibration (`POST /v1/jobs`), poll 
 Every call under `/v1` needs `Authorization: Bearer TOKEN` (an admin makes tokens with
 `acinoset users add NAME`). Every error answer is JSON: `{"detail": "one line"}`.
 """
+
+
+# How the API answers each refusal of the job service (:class:`service.jobs.JobError`)
+JOB_ERROR_STATUS: dict[type[JobError], int] = {NotFound: 404, Forbidden: 403, NotReady: 409, Unprocessable: 422,
+                                               TooLarge: 413, TooMany: 429}
 
 
 class DataDirInUse(RuntimeError):
@@ -117,6 +122,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def http_error(request: Request, exc: StarletteHTTPException):
         detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
         return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(JobError)
+    async def job_error(request: Request, exc: JobError):
+        return JSONResponse({"detail": exc.detail}, status_code=JOB_ERROR_STATUS.get(type(exc), 400))
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError):

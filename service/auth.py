@@ -34,9 +34,3 @@ def current_user(request: Request) -> User:
         raise HTTPException(401, "invalid or revoked token", headers=_CHALLENGE)
     return user
 
-
-def admin_user(request: Request) -> User:
-    user = current_user(request)
-    if not user.is_admin:
-        raise HTTPException(403, "this needs an admin token")
-    return user

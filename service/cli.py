@@ -32,7 +32,9 @@ def _data_dir_arg(p: argparse.ArgumentParser) -> None:
 
 
 def register(subparsers) -> None:
-    """Add ``serve``, ``worker`` and ``users`` to an argparse subparsers object."""
+    """Add ``serve``, ``worker``, ``users`` and ``jobs`` to an argparse subparsers object."""
+    from service.store import STATUSES
+
     p = subparsers.add_parser("serve",
                               description="Run the REST job service for a lab: upload keypoints and a "
                                           "calibration, poll the job, download the 3D result.")
@@ -86,7 +88,7 @@ def register(subparsers) -> None:
     js = j.add_subparsers(dest="jobs_command", required=True, metavar="{list,prune}")
     jl = js.add_parser("list", help="jobs newest first, with their owner, status and disk use")
     jl.add_argument("--owner", help="only this user's jobs")
-    jl.add_argument("--status", choices=["queued", "running", "succeeded", "failed", "cancelled"])
+    jl.add_argument("--status", choices=STATUSES)
     jl.add_argument("--limit", type=int, default=50, help="at most this many (default 50)")
     _data_dir_arg(jl)
     jl.set_defaults(func=jobs_list)
@@ -316,8 +318,9 @@ def jobs_list(args: argparse.Namespace) -> int:
 
 
 def jobs_prune(args: argparse.Namespace) -> int:
-    import shutil
     import time
+
+    from service.jobs import delete_finished
 
     if not args.older_than >= 0:
         print("acinoset jobs prune: --older-than takes a number of days, 0 or more", file=sys.stderr)
@@ -337,8 +340,7 @@ def jobs_prune(args: argparse.Namespace) -> int:
             freed += size
             deleted += 1
             continue
-        if store.delete(job.id):  # refuses a job that became active again meanwhile
-            shutil.rmtree(s.jobs_dir / job.id, ignore_errors=True)
+        if delete_finished(store, s.jobs_dir, job.id):  # refuses a job that became active again meanwhile
             freed += size
             deleted += 1
     verb = "would delete" if args.dry_run else "deleted"

@@ -1,7 +1,8 @@
 """What the API does with jobs: submit (validate, store, queue), find, list, cancel, delete.
 
 The routes (:mod:`service.routes`) stay thin and call these. Every refusal is an
-:class:`fastapi.HTTPException` with a one-line ``detail``.
+:class:`JobError` with a one-line message; the app answers each kind with its HTTP status
+(:data:`service.app.JOB_ERROR_STATUS`), and the command line prints it.
 
 Uploads never choose a path: each file lands in the job's own directory under a name made only of
 ``[A-Za-z0-9._-]`` (directories stripped), one directory per camera; user options name a shipped
@@ -20,13 +21,11 @@ import uuid
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
-from fastapi import HTTPException
-
 from service.backends.base import Backend
 from service.settings import Settings
 from service.store import STATUSES, Job, QuotaExceeded, Store, User
 from service.uploads import Refusal, UploadReader
-from service.worker import MANIFEST
+from service.jobfiles import MANIFEST
 
 JOB_ID = re.compile(r"^[0-9a-f]{32}$")
 KEYPOINT_SUFFIXES = (".csv", ".h5", ".hdf5")
@@ -67,8 +66,49 @@ def _calibration_suffix(head: bytes) -> str:
     return ".json" if head.lstrip()[:1] == b"{" else ".toml"
 
 
-def _unprocessable(detail: str) -> HTTPException:
-    return HTTPException(422, " ".join(detail.split()))
+class JobError(Exception):
+    """A request the job service refuses, with one line saying why."""
+
+    def __init__(self, detail: str):
+        self.detail = " ".join(str(detail).split())
+        super().__init__(self.detail)
+
+
+class NotFound(JobError):
+    """No such job, or one the caller may not see."""
+
+
+class Forbidden(JobError):
+    """The caller may not do this (a non-admin asking for another user's jobs)."""
+
+
+class NotReady(JobError):
+    """The job has no result (yet, or any more)."""
+
+
+class Unprocessable(JobError):
+    """A malformed request or option, or a file the readers refuse."""
+
+
+class TooLarge(JobError):
+    """Over this server's size limits (upload, frames, cameras)."""
+
+
+class TooMany(JobError):
+    """The caller already has the most active jobs allowed."""
+
+
+def _unprocessable(detail: str) -> Unprocessable:
+    return Unprocessable(detail)
+
+
+def delete_finished(store: Store, jobs_dir: Path, job_id: str) -> bool:
+    """Delete a finished job's row and then its files; False when it is active again (a re-run
+    claimed it meanwhile) or gone. The API's DELETE and ``acinoset jobs prune`` both delete this way."""
+    if not store.delete(job_id):
+        return False
+    shutil.rmtree(jobs_dir / job_id, ignore_errors=True)
+    return True
 
 
 class JobService:
@@ -139,8 +179,8 @@ class JobService:
         if not keypoints:
             raise _unprocessable("keypoints: upload one keypoint file per camera")
         if len(keypoints) > s.max_cameras:
-            raise HTTPException(413, f"{len(keypoints)} keypoint files; this server takes at most "
-                                     f"{s.max_cameras} cameras per job (ACINOSET_MAX_CAMERAS)")
+            raise TooLarge(f"{len(keypoints)} keypoint files; this server takes at most "
+                           f"{s.max_cameras} cameras per job (ACINOSET_MAX_CAMERAS)")
         self._check_quota(user)
         skeleton_name = safe_name(skeleton.filename, "skeleton.toml") if skeleton is not None else None
         options = self.parse_options(options_text, skeleton_name)
@@ -181,7 +221,7 @@ class JobService:
                     skeleton_file=manifest["skeleton"], skeleton=options["skeleton"],
                     individual=options.get("individual"), max_frames=s.max_frames)
             except Refusal as e:
-                raise HTTPException(e.status, e.detail) from None
+                raise (TooLarge if e.status == 413 else Unprocessable)(e.detail) from None
             (input_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
             staging.replace(s.jobs_dir / job_id)
         except BaseException:
@@ -192,8 +232,8 @@ class JobService:
     def _check_quota(self, user: User) -> None:
         n = self.store.count_active(user.id)
         if n >= self.settings.max_active_jobs_per_user:
-            raise HTTPException(429, f"you have {n} queued or running jobs, the most this server allows per user "
-                                     "(ACINOSET_MAX_ACTIVE_JOBS_PER_USER); wait for some to finish or cancel some")
+            raise TooMany(f"you have {n} queued or running jobs, the most this server allows per user "
+                          "(ACINOSET_MAX_ACTIVE_JOBS_PER_USER); wait for some to finish or cancel some")
 
     # -- read --------------------------------------------------------------------------------
 
@@ -201,7 +241,7 @@ class JobService:
         """The job if the caller may see it (its owner, or an admin); 404 otherwise, whether or not it exists."""
         job = self.store.job(job_id) if JOB_ID.match(job_id) else None
         if job is None or (job.owner_id != user.id and not user.is_admin):
-            raise HTTPException(404, f"no job {job_id}")
+            raise NotFound(f"no job {job_id}")
         return job
 
     def list(self, user: User, statuses: list[str] | None, limit: int, cursor: str | None,
@@ -224,7 +264,7 @@ class JobService:
                     return [], 0, None
                 owner_id = u.id
         elif owner and owner != user.name:
-            raise HTTPException(403, "only admins can list other users' jobs")
+            raise Forbidden("only admins can list other users' jobs")
         limit = max(1, min(limit, self.settings.page_size_max))
         jobs, total = self.store.jobs(owner_id, statuses, limit + 1, before)
         more = len(jobs) > limit
@@ -235,10 +275,10 @@ class JobService:
         job = self.visible(user, job_id)
         if job.status != "succeeded":
             why = f": {job.error}" if job.status == "failed" and job.error else ""
-            raise HTTPException(409, f"job {job_id} is {job.status}{why}; its result is ready when it succeeded")
+            raise NotReady(f"job {job_id} is {job.status}{why}; its result is ready when it succeeded")
         path = self.settings.jobs_dir / job.id / "result" / filename
         if not path.is_file():
-            raise HTTPException(404, f"job {job_id} has no {filename} (its result files were removed)")
+            raise NotFound(f"job {job_id} has no {filename} (its result files were removed)")
         return path
 
     # -- cancel, delete ----------------------------------------------------------------------
@@ -253,6 +293,5 @@ class JobService:
             now = self.store.job(job.id)
             assert now is not None
             return now
-        if self.store.delete(job.id):
-            shutil.rmtree(self.settings.jobs_dir / job.id, ignore_errors=True)
+        delete_finished(self.store, self.settings.jobs_dir, job.id)
         return None

@@ -11,16 +11,10 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
-from service.store import Job
+from service.jobfiles import RESULT_FILES
+from service.store import STAGES, Job, JobStatus
 
-JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-ResultFormat = Literal["csv", "h5", "json", "report"]
-RESULT_FILES: dict[str, tuple[str, str]] = {  # format: (file in the job's result dir, media type)
-    "csv": ("result.csv", "text/csv"),
-    "h5": ("result.h5", "application/x-hdf5"),
-    "json": ("result.json", "application/json"),
-    "report": ("report.json", "application/json"),
-}
+ResultFormat = Literal[tuple(RESULT_FILES)]  # type: ignore[valid-type]  # the download formats
 
 
 class ErrorBody(BaseModel):
@@ -30,7 +24,7 @@ class ErrorBody(BaseModel):
 
 
 class Progress(BaseModel):
-    stage: str | None = Field(None, description="what the solve is doing: starting, init, solve, writing, done")
+    stage: str | None = Field(None, description="what the job is doing, one of: " + ", ".join(STAGES))
     fraction: float | None = Field(None, description="share of the whole solve done, 0 to 1")
     iteration: int | None = Field(None, description="optimiser iteration")
     cost: float | None = Field(None, description="optimiser cost at that iteration")

@@ -8,12 +8,17 @@ from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, Up
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 
 import graph
+from graph.errors import InputError
+from graph.skeleton import available_skeletons, load_skeleton
 from service import metrics
 from service.auth import current_user
 from service.jobs import JobService, Upload
-from service.models import (RESULT_FILES, ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
+from service.jobfiles import RESULT_FILES
+from service.models import (ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
                             SkeletonOut, job_out)
-from service.store import User
+from service.backends.base import Backend
+from service.settings import Settings
+from service.store import Store, User
 
 
 def _err(description: str) -> dict:
@@ -44,6 +49,24 @@ async def _jobs(request: Request) -> JobService:
 Jobs = Annotated[JobService, Depends(_jobs)]
 
 
+async def _store(request: Request) -> Store:
+    return request.app.state.store
+
+
+async def _settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+async def _backend(request: Request) -> Backend:
+    return request.app.state.backend
+
+
+# what the app's lifespan made (service.app.create_app), for the routes that need more than jobs
+JobTable = Annotated[Store, Depends(_store)]
+ServerSettings = Annotated[Settings, Depends(_settings)]
+JobBackend = Annotated[Backend, Depends(_backend)]
+
+
 @router.post(
     "/v1/jobs", status_code=202, response_model=JobOut, tags=["jobs"], summary="Submit a job",
     responses={413: _err("Upload, frame count or camera count over this server's limits"),
@@ -57,7 +80,9 @@ def submit_job(
     options: Annotated[str, Form(
         description='JSON object of solve options, e.g. {"method": "fte", "fps": 120, "skeleton": "cheetah", '
                     '"likelihood_threshold": 0.5, "measurement_std_px": 5}; measurement_std_px "auto" measures '
-                    'the detection noise from the data; see GET /v1/skeletons')] = "{}",
+                    'the detection noise from the data; body "estimate" (the default), "model" or "given" with '
+                    'body_lengths {group: metres}; sync "given" (the default, with time_offsets in frames per '
+                    'camera) or "estimate"; see GET /v1/skeletons')] = "{}",
     skeleton: Annotated[UploadFile | None, File(
         description="optional skeleton spec (.toml) to use instead of a named skeleton")] = None,
 ) -> JobOut:
@@ -131,9 +156,6 @@ def delete_job(job_id: str, user: CurrentUser, jobs: Jobs):
 @router.get("/v1/skeletons", response_model=list[SkeletonOut], tags=["reference"], summary="Skeletons")
 def list_skeletons(user: CurrentUser) -> list[SkeletonOut]:
     """The skeletons a job's ``options.skeleton`` can name."""
-    from graph.errors import InputError
-    from graph.skeleton import available_skeletons, load_skeleton
-
     out = []
     for name in available_skeletons():
         if name == "points":
@@ -151,10 +173,8 @@ def list_skeletons(user: CurrentUser) -> list[SkeletonOut]:
 
 
 @router.get("/v1/me", response_model=Me, tags=["reference"], summary="The caller")
-def me(user: CurrentUser, request: Request) -> Me:
+def me(user: CurrentUser, store: JobTable, s: ServerSettings) -> Me:
     """Who the token belongs to, its job counts and this server's limits."""
-    store = request.app.state.store
-    s = request.app.state.settings
     counts = store.job_counts(user.id)
     return Me(name=user.name, admin=user.is_admin, active_jobs=store.count_active(user.id), jobs=counts,
               limits=Limits(max_upload_bytes=s.max_upload_bytes, max_frames=s.max_frames, max_cameras=s.max_cameras,
@@ -163,10 +183,9 @@ def me(user: CurrentUser, request: Request) -> Me:
 
 @public.get("/healthz", response_model=Health, tags=["service"], summary="Health",
             responses={503: {"model": Health, "description": "The backend cannot run jobs (e.g. Redis unreachable)"}})
-def healthz(request: Request):
-    backend = request.app.state.backend
+def healthz(backend: JobBackend, store: JobTable):
     h = backend.health()
-    counts = request.app.state.store.status_counts()
+    counts = store.status_counts()
     body = Health(status="ok" if h["ok"] else "degraded", version=graph.__version__, backend=backend.name,
                   workers=h["workers"], running=counts["running"], queued=counts["queued"], detail=h.get("detail"))
     if not h["ok"]:
@@ -178,9 +197,8 @@ def healthz(request: Request):
             responses={200: {"content": {metrics.CONTENT_TYPE: {"schema": {"type": "string"}}},
                              "description": "Prometheus text format"},
                        401: _err("The server requires a token for metrics (ACINOSET_METRICS_PUBLIC=false)")})
-def get_metrics(request: Request) -> PlainTextResponse:
-    if not request.app.state.settings.metrics_public:
+def get_metrics(request: Request, s: ServerSettings, store: JobTable, backend: JobBackend) -> PlainTextResponse:
+    if not s.metrics_public:
         current_user(request)
-    backend = request.app.state.backend
-    text = metrics.render(request.app.state.store, backend.name, backend.health())
+    text = metrics.render(store, backend.name, backend.health())
     return PlainTextResponse(text, media_type=metrics.CONTENT_TYPE)

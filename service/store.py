@@ -33,11 +33,17 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Literal, get_args
 
-STATUSES: tuple[str, ...] = ("queued", "running", "succeeded", "failed", "cancelled")
+from graph.types import STAGES as SOLVER_STAGES
+
+JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]  # the one list of job states
+STATUSES: tuple[str, ...] = get_args(JobStatus)
 ACTIVE: tuple[str, ...] = ("queued", "running")
-FINISHED: tuple[str, ...] = ("succeeded", "failed", "cancelled")
+FINISHED: tuple[str, ...] = tuple(s for s in STATUSES if s not in ACTIVE)
+# What a running job's progress says it is doing, in order: reading its files (service.worker), the
+# solver's stages, writing the results; "done" once they are stored.
+STAGES: tuple[str, ...] = ("reading", *(s for s in SOLVER_STAGES if s != "done"), "writing", "done")
 
 USER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,63}$")
 TOKEN_PREFIX = "acn"

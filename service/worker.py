@@ -10,14 +10,8 @@ The same :func:`solve_job` runs under both backends:
   files back in Redis; the server stores them in the data dir and the job table, then deletes them
   from Redis (RQ expires results: it is not the record).
 
-Job input layout (``<data dir>/jobs/<id>/input``), named by :data:`MANIFEST`::
-
-    manifest.json                      {"keypoints": [...], "calibration": ..., "skeleton": ..., "options": {...}}
-    keypoints/01/<uploaded name>.csv   one directory per camera, in the calibration's order
-    calibration/<uploaded name>.toml
-    skeleton/<uploaded name>.toml      optional
-
-Result files (``<data dir>/jobs/<id>/result``): :data:`RESULT_FILES`.
+The job's files (inputs, manifest, results, their archives) are laid out by :mod:`service.jobfiles`.
+The stages a job reports are :data:`service.store.STAGES`.
 
 Errors: :class:`graph.errors.InputError` and other exceptions of the solve fail the job at once with
 a one-line message (trying again would fail again); only a run that dies (killed, machine lost) is
@@ -34,13 +28,14 @@ import sys
 import tempfile
 import time
 import traceback
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-MANIFEST = "manifest.json"
-RESULT_FILES = ("result.csv", "result.h5", "result.json", "report.json")
+from service.jobfiles import (RESULT_FILES, input_key, inside, pack_files, read_manifest, result_key,
+                              unpack_files)
+
 
 
 SOLVER_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
@@ -62,9 +57,9 @@ def prepare_solver_environment() -> None:
 
 
 # imported by every process that forks solves (missing ones are skipped)
-SOLVER_MODULES = ("gtsam", "numba", "graph.api", "graph.calibration", "graph.keypoints", "graph.skeleton",
-                  "graph.problem", "graph.kernels", "graph.triangulate", "graph.fte", "graph.online", "graph.io",
-                  "graph.plot")
+SOLVER_MODULES = ("gtsam", "numba", "graph.types", "graph.api", "graph.calibration", "graph.keypoints",
+                  "graph.skeleton", "graph.problem", "graph.kernels", "graph.triangulate", "graph.tri", "graph.fte",
+                  "graph.sync", "graph.joint", "graph.online", "graph.io", "graph.plot")
 
 
 def configure_forkserver(warm: bool) -> None:
@@ -87,18 +82,6 @@ class JobCancelled(Exception):
 
 # -- inputs ------------------------------------------------------------------------------------
 
-def read_manifest(input_dir: Path) -> dict:
-    return json.loads((input_dir / MANIFEST).read_text())
-
-
-def _inside(base: Path, rel: str) -> Path:
-    """``base / rel`` where ``rel`` is a relative POSIX path that stays inside ``base``."""
-    p = PurePosixPath(rel)
-    if p.is_absolute() or ".." in p.parts or not p.parts:
-        raise ValueError(f"bad path in job manifest: {rel!r}")
-    return base.joinpath(*p.parts)
-
-
 def load_inputs(input_dir: Path):
     """The job's keypoints (one per camera), calibration and solve options, read with the core's readers."""
     from pydantic import TypeAdapter
@@ -110,10 +93,10 @@ def load_inputs(input_dir: Path):
     m = read_manifest(input_dir)
     options = dict(m["options"])
     if m.get("skeleton"):
-        options["skeleton"] = str(_inside(input_dir, m["skeleton"]))
+        options["skeleton"] = str(inside(input_dir, m["skeleton"]))
     opts = TypeAdapter(SolveOptions).validate_python(options)
-    keypoints = [read_keypoints(_inside(input_dir, rel), individual=opts.individual) for rel in m["keypoints"]]
-    calibration = load_calibration(_inside(input_dir, m["calibration"]))
+    keypoints = [read_keypoints(inside(input_dir, rel), individual=opts.individual) for rel in m["keypoints"]]
+    calibration = load_calibration(inside(input_dir, m["calibration"]))
     return keypoints, calibration, opts
 
 
@@ -125,11 +108,12 @@ def write_results(result, out_dir: Path) -> dict:
     from graph.plot import result_payload  # what the job page draws: one definition for both sides
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_anipose_csv(out_dir / "result.csv", result)
-    write_h5(out_dir / "result.h5", result)
+    name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}
+    write_anipose_csv(out_dir / name["csv"], result)
+    write_h5(out_dir / name["h5"], result)
     report = result.report.to_dict()
-    (out_dir / "result.json").write_text(json.dumps(result_payload(result), separators=(",", ":"), allow_nan=False))
-    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
+    (out_dir / name["json"]).write_text(json.dumps(result_payload(result), separators=(",", ":"), allow_nan=False))
+    (out_dir / name["report"]).write_text(json.dumps(report, indent=2))
     return report
 
 
@@ -267,54 +251,6 @@ def _log_traceback(job_dir: Path) -> None:
 
 # -- rq: a work horse anywhere -----------------------------------------------------------------
 
-def input_key(token: str) -> str:
-    """Redis key of the input files of the RQ job ``token``."""
-    return f"acinoset:input:{token}"
-
-
-def result_key(token: str) -> str:
-    """Redis key of the result files of the RQ job ``token``."""
-    return f"acinoset:result:{token}"
-
-
-def pack_files(base: Path, rels: list[str]) -> bytes:
-    """Files under ``base`` as one zip archive (deflate, fast level), names relative to ``base``."""
-    import io
-    import zipfile
-
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as z:
-        for rel in rels:  # one compress call per file (the GIL is released while it runs)
-            z.writestr(rel, _inside(base, rel).read_bytes())
-    return buf.getvalue()
-
-
-def unpack_files(archive: bytes, base: Path, allowed: tuple[str, ...] | None = None) -> list[str]:
-    """Extract :func:`pack_files`' archive under ``base`` (names that would leave it are refused;
-    with ``allowed``, other names are skipped). Returns the names extracted."""
-    import io
-    import zipfile
-
-    names = []
-    with zipfile.ZipFile(io.BytesIO(archive)) as z:
-        for info in z.infolist():
-            if info.is_dir() or (allowed is not None and info.filename not in allowed):
-                continue
-            p = _inside(base, info.filename)
-            p.parent.mkdir(parents=True, exist_ok=True)
-            with z.open(info) as src, open(p, "wb") as dst:
-                shutil.copyfileobj(src, dst, 1 << 20)
-            names.append(info.filename)
-    return names
-
-
-def input_archive(input_dir: Path) -> bytes:
-    """What an RQ worker needs to run a job: the manifest and the input files, zipped."""
-    m = read_manifest(input_dir)
-    rels = [MANIFEST, *m["keypoints"], m["calibration"], *([m["skeleton"]] if m.get("skeleton") else [])]
-    return pack_files(input_dir, rels)
-
-
 def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -> dict:
     """The RQ job function. Reads the input archive from Redis (:func:`input_key`), stores the result
     archive there (:func:`result_key`) and returns ``{"status": "succeeded", "report", "seconds",
@@ -352,5 +288,5 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -
         except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
             traceback.print_exc()
             return {"status": "failed", "error": one_line(e), "worker": worker}
-        rq_job.connection.set(result_key(token), pack_files(out_dir, list(RESULT_FILES)))
+        rq_job.connection.set(result_key(token), pack_files(out_dir, [file for file, _ in RESULT_FILES.values()]))
         return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker}

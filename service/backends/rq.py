@@ -187,7 +187,7 @@ class RQBackend(Backend):
         from rq import Retry
         from rq.job import Job as RQJob
 
-        from service.worker import input_archive, input_key
+        from service.jobfiles import input_archive, input_key
 
         with self._lock:
             remaining = max(1, job.max_attempts - job.attempts)
@@ -235,7 +235,7 @@ class RQBackend(Backend):
 
     def _delete(self, token: str) -> None:
         """The RQ job and its files in Redis."""
-        from service.worker import input_key, result_key
+        from service.jobfiles import input_key, result_key
 
         rj = self._full(token)
         if rj is not None:
@@ -338,7 +338,7 @@ class RQBackend(Backend):
             self._enqueue(fresh)
 
     def _finished(self, row: Job, rj, attempt: int) -> None:
-        from service.worker import RESULT_FILES, result_key, unpack_files
+        from service.jobfiles import RESULT_FILES, result_key, unpack_files
 
         rv = rj.return_value()
         archive = self.redis.get(result_key(rj.id))
@@ -355,7 +355,7 @@ class RQBackend(Backend):
             tmp = job_dir / f"result.{rj.id}.tmp"
             final = job_dir / "result"
             shutil.rmtree(tmp, ignore_errors=True)
-            unpack_files(archive, tmp, allowed=RESULT_FILES)
+            unpack_files(archive, tmp, allowed=tuple(file for file, _ in RESULT_FILES.values()))
 
             def commit() -> None:
                 if final.exists():
