@@ -22,7 +22,6 @@ time of 500 frames with both estimated against ``fte`` as it was.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import time
 import warnings

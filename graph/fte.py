@@ -328,18 +328,24 @@ def solve_fte(prob: Problem, progress: ProgressCallback | None = None) -> Result
         Q0 = initial_poses(prob, X)
         tp = building.result()
     tp.Q0 = Q0  # the weak anchor's target, known now
+    return solve_from(tp, Q0.copy(), t0, progress)
+
+
+def solve_from(tp: TrajectoryProblem, X0, t0: float, progress: ProgressCallback | None = None) -> Result:
+    """The rest of an ``fte`` solve from the start ``X0`` of ``tp`` (begun at ``t0``): optimise
+    (graduated when robust), measure the noise again when asked, and the result with its uncertainty."""
+    o = tp.prob.options
     t_init = time.perf_counter() - t0
     if progress:
         progress(Progress(stage="optimise", fraction=0.1))
-    Q, iterations, cost = optimise(tp, Q0.copy(), prob.options.max_iterations, progress,
-                                   stretches=(4.0, 1.0) if prob.options.robust else (1.0,))
-    if prob.options.measurement_std_px == "auto":
-        Q, more, cost = remeasure_noise(tp, Q, cost, prob.options.max_iterations)
+    X, iterations, cost = optimise(tp, X0, o.max_iterations, progress, stretches=(4.0, 1.0) if o.robust else (1.0,))
+    if o.measurement_std_px == "auto":
+        X, more, cost = remeasure_noise(tp, X, cost, o.max_iterations)
         iterations += more
     t_solve = time.perf_counter() - t0 - t_init
     if progress:
         progress(Progress(stage="uncertainty", fraction=0.95, iteration=iterations, cost=cost))
-    result = trajectory_result(tp, Q, "fte", seconds={"init": t_init, "solve": t_solve}, iterations=iterations,
+    result = trajectory_result(tp, X, "fte", seconds={"init": t_init, "solve": t_solve}, iterations=iterations,
                                cost=cost)
     if progress:
         progress(Progress(stage="done", fraction=1.0, iteration=iterations, cost=cost))

@@ -39,8 +39,7 @@ import numpy as np
 
 from graph import kernels
 from graph.errors import InputError
-from graph.fte import (PRIOR_SIGMA, Estimate, TrajectoryProblem, bone_lengths, optimise, remeasure_noise, solve_fte,
-                       trajectory_result)
+from graph.fte import PRIOR_SIGMA, Estimate, TrajectoryProblem, bone_lengths, solve_fte, solve_from
 from graph.initial import initial_poses
 from graph.marginals import banded_marginals, chain_band, eliminated_tail
 from graph.problem import Problem
@@ -268,7 +267,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
         report's ``body_lengths`` and ``time_offsets_frames`` with their sds from the marginals of W."""
         scales, bone_len, tau = self.unknowns.split(X.W)
         args = self._kernel_skeleton(scales)
-        N, P, G = self.N, self.P, self.G
+        G = self.G
         pos, dpos, dlen = kernels.fk_body_jacobian_batch(X.Q, *args[:8], self.pt_col, G)
         if not uncertainty:
             return Estimate(pos, np.full(pos.shape, np.nan), None, self._report(X, None))
@@ -455,19 +454,4 @@ def solve_fte_joint(prob: Problem, progress: ProgressCallback | None = None) -> 
         Q0 = initial_poses(start, X)
         tp = building.result()
     tp.Q0 = Q0
-    t_init = time.perf_counter() - t0
-    if progress:
-        progress(Progress(stage="optimise", fraction=0.1))
-    state, iterations, cost = optimise(tp, JointState(Q0.copy(), W0), o.max_iterations, progress,
-                                       stretches=(4.0, 1.0) if o.robust else (1.0,))
-    if o.measurement_std_px == "auto":
-        state, more, cost = remeasure_noise(tp, state, cost, o.max_iterations)
-        iterations += more
-    t_solve = time.perf_counter() - t0 - t_init
-    if progress:
-        progress(Progress(stage="uncertainty", fraction=0.95, iteration=iterations, cost=cost))
-    result = trajectory_result(tp, state, "fte", seconds={"init": t_init, "solve": t_solve}, iterations=iterations,
-                               cost=cost)
-    if progress:
-        progress(Progress(stage="done", fraction=1.0, iteration=iterations, cost=cost))
-    return result
+    return solve_from(tp, JointState(Q0.copy(), W0), t0, progress)

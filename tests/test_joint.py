@@ -11,7 +11,6 @@ import pytest
 from graph.api import SolveOptions, solve
 from graph.fte import TrajectoryProblem
 from graph.joint import JointState, JointTrajectoryProblem, SharedUnknowns
-from graph.keypoints import Keypoints
 from graph.problem import build
 from graph.simulate import simulate_run
 from graph.sync import coarse_offsets
