@@ -90,6 +90,8 @@
       method: form.querySelector("input[name=method]:checked").value,
       fps, skeleton: skeleton.value, likelihood_threshold: thr,
       measurement_std_px: stdPx, robust: document.getElementById("robust").checked,
+      body: document.getElementById("body-estimate").checked ? "estimate" : "model",
+      sync: document.getElementById("sync-estimate").checked ? "estimate" : "given",
     };
     const data = new FormData();
     for (const f of files) data.append("keypoints", f, f.name);

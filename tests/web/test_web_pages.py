@@ -51,10 +51,14 @@ def _submit(page, run, **choices) -> str:
     page.get_by_label("Frame rate (frames per second)").fill(str(choices.get("fps", 120)))
     page.get_by_label("Skeleton", exact=True).select_option(choices.get("skeleton", "cheetah"))
     page.get_by_label("Likelihood threshold").fill(str(choices.get("threshold", 0.5)))
-    if choices.get("measure_noise"):
+    if choices.get("measure_noise") or choices.get("sync"):
         page.locator("details summary", has_text="More options").click()
+    if choices.get("measure_noise"):
         page.get_by_label("Measure it from the data").check()
         assert page.get_by_label("Detection noise (px)").is_disabled()
+    if choices.get("sync"):
+        assert page.get_by_label("Estimate the animal's proportions").is_checked()  # the default
+        page.get_by_label("Estimate the cameras' time offsets").check()
     page.get_by_role("button", name="Submit job").click()
     page.wait_for_url(re.compile(r"/jobs/[0-9a-f]{32}$"))
     return page.url.rsplit("/", 1)[1]
@@ -122,6 +126,23 @@ def test_sign_in_submit_watch_scrub_and_download(page, server, simulated_run, tm
     row = page.locator(f"tr[data-job='{job_id}']")
     row.wait_for()
     assert row.get_attribute("data-status") == "succeeded" and "succeeded" in row.inner_text()
+
+
+def test_the_job_page_shows_the_body_and_the_clocks(page, server, simulated_run):
+    """A job estimating both shows each length against the model's and each camera's offset."""
+    base, token = server
+    _sign_in(page, token)
+    _submit(page, simulated_run, method="fte", sync=True)
+    page.locator("#job-status [data-status=succeeded]").wait_for(timeout=SOLVE_TIMEOUT_MS)
+    page.locator("#result[data-ready=true]").wait_for(timeout=60_000)
+    card = page.get_by_test_id("body-and-clocks")
+    assert card.is_visible()
+    lengths = card.locator("table").nth(0)
+    spine = lengths.locator("tr", has=page.locator("th", has_text="spine")).inner_text()
+    assert "37.0 cm" in spine  # the model's length, beside the estimate, its sd and the difference
+    assert "± " in spine and "%" in spine
+    clocks = card.locator("table").nth(1).inner_text()
+    assert "cam1" in clocks and "reference" in clocks and "cam6" in clocks and "frames" in clocks
 
 
 def test_failed_job_shows_its_error(page, server, simulated_run):
