@@ -11,10 +11,14 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
+from graph.types import STAGES as SOLVER_STAGES
 from service.jobfiles import RESULT_FILES
-from service.store import STAGES, Job, JobStatus
+from service.store import DONE, READING, STARTING, WRITING, Job, JobStatus
 
 ResultFormat = Literal[tuple(RESULT_FILES)]  # type: ignore[valid-type]  # the download formats
+# What a job's progress can say it is doing, in order: the service's own stages around the solver's
+# (each method reports only some of those); the solver's "done" comes before the results are written.
+STAGES: tuple[str, ...] = (STARTING, READING, *(s for s in SOLVER_STAGES if s != DONE), WRITING, DONE)
 
 
 class ErrorBody(BaseModel):

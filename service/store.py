@@ -35,15 +35,26 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Literal, get_args
 
-from graph.types import STAGES as SOLVER_STAGES
-
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]  # the one list of job states
 STATUSES: tuple[str, ...] = get_args(JobStatus)
 ACTIVE: tuple[str, ...] = ("queued", "running")
 FINISHED: tuple[str, ...] = tuple(s for s in STATUSES if s not in ACTIVE)
-# What a running job's progress says it is doing, in order: reading its files (service.worker), the
-# solver's stages, writing the results; "done" once they are stored.
-STAGES: tuple[str, ...] = ("reading", *(s for s in SOLVER_STAGES if s != "done"), "writing", "done")
+
+# The stages of a run the service records itself, around the solver's own (graph.types.STAGES,
+# reported by the solve as it goes; service.models.STAGES publishes the whole sequence):
+STARTING = "starting"  # claimed, its process starting (set here)
+READING = "reading"  # reading the input files (service.worker)
+WRITING = "writing"  # writing the result files (service.worker)
+DONE = "done"  # the result is stored (set here)
+
+
+def _sql_in(statuses: tuple[str, ...]) -> str:
+    """``('a', 'b')``: a constant list of states for SQL's ``IN``."""
+    return "(" + ", ".join(f"'{s}'" for s in statuses) + ")"
+
+
+_ACTIVE_IN = _sql_in(ACTIVE)
+_FINISHED_IN = _sql_in(FINISHED)
 
 USER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,63}$")
 TOKEN_PREFIX = "acn"
@@ -119,7 +130,7 @@ class Job:
     id: str
     owner_id: int
     owner: str
-    status: str
+    status: JobStatus
     backend: str
     created_at: float
     started_at: float | None
@@ -163,6 +174,18 @@ def _job(row) -> Job:
 
 def _json(x) -> str:
     return json.dumps(x, separators=(",", ":"), allow_nan=False)
+
+
+def _count_active(db: sqlite3.Connection, owner_id: int) -> int:
+    return db.execute(f"SELECT COUNT(*) FROM jobs WHERE owner_id = ? AND status IN {_ACTIVE_IN}",
+                      (owner_id,)).fetchone()[0]
+
+
+def _counts(db: sqlite3.Connection, owner_id: int | None) -> dict[str, int]:
+    """Jobs per state that has any: one owner's, or everyone's (``owner_id=None``)."""
+    rows = (db.execute("SELECT status, COUNT(*) FROM jobs WHERE owner_id = ? GROUP BY status", (owner_id,))
+            if owner_id is not None else db.execute("SELECT status, COUNT(*) FROM jobs GROUP BY status"))
+    return {status: int(n) for status, n in rows.fetchall()}
 
 
 def hash_secret(secret: str) -> str:
@@ -237,27 +260,30 @@ class Store:
     def new_token(self, name: str) -> str:
         """Revoke a user's tokens and issue a new one."""
         with self.transaction() as db:
-            row = db.execute("SELECT id FROM users WHERE name = ?", (name,)).fetchone()
-            if not row:
-                raise StoreError(f"no user {name!r}")
-            db.execute("DELETE FROM tokens WHERE user_id = ?", (row[0],))
-            db.execute("UPDATE users SET disabled = 0 WHERE id = ?", (row[0],))
-            return self._new_token(db, row[0], time.time())
+            uid = self._revoke(db, name)
+            db.execute("UPDATE users SET disabled = 0 WHERE id = ?", (uid,))
+            return self._new_token(db, uid, time.time())
+
+    @staticmethod
+    def _revoke(db: sqlite3.Connection, name: str) -> int:
+        """Delete the tokens of the user ``name``; its id."""
+        row = db.execute("SELECT id FROM users WHERE name = ?", (name,)).fetchone()
+        if not row:
+            raise StoreError(f"no user {name!r}")
+        db.execute("DELETE FROM tokens WHERE user_id = ?", (row[0],))
+        return row[0]
 
     def disable_user(self, name: str) -> int:
         """Revoke a user's tokens and cancel its queued and running jobs; returns how many were cancelled.
         Its jobs stay in the table (admins can still read and delete them)."""
         now = time.time()
         with self.transaction() as db:
-            row = db.execute("SELECT id FROM users WHERE name = ?", (name,)).fetchone()
-            if not row:
-                raise StoreError(f"no user {name!r}")
-            db.execute("DELETE FROM tokens WHERE user_id = ?", (row[0],))
-            db.execute("UPDATE users SET disabled = 1 WHERE id = ?", (row[0],))
+            uid = self._revoke(db, name)
+            db.execute("UPDATE users SET disabled = 1 WHERE id = ?", (uid,))
             return db.execute(
                 "UPDATE jobs SET status = 'cancelled', finished_at = ?, updated_at = ?, lease_until = NULL, "
-                "error = 'cancelled: the user was removed' WHERE owner_id = ? AND status IN ('queued', 'running')",
-                (now, now, row[0])).rowcount
+                f"error = 'cancelled: the user was removed' WHERE owner_id = ? AND status IN {_ACTIVE_IN}",
+                (now, now, uid)).rowcount
 
     def user(self, name: str) -> User | None:
         row = self._db().execute("SELECT id, name, is_admin, disabled, created_at FROM users WHERE name = ?",
@@ -269,9 +295,7 @@ class Store:
         db = self._db()
         out = []
         for r in db.execute("SELECT id, name, is_admin, disabled, created_at FROM users ORDER BY name").fetchall():
-            counts = dict(db.execute("SELECT status, COUNT(*) FROM jobs WHERE owner_id = ? GROUP BY status",
-                                     (r[0],)).fetchall())
-            out.append((User(r[0], r[1], bool(r[2]), bool(r[3]), r[4]), counts))
+            out.append((User(r[0], r[1], bool(r[2]), bool(r[3]), r[4]), _counts(db, r[0])))
         return out
 
     def authenticate(self, token: str) -> User | None:
@@ -297,9 +321,7 @@ class Store:
         """A new queued job; :class:`QuotaExceeded` if its owner already has ``max_active`` active jobs."""
         now = time.time()
         with self.transaction() as db:
-            if max_active is not None and db.execute(
-                    "SELECT COUNT(*) FROM jobs WHERE owner_id = ? AND status IN ('queued', 'running')",
-                    (owner_id,)).fetchone()[0] >= max_active:
+            if max_active is not None and _count_active(db, owner_id) >= max_active:
                 raise QuotaExceeded()
             db.execute(
                 "INSERT INTO jobs(id, owner_id, status, backend, created_at, updated_at, max_attempts, options, inputs) "
@@ -335,23 +357,23 @@ class Store:
         return [_job(r) for r in rows], total
 
     def active_jobs(self, backend: str | None = None) -> list[Job]:
-        cond = "j.status IN ('queued', 'running')" + (" AND j.backend = ?" if backend else "")
+        cond = f"j.status IN {_ACTIVE_IN}" + (" AND j.backend = ?" if backend else "")
         rows = self._db().execute(f"{_JOB_SELECT} WHERE {cond} ORDER BY j.seq",
                                   (backend,) if backend else ()).fetchall()
         return [_job(r) for r in rows]
 
     def count_active(self, owner_id: int) -> int:
-        return self._db().execute("SELECT COUNT(*) FROM jobs WHERE owner_id = ? AND status IN ('queued', 'running')",
-                                  (owner_id,)).fetchone()[0]
+        return _count_active(self._db(), owner_id)
 
     def job_counts(self, owner_id: int) -> dict[str, int]:
-        counts = dict(self._db().execute("SELECT status, COUNT(*) FROM jobs WHERE owner_id = ? GROUP BY status",
-                                         (owner_id,)).fetchall())
-        return {s: int(counts.get(s, 0)) for s in STATUSES}
+        """The owner's jobs in each state (every state, 0 for none)."""
+        counts = _counts(self._db(), owner_id)
+        return {s: counts.get(s, 0) for s in STATUSES}
 
     def status_counts(self) -> dict[str, int]:
-        counts = dict(self._db().execute("SELECT status, COUNT(*) FROM jobs GROUP BY status").fetchall())
-        return {s: int(counts.get(s, 0)) for s in STATUSES}
+        """Everyone's jobs in each state (every state, 0 for none)."""
+        counts = _counts(self._db(), None)
+        return {s: counts.get(s, 0) for s in STATUSES}
 
     def solve_seconds_histogram(self, buckets: list[float]) -> tuple[list[int], int, float]:
         """Cumulative counts of succeeded solves with ``solve_seconds <= b`` per bucket, count, sum."""
@@ -380,7 +402,7 @@ class Store:
                 return None
             db.execute(
                 "UPDATE jobs SET status = 'running', attempts = attempts + 1, started_at = ?, updated_at = ?, "
-                "lease_until = ?, worker = ?, run_token = ?, stage = 'starting', fraction = 0, iteration = 0, "
+                f"lease_until = ?, worker = ?, run_token = ?, stage = '{STARTING}', fraction = 0, iteration = 0, "
                 "cost = NULL WHERE id = ?", (now, now, now + lease_seconds, worker, token, row[0]))
         return self.job(row[0])
 
@@ -417,7 +439,7 @@ class Store:
             db.execute(
                 "UPDATE jobs SET status = ?, finished_at = ?, updated_at = ?, lease_until = NULL, summary = ?, "
                 "error = ?, solve_seconds = ?, fraction = CASE WHEN ? = 'succeeded' THEN 1.0 ELSE fraction END, "
-                "stage = CASE WHEN ? = 'succeeded' THEN 'done' ELSE stage END WHERE id = ?",
+                f"stage = CASE WHEN ? = 'succeeded' THEN '{DONE}' ELSE stage END WHERE id = ?",
                 (status, now, now, _json(summary) if summary is not None else None, error,
                  (now - row[0]) if status == "succeeded" and row[0] else None, status, status, job_id))
         return True
@@ -468,13 +490,13 @@ class Store:
         now = time.time()
         with self.transaction() as db:
             n = db.execute("UPDATE jobs SET status = 'cancelled', finished_at = ?, updated_at = ?, lease_until = NULL, "
-                           "error = NULL WHERE id = ? AND status IN ('queued', 'running')",
+                           f"error = NULL WHERE id = ? AND status IN {_ACTIVE_IN}",
                            (now, now, job_id)).rowcount
         return before if n == 1 else None
 
     def finished_before(self, cutoff: float, owner_id: int | None = None) -> list[Job]:
         """Finished jobs (succeeded, failed, cancelled) that ended before ``cutoff`` (epoch s), oldest first."""
-        cond = "j.status IN ('succeeded', 'failed', 'cancelled') AND COALESCE(j.finished_at, j.updated_at) < ?"
+        cond = f"j.status IN {_FINISHED_IN} AND COALESCE(j.finished_at, j.updated_at) < ?"
         args: list = [cutoff]
         if owner_id is not None:
             cond += " AND j.owner_id = ?"
@@ -485,7 +507,7 @@ class Store:
     def delete(self, job_id: str) -> bool:
         """Remove a finished job's row."""
         with self.transaction() as db:
-            return db.execute("DELETE FROM jobs WHERE id = ? AND status IN ('succeeded', 'failed', 'cancelled')",
+            return db.execute(f"DELETE FROM jobs WHERE id = ? AND status IN {_FINISHED_IN}",
                               (job_id,)).rowcount == 1
 
     # -- jobs: mirror of a queue that runs elsewhere (RQ) -------------------------------------
@@ -493,8 +515,8 @@ class Store:
 
     def assign_run(self, job_id: str, token: str) -> bool:
         with self.transaction() as db:
-            return db.execute("UPDATE jobs SET run_token = ?, updated_at = ? WHERE id = ? AND status IN "
-                              "('queued', 'running')", (token, time.time(), job_id)).rowcount == 1
+            return db.execute(f"UPDATE jobs SET run_token = ?, updated_at = ? WHERE id = ? AND status IN {_ACTIVE_IN}",
+                              (token, time.time(), job_id)).rowcount == 1
 
     def mirror_running(self, job_id: str, token: str, attempts: int, worker: str | None,
                        started_at: float | None, lease_seconds: float, progress: dict | None) -> None:
@@ -505,9 +527,9 @@ class Store:
             db.execute(
                 "UPDATE jobs SET status = 'running', attempts = MAX(attempts, ?), worker = COALESCE(?, worker), "
                 "started_at = COALESCE(?, started_at), lease_until = ?, updated_at = ?, "
-                "stage = COALESCE(?, stage, 'starting'), fraction = COALESCE(?, fraction, 0), "
+                f"stage = COALESCE(?, stage, '{STARTING}'), fraction = COALESCE(?, fraction, 0), "
                 "iteration = COALESCE(?, iteration, 0), cost = COALESCE(?, cost) "
-                "WHERE id = ? AND run_token = ? AND status IN ('queued', 'running')",
+                f"WHERE id = ? AND run_token = ? AND status IN {_ACTIVE_IN}",
                 (attempts, worker, started_at, now + lease_seconds, now, p.get("stage"), p.get("fraction"),
                  p.get("iteration"), p.get("cost"), job_id, token))
 
@@ -518,7 +540,7 @@ class Store:
             db.execute("UPDATE jobs SET status = 'queued', attempts = MAX(attempts, ?), updated_at = ?, "
                        "lease_until = NULL, worker = NULL, stage = NULL, fraction = NULL, iteration = NULL, "
                        "cost = NULL, interruption = COALESCE(?, interruption) "
-                       "WHERE id = ? AND run_token = ? AND status IN ('queued', 'running')",
+                       f"WHERE id = ? AND run_token = ? AND status IN {_ACTIVE_IN}",
                        (attempts, now, note, job_id, token))
 
     def mirror_finished(self, job_id: str, token: str, status: str, attempts: int, *, summary: dict | None = None,
@@ -528,7 +550,7 @@ class Store:
         assert status in ("succeeded", "failed")
         now = time.time()
         with self.transaction() as db:
-            if not db.execute("SELECT 1 FROM jobs WHERE id = ? AND run_token = ? AND status IN ('queued', 'running')",
+            if not db.execute(f"SELECT 1 FROM jobs WHERE id = ? AND run_token = ? AND status IN {_ACTIVE_IN}",
                               (job_id, token)).fetchone():
                 return False
             if commit is not None:
@@ -538,7 +560,7 @@ class Store:
                 "started_at = COALESCE(started_at, ?), lease_until = NULL, summary = ?, error = ?, solve_seconds = ?, "
                 "worker = COALESCE(?, worker), "
                 "fraction = CASE WHEN ? = 'succeeded' THEN 1.0 ELSE fraction END, "
-                "stage = CASE WHEN ? = 'succeeded' THEN 'done' ELSE stage END WHERE id = ?",
+                f"stage = CASE WHEN ? = 'succeeded' THEN '{DONE}' ELSE stage END WHERE id = ?",
                 (status, attempts, now, now, now - (solve_seconds or 0.0), _json(summary) if summary else None,
                  error, solve_seconds if status == "succeeded" else None, worker, status, status, job_id))
         return True

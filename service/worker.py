@@ -11,7 +11,7 @@ The same :func:`solve_job` runs under both backends:
   from Redis (RQ expires results: it is not the record).
 
 The job's files (inputs, manifest, results, their archives) are laid out by :mod:`service.jobfiles`.
-The stages a job reports are :data:`service.store.STAGES`.
+The stages a job reports are :data:`service.models.STAGES`.
 
 Errors: :class:`graph.errors.InputError` and other exceptions of the solve fail the job at once with
 a one-line message (trying again would fail again); only a run that dies (killed, machine lost) is
@@ -35,8 +35,7 @@ import numpy as np
 
 from service.jobfiles import (RESULT_FILES, input_key, inside, pack_files, read_manifest, result_key,
                               unpack_files)
-
-
+from service.store import READING, WRITING
 
 SOLVER_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
@@ -147,10 +146,10 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
     """Read the inputs, solve, write the results; return the solve report."""
     from graph.api import solve
 
-    progress.report("reading", 0.0)
+    progress.report(READING, 0.0)
     keypoints, calibration, options = load_inputs(input_dir)
     result = solve(keypoints, calibration, options, progress=progress)
-    progress.report("writing", 1.0, result.report.iterations, result.report.cost)
+    progress.report(WRITING, 1.0, result.report.iterations, result.report.cost)
     return write_results(result, out_dir)
 
 
