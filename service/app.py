@@ -10,7 +10,6 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
-import shutil
 from contextlib import asynccontextmanager
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import graph
+from service import jobfiles
 from service.backends import make_backend
 from service.jobs import Forbidden, JobError, JobService, NotFound, NotReady, TooLarge, TooMany, Unprocessable
 from service.limits import UploadGuard
@@ -74,19 +74,6 @@ class DataDirLock:
             self._fd = None
 
 
-def _tidy(settings: Settings, store: Store) -> None:
-    """Remove what a crash can leave in the jobs dir: half-stored uploads, half-written results and
-    directories of jobs that never made it into the table."""
-    jobs_dir = settings.jobs_dir
-    known = store.all_job_ids()
-    for p in jobs_dir.iterdir():
-        if p.name.startswith(".upload-") or (p.is_dir() and p.name not in known and len(p.name) == 32):
-            shutil.rmtree(p, ignore_errors=True)
-        elif p.is_dir():
-            for tmp in p.glob("result.*.tmp"):
-                shutil.rmtree(tmp, ignore_errors=True)
-
-
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The application. The data dir is locked, and the backend started, when the app starts up."""
     settings = settings or Settings()
@@ -98,7 +85,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lock.acquire()
         try:
             store = Store(settings.db_path)
-            _tidy(settings, store)
+            jobfiles.tidy(settings.jobs_dir, store.all_job_ids())
             configure_forkserver(warm=settings.warm_start and settings.backend == "embedded")
             backend = make_backend(settings, store)
             reader = UploadReader(settings.upload_readers, settings.upload_niceness)

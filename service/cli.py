@@ -276,7 +276,11 @@ def users_list(args: argparse.Namespace) -> int:
 
 # -- jobs --------------------------------------------------------------------------------------
 
-def _dir_bytes(path: Path) -> int:
+def _job_bytes(jobs_dir: Path, job_id: str) -> int:
+    """Disk use of a job's files."""
+    from service.jobfiles import job_dir
+
+    path = job_dir(jobs_dir, job_id)
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else 0
 
 
@@ -311,7 +315,7 @@ def jobs_list(args: argparse.Namespace) -> int:
         created = time.strftime("%Y-%m-%d %H:%M", time.localtime(job.created_at))
         frames = (job.summary or {}).get("frames", "")
         print(f"{job.id:<32} {job.owner:<16} {job.status:<10} {job.options.get('method', ''):<7} {frames!s:>7} "
-              f"{created:<17} {_mib(_dir_bytes(s.jobs_dir / job.id)):>10}")
+              f"{created:<17} {_mib(_job_bytes(s.jobs_dir, job.id)):>10}")
     if total > len(jobs):
         print(f"({total - len(jobs)} more; --limit to see them)")
     return 0
@@ -335,7 +339,7 @@ def jobs_prune(args: argparse.Namespace) -> int:
     freed = 0
     deleted = 0
     for job in old:
-        size = _dir_bytes(s.jobs_dir / job.id)
+        size = _job_bytes(s.jobs_dir, job.id)
         if args.dry_run:
             freed += size
             deleted += 1

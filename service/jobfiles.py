@@ -1,13 +1,20 @@
 """A job's files: where its inputs and results lie in the data dir, and how they travel to an RQ worker.
 
-Job input layout (``<data dir>/jobs/<id>/input``), named by :data:`MANIFEST`::
+A job's directory, ``<data dir>/jobs/<id>`` (:func:`job_dir`; ids match :data:`JOB_ID`)::
+
+    input/                             the upload, as stored by the API (below)
+    result/                            :data:`RESULT_FILES`, one per download format, once succeeded
+    result.<run token>.tmp/            a run's results being written (:func:`result_tmp`), then
+                                       moved to result/ when the run is recorded (:func:`install_result`)
+    error.log                          tracebacks of failed runs (embedded)
+
+An upload is stored in ``<data dir>/jobs/.upload-<id>`` (:func:`staging_dir`) while it is read,
+and becomes the job's directory only once it is accepted. Input layout, named by :data:`MANIFEST`::
 
     manifest.json                      {"keypoints": [...], "calibration": ..., "skeleton": ..., "options": {...}}
-    keypoints/01/<uploaded name>.csv   one directory per camera, in the calibration's order
+    keypoints/01/<uploaded name>.csv   one directory per camera, in the calibration's order (:func:`keypoints_dir`)
     calibration/<uploaded name>.toml
     skeleton/<uploaded name>.toml      optional
-
-Result files (``<data dir>/jobs/<id>/result``): :data:`RESULT_FILES`, one per download format.
 
 Both sides use it: the API stores uploads in this layout and serves results from it, the workers read
 and write it (for RQ, as zip archives in Redis under :func:`input_key` and :func:`result_key`).
@@ -16,16 +23,88 @@ and write it (for RQ, as zip archives in Redis under :func:`input_key` and :func
 from __future__ import annotations
 
 import json
+import os
+import re
 import shutil
+import uuid
 from pathlib import Path, PurePosixPath
 
+JOB_ID = re.compile(r"^[0-9a-f]{32}$")  # what :func:`new_job_id` makes
+INPUT = "input"
+RESULT = "result"
+ERROR_LOG = "error.log"
+_STAGING = ".upload-"
 MANIFEST = "manifest.json"
+CALIBRATION_DIR = "calibration"
+SKELETON_DIR = "skeleton"
 RESULT_FILES: dict[str, tuple[str, str]] = {  # download format: (file in the job's result dir, media type)
     "csv": ("result.csv", "text/csv"),
     "h5": ("result.h5", "application/x-hdf5"),
     "json": ("result.json", "application/json"),
     "report": ("report.json", "application/json"),
 }
+RESULT_NAMES: tuple[str, ...] = tuple(file for file, _ in RESULT_FILES.values())
+
+
+def new_job_id() -> str:
+    return uuid.uuid4().hex
+
+
+def job_dir(jobs_dir: Path, job_id: str) -> Path:
+    return Path(jobs_dir) / job_id
+
+
+def staging_dir(jobs_dir: Path, job_id: str) -> Path:
+    """Where an upload is stored and read before it becomes ``job_dir(jobs_dir, job_id)``."""
+    return Path(jobs_dir) / f"{_STAGING}{job_id}"
+
+
+def keypoints_dir(input_dir: Path, camera: int) -> Path:
+    """The directory of the keypoint file of camera ``camera`` (0-based, in the calibration's order)."""
+    return input_dir / "keypoints" / f"{camera + 1:02d}"
+
+
+def result_tmp(job_dir: Path, token: str) -> Path:
+    """Where the run ``token`` writes (embedded) or unpacks (rq) its result files."""
+    return job_dir / f"{RESULT}.{token}.tmp"
+
+
+def install_result(job_dir: Path, tmp: Path) -> None:
+    """Make ``tmp`` the job's result directory, replacing an older one (called inside the
+    transaction that records the run's success)."""
+    final = job_dir / RESULT
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(tmp, final)
+
+
+def result_path(job_dir: Path, fmt: str) -> Path:
+    return job_dir / RESULT / RESULT_FILES[fmt][0]
+
+
+def download_name(job_id: str, fmt: str) -> str:
+    """The file name a download of format ``fmt`` is offered under: ``<id>.csv``, ``<id>.report.json``."""
+    return f"{job_id}.{RESULT_FILES[fmt][0].removeprefix(RESULT + '.')}"
+
+
+def remove(jobs_dir: Path, job_id: str) -> None:
+    """A job's directory and everything in it."""
+    shutil.rmtree(job_dir(jobs_dir, job_id), ignore_errors=True)
+
+
+def tidy(jobs_dir: Path, known: set[str]) -> None:
+    """Remove what a crash can leave in the jobs dir: half-stored uploads, half-written results and
+    directories of jobs that never made it into the table (ids not in ``known``)."""
+    for p in Path(jobs_dir).iterdir():
+        if p.name.startswith(_STAGING) or (p.is_dir() and p.name not in known and JOB_ID.match(p.name)):
+            shutil.rmtree(p, ignore_errors=True)
+        elif p.is_dir():
+            for tmp in p.glob(f"{RESULT}.*.tmp"):
+                shutil.rmtree(tmp, ignore_errors=True)
+
+
+def write_manifest(input_dir: Path, manifest: dict) -> None:
+    (input_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
 
 
 def read_manifest(input_dir: Path) -> dict:

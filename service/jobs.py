@@ -17,17 +17,17 @@ import json
 import re
 import shutil
 import threading
-import uuid
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
 from service.backends.base import Backend
 from service.settings import Settings
+from service import jobfiles
+from service.jobfiles import (CALIBRATION_DIR, INPUT, JOB_ID, RESULT_FILES, SKELETON_DIR, keypoints_dir,
+                              new_job_id, result_path, staging_dir)
 from service.store import STATUSES, Job, QuotaExceeded, Store, User
 from service.uploads import Refusal, UploadReader
-from service.jobfiles import MANIFEST
 
-JOB_ID = re.compile(r"^[0-9a-f]{32}$")
 KEYPOINT_SUFFIXES = (".csv", ".h5", ".hdf5")
 CALIBRATION_SUFFIXES = (".json", ".toml")
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
@@ -107,7 +107,7 @@ def delete_finished(store: Store, jobs_dir: Path, job_id: str) -> bool:
     claimed it meanwhile) or gone. The API's DELETE and ``acinoset jobs prune`` both delete this way."""
     if not store.delete(job_id):
         return False
-    shutil.rmtree(jobs_dir / job_id, ignore_errors=True)
+    jobfiles.remove(jobs_dir, job_id)
     return True
 
 
@@ -191,7 +191,7 @@ class JobService:
             job = self.store.insert_job(job_id, user.id, self.backend.name, options, inputs, s.max_attempts,
                                         max_active=s.max_active_jobs_per_user)
         except QuotaExceeded:
-            shutil.rmtree(s.jobs_dir / job_id, ignore_errors=True)
+            jobfiles.remove(s.jobs_dir, job_id)
             self._check_quota(user)
             raise
         self.backend.submit(job.id)
@@ -202,15 +202,15 @@ class JobService:
         """Write the files into a new job directory and read them with the core's readers.
         Returns the job id and the description of the inputs; refusals remove everything."""
         s = self.settings
-        job_id = uuid.uuid4().hex
-        staging = s.jobs_dir / f".upload-{job_id}"
-        input_dir = staging / "input"
+        job_id = new_job_id()
+        staging = staging_dir(s.jobs_dir, job_id)
+        input_dir = staging / INPUT
         try:
-            kp_paths = [self._save(u, input_dir / "keypoints" / f"{i + 1:02d}", f"camera{i + 1}.csv",
+            kp_paths = [self._save(u, keypoints_dir(input_dir, i), f"camera{i + 1}.csv",
                                    KEYPOINT_SUFFIXES, _keypoint_suffix) for i, u in enumerate(keypoints)]
-            cal_path = self._save(calibration, input_dir / "calibration", "calibration.toml",
+            cal_path = self._save(calibration, input_dir / CALIBRATION_DIR, "calibration.toml",
                                   CALIBRATION_SUFFIXES, _calibration_suffix)
-            sk_path = (self._save(skeleton, input_dir / "skeleton", "skeleton.toml", (".toml",), lambda h: ".toml")
+            sk_path = (self._save(skeleton, input_dir / SKELETON_DIR, "skeleton.toml", (".toml",), lambda h: ".toml")
                        if skeleton is not None else None)
             rel = lambda p: p.relative_to(input_dir).as_posix()  # noqa: E731
             manifest = {"keypoints": [rel(p) for p in kp_paths], "calibration": rel(cal_path),
@@ -222,8 +222,8 @@ class JobService:
                     individual=options.get("individual"), max_frames=s.max_frames)
             except Refusal as e:
                 raise (TooLarge if e.status == 413 else Unprocessable)(e.detail) from None
-            (input_dir / MANIFEST).write_text(json.dumps(manifest, indent=2))
-            staging.replace(s.jobs_dir / job_id)
+            jobfiles.write_manifest(input_dir, manifest)
+            staging.replace(jobfiles.job_dir(s.jobs_dir, job_id))
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
@@ -271,14 +271,15 @@ class JobService:
         jobs = jobs[:limit]
         return jobs, total, (str(jobs[-1].seq) if more and jobs else None)
 
-    def result_file(self, user: User, job_id: str, filename: str) -> Path:
+    def result_file(self, user: User, job_id: str, fmt: str) -> Path:
+        """The job's result file of download format ``fmt`` (:data:`service.jobfiles.RESULT_FILES`)."""
         job = self.visible(user, job_id)
         if job.status != "succeeded":
             why = f": {job.error}" if job.status == "failed" and job.error else ""
             raise NotReady(f"job {job_id} is {job.status}{why}; its result is ready when it succeeded")
-        path = self.settings.jobs_dir / job.id / "result" / filename
+        path = result_path(jobfiles.job_dir(self.settings.jobs_dir, job.id), fmt)
         if not path.is_file():
-            raise NotFound(f"job {job_id} has no {filename} (its result files were removed)")
+            raise NotFound(f"job {job_id} has no {RESULT_FILES[fmt][0]} (its result files were removed)")
         return path
 
     # -- cancel, delete ----------------------------------------------------------------------

@@ -13,7 +13,7 @@ from graph.skeleton import available_skeletons, load_skeleton
 from service import metrics
 from service.auth import current_user
 from service.jobs import JobService, Upload
-from service.jobfiles import RESULT_FILES
+from service.jobfiles import RESULT_FILES, download_name
 from service.models import (ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
                             SkeletonOut, job_out)
 from service.backends.base import Backend
@@ -134,11 +134,8 @@ def get_result(job_id: str, user: CurrentUser, jobs: Jobs,
                format: Annotated[ResultFormat, Query(
                    description="csv: Anipose 3D CSV; h5: everything, HDF5; json: positions and std as JSON; "
                                "report: the solve report")] = "csv") -> FileResponse:
-    filename, media = RESULT_FILES[format]
-    path = jobs.result_file(user, job_id, filename)
-    ext = filename.rsplit(".", 1)[1]
-    name = f"{job_id}.{ext}" if format != "report" else f"{job_id}.report.json"
-    return FileResponse(path, media_type=media, filename=name)
+    path = jobs.result_file(user, job_id, format)
+    return FileResponse(path, media_type=RESULT_FILES[format][1], filename=download_name(job_id, format))
 
 
 @router.delete(

@@ -16,6 +16,8 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
+from service.jobfiles import inside
+
 
 class Refusal(Exception):
     """The upload cannot be queued: an HTTP status (413, 422) and a one-line detail."""
@@ -36,9 +38,9 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
     from graph.skeleton import load_skeleton
 
     base = Path(input_dir)
-    kp_paths = [base / rel for rel in keypoints]
-    cal_path = base / calibration
-    sk_path = base / skeleton_file if skeleton_file else None
+    kp_paths = [inside(base, rel) for rel in keypoints]
+    cal_path = inside(base, calibration)
+    sk_path = inside(base, skeleton_file) if skeleton_file else None
     try:
         kps = []
         for p in kp_paths:

@@ -33,8 +33,9 @@ from typing import Callable
 
 import numpy as np
 
-from service.jobfiles import (RESULT_FILES, input_key, inside, pack_files, read_manifest, result_key,
-                              unpack_files)
+from service import jobfiles
+from service.jobfiles import (ERROR_LOG, INPUT, RESULT, RESULT_FILES, RESULT_NAMES, input_key, inside, install_result,
+                              pack_files, read_manifest, result_key, result_tmp, unpack_files)
 from service.store import READING, WRITING
 
 SOLVER_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
@@ -213,21 +214,15 @@ def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_
 
     server_child(niceness)
     store = Store(db_path)
-    job_dir = Path(jobs_dir) / job_id
-    tmp = job_dir / f"result.{token}.tmp"
-    final = job_dir / "result"
+    job_dir = jobfiles.job_dir(Path(jobs_dir), job_id)
+    tmp = result_tmp(job_dir, token)
 
     def sink(stage, fraction, iteration, cost) -> bool:
         return store.report_progress(job_id, token, stage, fraction, iteration, cost)
 
-    def commit() -> None:
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-
     try:
-        report = solve_job(job_dir / "input", tmp, ThrottledProgress(sink, progress_interval))
-        store.finish(job_id, token, "succeeded", summary=report, commit=commit)
+        report = solve_job(job_dir / INPUT, tmp, ThrottledProgress(sink, progress_interval))
+        store.finish(job_id, token, "succeeded", summary=report, commit=lambda: install_result(job_dir, tmp))
     except JobCancelled:
         pass
     except Exception as e:  # noqa: BLE001 - any error of the solve fails the job with its message
@@ -241,7 +236,7 @@ def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_
 def _log_traceback(job_dir: Path) -> None:
     text = traceback.format_exc()
     try:
-        with open(job_dir / "error.log", "a") as f:
+        with open(job_dir / ERROR_LOG, "a") as f:
             f.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} on {socket.gethostname()}:{os.getpid()}\n{text}")
     except OSError:
         pass
@@ -280,12 +275,12 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -
     if archive is None:
         return {"status": "failed", "error": "the job's input files are no longer in Redis", "worker": worker}
     with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-") as tmp:
-        input_dir, out_dir = Path(tmp) / "input", Path(tmp) / "result"
+        input_dir, out_dir = Path(tmp) / INPUT, Path(tmp) / RESULT
         unpack_files(archive, input_dir)
         try:
             report = solve_job(input_dir, out_dir, ThrottledProgress(sink, progress_interval))
         except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
             traceback.print_exc()
             return {"status": "failed", "error": one_line(e), "worker": worker}
-        rq_job.connection.set(result_key(token), pack_files(out_dir, [file for file, _ in RESULT_FILES.values()]))
+        rq_job.connection.set(result_key(token), pack_files(out_dir, list(RESULT_NAMES)))
         return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker}

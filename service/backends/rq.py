@@ -26,7 +26,6 @@ import shutil
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 from service.backends.base import Backend, log
 from service.settings import Settings
@@ -187,13 +186,13 @@ class RQBackend(Backend):
         from rq import Retry
         from rq.job import Job as RQJob
 
-        from service.jobfiles import input_archive, input_key
+        from service.jobfiles import INPUT, input_archive, input_key, job_dir
 
         with self._lock:
             remaining = max(1, job.max_attempts - job.attempts)
             token = f"{job.id}-{job.attempts + 1}"
             if RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0] is None:
-                self.redis.set(input_key(token), input_archive(self.settings.jobs_dir / job.id / "input"))
+                self.redis.set(input_key(token), input_archive(job_dir(self.settings.jobs_dir, job.id) / INPUT))
                 self.queue.enqueue_call(
                     RQ_FUNCTION,
                     args=(job.id, self.settings.progress_interval_seconds, self.settings.solve_niceness),
@@ -338,7 +337,7 @@ class RQBackend(Backend):
             self._enqueue(fresh)
 
     def _finished(self, row: Job, rj, attempt: int) -> None:
-        from service.jobfiles import RESULT_FILES, result_key, unpack_files
+        from service.jobfiles import RESULT_NAMES, install_result, job_dir, result_key, result_tmp, unpack_files
 
         rv = rj.return_value()
         archive = self.redis.get(result_key(rj.id))
@@ -351,19 +350,13 @@ class RQBackend(Backend):
             self.store.mirror_finished(row.id, rj.id, "failed", attempt, error="the worker's result files are "
                                        "missing from Redis", worker=rv.get("worker"))
         else:
-            job_dir = self.settings.jobs_dir / row.id
-            tmp = job_dir / f"result.{rj.id}.tmp"
-            final = job_dir / "result"
+            dest = job_dir(self.settings.jobs_dir, row.id)
+            tmp = result_tmp(dest, rj.id)
             shutil.rmtree(tmp, ignore_errors=True)
-            unpack_files(archive, tmp, allowed=tuple(file for file, _ in RESULT_FILES.values()))
-
-            def commit() -> None:
-                if final.exists():
-                    shutil.rmtree(final)
-                Path(tmp).replace(final)
-
+            unpack_files(archive, tmp, allowed=RESULT_NAMES)
             self.store.mirror_finished(row.id, rj.id, "succeeded", attempt, summary=rv.get("report"),
-                                       solve_seconds=rv.get("seconds"), worker=rv.get("worker"), commit=commit)
+                                       solve_seconds=rv.get("seconds"), worker=rv.get("worker"),
+                                       commit=lambda: install_result(dest, tmp))
             shutil.rmtree(tmp, ignore_errors=True)
         self._delete(rj.id)
 
@@ -390,6 +383,8 @@ class RQBackend(Backend):
         from rq.job import Job as RQJob
         from rq.registry import CanceledJobRegistry, FailedJobRegistry, FinishedJobRegistry
 
+        from service.jobfiles import input_key, result_key
+
         live = {r.run_token for r in self.store.active_jobs(self.name) if r.run_token}
         for reg in (FinishedJobRegistry, FailedJobRegistry, CanceledJobRegistry):
             registry = reg(queue=self.queue)
@@ -402,8 +397,8 @@ class RQBackend(Backend):
                 else:
                     registry.remove(jid)
         # files of RQ jobs that no active row runs
-        for pattern in ("acinoset:input:*", "acinoset:result:*"):
-            for key in self.redis.scan_iter(match=pattern, count=500):
-                token = key.decode().split(":", 2)[2]
+        for prefix in (input_key(""), result_key("")):
+            for key in self.redis.scan_iter(match=prefix + "*", count=500):
+                token = key.decode().removeprefix(prefix)
                 if token not in live and self._full(token) is None:
                     self.redis.delete(key)
