@@ -202,18 +202,19 @@ class JointTrajectoryProblem(TrajectoryProblem):
             graph.push_back(f)
         kw, G = self.w_key, self.G
         coupled = bool(np.any(nrm.Hx))
+        zGG, zG = np.zeros((G, G)), np.zeros(G)
         for gi, idx in enumerate(self.groups):
             a, b = idx[0], idx[-1] + 1
             d = b - a
+            zdd, zdG, zd = np.zeros((d, d)), np.zeros((d, G)), np.zeros(d)
+            Gg, gg, HWg, Hxg = Gd[:, a:b, a:b], gv[:, a:b], nrm.HW[:, a:b], nrm.Hx[:, a:b, a:b]
             for n in range(self.N):
                 k = self.key(n, gi)
-                G11, g1, G13 = Gd[n, a:b, a:b], gv[n, a:b], nrm.HW[n, a:b]
                 if coupled and n + 1 < self.N:
-                    graph.add(gtsam.HessianFactor(k, self.key(n + 1, gi), kw, G11, nrm.Hx[n, a:b, a:b], G13, g1,
-                                                  np.zeros((d, d)), np.zeros((d, G)), np.zeros(d),
-                                                  np.zeros((G, G)), np.zeros(G), 0.0))
+                    graph.add(gtsam.HessianFactor(k, self.key(n + 1, gi), kw, Gg[n], Hxg[n], HWg[n], gg[n],
+                                                  zdd, zdG, zd, zGG, zG, 0.0))
                 else:
-                    graph.add(gtsam.HessianFactor(k, kw, G11, G13, g1, np.zeros((G, G)), np.zeros(G), 0.0))
+                    graph.add(gtsam.HessianFactor(k, kw, Gg[n], HWg[n], gg[n], zGG, zG, 0.0))
         graph.add(gtsam.HessianFactor(kw, GW, gW, 0.0))
         vv = graph.optimize(self._ordering)
         sk = self.prob.skeleton
