@@ -21,7 +21,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 import graph
 from service import jobfiles
 from service.backends import make_backend
-from service.jobs import Forbidden, JobError, JobService, NotFound, NotReady, TooLarge, TooMany, Unprocessable
+from service.errors import Forbidden, JobError, NotFound, NotReady, TooLarge, TooMany, Unprocessable
+from service.jobs import JobService
 from service.limits import UploadGuard
 from service.settings import Settings
 from service.store import Store
@@ -40,7 +41,7 @@ Every call under `/v1` needs `Authorization: Bearer TOKEN` (an admin makes token
 """
 
 
-# How the API answers each refusal of the job service (:class:`service.jobs.JobError`)
+# How the API answers each refusal of the job service (:class:`service.errors.JobError`)
 JOB_ERROR_STATUS: dict[type[JobError], int] = {NotFound: 404, Forbidden: 403, NotReady: 409, Unprocessable: 422,
                                                TooLarge: 413, TooMany: 429}
 
@@ -103,7 +104,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app = FastAPI(title="acinoset", version=graph.__version__, description=DESCRIPTION, lifespan=lifespan)
     app.state.settings = settings
-    app.add_middleware(UploadGuard, settings=settings)
+    app.add_middleware(UploadGuard, settings=settings, error_status=JOB_ERROR_STATUS)
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException):

@@ -1,8 +1,8 @@
 """What the API does with jobs: submit (validate, store, queue), find, list, cancel, delete.
 
-The routes (:mod:`service.routes`) stay thin and call these. Every refusal is an
-:class:`JobError` with a one-line message; the app answers each kind with its HTTP status
-(:data:`service.app.JOB_ERROR_STATUS`), and the command line prints it.
+The routes (:mod:`service.routes`) stay thin and call these. Every refusal is a
+:class:`service.errors.JobError` with a one-line message; the app answers each kind with its HTTP
+status (:data:`service.app.JOB_ERROR_STATUS`).
 
 Uploads never choose a path: each file lands in the job's own directory under a name made only of
 ``[A-Za-z0-9._-]`` (directories stripped), one directory per camera; user options name a shipped
@@ -20,13 +20,14 @@ import threading
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
-from service.backends.base import Backend
-from service.settings import Settings
 from service import jobfiles
+from service.backends.base import Backend
+from service.errors import Forbidden, NotFound, NotReady, TooLarge, TooMany, Unprocessable
 from service.jobfiles import (CALIBRATION_DIR, INPUT, JOB_ID, RESULT_FILES, SKELETON_DIR, keypoints_dir,
                               new_job_id, result_path, staging_dir)
+from service.settings import Settings
 from service.store import STATUSES, Job, QuotaExceeded, Store, User
-from service.uploads import Refusal, UploadReader
+from service.uploads import UploadReader
 
 KEYPOINT_SUFFIXES = (".csv", ".h5", ".hdf5")
 CALIBRATION_SUFFIXES = (".json", ".toml")
@@ -66,42 +67,6 @@ def _calibration_suffix(head: bytes) -> str:
     return ".json" if head.lstrip()[:1] == b"{" else ".toml"
 
 
-class JobError(Exception):
-    """A request the job service refuses, with one line saying why."""
-
-    def __init__(self, detail: str):
-        self.detail = " ".join(str(detail).split())
-        super().__init__(self.detail)
-
-
-class NotFound(JobError):
-    """No such job, or one the caller may not see."""
-
-
-class Forbidden(JobError):
-    """The caller may not do this (a non-admin asking for another user's jobs)."""
-
-
-class NotReady(JobError):
-    """The job has no result (yet, or any more)."""
-
-
-class Unprocessable(JobError):
-    """A malformed request or option, or a file the readers refuse."""
-
-
-class TooLarge(JobError):
-    """Over this server's size limits (upload, frames, cameras)."""
-
-
-class TooMany(JobError):
-    """The caller already has the most active jobs allowed."""
-
-
-def _unprocessable(detail: str) -> Unprocessable:
-    return Unprocessable(detail)
-
-
 def delete_finished(store: Store, jobs_dir: Path, job_id: str) -> bool:
     """Delete a finished job's row and then its files; False when it is active again (a re-run
     claimed it meanwhile) or gone. The API's DELETE and ``acinoset jobs prune`` both delete this way."""
@@ -134,20 +99,20 @@ class JobService:
         try:
             data = json.loads(text) if text and text.strip() else {}
         except json.JSONDecodeError as e:
-            raise _unprocessable(f"options: not valid JSON ({e.msg} at line {e.lineno} column {e.colno})")
+            raise Unprocessable(f"options: not valid JSON ({e.msg} at line {e.lineno} column {e.colno})")
         if not isinstance(data, dict):
-            raise _unprocessable("options: must be a JSON object such as {\"method\": \"fte\", \"fps\": 120}")
+            raise Unprocessable("options: must be a JSON object such as {\"method\": \"fte\", \"fps\": 120}")
         known = [f.name for f in dataclasses.fields(SolveOptions)]
         unknown = sorted(set(data) - set(known))
         if unknown:
-            raise _unprocessable(f"options: unknown option {unknown[0]!r}; known: {', '.join(known)}")
+            raise Unprocessable(f"options: unknown option {unknown[0]!r}; known: {', '.join(known)}")
         if skeleton_file is not None:
             data["skeleton"] = skeleton_file
         else:
             name = data.get("skeleton", SolveOptions.skeleton)
             names = available_skeletons()
             if name not in names:
-                raise _unprocessable(f"options: unknown skeleton {name!r}; use one of {', '.join(names)} "
+                raise Unprocessable(f"options: unknown skeleton {name!r}; use one of {', '.join(names)} "
                                      "or upload a skeleton .toml file as 'skeleton'")
         try:
             opts = TypeAdapter(SolveOptions).validate_python(data)
@@ -157,9 +122,9 @@ class JobService:
             msg = err["msg"].removeprefix("Value error, ")
             if where == "measurement_std_px":
                 msg = "must be a positive number of pixels or 'auto'"
-            raise _unprocessable(f"options: {where + ': ' if where else ''}{msg}")
+            raise Unprocessable(f"options: {where + ': ' if where else ''}{msg}")
         except (TypeError, ValueError) as e:
-            raise _unprocessable(f"options: {e}")
+            raise Unprocessable(f"options: {e}")
         return json.loads(json.dumps(opts.to_dict()))
 
     def _save(self, upload: Upload, dest_dir: Path, default: str, allowed: tuple[str, ...], sniff) -> Path:
@@ -177,11 +142,11 @@ class JobService:
         """Validate the upload with the core's readers, store it, queue the job."""
         s = self.settings
         if not keypoints:
-            raise _unprocessable("keypoints: upload one keypoint file per camera")
+            raise Unprocessable("keypoints: upload one keypoint file per camera")
         if len(keypoints) > s.max_cameras:
             raise TooLarge(f"{len(keypoints)} keypoint files; this server takes at most "
                            f"{s.max_cameras} cameras per job (ACINOSET_MAX_CAMERAS)")
-        self._check_quota(user)
+        self.check_quota(user)
         skeleton_name = safe_name(skeleton.filename, "skeleton.toml") if skeleton is not None else None
         options = self.parse_options(options_text, skeleton_name)
 
@@ -192,7 +157,7 @@ class JobService:
                                         max_active=s.max_active_jobs_per_user)
         except QuotaExceeded:
             jobfiles.remove(s.jobs_dir, job_id)
-            self._check_quota(user)
+            self.check_quota(user)
             raise
         self.backend.submit(job.id)
         return job
@@ -215,13 +180,10 @@ class JobService:
             rel = lambda p: p.relative_to(input_dir).as_posix()  # noqa: E731
             manifest = {"keypoints": [rel(p) for p in kp_paths], "calibration": rel(cal_path),
                         "skeleton": rel(sk_path) if sk_path is not None else None, "options": options}
-            try:
-                inputs = self.reader.inspect(
-                    input_dir=str(input_dir), keypoints=manifest["keypoints"], calibration=manifest["calibration"],
-                    skeleton_file=manifest["skeleton"], skeleton=options["skeleton"],
-                    individual=options.get("individual"), max_frames=s.max_frames)
-            except Refusal as e:
-                raise (TooLarge if e.status == 413 else Unprocessable)(e.detail) from None
+            inputs = self.reader.inspect(
+                input_dir=str(input_dir), keypoints=manifest["keypoints"], calibration=manifest["calibration"],
+                skeleton_file=manifest["skeleton"], skeleton=options["skeleton"],
+                individual=options.get("individual"), max_frames=s.max_frames)
             jobfiles.write_manifest(input_dir, manifest)
             staging.replace(jobfiles.job_dir(s.jobs_dir, job_id))
         except BaseException:
@@ -229,7 +191,8 @@ class JobService:
             raise
         return job_id, inputs
 
-    def _check_quota(self, user: User) -> None:
+    def check_quota(self, user: User) -> None:
+        """:class:`TooMany` if the user already has the most queued and running jobs allowed."""
         n = self.store.count_active(user.id)
         if n >= self.settings.max_active_jobs_per_user:
             raise TooMany(f"you have {n} queued or running jobs, the most this server allows per user "
@@ -249,11 +212,11 @@ class JobService:
         if statuses:
             bad = [st for st in statuses if st not in STATUSES]
             if bad:
-                raise _unprocessable(f"status: {bad[0]!r} is not one of {', '.join(STATUSES)}")
+                raise Unprocessable(f"status: {bad[0]!r} is not one of {', '.join(STATUSES)}")
         before = None
         if cursor:
             if not cursor.isdigit():
-                raise _unprocessable("cursor: pass the next_cursor of the previous page")
+                raise Unprocessable("cursor: pass the next_cursor of the previous page")
             before = int(cursor)
         owner_id: int | None = user.id
         if user.is_admin:

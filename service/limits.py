@@ -14,6 +14,8 @@ import json
 from fastapi import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.auth import authorized_user
+from service.errors import JobError, TooLarge, TooMany
 from service.settings import Settings
 
 
@@ -27,9 +29,11 @@ class UploadGuard:
     RECEIVING_AT_ONCE = 1
     TURN_WAIT = 2.0
 
-    def __init__(self, app: ASGIApp, settings: Settings, path: str = "/v1/jobs"):
+    def __init__(self, app: ASGIApp, settings: Settings, error_status: dict[type[JobError], int],
+                 path: str = "/v1/jobs"):
         self.app = app
         self.settings = settings
+        self.error_status = error_status  # the app's answer to each refusal
         self.path = path
         self._turns: asyncio.Semaphore | None = None
 
@@ -52,7 +56,7 @@ class UploadGuard:
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
                 if seen > limit:
-                    raise HTTPException(413, _too_large(limit))
+                    raise TooLarge(_too_large(limit))
             return message
 
         if self._turns is None:
@@ -69,27 +73,17 @@ class UploadGuard:
                 self._turns.release()
 
     def _refuse(self, scope: Scope, headers: dict[str, str]) -> tuple[int, str, dict] | None:
-        app = scope.get("app")
-        store = getattr(getattr(app, "state", None), "store", None)
-        if store is not None:
-            token = None
-            auth = headers.get("authorization", "")
-            scheme, _, value = auth.partition(" ")
-            if scheme.lower() == "bearer" and value.strip():
-                token = value.strip()
-            if token is None:
-                return 401, ("missing token: send 'Authorization: Bearer TOKEN' "
-                             "(an admin makes one with 'acinoset users add NAME')"), {"www-authenticate": "Bearer"}
-            user = store.authenticate(token)
-            if user is None:
-                return 401, "invalid or revoked token", {"www-authenticate": "Bearer"}
-            n = store.count_active(user.id)
-            if n >= self.settings.max_active_jobs_per_user:
-                return 429, (f"you have {n} queued or running jobs, the most this server allows per user "
-                             "(ACINOSET_MAX_ACTIVE_JOBS_PER_USER); wait for some to finish or cancel some"), {}
+        jobs = getattr(getattr(scope.get("app"), "state", None), "jobs", None)  # the JobService, once started
+        if jobs is not None:
+            try:
+                jobs.check_quota(authorized_user(jobs.store, headers.get("authorization")))
+            except HTTPException as e:
+                return e.status_code, e.detail, dict(e.headers or {})
+            except TooMany as e:
+                return self.error_status[TooMany], e.detail, {}
         length = headers.get("content-length")
         if length is not None and length.isdigit() and int(length) > self.settings.max_upload_bytes:
-            return 413, _too_large(self.settings.max_upload_bytes), {"connection": "close"}
+            return self.error_status[TooLarge], _too_large(self.settings.max_upload_bytes), {"connection": "close"}
         return None
 
 
@@ -101,6 +95,6 @@ def _too_large(limit: int) -> str:
 async def _answer(send: Send, status: int, detail: str, extra: dict[str, str]) -> None:
     body = json.dumps({"detail": detail}).encode()
     headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
-    headers += [(k.encode(), v.encode()) for k, v in extra.items()]
+    headers += [(k.lower().encode(), v.encode()) for k, v in extra.items()]
     await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": body})

@@ -16,22 +16,14 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
+from service.errors import TooLarge, Unprocessable
 from service.jobfiles import inside
-
-
-class Refusal(Exception):
-    """The upload cannot be queued: an HTTP status (413, 422) and a one-line detail."""
-
-    def __init__(self, status: int, detail: str):
-        super().__init__(status, detail)
-        self.status = status
-        self.detail = " ".join(detail.split())
 
 
 def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skeleton_file: str | None,
                    skeleton: str, individual: str | None, max_frames: int) -> dict:
     """Read the stored files (paths relative to ``input_dir``) and describe them for the job table.
-    Raises :class:`Refusal`."""
+    Raises :class:`~service.errors.TooLarge` or :class:`~service.errors.Unprocessable`."""
     from graph.calibration import load_calibration
     from graph.errors import InputError
     from graph.keypoints import check_same_frames, read_keypoints
@@ -46,21 +38,21 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
         for p in kp_paths:
             kp = read_keypoints(p, individual=individual)
             if kp.frames > max_frames:
-                raise Refusal(413, f"{p.name}: {kp.frames} frames; this server takes at most {max_frames} frames "
+                raise TooLarge(f"{p.name}: {kp.frames} frames; this server takes at most {max_frames} frames "
                                    "per file (ACINOSET_MAX_FRAMES)")
             kps.append(kp)
         check_same_frames(kps)
         cal = load_calibration(cal_path)
         if len(cal) != len(kps):
-            raise Refusal(422, f"{cal_path.name}: the calibration has {len(cal)} cameras but {len(kps)} keypoint "
+            raise Unprocessable(f"{cal_path.name}: the calibration has {len(cal)} cameras but {len(kps)} keypoint "
                                "files were uploaded (one per camera, in the calibration's order)")
         load_skeleton(sk_path if sk_path is not None else skeleton, bodyparts=kps[0].bodyparts)
     except InputError as e:
-        raise Refusal(422, str(e)) from None
+        raise Unprocessable(str(e)) from None
     except (OSError, ValueError, KeyError, IndexError, TypeError, UnicodeDecodeError, MemoryError) as e:
         # a reader tripped on something it did not foresee: still a bad file, still one line
         where = Path(e.filename).name if getattr(e, "filename", None) else "upload"
-        raise Refusal(422, f"{where}: cannot be read ({type(e).__name__}: {e})") from None
+        raise Unprocessable(f"{where}: cannot be read ({type(e).__name__}: {e})") from None
     return {
         "cameras": len(kps), "frames": max(k.frames for k in kps), "bodyparts": list(kps[0].bodyparts),
         "keypoints": [{"name": p.name, "bytes": p.stat().st_size, "frames": k.frames, "bodyparts": len(k.bodyparts)}
@@ -106,7 +98,7 @@ class UploadReader:
                 if self._pool is pool:
                     self._pool = None
             pool.shutdown(wait=False, cancel_futures=True)
-            raise Refusal(422, f"{Path(kwargs['keypoints'][0]).name} ...: reading the upload crashed a reader "
+            raise Unprocessable(f"{Path(kwargs['keypoints'][0]).name} ...: reading the upload crashed a reader "
                                "process (a malformed or oversized file?)") from None
 
     def close(self) -> None:

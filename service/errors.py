@@ -1,0 +1,38 @@
+"""What the job service refuses, and why: one exception per kind of refusal, each with a one-line
+``detail``. They say nothing about HTTP: the app answers each kind with its status code
+(:data:`service.app.JOB_ERROR_STATUS`), the command line prints the detail. A leaf module, so the
+upload readers' processes raise them too (they pickle)."""
+
+from __future__ import annotations
+
+
+class JobError(Exception):
+    """A request the job service refuses, with one line saying why."""
+
+    def __init__(self, detail: str):
+        self.detail = " ".join(str(detail).split())
+        super().__init__(self.detail)
+
+
+class NotFound(JobError):
+    """No such job, or one the caller may not see."""
+
+
+class Forbidden(JobError):
+    """The caller may not do this (a non-admin asking for another user's jobs)."""
+
+
+class NotReady(JobError):
+    """The job has no result (yet, or any more)."""
+
+
+class Unprocessable(JobError):
+    """A malformed request or option, or a file the readers refuse."""
+
+
+class TooLarge(JobError):
+    """Over this server's size limits (upload, frames, cameras)."""
+
+
+class TooMany(JobError):
+    """The caller already has the most active jobs allowed."""
