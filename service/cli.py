@@ -7,6 +7,7 @@ runs the same command. Every flag left out falls back to the environment
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import os
 import secrets
@@ -17,6 +18,27 @@ from pathlib import Path
 from graph.cli import COMMANDS as LIBRARY_COMMANDS, Command, main as cli_main
 
 WORKER_TTL = 60  # seconds a dead worker's name stays registered in Redis (idle workers renew it)
+
+
+class Refused(Exception):
+    """A subcommand cannot do what it was asked; the message says why in one line."""
+
+
+def _refusing(command: str):
+    """Wrap a subcommand's function: a :class:`Refused` (or the job table's ``StoreError``) prints
+    ``acinoset <command>: <why>`` on stderr and exits with status 2."""
+    def wrap(fn):
+        @functools.wraps(fn)
+        def run(args: argparse.Namespace) -> int:
+            from service.store import StoreError
+
+            try:
+                return fn(args)
+            except (Refused, StoreError) as e:
+                print(f"acinoset {command}: {e}", file=sys.stderr)
+                return 2
+        return run
+    return wrap
 
 
 def _settings(args: argparse.Namespace, *names: str):
@@ -103,6 +125,7 @@ def register(subparsers) -> None:
 
 # -- serve -------------------------------------------------------------------------------------
 
+@_refusing("serve")
 def serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -116,8 +139,7 @@ def serve(args: argparse.Namespace) -> int:
     try:
         probe.acquire()
     except DataDirInUse as e:
-        print(f"acinoset serve: {e}", file=sys.stderr)
-        return 2
+        raise Refused(str(e)) from None
     probe.release()
     if s.backend == "rq":
         try:
@@ -125,8 +147,7 @@ def serve(args: argparse.Namespace) -> int:
 
             Redis.from_url(s.redis_url, socket_connect_timeout=3).ping()
         except Exception as e:
-            print(f"acinoset serve: cannot reach Redis at {s.redis_url}: {e}", file=sys.stderr)
-            return 2
+            raise Refused(f"cannot reach Redis at {s.redis_url}: {e}") from None
 
     store = Store(s.db_path)
     n_users = len(store.users())
@@ -150,12 +171,6 @@ def serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def service_worker_modules() -> list[str]:
-    from service.worker import SOLVER_MODULES
-
-    return ["service.worker", *SOLVER_MODULES]
-
-
 def _version() -> str:
     from graph import __version__
 
@@ -164,6 +179,7 @@ def _version() -> str:
 
 # -- worker ------------------------------------------------------------------------------------
 
+@_refusing("worker")
 def worker(args: argparse.Namespace) -> int:
     from redis import Redis
     from rq import Queue, Worker
@@ -175,21 +191,17 @@ def worker(args: argparse.Namespace) -> int:
     try:
         conn.ping()
     except Exception as e:
-        print(f"acinoset worker: cannot reach Redis at {s.redis_url}: {e}", file=sys.stderr)
-        return 2
-    from service.worker import prepare_solver_environment
+        raise Refused(f"cannot reach Redis at {s.redis_url}: {e}") from None
+    from service.worker import preload_modules, prepare_solver_environment
 
     prepare_solver_environment()  # work horses fork from this process
     import importlib
 
-    for name in service_worker_modules():
+    for module in preload_modules(s.warm_start):  # importing service.warmup runs the warm-up
         try:
-            importlib.import_module(name)
+            importlib.import_module(module)
         except ImportError:
             pass
-
-    if s.warm_start:
-        importlib.import_module("service.warmup")  # importing it runs the warm-up
     queue = Queue(s.queue_name, connection=conn, serializer=JSONSerializer)
     name = args.name or f"{socket.gethostname()}.{os.getpid()}.{secrets.token_hex(2)}"
     w = Worker([queue], connection=conn, serializer=JSONSerializer, name=name, worker_ttl=WORKER_TTL,
@@ -200,9 +212,8 @@ def worker(args: argparse.Namespace) -> int:
     except ValueError as e:
         if "exists an active worker" not in str(e):
             raise
-        print(f"acinoset worker: a worker named {name} is registered in Redis (alive, or dead for less than "
-              f"{WORKER_TTL} s): choose another --name", file=sys.stderr)
-        return 2
+        raise Refused(f"a worker named {name} is registered in Redis (alive, or dead for less than "
+                      f"{WORKER_TTL} s): choose another --name") from None
     return 0
 
 
@@ -215,44 +226,29 @@ def _store(args: argparse.Namespace):
     return Store(s.db_path), s
 
 
+@_refusing("users add")
 def users_add(args: argparse.Namespace) -> int:
-    from service.store import StoreError
-
     store, s = _store(args)
-    try:
-        user, token = store.add_user(args.name, admin=args.admin)
-    except StoreError as e:
-        print(f"acinoset users add: {e}", file=sys.stderr)
-        return 2
+    user, token = store.add_user(args.name, admin=args.admin)
     print(f"added {'admin' if user.is_admin else 'user'} {user.name} to {s.data_dir}")
     print("its token (shown once; send it as 'Authorization: Bearer TOKEN'):")
     print(token)
     return 0
 
 
+@_refusing("users token")
 def users_token(args: argparse.Namespace) -> int:
-    from service.store import StoreError
-
     store, _ = _store(args)
-    try:
-        token = store.new_token(args.name)
-    except StoreError as e:
-        print(f"acinoset users token: {e}", file=sys.stderr)
-        return 2
+    token = store.new_token(args.name)
     print(f"revoked the old tokens of {args.name}; the new one (shown once):")
     print(token)
     return 0
 
 
+@_refusing("users remove")
 def users_remove(args: argparse.Namespace) -> int:
-    from service.store import StoreError
-
     store, _ = _store(args)
-    try:
-        n = store.disable_user(args.name)
-    except StoreError as e:
-        print(f"acinoset users remove: {e}", file=sys.stderr)
-        return 2
+    n = store.disable_user(args.name)
     print(f"removed {args.name}: tokens revoked, {n} active job(s) cancelled; its jobs stay for admins")
     return 0
 
@@ -293,20 +289,16 @@ def _owner_id(store, name: str | None) -> int | None:
         return None
     user = store.user(name)
     if user is None:
-        raise ValueError(f"no user named {name!r}")
+        raise Refused(f"no user named {name!r}")
     return user.id
 
 
+@_refusing("jobs list")
 def jobs_list(args: argparse.Namespace) -> int:
     import time
 
     store, s = _store(args)
-    try:
-        owner_id = _owner_id(store, args.owner)
-    except ValueError as e:
-        print(f"acinoset jobs list: {e}", file=sys.stderr)
-        return 2
-    jobs, total = store.jobs(owner_id, [args.status] if args.status else None, limit=max(1, args.limit))
+    jobs, total = store.jobs(_owner_id(store, args.owner), [args.status] if args.status else None, limit=max(1, args.limit))
     if not jobs:
         print("no jobs")
         return 0
@@ -321,21 +313,16 @@ def jobs_list(args: argparse.Namespace) -> int:
     return 0
 
 
+@_refusing("jobs prune")
 def jobs_prune(args: argparse.Namespace) -> int:
     import time
 
     from service.jobs import delete_finished
 
     if not args.older_than >= 0:
-        print("acinoset jobs prune: --older-than takes a number of days, 0 or more", file=sys.stderr)
-        return 2
+        raise Refused("--older-than takes a number of days, 0 or more")
     store, s = _store(args)
-    try:
-        owner_id = _owner_id(store, args.owner)
-    except ValueError as e:
-        print(f"acinoset jobs prune: {e}", file=sys.stderr)
-        return 2
-    old = store.finished_before(time.time() - args.older_than * 86400.0, owner_id)
+    old = store.finished_before(time.time() - args.older_than * 86400.0, _owner_id(store, args.owner))
     freed = 0
     deleted = 0
     for job in old:

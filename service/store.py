@@ -55,6 +55,9 @@ def _sql_in(statuses: tuple[str, ...]) -> str:
 
 _ACTIVE_IN = _sql_in(ACTIVE)
 _FINISHED_IN = _sql_in(FINISHED)
+# the progress of a run that ended with the status given twice as parameters: complete if it succeeded
+_ENDED_PROGRESS = (f"fraction = CASE WHEN ? = 'succeeded' THEN 1.0 ELSE fraction END, "
+                   f"stage = CASE WHEN ? = 'succeeded' THEN '{DONE}' ELSE stage END")
 
 USER_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,63}$")
 TOKEN_PREFIX = "acn"
@@ -438,8 +441,7 @@ class Store:
                 commit()
             db.execute(
                 "UPDATE jobs SET status = ?, finished_at = ?, updated_at = ?, lease_until = NULL, summary = ?, "
-                "error = ?, solve_seconds = ?, fraction = CASE WHEN ? = 'succeeded' THEN 1.0 ELSE fraction END, "
-                f"stage = CASE WHEN ? = 'succeeded' THEN '{DONE}' ELSE stage END WHERE id = ?",
+                f"error = ?, solve_seconds = ?, {_ENDED_PROGRESS} WHERE id = ?",
                 (status, now, now, _json(summary) if summary is not None else None, error,
                  (now - row[0]) if status == "succeeded" and row[0] else None, status, status, job_id))
         return True
@@ -558,9 +560,7 @@ class Store:
             db.execute(
                 "UPDATE jobs SET status = ?, attempts = MAX(attempts, ?, 1), finished_at = ?, updated_at = ?, "
                 "started_at = COALESCE(started_at, ?), lease_until = NULL, summary = ?, error = ?, solve_seconds = ?, "
-                "worker = COALESCE(?, worker), "
-                "fraction = CASE WHEN ? = 'succeeded' THEN 1.0 ELSE fraction END, "
-                f"stage = CASE WHEN ? = 'succeeded' THEN '{DONE}' ELSE stage END WHERE id = ?",
+                f"worker = COALESCE(?, worker), {_ENDED_PROGRESS} WHERE id = ?",
                 (status, attempts, now, now, now - (solve_seconds or 0.0), _json(summary) if summary else None,
                  error, solve_seconds if status == "succeeded" else None, worker, status, status, job_id))
         return True

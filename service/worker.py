@@ -62,14 +62,19 @@ SOLVER_MODULES = ("gtsam", "numba", "graph.types", "graph.api", "graph.calibrati
                   "graph.sync", "graph.joint", "graph.online", "graph.io", "graph.plot")
 
 
+def preload_modules(warm: bool) -> list[str]:
+    """What a process that forks solves imports first: this module, the solver and, if ``warm``,
+    :mod:`service.warmup` (importing it compiles the solver's kernels)."""
+    return ["service.worker", *SOLVER_MODULES, *(["service.warmup"] if warm else [])]
+
+
 def configure_forkserver(warm: bool) -> None:
     """Solve processes and upload readers fork from one forkserver with the library imported (and,
-    if ``warm``, its kernels compiled by :mod:`service.warmup`). Call before the first fork."""
+    if ``warm``, its kernels compiled). Call before the first fork."""
     import multiprocessing
 
     prepare_solver_environment()  # the forkserver inherits it
-    preload = ["service.worker", *SOLVER_MODULES] + (["service.warmup"] if warm else [])
-    multiprocessing.get_context("forkserver").set_forkserver_preload(preload)
+    multiprocessing.get_context("forkserver").set_forkserver_preload(preload_modules(warm))
 
 
 def noop() -> None:
@@ -200,6 +205,11 @@ def server_child(niceness: int) -> None:
     """Set up a process the server forked: it dies with the server and yields the CPU to the API
     (``niceness`` added to its nice value; 0 leaves it alone)."""
     die_with_server()
+    _yield_cpu(niceness)
+
+
+def _yield_cpu(niceness: int) -> None:
+    """Add ``niceness`` to this process's nice value (0 leaves it alone)."""
     if niceness:
         try:
             os.nice(niceness)
@@ -253,11 +263,7 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -
 
     rq_job = get_current_job()
     die_with_parent()  # a worker that dies takes its work horse along: the job is retried, not orphaned
-    if niceness:
-        try:
-            os.nice(niceness)
-        except OSError:
-            pass
+    _yield_cpu(niceness)
     worker = os.environ.get("RQ_WORKER_ID") or f"{socket.gethostname()}:{os.getpid()}"
     if rq_job is not None:
         rq_job.meta["host"] = f"{socket.gethostname()}:{os.getpid()}"

@@ -58,27 +58,22 @@ def _describe_exit(code: int | None) -> str:
 
 class EmbeddedBackend(Backend):
     name = "embedded"
+    TICK = 0.25
 
     def __init__(self, settings: Settings, store: Store):
         super().__init__(settings, store)
         self._ctx = multiprocessing.get_context("forkserver")
         self._runs: dict[str, _Run] = {}
         self._lock = threading.Lock()
-        self._wake = threading.Event()
-        self._halt = threading.Event()
-        self._thread: threading.Thread | None = None
         self._host = socket.gethostname()
         self._last_renew = 0.0
 
     # -- lifecycle ---------------------------------------------------------------------------
 
     def start(self) -> None:
-        counts = self.store.adopt(self.name, "the service stopped while it ran")
-        if any(counts.values()):
-            log.warning("recovered jobs from the last run: %s", counts)
+        self._adopt()
         threading.Thread(target=self._start_forkserver, name="acinoset-forkserver-start", daemon=True).start()
-        self._thread = threading.Thread(target=self._loop, name="acinoset-scheduler", daemon=True)
-        self._thread.start()
+        self._start_thread("acinoset-scheduler")
 
     def _start_forkserver(self) -> None:
         """Start the forkserver (importing and warming the solver) now rather than at the first job."""
@@ -92,10 +87,7 @@ class EmbeddedBackend(Backend):
             log.exception("could not start the forkserver")
 
     def stop(self) -> None:
-        self._halt.set()
-        self._wake.set()
-        if self._thread is not None:
-            self._thread.join(timeout=10)
+        self._stop_thread()
         with self._lock:
             runs = list(self._runs.values())
             self._runs.clear()
@@ -120,31 +112,21 @@ class EmbeddedBackend(Backend):
         self._wake.set()
 
     def health(self) -> dict:
-        alive = self._thread is not None and self._thread.is_alive()
+        alive = self._thread_alive()
         return {"ok": alive, "workers": self.settings.workers,
                 "detail": None if alive else "the scheduler thread is not running"}
 
-    def running(self) -> dict[str, int | None]:
-        """Job id -> pid of its solve process."""
-        with self._lock:
-            return {j: r.process.pid for j, r in self._runs.items()}
-
     # -- the scheduler -----------------------------------------------------------------------
 
-    def _loop(self) -> None:
-        while not self._halt.is_set():
-            self._wake.wait(timeout=0.25)
-            self._wake.clear()
-            if self._halt.is_set():
-                break
-            try:
-                self._reap()
-                self._enforce()
-                self._renew()
-                self._fill()
-            except Exception:  # keep scheduling whatever one tick hit (e.g. a locked database)
-                log.exception("scheduler tick failed")
-                time.sleep(0.5)
+    def _tick(self) -> None:
+        try:
+            self._reap()
+            self._enforce()
+            self._renew()
+            self._fill()
+        except Exception:  # keep scheduling whatever one tick hit (e.g. a locked database)
+            log.exception("scheduler tick failed")
+            time.sleep(0.5)
 
     def _reap(self) -> None:
         """Ended processes: a run that did not record its end was interrupted."""

@@ -102,6 +102,7 @@ def _attempts(rj, status, fallback: int) -> int:
 
 class RQBackend(Backend):
     name = "rq"
+    TICK = 0.5
 
     def __init__(self, settings: Settings, store: Store):
         super().__init__(settings, store)
@@ -112,9 +113,6 @@ class RQBackend(Backend):
         self.queue = Queue(settings.queue_name, connection=self.redis, serializer=JSONSerializer,
                            default_timeout=int(settings.job_timeout_seconds))
         self._lock = threading.RLock()  # one enqueue or collector pass at a time
-        self._halt = threading.Event()
-        self._wake = threading.Event()
-        self._thread: threading.Thread | None = None
         self._stopping: dict[str, float] = {}  # RQ job ids told to stop -> when
         self._last_sweep = 0.0
         self._redis_error: str | None = None
@@ -122,17 +120,11 @@ class RQBackend(Backend):
     # -- lifecycle ---------------------------------------------------------------------------
 
     def start(self) -> None:
-        counts = self.store.adopt(self.name, "the service stopped while it ran")
-        if any(counts.values()):
-            log.warning("recovered jobs from the last run: %s", counts)
-        self._thread = threading.Thread(target=self._loop, name="acinoset-rq-collector", daemon=True)
-        self._thread.start()
+        self._adopt()
+        self._start_thread("acinoset-rq-collector")
 
     def stop(self) -> None:
-        self._halt.set()
-        self._wake.set()
-        if self._thread is not None:
-            self._thread.join(timeout=10)
+        self._stop_thread()
 
     # -- the API's calls ---------------------------------------------------------------------
 
@@ -169,7 +161,7 @@ class RQBackend(Backend):
             workers = Worker.count(queue=self.queue)
         except Exception as e:
             return {"ok": False, "workers": 0, "detail": f"Redis at {self.settings.redis_url} unreachable: {e}"}
-        alive = self._thread is not None and self._thread.is_alive()
+        alive = self._thread_alive()
         detail = None
         if not alive:
             detail = "the collector thread is not running"
@@ -205,27 +197,22 @@ class RQBackend(Backend):
 
     # -- the collector -----------------------------------------------------------------------
 
-    def _loop(self) -> None:
-        while not self._halt.is_set():
-            self._wake.wait(timeout=0.5)
-            self._wake.clear()
-            if self._halt.is_set():
-                break
-            try:
-                with self._lock:
-                    self._collect()
-                self._finish_stopping()
-                if time.time() - self._last_sweep > 60:
-                    self._sweep()
-                    self._last_sweep = time.time()
-                if self._redis_error:
-                    log.warning("Redis reachable again")
-                self._redis_error = None
-            except Exception as e:
-                if str(e) != self._redis_error:
-                    log.exception("RQ collector")
-                self._redis_error = str(e)
-                time.sleep(1.0)
+    def _tick(self) -> None:
+        try:
+            with self._lock:
+                self._collect()
+            self._finish_stopping()
+            if time.time() - self._last_sweep > 60:
+                self._sweep()
+                self._last_sweep = time.time()
+            if self._redis_error:
+                log.warning("Redis reachable again")
+            self._redis_error = None
+        except Exception as e:
+            if str(e) != self._redis_error:
+                log.exception("RQ collector")
+            self._redis_error = str(e)
+            time.sleep(1.0)
 
     def _full(self, token: str):
         from rq.job import Job as RQJob
