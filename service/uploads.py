@@ -3,9 +3,11 @@
 :func:`inspect_upload` reads a job's stored input files the way the solve will (keypoints,
 calibration, skeleton) and describes them, or says in one line what is wrong. It is CPU work that
 holds the GIL for tens of milliseconds per file, so :class:`UploadReader` runs it in a small pool
-of processes forked from the service's forkserver (which has the library imported): a burst of
-uploads does not stall the status polls the API answers meanwhile, and a file that makes a reader
-crash or blow up takes down a helper, not the server.
+of processes of its own: a burst of uploads does not stall the status polls the API answers
+meanwhile, and a file that makes a reader crash or blow up takes down a helper, not the server.
+The helpers are spawned, not forked from the solves' forkserver: that one compiles the solver's
+kernels before it forks anything (a minute and a half on a new install), and an upload must not
+wait for it. A helper imports only the readers (about a second, once per helper).
 """
 
 from __future__ import annotations
@@ -82,7 +84,7 @@ class UploadReader:
     def _executor(self) -> ProcessPoolExecutor:
         with self._lock:
             if self._pool is None:
-                self._pool = ProcessPoolExecutor(self.processes, mp_context=multiprocessing.get_context("forkserver"),
+                self._pool = ProcessPoolExecutor(self.processes, mp_context=multiprocessing.get_context("spawn"),
                                                  initializer=_helper_init, initargs=(self.niceness,),
                                                  max_tasks_per_child=500)
             return self._pool
