@@ -630,15 +630,8 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
     M = meas.shape[2]
     D = marker_dep.shape[1]
     DW = marker_wdep.shape[1]
-    pos_all = np.zeros((N, M, 3))
-    dpos_all = np.zeros((N, M, 3, P))
-    dlen_all = np.zeros((N, M, 3, G))
-    for n in prange(N):
-        p_, dp_, dl_ = fk_body_jacobian(Q[n], seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
-                                        marker_point, pt_group, G)
-        pos_all[n] = p_
-        dpos_all[n] = dp_
-        dlen_all[n] = dl_
+    pos_all, dpos_all, dlen_all = fk_body_jacobian_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root,
+                                                         pt_offset, marker_point, pt_group, G)
     Ha = np.zeros((N, P, P))
     Hb = np.zeros((N, P, P))
     Hab = np.zeros((N, P, P))
@@ -795,7 +788,7 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
     return Ha, Hb, Hab, ga, gb, HaW, HbW, HWW, gW, uv_out, s_out, w_out, cost
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def fk_body_jacobian_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
                            pt_group, G):
     """:func:`fk_body_jacobian` for poses (N, P): positions (N, M, 3), ``d p / d q`` (N, M, 3, P)
@@ -805,7 +798,7 @@ def fk_body_jacobian_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, 
     pos = np.empty((N, M, 3))
     dpos = np.empty((N, M, 3, P))
     dlen = np.empty((N, M, 3, G))
-    for n in range(N):
+    for n in prange(N):
         p, dp, dl = fk_body_jacobian(Q[n], seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
                                      marker_point, pt_group, G)
         pos[n] = p
