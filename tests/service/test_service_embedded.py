@@ -43,9 +43,7 @@ def test_cancel_stops_the_running_solve_and_skips_a_queued_one(server, client, l
     running = wait_solving(client, a)
     pid = _pid(running)
     assert pid_alive(pid)
-    r = client.delete(f"/v1/jobs/{a}")
-    assert r.status_code == 200 and r.json()["status"] == "cancelled"
-    assert wait_dead(pid, 5), "the solve process still runs after the cancel"
+    # the queued one first, while both workers are busy: once a is cancelled its worker takes c at once
     queued = client.get(f"/v1/jobs/{c}").json()
     if queued["status"] == "queued":
         assert client.delete(f"/v1/jobs/{c}").json()["status"] == "cancelled"
@@ -53,6 +51,9 @@ def test_cancel_stops_the_running_solve_and_skips_a_queued_one(server, client, l
         assert client.get(f"/v1/jobs/{c}").json()["attempts"] == 0  # it never ran
     else:
         client.delete(f"/v1/jobs/{c}")
+    r = client.delete(f"/v1/jobs/{a}")
+    assert r.status_code == 200 and r.json()["status"] == "cancelled"
+    assert wait_dead(pid, 5), "the solve process still runs after the cancel"
     client.delete(f"/v1/jobs/{b}")
     for j in (a, b, c):
         assert client.get(f"/v1/jobs/{j}").json()["status"] == "cancelled"
