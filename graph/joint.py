@@ -384,10 +384,9 @@ def shared_unknowns(prob: Problem, X: np.ndarray, tau0: np.ndarray, bone_len: np
             if bone_len is not None:
                 bone_len = np.where(np.isfinite(bone_len), bone_len, 0.0)
         else:
-            model = sk.model_lengths
-            for g, name in enumerate(sk.length_groups):
-                if name in given:
-                    scales[g] = float(given.pop(name)) / model[g]
+            scales = sk.scales_for(given)
+            for name in sk.length_groups:
+                given.pop(name, None)
         if given:
             raise InputError(f"body_lengths: not a length of the {sk.name} skeleton: {', '.join(sorted(given))}")
     elif o.body == "estimate":

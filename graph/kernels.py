@@ -279,6 +279,25 @@ def redescending(s, a, b, c):
     return a * b - 0.5 * a * a + 0.5 * a * (c - b), 0.0
 
 
+@njit(cache=True, inline="always")
+def _detection_cost(uv, z, front, sigma, robust, ra, rb, rc):
+    """One detection ``z`` of the projection ``uv``: the whitened residual ``e = (uv - z) / sigma``,
+    ``s = |e|``, its cost ``rho(s)`` and IRLS weight ``w(s)`` (:func:`redescending`; plain least
+    squares, ``s^2/2`` and 1, without ``robust``). A point behind the camera (not ``front``) costs
+    what a fully rejected outlier does, with s NaN and w 0."""
+    if not front:
+        rho = redescending(1e9, ra, rb, rc)[0] if robust else 0.0
+        return 0.0, 0.0, np.nan, rho, 0.0
+    ex = (uv[0] - z[0]) / sigma
+    ey = (uv[1] - z[1]) / sigma
+    s = np.sqrt(ex * ex + ey * ey)
+    if robust:
+        rho, w = redescending(s, ra, rb, rc)
+    else:
+        rho, w = 0.5 * s * s, 1.0
+    return ex, ey, s, rho, w
+
+
 @njit(cache=True)
 def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
                  seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point, marker_dep,
@@ -315,19 +334,7 @@ def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
             w_out[c, m] = 0.0
             if not valid[c, m]:
                 continue
-            if not ok:
-                # a detection of a point behind the camera: counts as a fully rejected outlier
-                if robust:
-                    rho, _ = redescending(1e9, ra, rb, rc)
-                    cost += rho
-                continue
-            ex = (uv[0] - meas[c, m, 0]) / sigma
-            ey = (uv[1] - meas[c, m, 1]) / sigma
-            s = np.sqrt(ex * ex + ey * ey)
-            if robust:
-                rho, w = redescending(s, ra, rb, rc)
-            else:
-                rho, w = 0.5 * s * s, 1.0
+            ex, ey, s, rho, w = _detection_cost(uv, meas[c, m], ok, sigma, robust, ra, rb, rc)
             cost += rho
             s_out[c, m] = s
             w_out[c, m] = w
@@ -669,18 +676,7 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
                 uv_out[m_frame, c, mk, 1] = uv[1]
                 if not valid[m_frame, c, mk]:
                     continue
-                if not ok:
-                    if robust:
-                        rho, _ = redescending(1e9, ra, rb, rc)
-                        cost[n] += rho
-                    continue
-                ex = (uv[0] - meas[m_frame, c, mk, 0]) / sigma
-                ey = (uv[1] - meas[m_frame, c, mk, 1]) / sigma
-                s = np.sqrt(ex * ex + ey * ey)
-                if robust:
-                    rho, w = redescending(s, ra, rb, rc)
-                else:
-                    rho, w = 0.5 * s * s, 1.0
+                ex, ey, s, rho, w = _detection_cost(uv, meas[m_frame, c, mk], ok, sigma, robust, ra, rb, rc)
                 cost[n] += rho
                 s_out[m_frame, c, mk] = s
                 w_out[m_frame, c, mk] = w

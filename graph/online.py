@@ -233,8 +233,7 @@ def _ekf_with_shared(prob: Problem, progress: ProgressCallback | None) -> Result
     tau = np.asarray(rep.time_offsets_frames if rep.time_offsets_frames is not None else np.zeros(prob.cameras))
     sk = prob.skeleton
     if rep.body_lengths and sk.kind != "points":
-        model = sk.model_lengths
-        sk = sk.scaled(np.array([rep.body_lengths[g]["length_m"] / model[i] for i, g in enumerate(sk.length_groups)]))
+        sk = sk.scaled(sk.scales_for({g: v["length_m"] for g, v in rep.body_lengths.items()}))
     meas, valid = on_reference_clock(prob.meas, prob.valid, tau)
     lik, _ = on_reference_clock(prob.likelihood[..., None], prob.valid, tau)
     stream = replace(prob, skeleton=sk, meas=meas, valid=valid, likelihood=np.nan_to_num(lik[..., 0]),

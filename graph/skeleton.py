@@ -113,6 +113,12 @@ class Skeleton:
                 out[self.point_group[k]] = float(np.linalg.norm(self.arrays.pt_offset[k]))
         return out
 
+    def scales_for(self, lengths: dict[str, float]) -> np.ndarray:
+        """Each length group's scale (G,) for ``lengths`` (m per group name; a group not named keeps 1)."""
+        model = self.model_lengths
+        return np.array([float(lengths[g]) / model[i] if g in lengths else 1.0
+                         for i, g in enumerate(self.length_groups)])
+
     def scaled(self, scales: np.ndarray) -> "Skeleton":
         """The skeleton with each length group's offsets multiplied by ``scales`` (G,)."""
         scales = np.asarray(scales, dtype=float)
