@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -74,6 +75,7 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
                          f"({calibration.source or 'calibration'})")
     if C < 2:
         raise InputError("at least two cameras are needed for 3D")
+    check_camera_order([kp.source for kp in keypoints], calibration.names)
     N = check_same_frames(keypoints)
     if N == 0:
         raise InputError("no frames", keypoints[0].source or None)
@@ -120,6 +122,45 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
         sigma = float(options.measurement_std_px)
     return Problem(skeleton=skeleton, calibration=calibration, options=options, meas=meas, likelihood=lik,
                    valid=valid, sigma_px=sigma, warnings=notes)
+
+
+def _folded(text: str) -> str:
+    """``text`` lower-cased with everything but letters and digits left out: ``Cam-A`` -> ``cama``."""
+    return "".join(ch for ch in text.lower() if ch.isalnum())
+
+
+def camera_order_from_names(sources: list[str], names: list[str]) -> list[int] | None:
+    """The calibration camera each keypoint file's name names, or None when the names do not say.
+
+    A file names camera c when c's name, folded (:func:`_folded`), is in the folded file name
+    and no other camera's is (``Cam-A`` in ``camA.rng1.csv``). The names say only when every file
+    names exactly one camera and no two files the same one; names of one character (``A``, ``1``)
+    are too common to say anything."""
+    folded = [_folded(n) for n in names]
+    if len(sources) != len(names) or any(len(f) < 2 for f in folded) or len(set(folded)) < len(folded):
+        return None
+    order = []
+    for src in sources:
+        stem = _folded(Path(src).name) if src else ""
+        hits = [c for c, f in enumerate(folded) if f in stem]
+        hits = [c for c in hits if not any(c != d and folded[c] in folded[d] for d in hits)]  # cam1 in cam10
+        if len(hits) != 1:
+            return None
+        order.append(hits[0])
+    return order if len(set(order)) == len(order) else None
+
+
+def check_camera_order(sources: list[str], names: list[str]) -> None:
+    """Raise :class:`InputError` when the keypoint files' names name the calibration's cameras in
+    another order than the files were given in (a silent wrong answer otherwise: swapped cameras
+    triangulate to nonsense that the robust loss half rejects)."""
+    order = camera_order_from_names(sources, names)
+    if order is None or order == list(range(len(order))):
+        return
+    wrong = next(i for i, c in enumerate(order) if c != i)
+    raise InputError(f"is given as camera {wrong + 1} ({names[wrong]}) but its name says {names[order[wrong]]}: "
+                     f"give the keypoint files in the calibration's camera order "
+                     f"({', '.join(names)})", sources[wrong])
 
 
 AUTO_START_PX = 5.0  # the triangulation's robust scale before the noise is known
