@@ -258,9 +258,12 @@ def run_solve(args: argparse.Namespace) -> int:
     keypoints = [read_keypoints(path, individual=args.individual) for path in args.keypoints]
     check_same_frames(keypoints)
 
+    from graph.kernels import compile_notice
+
     bar = ProgressBar(sys.stderr) if sys.stderr.isatty() else None
     try:
-        result = api.solve(keypoints, calibration, options, progress=bar)
+        with compile_notice(lambda line: print(f"{PROG}: {line}", file=sys.stderr, flush=True)):
+            result = api.solve(keypoints, calibration, options, progress=bar)
     finally:
         if bar is not None:
             bar.close()

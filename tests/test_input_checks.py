@@ -85,3 +85,24 @@ def test_a_frame_rate_the_motion_contradicts_is_named(rig, run):
     assert implausible_motion(still, run.fps) is None
     result = _solve(run.keypoints, rig, method="tri", skeleton="points", fps=run.fps / 100)
     assert any("is the frame rate higher" in w for w in result.report.warnings)
+
+
+def test_compiling_a_kernel_is_said_once_and_loading_one_says_nothing():
+    from numba import njit
+
+    from graph.kernels import compile_notice
+
+    @njit
+    def twice(x):
+        return 2 * x
+
+    said: list[str] = []
+    with compile_notice(said.append):
+        twice(1.0)
+        twice(2.0)
+        twice(3)  # a new signature compiles again, but the user was told already
+    assert len(said) == 1 and "compiling" in said[0]
+    said.clear()
+    with compile_notice(said.append):
+        twice(4.0)  # compiled: nothing to say
+    assert said == []
