@@ -63,6 +63,7 @@ from graph.camera import PINHOLE, Calibration, Camera
 from graph.errors import InputError
 from graph.keypoints import Keypoints, write_dlc_csv
 from graph.skeleton import Skeleton, load_skeleton
+from graph.types import jsonable
 
 CAMERA_HEIGHT = 0.5  # m: the cameras' mean height above the ground
 MAX_TILT_DEG = 15.0  # rigs whose up axis is further than this from +z get a note
@@ -517,6 +518,7 @@ def write_run(run: SimulatedRun, out: str | Path, rig_path: str | Path | None = 
         "track": run.stage.track.tolist(), "notes": run.notes,
         "outliers": int(run.outlier.sum()), "swapped": int(run.swapped.sum()),
         "dropped": int(run.dropout.sum()), "outside_image": int((~run.visible).sum()),
+        "true_lengths_m": jsonable(run.true_lengths), "time_offsets_frames": jsonable(run.time_offsets),
     }, indent=2) + "\n", encoding="utf-8")
     written.append(meta)
     return written
@@ -557,6 +559,12 @@ def register(subparsers) -> None:
     p.add_argument("--swaps", type=float, default=0.0, help="left/right swap probability p_s")
     p.add_argument("--dropouts", type=int, default=0, help="number of blind-camera stretches")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--body-scale", type=float, default=1.0,
+                   help="the true animal's size against the model's (0.8: a juvenile)")
+    p.add_argument("--body-variation", type=float, default=0.0,
+                   help="each length group of the true animal drawn within 1 +- this (0.15: +-15 %%)")
+    p.add_argument("--time-offsets", default=None, metavar="T1,T2,...",
+                   help="each camera's clock in frames (camera frame n shows the truth at n + T)")
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=_cli)
 
@@ -566,12 +574,23 @@ def _cli(args) -> int:
         raise InputError(f"--frames must be at least 1, not {args.frames}")
     if not args.fps > 0:
         raise InputError(f"--fps must be positive, not {args.fps}")
+    if not args.body_scale > 0 or not 0 <= args.body_variation < 1:
+        raise InputError("--body-scale must be positive and --body-variation in [0, 1)")
     rig = Path(args.rig) if args.rig else default_rig_path()
     calibration = load_calibration(rig)
+    offsets = None
+    if args.time_offsets:
+        try:
+            offsets = [float(v) for v in args.time_offsets.split(",")]
+        except ValueError:
+            raise InputError(f"--time-offsets takes frames as 0,0.4,-1.2, not {args.time_offsets!r}") from None
+        if len(offsets) != len(calibration):
+            raise InputError(f"--time-offsets gives {len(offsets)} offsets for {len(calibration)} cameras")
     try:
         run = simulate_run(calibration, frames=args.frames, fps=args.fps, noise=args.noise,
                            outliers=args.outliers, outlier_std=args.outlier_std, swaps=args.swaps,
-                           dropouts=args.dropouts, seed=args.seed, confident_outliers=args.confident)
+                           dropouts=args.dropouts, seed=args.seed, confident_outliers=args.confident,
+                           body_scale=args.body_scale, body_variation=args.body_variation, time_offsets=offsets)
     except ValueError as e:
         if isinstance(e, InputError):
             raise

@@ -237,8 +237,27 @@ def test_simulate_command_writes_files_the_solver_reads(tmp_path, capsys):
     assert meta["dropped"] == int(again.dropout.sum()) > 0
 
 
+def test_simulate_command_draws_the_animal_and_the_clocks_it_is_told(tmp_path, capsys):
+    out = tmp_path / "sim"
+    code = main(["simulate", "--frames", "30", "--seed", "4", "--body-scale", "0.8", "--body-variation", "0.1",
+                 "--time-offsets", "0,0.5,-1,0.3,0,1.2", "--out", str(out)])
+    assert code == 0
+    again = simulate_run(load_calibration(out / "acinoset_2019_rig.json"), frames=30, seed=4, body_scale=0.8,
+                         body_variation=0.1, time_offsets=[0, 0.5, -1, 0.3, 0, 1.2])
+    meta = json.loads((out / "simulation.json").read_text())
+    assert meta["time_offsets_frames"] == [0, 0.5, -1, 0.3, 0, 1.2]
+    assert meta["true_lengths_m"] == pytest.approx(again.true_lengths)
+    model = load_skeleton("cheetah")
+    ratios = np.array([meta["true_lengths_m"][g] / L for g, L in zip(model.length_groups, model.model_lengths)])
+    assert np.all((ratios > 0.8 * 0.9 - 1e-9) & (ratios < 0.8 * 1.1 + 1e-9)) and ratios.std() > 0.01
+    for c, kp in enumerate(again.keypoints):
+        np.testing.assert_array_equal(read_keypoints(out / f"cam{c + 1}.csv").xy, kp.xy)
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--rig", "missing.json"], "missing.json: no such file"),
+    (["--time-offsets", "0,1"], "gives 2 offsets for 6 cameras"),
+    (["--body-scale", "-1"], "--body-scale must be positive"),
     (["--frames", "0"], "--frames must be at least 1"),
     (["--outliers", "2"], "outlier rate must be in [0, 1]"),
 ])
