@@ -19,7 +19,7 @@ From robust triangulation ``X`` (N, M, 3):
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import median_filter, uniform_filter1d
+from numpy.lib.stride_tricks import sliding_window_view
 
 from graph import kernels
 from graph.problem import Problem
@@ -37,13 +37,23 @@ def fill_gaps(x: np.ndarray) -> np.ndarray:
     return flat.reshape(x.shape)
 
 
+def running(x: np.ndarray, size: int, statistic=np.median) -> np.ndarray:
+    """``statistic`` (median or mean) over a centred window of odd ``size`` along axis 0, the ends
+    repeated beyond the data (scipy.ndimage's ``mode="nearest"``):
+    ``y_n = stat(x_{n-h}, ..., x_{n+h})``, ``h = size // 2``, ``x_k = x_0`` for ``k < 0`` and
+    ``x_{N-1}`` for ``k >= N``. (numpy alone: scipy.ndimage costs a second to import.)"""
+    h = size // 2
+    padded = np.concatenate([np.repeat(x[:1], h, axis=0), x, np.repeat(x[-1:], h, axis=0)])
+    return statistic(sliding_window_view(padded, size, axis=0), axis=-1)
+
+
 def smooth_path(x: np.ndarray, median: int = 9, mean: int = 5) -> np.ndarray:
     """Robust smoothing along time: running median then moving average (axis 0)."""
     x = fill_gaps(x)
     if x.shape[0] >= median:
-        x = median_filter(x, size=(median,) + (1,) * (x.ndim - 1), mode="nearest")
+        x = running(x, median)
     if x.shape[0] >= mean:
-        x = uniform_filter1d(x, mean, axis=0, mode="nearest")
+        x = running(x, mean, np.mean)
     return x
 
 
@@ -90,7 +100,7 @@ def initial_poses(prob: Problem, X: np.ndarray) -> np.ndarray:
                        fwd, travel)
         psi = np.unwrap(np.arctan2(fwd[:, 1], fwd[:, 0]))
         if N >= 9:
-            psi = median_filter(psi, size=9, mode="nearest")
+            psi = running(psi, 9)
         q0[:, yaw_param] = psi
 
     anchor = np.zeros(P)

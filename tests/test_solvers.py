@@ -190,3 +190,15 @@ def test_marginal_covariances_are_the_bayes_trees(rig, skeleton, bones):
         theirs = np.stack([bt.marginalCovariance(tp.key(n, gi)) for n in range(tp.N)])
         assert np.abs(ours[:, a:b, a:b] - theirs).max() <= 1e-7 * np.abs(theirs).max()
     assert np.all(np.linalg.eigvalsh(ours[:, :3, :3]) > 0)
+
+
+def test_running_median_and_mean_equal_scipy_ndimage_with_nearest_ends():
+    from scipy.ndimage import median_filter, uniform_filter1d
+
+    from graph.initial import running
+
+    rng = np.random.default_rng(0)
+    for shape in [(3,), (30,), (50, 3), (40, 20, 3)]:
+        x = rng.normal(size=shape)
+        np.testing.assert_array_equal(running(x, 9), median_filter(x, size=(9,) + (1,) * (x.ndim - 1), mode="nearest"))
+        np.testing.assert_allclose(running(x, 5, np.mean), uniform_filter1d(x, 5, axis=0, mode="nearest"), atol=1e-12)
