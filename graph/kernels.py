@@ -413,6 +413,71 @@ def all_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
     return H, g, uv, s, w, cost
 
 
+RESTART_COST = 2.0  # in huber^2: a few markers beyond the Huber corner
+RESTART_GAIN = 0.5
+
+
+@njit(cache=True, inline="always")
+def _ik_frame(q, Xn, q0n, qprev, anchor_w, smooth_w, lower, upper, huber, iterations, H, g,
+              seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point, marker_dep):
+    """One frame of :func:`inverse_kinematics` from ``q`` (changed in place); ``qprev`` of length 0
+    leaves the pull to the previous frame out. Returns the data cost at the end,
+    ``sum_m huber(|p_m(q) - X_m|) + sum_i (anchor_w_i (q_i - q0_i))^2 / 2`` (Huber's
+    ``d^2/2`` up to ``h``, ``h d - h^2/2`` beyond)."""
+    P = q.shape[0]
+    M = marker_point.shape[0]
+    D = marker_dep.shape[1]
+    smooth = qprev.shape[0] == P
+    cost = 0.0
+    settled = False
+    for it in range(iterations + 1):
+        pos, dpos = fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
+                                marker_point, marker_dep)
+        H[:, :] = 0.0
+        g[:] = 0.0
+        cost = 0.0
+        for m in range(M):
+            if not (np.isfinite(Xn[m, 0]) and np.isfinite(Xn[m, 1]) and np.isfinite(Xn[m, 2])):
+                continue
+            e0 = pos[m, 0] - Xn[m, 0]
+            e1 = pos[m, 1] - Xn[m, 1]
+            e2 = pos[m, 2] - Xn[m, 2]
+            d = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+            w = 1.0 if d <= huber else huber / d
+            cost += 0.5 * d * d if d <= huber else huber * d - 0.5 * huber * huber
+            for a in range(D):
+                pa = marker_dep[m, a]
+                if pa < 0:
+                    break
+                g[pa] += w * (dpos[m, 0, pa] * e0 + dpos[m, 1, pa] * e1 + dpos[m, 2, pa] * e2)
+                for b in range(a, D):
+                    pb = marker_dep[m, b]
+                    if pb < 0:
+                        break
+                    h = w * (dpos[m, 0, pa] * dpos[m, 0, pb] + dpos[m, 1, pa] * dpos[m, 1, pb]
+                             + dpos[m, 2, pa] * dpos[m, 2, pb])
+                    H[pa, pb] += h
+                    if pb != pa:
+                        H[pb, pa] += h
+        for i in range(P):
+            cost += 0.5 * (anchor_w[i] * (q[i] - q0n[i])) ** 2
+        if settled or it == iterations:  # the cost at the final pose
+            break
+        for i in range(P):
+            H[i, i] += anchor_w[i] ** 2 + 1e-3
+            g[i] += anchor_w[i] ** 2 * (q[i] - q0n[i])
+            if smooth:
+                H[i, i] += smooth_w[i] ** 2
+                g[i] += smooth_w[i] ** 2 * (q[i] - qprev[i])
+        step = np.linalg.solve(H, g)
+        biggest = 0.0
+        for i in range(P):
+            q[i] = min(max(q[i] - step[i], lower[i]), upper[i])
+            biggest = max(biggest, abs(step[i]))
+        settled = biggest < 1e-5  # one more pass, for the cost only
+    return cost
+
+
 @njit(cache=True, nogil=True)
 def inverse_kinematics(Q0, X, anchor_w, smooth_w, lower, upper, huber, iterations,
                        seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
@@ -427,59 +492,35 @@ def inverse_kinematics(Q0, X, anchor_w, smooth_w, lower, upper, huber, iteration
     The weak pull towards the previous frame's solution keeps the pose on one branch where the
     points do not decide (a tail pointing straight down has two equivalent (psi, theta); a frame
     of outliers could turn an unbounded yaw by a full turn). ``X`` (N, M, 3) may hold NaN.
+
+    Restart: that pull also keeps a wrong branch once a frame of outliers has put a chain on it (a
+    tail folded back, its tip 0.2-0.3 m from well triangulated points for a hundred frames and
+    more). So when a frame's data cost (the sum without the pull) stays above
+    ``RESTART_COST huber^2``, the frame is solved again from ``Q0[n]`` without the pull, and that
+    pose is kept when its data cost is under ``RESTART_GAIN`` times the first one's: clearly
+    better, never a swap between equivalent branches.
     """
     N, P = Q0.shape
-    M = marker_point.shape[0]
-    D = marker_dep.shape[1]
     Q = Q0.copy()
     H = np.zeros((P, P))
     g = np.zeros(P)
+    none = np.zeros(0)
     for n in range(N):
         q = Q0[n].copy()
         if n > 0:
             for i in range(P):
                 if anchor_w[i] == 0.0:
                     q[i] = Q[n - 1, i]
-        for it in range(iterations):
-            pos, dpos = fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
-                                    marker_point, marker_dep)
-            H[:, :] = 0.0
-            g[:] = 0.0
-            for m in range(M):
-                if not (np.isfinite(X[n, m, 0]) and np.isfinite(X[n, m, 1]) and np.isfinite(X[n, m, 2])):
-                    continue
-                e0 = pos[m, 0] - X[n, m, 0]
-                e1 = pos[m, 1] - X[n, m, 1]
-                e2 = pos[m, 2] - X[n, m, 2]
-                d = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-                w = 1.0 if d <= huber else huber / d
-                for a in range(D):
-                    pa = marker_dep[m, a]
-                    if pa < 0:
-                        break
-                    g[pa] += w * (dpos[m, 0, pa] * e0 + dpos[m, 1, pa] * e1 + dpos[m, 2, pa] * e2)
-                    for b in range(a, D):
-                        pb = marker_dep[m, b]
-                        if pb < 0:
-                            break
-                        h = w * (dpos[m, 0, pa] * dpos[m, 0, pb] + dpos[m, 1, pa] * dpos[m, 1, pb]
-                                 + dpos[m, 2, pa] * dpos[m, 2, pb])
-                        H[pa, pb] += h
-                        if pb != pa:
-                            H[pb, pa] += h
-            for i in range(P):
-                H[i, i] += anchor_w[i] ** 2 + 1e-3
-                g[i] += anchor_w[i] ** 2 * (q[i] - Q0[n, i])
-                if n > 0:
-                    H[i, i] += smooth_w[i] ** 2
-                    g[i] += smooth_w[i] ** 2 * (q[i] - Q[n - 1, i])
-            step = np.linalg.solve(H, g)
-            biggest = 0.0
-            for i in range(P):
-                q[i] = min(max(q[i] - step[i], lower[i]), upper[i])
-                biggest = max(biggest, abs(step[i]))
-            if biggest < 1e-5:
-                break
+        cost = _ik_frame(q, X[n], Q0[n], Q[n - 1] if n > 0 else none, anchor_w, smooth_w, lower, upper, huber,
+                         iterations, H, g, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
+                         marker_point, marker_dep)
+        if n > 0 and cost > RESTART_COST * huber * huber:
+            q2 = Q0[n].copy()
+            cost2 = _ik_frame(q2, X[n], Q0[n], none, anchor_w, smooth_w, lower, upper, huber, iterations, H, g,
+                              seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
+                              marker_dep)
+            if cost2 < RESTART_GAIN * cost:
+                q = q2
         Q[n] = q
     return Q
 
