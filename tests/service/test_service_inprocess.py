@@ -89,3 +89,22 @@ def test_the_served_spec_is_the_generated_one_and_docs_are_html(app_client):
     assert {"/v1/jobs", "/v1/jobs/{job_id}", "/healthz"} <= set(r.json()["paths"])
     docs = app_client.get("/docs")
     assert docs.status_code == 200 and docs.headers["content-type"].startswith("text/html")
+
+
+@pytest.mark.parametrize("options, says", [
+    ('{"motion_scale": NaN}', "options: motion_scale"),
+    ('{"fps": Infinity}', "options: fps"),
+    ('{"measurement_std_px": -Infinity}', "options: measurement_std_px"),
+    ('{"lag_seconds": -1}', "options: lag_seconds"),
+    ('{"max_iterations": 1000000000000}', "options: max_iterations"),
+])
+def test_nan_infinite_or_impossible_options_are_422_and_leave_nothing(app_client, options, says):
+    """Issue item 7: NaN passed validation, the job row failed to write (500) and the upload stayed on disk."""
+    jobs_dir = app_client.app.state.settings.jobs_dir
+    before = set(jobs_dir.iterdir())
+    files = [("keypoints", ("cam1.csv", b"not read", "text/csv")),
+             ("calibration", ("calibration.toml", b"not read either", "application/octet-stream"))]
+    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=files, data={"options": options})
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"].startswith(says), r.json()
+    assert set(jobs_dir.iterdir()) == before
