@@ -516,6 +516,20 @@ def match_bodyparts(keypoints: Keypoints, marker_names: list[str]) -> BodypartMa
     return BodypartMatch(index=index, unknown=unknown, missing=missing)
 
 
+def no_marker_matched(bodyparts: list[str], skeleton_name: str, markers: list[str]) -> InputError:
+    """The refusal when no bodypart of the keypoint files is a marker of the skeleton, with the way out."""
+    shown = lambda names: ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")  # noqa: E731
+    return InputError(f"no bodypart in the keypoint files ({shown(bodyparts)}) matches a marker of the "
+                      f"{skeleton_name} skeleton ({shown(markers)}); for another animal use the points skeleton: "
+                      '"skeleton": "points"')
+
+
+def require_a_marker(keypoints: list[Keypoints], skeleton_name: str, markers: list[str]) -> None:
+    """:func:`no_marker_matched` unless some file has a bodypart that is one of ``markers``."""
+    if not any((match_bodyparts(kp, markers).index >= 0).any() for kp in keypoints):
+        raise no_marker_matched(keypoints[0].bodyparts if keypoints else [], skeleton_name, markers)
+
+
 def select_markers(keypoints: Keypoints, marker_names: list[str]) -> Keypoints:
     """The detections in marker order (N, len(marker_names)): missing markers NaN with likelihood 0."""
     match = match_bodyparts(keypoints, marker_names)

@@ -28,7 +28,7 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
     Raises :class:`~service.errors.TooLarge` or :class:`~service.errors.Unprocessable`."""
     from graph.calibration import load_calibration
     from graph.errors import InputError
-    from graph.keypoints import check_same_frames, read_keypoints
+    from graph.keypoints import check_same_frames, read_keypoints, require_a_marker
     from graph.skeleton import load_skeleton
 
     base = Path(input_dir)
@@ -48,7 +48,9 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
         if len(cal) != len(kps):
             raise Unprocessable(f"{cal_path.name}: the calibration has {len(cal)} cameras but {len(kps)} keypoint "
                                "files were uploaded (one per camera, in the calibration's order)")
-        load_skeleton(sk_path if sk_path is not None else skeleton, bodyparts=kps[0].bodyparts)
+        sk = load_skeleton(sk_path if sk_path is not None else skeleton, bodyparts=kps[0].bodyparts)
+        if sk.kind != "points":
+            require_a_marker(kps, sk.name, list(sk.markers))
     except InputError as e:
         raise Unprocessable(str(e)) from None
     except (OSError, ValueError, KeyError, IndexError, TypeError, UnicodeDecodeError, MemoryError) as e:

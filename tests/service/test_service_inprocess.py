@@ -4,6 +4,7 @@ tokens, unknown jobs, bad options and the spec. The real-server tests beside the
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
@@ -108,3 +109,31 @@ def test_nan_infinite_or_impossible_options_are_422_and_leave_nothing(app_client
     assert r.status_code == 422, r.text
     assert r.json()["detail"].startswith(says), r.json()
     assert set(jobs_dir.iterdir()) == before
+
+
+FLY = Path("/work/shared/data/eks_fly") if Path("/work/shared/data/eks_fly").is_dir() else None
+
+
+def _fly_files() -> list:
+    files = [("keypoints", (f"cam{x}.csv", (FLY / f"cam{x}.rng1.csv").read_bytes(), "text/csv")) for x in "ABC"]
+    files.append(("calibration", ("calibration.toml", (FLY / "calibration.toml").read_bytes(), "text/plain")))
+    return files
+
+
+@pytest.mark.skipif(FLY is None, reason="needs the fly recording")
+def test_a_skeleton_matching_no_bodypart_is_refused_at_upload_with_the_points_hint(app_client):
+    """Issue item 5: the fly's legs under the cheetah skeleton were accepted (202) and failed 0.4 s later."""
+    jobs_dir = app_client.app.state.settings.jobs_dir
+    before = set(jobs_dir.iterdir())
+    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=_fly_files(),
+                        data={"options": json.dumps({"method": "tri", "skeleton": "cheetah"})})
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert "matches a marker of the cheetah skeleton" in detail and '"skeleton": "points"' in detail
+    assert "L1A" in detail  # the file's bodyparts, so the user sees why
+    assert set(jobs_dir.iterdir()) == before
+    # the same files with the points skeleton are accepted
+    ok = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=_fly_files(),
+                         data={"options": json.dumps({"method": "tri", "skeleton": "points"})})
+    assert ok.status_code == 202, ok.text
+    app_client.delete(f"/v1/jobs/{ok.json()['id']}", headers=_auth(app_client, "ada"))
