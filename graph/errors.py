@@ -19,3 +19,12 @@ class InputError(ValueError):
             text = f"{Path(path).name}: {text}"
         super().__init__(text)
         self.path = None if path is None else str(path)
+
+
+class TooLargeInput(InputError):
+    """Input over a size limit the caller set, refused before it is read; ``limit`` names the limit
+    (``"frames"``, ``"bodyparts"``)."""
+
+    def __init__(self, message: str, path: str | Path | None = None, limit: str = ""):
+        super().__init__(message, path)
+        self.limit = limit

@@ -183,7 +183,8 @@ class JobService:
             inputs = self.reader.inspect(
                 input_dir=str(input_dir), keypoints=manifest["keypoints"], calibration=manifest["calibration"],
                 skeleton_file=manifest["skeleton"], skeleton=options["skeleton"],
-                individual=options.get("individual"), max_frames=s.max_frames)
+                individual=options.get("individual"), max_frames=s.max_frames,
+                max_bodyparts=s.max_bodyparts)
             jobfiles.write_manifest(input_dir, manifest)
             staging.replace(jobfiles.job_dir(s.jobs_dir, job_id))
         except BaseException:

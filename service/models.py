@@ -117,6 +117,7 @@ class SkeletonOut(BaseModel):
 class Limits(BaseModel):
     max_upload_bytes: int
     max_frames: int
+    max_bodyparts: int
     max_cameras: int
     max_active_jobs: int
 

@@ -174,7 +174,8 @@ def me(user: CurrentUser, store: JobTable, s: ServerSettings) -> Me:
     """Who the token belongs to, its job counts and this server's limits."""
     counts = store.job_counts(user.id)
     return Me(name=user.name, admin=user.is_admin, active_jobs=store.count_active(user.id), jobs=counts,
-              limits=Limits(max_upload_bytes=s.max_upload_bytes, max_frames=s.max_frames, max_cameras=s.max_cameras,
+              limits=Limits(max_upload_bytes=s.max_upload_bytes, max_frames=s.max_frames, max_bodyparts=s.max_bodyparts,
+                            max_cameras=s.max_cameras,
                             max_active_jobs=s.max_active_jobs_per_user))
 
 

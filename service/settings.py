@@ -47,6 +47,7 @@ class Settings(BaseSettings):
     # limits on what a user can ask for
     max_upload_bytes: int = Field(512 * MiB, ge=1)  # one POST /v1/jobs request, all files together
     max_frames: int = Field(50_000, ge=1)  # frames per keypoint file (7 min at 120 fps)
+    max_bodyparts: int = Field(100, ge=1)  # per keypoint file, each individual's counted (memory: 3 columns each)
     max_cameras: int = Field(64, ge=1)
     max_active_jobs_per_user: int = Field(200, ge=1)  # queued + running
     page_size_max: int = Field(500, ge=1)

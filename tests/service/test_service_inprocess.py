@@ -137,3 +137,16 @@ def test_a_skeleton_matching_no_bodypart_is_refused_at_upload_with_the_points_hi
                          data={"options": json.dumps({"method": "tri", "skeleton": "points"})})
     assert ok.status_code == 202, ok.text
     app_client.delete(f"/v1/jobs/{ok.json()['id']}", headers=_auth(app_client, "ada"))
+
+
+def test_a_keypoint_file_with_too_many_bodyparts_is_413_before_its_rows_are_read(app_client):
+    """Issue item 6: a CSV with 1e6 columns was accepted and made every GET of its job 3.5 MB."""
+    wide = 3 * 20_000
+    csv = ("scorer" + ",s" * wide + "\nbodyparts" + "".join(f",b{j // 3}" for j in range(wide))
+           + "\ncoords" + ",x,y,likelihood" * (wide // 3) + "\n0" + ",1" * wide + "\n").encode()
+    files = [("keypoints", ("wide.csv", csv, "text/csv")),
+             ("calibration", ("calibration.toml", b"not read", "application/octet-stream"))]
+    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=files,
+                        data={"options": json.dumps({"method": "tri", "skeleton": "points"})})
+    assert r.status_code == 413, r.text
+    assert r.json()["detail"].startswith("wide.csv: ") and "(ACINOSET_MAX_BODYPARTS)" in r.json()["detail"]
