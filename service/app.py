@@ -21,7 +21,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 import graph
 from service import jobfiles
 from service.backends import make_backend
-from service.errors import Forbidden, JobError, NotFound, NotReady, TooLarge, TooMany, Unprocessable
+from service.errors import (DISK_FULL, Forbidden, JobError, NoSpace, NotFound, NotReady, TooLarge, TooMany,
+                            Unprocessable, storage_full)
 from service.jobs import JobService
 from service.limits import UploadGuard
 from service.settings import Settings
@@ -43,7 +44,7 @@ Every call under `/v1` needs `Authorization: Bearer TOKEN` (an admin makes token
 
 # How the API answers each refusal of the job service (:class:`service.errors.JobError`)
 JOB_ERROR_STATUS: dict[type[JobError], int] = {NotFound: 404, Forbidden: 403, NotReady: 409, Unprocessable: 422,
-                                               TooLarge: 413, TooMany: 429}
+                                               TooLarge: 413, TooMany: 429, NoSpace: 507}
 
 
 class DataDirInUse(RuntimeError):
@@ -125,6 +126,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.exception_handler(Exception)
     async def internal_error(request: Request, exc: Exception):
+        if storage_full(exc):  # any write the routes make (a cancel, a token) on a full disk
+            log.error("%s %s: %s", request.method, request.url.path, exc)
+            return JSONResponse({"detail": DISK_FULL}, status_code=507)
         log.exception("unhandled error on %s %s", request.method, request.url.path)
         return JSONResponse({"detail": f"internal error ({type(exc).__name__}); the server log has the details"},
                             status_code=500)

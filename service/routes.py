@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+import time
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile
@@ -14,7 +16,7 @@ from service import metrics
 from service.auth import current_user
 from service.jobs import JobService, Upload
 from service.jobfiles import RESULT_FILES, download_name
-from service.models import (ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
+from service.models import (Disk, ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
                             SkeletonOut, job_out)
 from service.backends.base import Backend
 from service.settings import Settings
@@ -180,13 +182,27 @@ def me(user: CurrentUser, store: JobTable, s: ServerSettings) -> Me:
 
 
 @public.get("/healthz", response_model=Health, tags=["service"], summary="Health",
-            responses={503: {"model": Health, "description": "The backend cannot run jobs (e.g. Redis unreachable)"}})
-def healthz(backend: JobBackend, store: JobTable):
+            responses={503: {"model": Health, "description": "Not ready: starting (the solver compiles), the "
+                                                              "backend cannot run jobs, or the disk is nearly full"}})
+def healthz(backend: JobBackend, store: JobTable, s: ServerSettings):
     h = backend.health()
     counts = store.status_counts()
-    body = Health(status="ok" if h["ok"] else "degraded", version=graph.__version__, backend=backend.name,
-                  workers=h["workers"], running=counts["running"], queued=counts["queued"], detail=h.get("detail"))
+    du = shutil.disk_usage(s.jobs_dir)
+    oldest = store.oldest_queued_at()
+    status, detail = "ok", h.get("detail")
     if not h["ok"]:
+        status = "degraded"
+    elif du.free <= s.min_free_bytes:
+        status = "degraded"
+        detail = (f"the disk is nearly full: {du.free / 2**20:.0f} MiB free, {s.min_free_bytes / 2**20:.0f} MiB "
+                  "kept free (ACINOSET_MIN_FREE_BYTES); submissions are refused")
+    elif not h.get("ready", True):
+        status = "starting"
+    body = Health(status=status, ready=status == "ok", version=graph.__version__, backend=backend.name,
+                  workers=h["workers"], running=counts["running"], queued=counts["queued"],
+                  oldest_queued_seconds=None if oldest is None else max(0.0, time.time() - oldest),
+                  disk=Disk(free_bytes=du.free, total_bytes=du.total, min_free_bytes=s.min_free_bytes), detail=detail)
+    if status != "ok":
         return JSONResponse(body.model_dump(), status_code=503)
     return body
 

@@ -50,6 +50,9 @@ class Settings(BaseSettings):
     max_bodyparts: int = Field(100, ge=1)  # per keypoint file, each individual's counted (memory: 3 columns each)
     max_cameras: int = Field(64, ge=1)
     max_active_jobs_per_user: int = Field(200, ge=1)  # queued + running
+    max_storage_bytes_per_user: int = Field(20 * 1024 * MiB, ge=0)  # a user's job files, all jobs (0: no limit)
+    max_storage_bytes: int = Field(0, ge=0)  # everyone's job files together (0: no limit but the disk)
+    min_free_bytes: int = Field(1024 * MiB, ge=0)  # submissions are refused (507) below this much free disk
     page_size_max: int = Field(500, ge=1)
     upload_readers: int = Field(2, ge=0, le=64)  # processes that read uploads (0: in the API process)
     upload_niceness: int = Field(5, ge=0, le=19)  # they yield the CPU to the API

@@ -4,6 +4,7 @@ tokens, unknown jobs, bad options and the spec. The real-server tests beside the
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -33,11 +34,18 @@ def _auth(client, name: str) -> dict:
 
 def test_healthz_is_public_and_reports_an_idle_embedded_backend(app_client):
     r = app_client.get("/healthz")
+    deadline = time.time() + 60
+    while r.status_code == 503 and r.json()["status"] == "starting" and time.time() < deadline:
+        assert r.json()["ready"] is False and r.json()["detail"]  # not ready until its solve processes are
+        time.sleep(0.2)
+        r = app_client.get("/healthz")
     assert r.status_code == 200, r.text
     body = r.json()
-    assert body["status"] == "ok" and body["backend"] == "embedded"
+    assert body["status"] == "ok" and body["ready"] is True and body["backend"] == "embedded"
     assert body["version"] == graph.__version__
     assert body["workers"] == 1 and body["running"] == 0 and body["queued"] == 0
+    assert body["oldest_queued_seconds"] is None
+    assert 0 < body["disk"]["free_bytes"] <= body["disk"]["total_bytes"]
 
 
 def test_no_token_or_a_forged_one_is_401_with_a_bearer_challenge(app_client):
