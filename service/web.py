@@ -19,8 +19,10 @@ import json
 import re
 from pathlib import Path
 
-from fastapi import APIRouter, HTTPException
-from fastapi.responses import FileResponse, HTMLResponse
+from urllib.parse import urlencode, urlsplit
+
+from fastapi import APIRouter, HTTPException, Response
+from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 
 from graph import viewer
 from graph.plot import plotly_js_path
@@ -74,8 +76,25 @@ def jobs_page() -> HTMLResponse:
     return _page("jobs.html")
 
 
+def same_origin_path(target: str) -> bool:
+    """Whether ``target`` (a decoded ``next`` parameter) is a path on this server and nothing else:
+    it starts with one ``/``, has no backslash or control character (browsers read ``/\\host``
+    and ``/\t/host`` as another host) and no scheme or host of its own."""
+    if not target.startswith("/") or target.startswith("//"):
+        return False
+    if "\\" in target or any(ord(c) < 0x20 or ord(c) == 0x7F for c in target):
+        return False
+    parts = urlsplit(target)
+    return not parts.scheme and not parts.netloc
+
+
 @router.get("/login", response_class=HTMLResponse)
-def login_page() -> HTMLResponse:
+def login_page(next: str | None = None, reason: str | None = None) -> Response:
+    """The sign-in page. A ``next`` that is not a path of this server is dropped (the page's script
+    checks it again before it goes there)."""
+    if next is not None and not same_origin_path(next):
+        query = urlencode({"reason": reason} if reason else {})
+        return RedirectResponse("/login" + (f"?{query}" if query else ""), status_code=303, headers=_PAGE_HEADERS)
     return _page("login.html")
 
 
