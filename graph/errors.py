@@ -10,6 +10,10 @@ from __future__ import annotations
 from pathlib import Path
 
 
+# what a reader says of a file whose arrays or tables nest deeper than the parser can follow
+NESTED_TOO_DEEPLY = "arrays or tables nested too deeply (hundreds of levels inside each other)"
+
+
 class InputError(ValueError):
     """Bad user input: a file that cannot be read, or data that do not fit together."""
 

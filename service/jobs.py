@@ -22,6 +22,7 @@ import threading
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
+from graph.errors import NESTED_TOO_DEEPLY
 from service import jobfiles
 from service.backends.base import Backend
 from service.errors import (DISK_FULL, Forbidden, NoSpace, NotFound, NotReady, TooLarge, TooMany, Unprocessable,
@@ -33,6 +34,7 @@ from service.store import STATUSES, Job, QuotaExceeded, Store, User
 from service.uploads import UploadReader
 
 KEYPOINT_SUFFIXES = (".csv", ".h5", ".hdf5")
+CURSOR = re.compile(r"^[0-9]{1,18}$")
 CALIBRATION_SUFFIXES = (".json", ".toml")
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
@@ -131,6 +133,8 @@ class JobService:
             data = json.loads(text) if text and text.strip() else {}
         except json.JSONDecodeError as e:
             raise Unprocessable(f"options: not valid JSON ({e.msg} at line {e.lineno} column {e.colno})")
+        except RecursionError:
+            raise Unprocessable(f"options: {NESTED_TOO_DEEPLY}") from None
         if not isinstance(data, dict):
             raise Unprocessable("options: must be a JSON object such as {\"method\": \"fte\", \"fps\": 120}")
         known = [f.name for f in dataclasses.fields(SolveOptions)]
@@ -283,7 +287,7 @@ class JobService:
                 raise Unprocessable(f"status: {bad[0]!r} is not one of {', '.join(STATUSES)}")
         before = None
         if cursor:
-            if not cursor.isdigit():
+            if not CURSOR.match(cursor):  # a job's seq: at most 18 digits fit SQLite's INTEGER
                 raise Unprocessable("cursor: pass the next_cursor of the previous page")
             before = int(cursor)
         owner_id: int | None = user.id

@@ -29,7 +29,7 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
     (:class:`graph.keypoints.ReadLimits`). Raises :class:`~service.errors.TooLarge` or
     :class:`~service.errors.Unprocessable`."""
     from graph.calibration import load_calibration
-    from graph.errors import InputError, TooLargeInput
+    from graph.errors import NESTED_TOO_DEEPLY, InputError, TooLargeInput
     from graph.keypoints import ReadLimits, check_same_frames, read_keypoints, require_a_marker
     from graph.skeleton import load_skeleton
 
@@ -52,6 +52,8 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
         raise TooLarge(f"{e} on this server (ACINOSET_MAX_{e.limit.upper()})") from None
     except InputError as e:
         raise Unprocessable(str(e)) from None
+    except RecursionError:
+        raise Unprocessable(f"upload: {NESTED_TOO_DEEPLY}") from None
     except (OSError, ValueError, KeyError, IndexError, TypeError, UnicodeDecodeError, MemoryError) as e:
         # a reader tripped on something it did not foresee: still a bad file, still one line
         where = Path(e.filename).name if getattr(e, "filename", None) else "upload"

@@ -158,3 +158,35 @@ def test_a_keypoint_file_with_too_many_bodyparts_is_413_before_its_rows_are_read
                         data={"options": json.dumps({"method": "tri", "skeleton": "points"})})
     assert r.status_code == 413, r.text
     assert r.json()["detail"].startswith("wide.csv: ") and "(ACINOSET_MAX_BODYPARTS)" in r.json()["detail"]
+
+
+DEEP = 100_000
+
+
+@pytest.mark.parametrize("field, name, content", [
+    ("calibration", "calib.json", '{"cameras": ' + "[" * DEEP + "]" * DEEP + "}"),
+    ("calibration", "calib.toml", "a = " + "[" * DEEP + "]" * DEEP + "\n"),
+    ("calibration", "calib.toml", "a = " + "{b=" * 5000 + "1" + "}" * 5000 + "\n"),
+    ("skeleton", "body.toml", "a = " + "[" * DEEP + "]" * DEEP + "\n"),
+    ("options", None, '{"fps": ' + "[" * DEEP + "]" * DEEP + "}"),
+])
+def test_deeply_nested_files_and_options_are_422_not_a_recursion_error(app_client, small_run, field, name, content):
+    """Issue item 10: each of these raised RecursionError (a 500 and about 200 KB of log)."""
+    files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in small_run.cams]
+    data = {"options": json.dumps({"method": "tri", "skeleton": "points"})}
+    if field == "options":
+        data = {"options": content}
+    else:
+        files.append((field, (name, content.encode(), "application/octet-stream")))
+    if field != "calibration":
+        files.append(("calibration", ("calibration.toml", small_run.calibration.read_bytes(), "text/plain")))
+    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=files, data=data)
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"] == f"{name or 'options'}: arrays or tables nested too deeply (hundreds of levels inside each other)"
+
+
+@pytest.mark.parametrize("cursor", ["9" * 19, "9" * 30, "9" * 5000, "-1", "1e3", "\u0661"])
+def test_a_cursor_that_is_no_job_seq_is_422(app_client, cursor):
+    """Issue item 10: 30 digits raised OverflowError in SQLite, 5000 digits a ValueError (500s)."""
+    r = app_client.get("/v1/jobs", params={"cursor": cursor}, headers=_auth(app_client, "ada"))
+    assert r.status_code == 422 and r.json()["detail"].startswith("cursor:"), r.text
