@@ -573,6 +573,16 @@ def _from_columns(columns: list[tuple], values: np.ndarray, path: Path, individu
 # ------------------------------------------------------------------------------------- writing
 
 
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+def spreadsheet_safe(text: str) -> str:
+    """A name as a CSV cell no spreadsheet runs as a formula: one that starts with ``= + - @``, a tab
+    or a carriage return gets a leading ``'`` (a bodypart named ``=HYPERLINK(...)`` in an upload
+    would otherwise run when the result CSV is opened in a spreadsheet)."""
+    return "'" + text if text.startswith(_FORMULA_START) else text
+
+
 def write_dlc_csv(path: str | Path, keypoints: Keypoints) -> None:
     """Write the single-animal DeepLabCut CSV layout, byte for byte what
     ``DataFrame.to_csv`` writes for DeepLabCut's (scorer, bodyparts, coords) columns: floats as
@@ -580,8 +590,8 @@ def write_dlc_csv(path: str | Path, keypoints: Keypoints) -> None:
     n, m = keypoints.xy.shape[:2]
     with open(path, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f, lineterminator="\n")
-        w.writerow(["scorer"] + [keypoints.scorer] * (3 * m))
-        w.writerow(["bodyparts"] + [bp for bp in keypoints.bodyparts for _ in range(3)])
+        w.writerow(["scorer"] + [spreadsheet_safe(keypoints.scorer)] * (3 * m))
+        w.writerow(["bodyparts"] + [spreadsheet_safe(bp) for bp in keypoints.bodyparts for _ in range(3)])
         w.writerow(["coords"] + ["x", "y", "likelihood"] * m)
         block = np.concatenate([keypoints.xy, keypoints.likelihood[..., None]], axis=-1).reshape(n, 3 * m)
         gaps = np.isnan(block).any(axis=1)

@@ -82,7 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        settings.jobs_dir.mkdir(parents=True, exist_ok=True)
+        settings.make_private()
         lock = DataDirLock(settings.data_dir)
         lock.acquire()
         try:

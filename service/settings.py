@@ -74,6 +74,16 @@ class Settings(BaseSettings):
     def _absolute(cls, v: Path) -> Path:
         return Path(v).expanduser().resolve()
 
+    def make_private(self) -> None:
+        """The data dir, only for the user the service runs as: this process creates files 0600 and
+        directories 0700 from now on (``umask 077``: the children it forks inherit it), and the data
+        dir, its job table and its jobs dir are made so if they already exist with wider rights."""
+        os.umask(0o077)
+        self.jobs_dir.mkdir(parents=True, exist_ok=True)
+        for path, mode in ((self.data_dir, 0o700), (self.jobs_dir, 0o700), (self.db_path, 0o600)):
+            if path.exists():
+                path.chmod(mode)
+
     @property
     def db_path(self) -> Path:
         return self.data_dir / "acinoset.db"

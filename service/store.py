@@ -261,9 +261,13 @@ class Store:
                    (key_id, user_id, hash_secret(secret), now))
         return f"{TOKEN_PREFIX}_{key_id}_{secret}"
 
-    def new_token(self, name: str) -> str:
-        """Revoke a user's tokens and issue a new one."""
+    def new_token(self, name: str, enable: bool = False) -> str:
+        """Revoke a user's tokens and issue a new one. A removed user stays removed (:class:`StoreError`)
+        unless ``enable``: a new token alone must not bring it back."""
         with self.transaction() as db:
+            row = db.execute("SELECT disabled FROM users WHERE name = ?", (name,)).fetchone()
+            if row and row[0] and not enable:
+                raise StoreError(f"user {name!r} was removed; give --enable to let it sign in again with a new token")
             uid = self._revoke(db, name)
             db.execute("UPDATE users SET disabled = 0 WHERE id = ?", (uid,))
             return self._new_token(db, uid, time.time())
