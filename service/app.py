@@ -24,6 +24,7 @@ from service.backends import make_backend
 from service.errors import (DISK_FULL, Forbidden, JobError, NoSpace, NotFound, NotReady, TooLarge, TooMany,
                             Unprocessable, storage_full)
 from service.jobs import JobService
+from service.headers import SecurityHeaders
 from service.limits import UploadGuard
 from service.settings import Settings
 from service.store import Store
@@ -76,6 +77,24 @@ class DataDirLock:
             self._fd = None
 
 
+def allowed_methods(app: FastAPI, scope) -> list[str]:
+    """Every method some route of ``app`` answers on the path of ``scope`` (the ``Allow`` of a 405)."""
+    from starlette.routing import Match
+
+    methods: set[str] = set()
+
+    def walk(routes) -> None:
+        for route in routes:
+            inner = getattr(route, "original_router", None)  # an included router (ours have no prefix)
+            if inner is not None:
+                walk(inner.routes)
+            elif route.matches(scope)[0] != Match.NONE:
+                methods.update(getattr(route, "methods", None) or ())
+
+    walk(app.router.routes)
+    return sorted(methods)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The application. The data dir is locked, and the backend started, when the app starts up."""
     settings = settings or Settings()
@@ -103,14 +122,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             lock.release()
 
-    app = FastAPI(title="acinoset", version=graph.__version__, description=DESCRIPTION, lifespan=lifespan)
+    # no CDN-served API explorer on the origin where the token lives: /docs is a page of our own (service.web)
+    app = FastAPI(title="acinoset", version=graph.__version__, description=DESCRIPTION, lifespan=lifespan,
+                  docs_url=None, redoc_url=None)
     app.state.settings = settings
     app.add_middleware(UploadGuard, settings=settings, error_status=JOB_ERROR_STATUS)
+    app.add_middleware(SecurityHeaders)  # outermost: on every answer, the guard's refusals included
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException):
         detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
-        return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+        headers = dict(getattr(exc, "headers", None) or {})
+        if exc.status_code == 405:  # Starlette names the methods of the first route on the path only
+            headers["Allow"] = ", ".join(allowed_methods(request.app, request.scope))
+        return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=headers or None)
 
     @app.exception_handler(JobError)
     async def job_error(request: Request, exc: JobError):

@@ -6,8 +6,9 @@ import shutil
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, Security, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
+from fastapi.security import HTTPBearer
 
 import graph
 from graph.errors import InputError
@@ -32,7 +33,12 @@ NOT_FOUND = {404: _err("No such job, or it belongs to another user")}
 BAD_REQUEST = {422: _err("A request parameter or field is missing or malformed")}
 SERVER_ERROR = {500: _err("A fault of the server (logged there)")}
 
-router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR})
+# Declares the bearer scheme of every /v1 call in the spec; the check itself is service.auth's
+# (current_user), which answers 401 with the same challenge whether or not a token was sent.
+BEARER = HTTPBearer(auto_error=False, scheme_name="bearer",
+                    description="`Authorization: Bearer TOKEN`; an admin makes tokens with `acinoset users add NAME`")
+
+router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR}, dependencies=[Security(BEARER)])
 public = APIRouter(responses=SERVER_ERROR)
 
 async def _caller(request: Request) -> User:
@@ -71,7 +77,10 @@ JobBackend = Annotated[Backend, Depends(_backend)]
 
 @router.post(
     "/v1/jobs", status_code=202, response_model=JobOut, tags=["jobs"], summary="Submit a job",
-    responses={413: _err("Upload, frame count or camera count over this server's limits"),
+    responses={400: _err("The body is not valid multipart/form-data"),
+               413: _err("Upload, frame count, bodyparts, camera count or the caller's storage over this "
+                         "server's limits"),
+               507: _err("The server's disk or its storage for jobs is full"),
                422: _err("A file the readers refuse (the detail names it), or bad options"),
                429: _err("The caller already has the most queued and running jobs allowed")})
 def submit_job(

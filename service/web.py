@@ -21,7 +21,7 @@ from pathlib import Path
 
 from urllib.parse import urlencode, urlsplit
 
-from fastapi import APIRouter, HTTPException, Response
+from fastapi import APIRouter, HTTPException, Request, Response
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 
 from graph import viewer
@@ -109,6 +109,29 @@ def job_page(job_id: str) -> HTMLResponse:
     if not _JOB_ID.match(job_id):
         raise HTTPException(404, "no such page")
     return _page("job.html")
+
+
+@router.get("/docs", response_class=HTMLResponse)
+def api_docs(request: Request) -> HTMLResponse:
+    """The REST contract as a page of this server: every operation, its parameters and answers, from
+    the app's OpenAPI spec (the whole spec is ``/openapi.json``). No script, nothing from elsewhere."""
+    spec = request.app.openapi()
+    e = html.escape
+    rows = []
+    for path, ops in spec["paths"].items():
+        for method, op in ops.items():
+            params = ", ".join(f"{p['name']} ({p['in']})" for p in op.get("parameters", []))
+            answers = ", ".join(sorted(op.get("responses", {})))
+            rows.append(f"<tr><td><code>{e(method.upper())}</code></td><td><code>{e(path)}</code></td>"
+                        f"<td>{e(op.get('summary', ''))}</td><td>{e(params)}</td><td>{e(answers)}</td></tr>")
+    body = (f'<!doctype html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>API · acinoset</title>\n'
+            f'<link rel="stylesheet" href="/static/app.css">\n</head>\n<body>\n<a class="skip" href="#main">Skip to '
+            f'content</a>\n<main id="main">\n<h1>{e(spec["info"]["title"])} REST API {e(spec["info"]["version"])}</h1>\n'
+            + "".join(f"<p>{e(par)}</p>\n" for par in spec["info"].get("description", "").split("\n\n"))
+            + '<p>The whole contract: <a href="/openapi.json">/openapi.json</a> (OpenAPI 3).</p>\n'
+            '<table>\n<thead><tr><th>method</th><th>path</th><th>what</th><th>parameters</th><th>answers</th></tr>'
+            '</thead>\n<tbody>\n' + "\n".join(rows) + "\n</tbody>\n</table>\n</main>\n</body>\n</html>\n")
+    return HTMLResponse(body, headers=_PAGE_HEADERS)
 
 
 @router.get("/static/plotly.min.js")

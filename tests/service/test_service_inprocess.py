@@ -190,3 +190,22 @@ def test_a_cursor_that_is_no_job_seq_is_422(app_client, cursor):
     """Issue item 10: 30 digits raised OverflowError in SQLite, 5000 digits a ValueError (500s)."""
     r = app_client.get("/v1/jobs", params={"cursor": cursor}, headers=_auth(app_client, "ada"))
     assert r.status_code == 422 and r.json()["detail"].startswith("cursor:"), r.text
+
+
+@pytest.mark.parametrize("method, path, allow", [
+    ("PUT", "/v1/jobs/0123456789abcdef0123456789abcdef", "DELETE, GET"),
+    ("PATCH", "/v1/jobs", "GET, POST"),
+    ("POST", "/healthz", "GET"),
+])
+def test_a_405_names_every_method_the_path_answers(app_client, method, path, allow):
+    """Issue item 11: Starlette's Allow named the methods of the first route on the path only
+    (PUT /v1/jobs/{id} said 'GET', not 'DELETE, GET')."""
+    r = app_client.request(method, path, headers=_auth(app_client, "ada"))
+    assert r.status_code == 405 and r.headers["allow"] == allow, (r.status_code, r.headers.get("allow"))
+    assert r.json() == {"detail": "Method Not Allowed"}
+
+
+def test_a_body_that_is_not_multipart_is_400_in_one_line(app_client):
+    r = app_client.post("/v1/jobs", headers={**_auth(app_client, "ada"), "content-type": "multipart/form-data"},
+                        content=b"--xx\r\nbroken")  # no boundary
+    assert r.status_code == 400 and isinstance(r.json()["detail"], str), r.text
