@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.camera import FISHEYE, PINHOLE, Calibration, Camera
-from graph.errors import InputError
+from graph.errors import NESTED_TOO_DEEPLY, InputError
 
 CALIBRATION_UNITS: dict[str, float] = {"auto": 0.0, "m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per unit
 
@@ -65,8 +65,12 @@ def load_calibration(path: str | Path) -> Calibration:
         except json.JSONDecodeError as e:
             if start == "{":
                 raise InputError(f"not valid JSON (line {e.lineno}: {e.msg})", path) from None
+        except RecursionError:
+            raise InputError(NESTED_TOO_DEEPLY, path) from None
     try:
         doc = tomllib.loads(text)
+    except RecursionError:
+        raise InputError(NESTED_TOO_DEEPLY, path) from None
     except tomllib.TOMLDecodeError as e:
         kind = "JSON or TOML" if path.suffix.lower() not in (".toml", ".json") else path.suffix[1:].upper()
         raise InputError(f"not a calibration file: not valid {kind} ({e})", path) from None

@@ -10,6 +10,10 @@ from __future__ import annotations
 from pathlib import Path
 
 
+# what a reader says of a file whose arrays or tables nest deeper than the parser can follow
+NESTED_TOO_DEEPLY = "arrays or tables nested too deeply (hundreds of levels inside each other)"
+
+
 class InputError(ValueError):
     """Bad user input: a file that cannot be read, or data that do not fit together."""
 
@@ -19,3 +23,12 @@ class InputError(ValueError):
             text = f"{Path(path).name}: {text}"
         super().__init__(text)
         self.path = None if path is None else str(path)
+
+
+class TooLargeInput(InputError):
+    """Input over a size limit the caller set, refused before it is read; ``limit`` names the limit
+    (``"frames"``, ``"bodyparts"``)."""
+
+    def __init__(self, message: str, path: str | Path | None = None, limit: str = ""):
+        super().__init__(message, path)
+        self.limit = limit

@@ -26,6 +26,7 @@ import numpy as np
 
 from graph import __version__
 from graph.errors import InputError
+from graph.keypoints import spreadsheet_safe
 from graph.keypoints import Keypoints, write_dlc_csv
 from graph.types import Result, SolveOptions, SolveReport, jsonable
 
@@ -64,7 +65,7 @@ def write_anipose_csv(path: str | Path, result: Result) -> None:
     error = np.where(has, result.error, np.nan)
     ncams = np.where(has, np.asarray(result.ncams, dtype=np.float64), np.nan)
     score = np.where(has, np.asarray(result.score, dtype=np.float64), np.nan)
-    header = [f"{name}_{f}" for name in result.markers for f in _MARKER_FIELDS]
+    header = [spreadsheet_safe(f"{name}_{f}") for name in result.markers for f in _MARKER_FIELDS]
     header += [f"M_{i}{j}" for i in range(3) for j in range(3)] + [f"center_{i}" for i in range(3)] + ["fnum"]
     frame_const = [_cell(v) for v in np.eye(3).ravel()] + [_cell(0.0)] * 3
     per_marker = np.concatenate([pos, error[..., None], ncams[..., None], score[..., None]], axis=-1)

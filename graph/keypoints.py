@@ -29,6 +29,11 @@ Layouts (what ``DataFrame.to_csv`` / ``to_hdf`` write for DeepLabCut's column Mu
   ``axis0_level<i>`` (the level's labels) and ``axis0_label<i>`` (codes into it) for the column
   MultiIndex, and the same ``block<k>_items_*`` per block. No pickle is needed there.
 
+Bounded memory: :class:`ReadLimits` (frames, bodyparts) are checked against what a file declares
+before its data are read (an H5 dataset's shape, a CSV's header and running row count), and a CSV
+is parsed a block of rows at a time, so a reader never holds more than about twice the largest
+array the limits allow, whatever size the file claims.
+
 Missing data: x, y may be NaN (DeepLabCut writes empty cells for them); a point with either
 coordinate missing is missing (both NaN, likelihood 0). A NaN likelihood reads as 0. Likelihoods
 are clipped to [0, 1]; infinite coordinates are an error.
@@ -45,7 +50,36 @@ from typing import NamedTuple
 
 import numpy as np
 
-from graph.errors import InputError
+from graph.errors import InputError, TooLargeInput
+
+@dataclass(frozen=True)
+class ReadLimits:
+    """What a reader accepts, checked before the data are read. ``max_bodyparts`` counts each
+    individual's bodyparts of a multi-animal file (a file may hold at most ``3 * max_bodyparts``
+    data columns). None: no limit."""
+
+    max_frames: int | None = None
+    max_bodyparts: int | None = None
+
+    @property
+    def max_columns(self) -> int | None:
+        return None if self.max_bodyparts is None else 3 * self.max_bodyparts
+
+    def check_frames(self, frames: int, path: Path, counting: bool = False) -> None:
+        """``frames`` declared (or, ``counting``, read so far) against ``max_frames``."""
+        if self.max_frames is not None and frames > self.max_frames:
+            said = f"more than {self.max_frames}" if counting else str(frames)
+            raise TooLargeInput(f"{said} frames; at most {self.max_frames} frames per file", path, "frames")
+
+    def check_columns(self, columns: int, path: Path) -> None:
+        if self.max_columns is not None and columns > self.max_columns:
+            raise TooLargeInput(f"{columns} data columns (about {columns // 3} bodyparts); at most "
+                                f"{self.max_bodyparts} bodyparts ({self.max_columns} columns) per file", path,
+                                "bodyparts")
+
+
+NO_LIMITS = ReadLimits()
+CSV_BLOCK_ROWS = 4096  # rows parsed at a time
 
 SINGLE = "single"  # DeepLabCut's pseudo-individual holding the unique bodyparts
 _LEVELS_SINGLE = ("scorer", "bodyparts", "coords")
@@ -78,11 +112,12 @@ class Keypoints:
 # ------------------------------------------------------------------------------------- reading
 
 
-def read_keypoints(path: str | Path, individual: str | None = None) -> Keypoints:
+def read_keypoints(path: str | Path, individual: str | None = None, limits: ReadLimits = NO_LIMITS) -> Keypoints:
     """Read a DeepLabCut CSV or H5 file (chosen by content, not extension).
 
     ``individual`` picks one animal from a multi-animal file; by default the first one (not
     counting ``single``), with a warning naming the others. Single-animal files ignore it.
+    A file over ``limits`` raises :class:`~graph.errors.TooLargeInput` before its data are read.
     """
     path = Path(path)
     try:
@@ -97,35 +132,66 @@ def read_keypoints(path: str | Path, individual: str | None = None) -> Keypoints
     if not head:
         raise InputError("file is empty", path)
     if head.startswith(_HDF5_MAGIC):
-        return _read_h5(path, individual)
-    return _read_csv(path, individual)
+        return _read_h5(path, individual, limits)
+    return _read_csv(path, individual, limits)
 
 
-def _read_csv(path: Path, individual: str | None) -> Keypoints:
+def _read_csv(path: Path, individual: str | None, limits: ReadLimits) -> Keypoints:
+    """Stream the file: the header rows first (their width checked against ``limits`` before they
+    are split), then the data a block of :data:`CSV_BLOCK_ROWS` rows at a time, the row count
+    checked as it grows."""
     try:
-        text = path.read_bytes().decode("utf-8-sig")
+        f = open(path, encoding="utf-8-sig", newline="")
+    except OSError as e:
+        raise InputError(f"cannot read: {e.strerror}", path) from None
+    try:
+        with f:
+            return _parse_csv(f, path, individual, limits)
     except UnicodeDecodeError:
         raise InputError("not a DeepLabCut CSV or H5 file (binary, not UTF-8 text)", path) from None
-    if "\x00" in text:
-        raise InputError("not a DeepLabCut CSV or H5 file (binary data)", path)
-    lines = text.splitlines()
-    while lines and not lines[-1].strip():
-        lines.pop()  # trailing blank lines
-    if not lines:
-        raise InputError("file is empty", path)
-    rows = [_csv_row(line, path) for line in lines[:4]]
-    first = rows[0][0].strip() if rows[0] else ""
-    if first != "scorer":
-        raise InputError(f"not a DeepLabCut CSV: the first row must start with 'scorer', not {first[:40]!r}", path)
-    levels = []
-    for row in rows:
-        levels.append(row[0].strip() if row else "")
-        if levels[-1] == "coords":
+
+
+def _text_lines(f, path: Path, max_chars: int | None):
+    """(line number, line without its end) of ``f``; a line longer than ``max_chars`` is refused
+    unread beyond that."""
+    number = 0
+    while True:
+        line = f.readline(max_chars + 1) if max_chars is not None else f.readline()
+        if not line:
+            return
+        number += 1
+        if max_chars is not None and len(line) > max_chars:
+            raise TooLargeInput(f"line {number} is longer than {max_chars} characters (more columns than "
+                                "the bodyparts limit allows)", path, "bodyparts")
+        if "\x00" in line:
+            raise InputError("not a DeepLabCut CSV or H5 file (binary data)", path)
+        yield number, line.rstrip("\r\n")
+
+
+def _parse_csv(f, path: Path, individual: str | None, limits: ReadLimits) -> Keypoints:
+    # a generous bound on a line's length where columns are bounded: 64 characters a cell
+    max_chars = None if limits.max_columns is None else 64 * (limits.max_columns + 8) + 4096
+    lines = _text_lines(f, path, max_chars)
+    rows: list[list[str]] = []
+    levels: list[str] = []
+    for number, line in lines:
+        if not rows and not line.strip():
+            continue  # leading blank lines
+        if limits.max_columns is not None:
+            limits.check_columns(max(0, line.count(",") - 3), path)  # up to 3 index columns
+        rows.append(_csv_row(line, path))
+        levels.append(rows[-1][0].strip() if rows[-1] else "")
+        if levels[0] != "scorer":
+            raise InputError(f"not a DeepLabCut CSV: the first row must start with 'scorer', not "
+                             f"{levels[0][:40]!r}", path)
+        if levels[-1] == "coords" or len(rows) == 4:
             break
+    if not rows:
+        raise InputError("file is empty", path)
     if tuple(levels) not in (_LEVELS_SINGLE, _LEVELS_MULTI):
         raise InputError("not a DeepLabCut CSV: header rows must be scorer, bodyparts, coords "
                          "(or scorer, individuals, bodyparts, coords), found " + ", ".join(levels), path)
-    header = rows[: len(levels)]
+    header = rows
     width = len(header[0])
     for h in header[1:]:
         if len(h) != width:
@@ -136,31 +202,54 @@ def _read_csv(path: Path, individual: str | None) -> Keypoints:
         n_index += 1
     if n_index >= width:
         raise InputError("not a DeepLabCut CSV: no data columns", path)
+    limits.check_columns(width - n_index, path)
     columns = [tuple(h[j].strip() for h in header) for j in range(n_index, width)]
-    first_data = len(levels)
-    if len(lines) == first_data:
-        raise InputError("no data rows after the header", path)
-    body = []
-    for i in range(first_data, len(lines)):
-        line = lines[i]
+    blocks: list[np.ndarray] = []
+    block: list[tuple[int, list[str]]] = []
+    frames = 0
+    blank_from: int | None = None  # first of a run of blank lines: fine at the end only
+    for number, line in lines:
+        if not line.strip():
+            blank_from = blank_from or number
+            continue
+        if blank_from is not None:
+            raise InputError(f"line {blank_from} has 1 cells, the header has {width} (truncated or ragged file)", path)
         row = _csv_row(line, path) if '"' in line else line.split(",")  # numbers need no quoting
         if len(row) != width:
-            raise InputError(f"line {i + 1} has {len(row)} cells, the header has {width} "
+            raise InputError(f"line {number} has {len(row)} cells, the header has {width} "
                              "(truncated or ragged file)", path)
-        body.append(row[n_index:])
-    try:  # fast path: plain numbers and empty cells
-        values = np.array([[float(c or "nan") for c in row] for row in body], dtype=np.float64)
-    except ValueError:
-        values = np.empty((len(body), width - n_index))
-        for i, row in enumerate(body):
-            for j, cell in enumerate(row):
-                cell = cell.strip()
-                try:
-                    values[i, j] = float(cell or "nan")
-                except ValueError:
-                    raise InputError(f"line {first_data + i + 1}, column {n_index + j + 1}: "
-                                     f"not a number: {cell[:40]!r}", path) from None
+        block.append((number, row[n_index:]))
+        frames += 1
+        limits.check_frames(frames, path, counting=True)
+        if len(block) == CSV_BLOCK_ROWS:
+            blocks.append(_csv_numbers(block, n_index, path))
+            block = []
+    if block:
+        blocks.append(_csv_numbers(block, n_index, path))
+    if not blocks:
+        raise InputError("no data rows after the header", path)
+    values = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
+    del blocks
     return _from_columns(columns, values, path, individual)
+
+
+def _csv_numbers(block: list[tuple[int, list[str]]], n_index: int, path: Path) -> np.ndarray:
+    """The cells of a block of data rows as floats (empty: NaN); the first cell that is not a number
+    is named by line and column."""
+    try:  # fast path: plain numbers and empty cells
+        return np.array([[float(c or "nan") for c in row] for _, row in block], dtype=np.float64)
+    except ValueError:
+        pass
+    values = np.empty((len(block), len(block[0][1])))
+    for i, (number, row) in enumerate(block):
+        for j, cell in enumerate(row):
+            cell = cell.strip()
+            try:
+                values[i, j] = float(cell or "nan")
+            except ValueError:
+                raise InputError(f"line {number}, column {n_index + j + 1}: not a number: {cell[:40]!r}",
+                                 path) from None
+    return values
 
 
 def _csv_row(line: str, path: Path) -> list[str]:
@@ -170,23 +259,28 @@ def _csv_row(line: str, path: Path) -> list[str]:
         raise InputError(f"not a valid CSV file ({e})", path) from None
 
 
-def _read_h5(path: Path, individual: str | None) -> Keypoints:
+def _read_h5(path: Path, individual: str | None, limits: ReadLimits) -> Keypoints:
     import h5py
 
     try:
         f = h5py.File(path, "r")
     except OSError as e:
         raise InputError(f"not a readable HDF5 file ({' '.join(str(e).split())[:120]})", path) from None
-    with f:
-        group = _dlc_group(f, path)
-        kind = _text(group.attrs.get("pandas_type", b""))
-        if kind == "frame_table":
-            columns, values = _h5_table(group, path)
-        elif kind == "frame":
-            columns, values = _h5_fixed(group, path)
-        else:
-            raise InputError(f"not a DeepLabCut H5 file: group '{group.name}' is not a pandas "
-                             f"DataFrame (pandas_type {kind!r})", path)
+    try:
+        with f:
+            group = _dlc_group(f, path)
+            kind = _text(group.attrs.get("pandas_type", b""))
+            if kind == "frame_table":
+                columns, values = _h5_table(group, path, limits)
+            elif kind == "frame":
+                columns, values = _h5_fixed(group, path, limits)
+            else:
+                raise InputError(f"not a DeepLabCut H5 file: group '{group.name}' is not a pandas "
+                                 f"DataFrame (pandas_type {kind!r})", path)
+    except InputError:
+        raise
+    except (OSError, KeyError, RuntimeError, ValueError, TypeError) as e:  # h5py's words for a damaged file
+        raise InputError(f"damaged HDF5 file ({' '.join(str(e).strip(chr(39)).split())[:120]})", path) from None
     if values.ndim != 2 or values.shape[1] != len(columns):
         raise InputError(f"H5 data have shape {values.shape} for {len(columns)} column labels", path)
     if values.shape[0] == 0:
@@ -211,7 +305,7 @@ def _dlc_group(f, path: Path):
                      + "); expected one", path)
 
 
-def _h5_table(group, path: Path) -> tuple[list[tuple], np.ndarray]:
+def _h5_table(group, path: Path, limits: ReadLimits) -> tuple[list[tuple], np.ndarray]:
     """``format="table"``: values from ``table['values_block_k']``, labels from the
     ``values_block_k_kind`` attribute (a pickled list of label tuples, read as literals only)."""
     if "table" not in group:
@@ -221,7 +315,11 @@ def _h5_table(group, path: Path) -> tuple[list[tuple], np.ndarray]:
     blocks = [n for n in names if n.startswith("values_block_")]
     if not blocks:
         raise InputError("H5 table has no values_block columns", path)
-    data = table[()]
+    if table.ndim != 1:
+        raise InputError(f"H5 table has shape {table.shape}, expected one row per frame", path)
+    limits.check_frames(table.shape[0], path)
+    limits.check_columns(sum(int(np.prod(table.dtype[b].shape)) for b in blocks), path)
+    data = table.fields(blocks)[()] if len(blocks) > 1 else {blocks[0]: table.fields(blocks[0])[()]}
     columns: list[tuple] = []
     parts = []
     for b in blocks:
@@ -229,7 +327,8 @@ def _h5_table(group, path: Path) -> tuple[list[tuple], np.ndarray]:
         if raw is None:
             raise InputError(f"H5 table has no column labels for {b}", path)
         labels = _literal_unpickle(_attr_bytes(raw), path, f"{b}_kind")
-        if not isinstance(labels, list) or not all(isinstance(t, tuple) for t in labels):
+        if not isinstance(labels, list) or not all(
+                isinstance(t, tuple) and all(isinstance(x, (str, bytes, int, float)) for x in t) for t in labels):
             raise InputError(f"H5 column labels of {b} are not a MultiIndex", path)
         block = np.asarray(data[b], dtype=np.float64)
         block = block.reshape(block.shape[0], -1)
@@ -240,9 +339,9 @@ def _h5_table(group, path: Path) -> tuple[list[tuple], np.ndarray]:
     return columns, np.concatenate(parts, axis=1)
 
 
-def _h5_fixed(group, path: Path) -> tuple[list[tuple], np.ndarray]:
+def _h5_fixed(group, path: Path, limits: ReadLimits) -> tuple[list[tuple], np.ndarray]:
     """Default "fixed" format: plain arrays for the column MultiIndex of the frame and each block."""
-    axis0 = _fixed_index(group, "axis0", path)
+    axis0 = _fixed_index(group, "axis0", path, limits)
     nblocks = int(group.attrs.get("nblocks", 0))
     if nblocks < 1:
         raise InputError("H5 DataFrame has no data blocks", path)
@@ -251,10 +350,15 @@ def _h5_fixed(group, path: Path) -> tuple[list[tuple], np.ndarray]:
     for k in range(nblocks):
         if f"block{k}_values" not in group:
             raise InputError(f"H5 DataFrame has no block{k}_values", path)
-        block = group[f"block{k}_values"][()]
-        if block.dtype.kind not in "fiub":
+        dataset = group[f"block{k}_values"]
+        if not hasattr(dataset, "shape") or dataset.ndim != 2:
+            raise InputError(f"H5 block{k}_values is not a table of numbers", path)
+        limits.check_frames(dataset.shape[0], path)
+        limits.check_columns(dataset.shape[1], path)
+        if dataset.dtype.kind not in "fiub":
             raise InputError(f"H5 block{k}_values are not numbers", path)
-        items = _fixed_index(group, f"block{k}_items", path)
+        items = _fixed_index(group, f"block{k}_items", path, limits)
+        block = dataset[()]
         block = np.asarray(block, dtype=np.float64).reshape(block.shape[0], -1)
         if values is None:
             values = np.full((block.shape[0], len(axis0)), np.nan)
@@ -268,18 +372,23 @@ def _h5_fixed(group, path: Path) -> tuple[list[tuple], np.ndarray]:
     return axis0, values
 
 
-def _fixed_index(group, prefix: str, path: Path) -> list[tuple]:
+def _fixed_index(group, prefix: str, path: Path, limits: ReadLimits) -> list[tuple]:
     """A pandas MultiIndex stored as ``<prefix>_level<i>`` (labels) + ``<prefix>_label<i>`` (codes)."""
     nlevels = int(group.attrs.get(f"{prefix}_nlevels", 0))
-    if _text(group.attrs.get(f"{prefix}_variety", b"")) != "multi" or nlevels < 1:
+    if _text(group.attrs.get(f"{prefix}_variety", b"")) != "multi" or nlevels not in (3, 4):
         raise InputError("H5 columns are not a DeepLabCut MultiIndex (scorer, bodyparts, coords)", path)
     level_values = []
     for i in range(nlevels):
         try:
-            levels = [_text(x) for x in group[f"{prefix}_level{i}"][()]]
-            codes = np.asarray(group[f"{prefix}_label{i}"][()], dtype=np.int64)
+            level_set, code_set = group[f"{prefix}_level{i}"], group[f"{prefix}_label{i}"]
         except KeyError:
             raise InputError(f"H5 file lacks {prefix}_level{i}/{prefix}_label{i}", path) from None
+        for d in (level_set, code_set):
+            if not hasattr(d, "shape") or d.ndim != 1:
+                raise InputError(f"H5 {d.name} is not a list of column labels", path)
+            limits.check_columns(d.shape[0], path)
+        levels = [_text(x) for x in level_set[()]]
+        codes = np.asarray(code_set[()], dtype=np.int64)
         if codes.size and (codes.min() < -1 or codes.max() >= len(levels)):
             raise InputError(f"H5 {prefix}_label{i} codes out of range", path)
         level_values.append(["" if c < 0 else levels[c] for c in codes])
@@ -464,6 +573,16 @@ def _from_columns(columns: list[tuple], values: np.ndarray, path: Path, individu
 # ------------------------------------------------------------------------------------- writing
 
 
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+def spreadsheet_safe(text: str) -> str:
+    """A name as a CSV cell no spreadsheet runs as a formula: one that starts with ``= + - @``, a tab
+    or a carriage return gets a leading ``'`` (a bodypart named ``=HYPERLINK(...)`` in an upload
+    would otherwise run when the result CSV is opened in a spreadsheet)."""
+    return "'" + text if text.startswith(_FORMULA_START) else text
+
+
 def write_dlc_csv(path: str | Path, keypoints: Keypoints) -> None:
     """Write the single-animal DeepLabCut CSV layout, byte for byte what
     ``DataFrame.to_csv`` writes for DeepLabCut's (scorer, bodyparts, coords) columns: floats as
@@ -471,8 +590,8 @@ def write_dlc_csv(path: str | Path, keypoints: Keypoints) -> None:
     n, m = keypoints.xy.shape[:2]
     with open(path, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f, lineterminator="\n")
-        w.writerow(["scorer"] + [keypoints.scorer] * (3 * m))
-        w.writerow(["bodyparts"] + [bp for bp in keypoints.bodyparts for _ in range(3)])
+        w.writerow(["scorer"] + [spreadsheet_safe(keypoints.scorer)] * (3 * m))
+        w.writerow(["bodyparts"] + [spreadsheet_safe(bp) for bp in keypoints.bodyparts for _ in range(3)])
         w.writerow(["coords"] + ["x", "y", "likelihood"] * m)
         block = np.concatenate([keypoints.xy, keypoints.likelihood[..., None]], axis=-1).reshape(n, 3 * m)
         gaps = np.isnan(block).any(axis=1)
@@ -514,6 +633,20 @@ def match_bodyparts(keypoints: Keypoints, marker_names: list[str]) -> BodypartMa
     unknown = [bp for j, bp in enumerate(keypoints.bodyparts) if j not in used]
     missing = [name for k, name in enumerate(marker_names) if index[k] < 0]
     return BodypartMatch(index=index, unknown=unknown, missing=missing)
+
+
+def no_marker_matched(bodyparts: list[str], skeleton_name: str, markers: list[str]) -> InputError:
+    """The refusal when no bodypart of the keypoint files is a marker of the skeleton, with the way out."""
+    shown = lambda names: ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")  # noqa: E731
+    return InputError(f"no bodypart in the keypoint files ({shown(bodyparts)}) matches a marker of the "
+                      f"{skeleton_name} skeleton ({shown(markers)}); for another animal use the points skeleton: "
+                      '"skeleton": "points"')
+
+
+def require_a_marker(keypoints: list[Keypoints], skeleton_name: str, markers: list[str]) -> None:
+    """:func:`no_marker_matched` unless some file has a bodypart that is one of ``markers``."""
+    if not any((match_bodyparts(kp, markers).index >= 0).any() for kp in keypoints):
+        raise no_marker_matched(keypoints[0].bodyparts if keypoints else [], skeleton_name, markers)
 
 
 def select_markers(keypoints: Keypoints, marker_names: list[str]) -> Keypoints:

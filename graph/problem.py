@@ -16,7 +16,7 @@ import numpy as np
 from graph.calibration import in_metres
 from graph.camera import Calibration
 from graph.errors import InputError
-from graph.keypoints import Keypoints, check_same_frames, match_bodyparts
+from graph.keypoints import Keypoints, check_same_frames, match_bodyparts, no_marker_matched
 from graph.noise import scatter_px, triangulation_dof
 from graph.skeleton import Skeleton, load_skeleton
 from graph.triangulate import triangulate
@@ -108,8 +108,7 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
         lik[:, c, have] = np.nan_to_num(kp.likelihood[:, match.index[have]], nan=0.0)
         seen_any |= have
     if not seen_any.any():
-        raise InputError(f"no bodypart in the keypoint files matches a marker of the {skeleton.name} skeleton "
-                         f"(markers: {', '.join(skeleton.markers[:6])}, ...)")
+        raise no_marker_matched(keypoints[0].bodyparts, skeleton.name, list(skeleton.markers))
     missing = [m for j, m in enumerate(skeleton.markers) if not seen_any[j]]
     if missing:
         notes.append(f"markers missing from every keypoint file (unobserved): {', '.join(missing)}")

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.errors import InputError
+from graph.errors import NESTED_TOO_DEEPLY, InputError
 
 AXES = {"x": 0, "y": 1, "z": 2}
 SIDE_PREFIXES = ("l_", "r_")
@@ -213,6 +213,8 @@ def load_skeleton(spec: str | Path, bodyparts: list[str] | None = None,
         text, where = path.read_text(errors="replace"), path.name
     try:
         data = tomllib.loads(text)
+    except RecursionError:
+        raise InputError(f"{where}: {NESTED_TOO_DEEPLY}") from None
     except tomllib.TOMLDecodeError as e:
         raise InputError(f"{where}: not a valid TOML skeleton spec ({e})") from None
     try:

@@ -21,8 +21,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 import graph
 from service import jobfiles
 from service.backends import make_backend
-from service.errors import Forbidden, JobError, NotFound, NotReady, TooLarge, TooMany, Unprocessable
+from service.errors import (DISK_FULL, Forbidden, JobError, NoSpace, NotFound, NotReady, TooLarge, TooMany,
+                            Unprocessable, storage_full)
 from service.jobs import JobService
+from service.headers import SecurityHeaders
 from service.limits import UploadGuard
 from service.settings import Settings
 from service.store import Store
@@ -43,7 +45,7 @@ Every call under `/v1` needs `Authorization: Bearer TOKEN` (an admin makes token
 
 # How the API answers each refusal of the job service (:class:`service.errors.JobError`)
 JOB_ERROR_STATUS: dict[type[JobError], int] = {NotFound: 404, Forbidden: 403, NotReady: 409, Unprocessable: 422,
-                                               TooLarge: 413, TooMany: 429}
+                                               TooLarge: 413, TooMany: 429, NoSpace: 507}
 
 
 class DataDirInUse(RuntimeError):
@@ -75,13 +77,31 @@ class DataDirLock:
             self._fd = None
 
 
+def allowed_methods(app: FastAPI, scope) -> list[str]:
+    """Every method some route of ``app`` answers on the path of ``scope`` (the ``Allow`` of a 405)."""
+    from starlette.routing import Match
+
+    methods: set[str] = set()
+
+    def walk(routes) -> None:
+        for route in routes:
+            inner = getattr(route, "original_router", None)  # an included router (ours have no prefix)
+            if inner is not None:
+                walk(inner.routes)
+            elif route.matches(scope)[0] != Match.NONE:
+                methods.update(getattr(route, "methods", None) or ())
+
+    walk(app.router.routes)
+    return sorted(methods)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The application. The data dir is locked, and the backend started, when the app starts up."""
     settings = settings or Settings()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        settings.jobs_dir.mkdir(parents=True, exist_ok=True)
+        settings.make_private()
         lock = DataDirLock(settings.data_dir)
         lock.acquire()
         try:
@@ -102,14 +122,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             lock.release()
 
-    app = FastAPI(title="acinoset", version=graph.__version__, description=DESCRIPTION, lifespan=lifespan)
+    # no CDN-served API explorer on the origin where the token lives: /docs is a page of our own (service.web)
+    app = FastAPI(title="acinoset", version=graph.__version__, description=DESCRIPTION, lifespan=lifespan,
+                  docs_url=None, redoc_url=None)
     app.state.settings = settings
     app.add_middleware(UploadGuard, settings=settings, error_status=JOB_ERROR_STATUS)
+    app.add_middleware(SecurityHeaders)  # outermost: on every answer, the guard's refusals included
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException):
         detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
-        return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
+        headers = dict(getattr(exc, "headers", None) or {})
+        if exc.status_code == 405:  # Starlette names the methods of the first route on the path only
+            headers["Allow"] = ", ".join(allowed_methods(request.app, request.scope))
+        return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=headers or None)
 
     @app.exception_handler(JobError)
     async def job_error(request: Request, exc: JobError):
@@ -125,6 +151,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.exception_handler(Exception)
     async def internal_error(request: Request, exc: Exception):
+        if storage_full(exc):  # any write the routes make (a cancel, a token) on a full disk
+            log.error("%s %s: %s", request.method, request.url.path, exc)
+            return JSONResponse({"detail": DISK_FULL}, status_code=507)
         log.exception("unhandled error on %s %s", request.method, request.url.path)
         return JSONResponse({"detail": f"internal error ({type(exc).__name__}); the server log has the details"},
                             status_code=500)

@@ -97,6 +97,7 @@ def register(subparsers) -> None:
     ls.set_defaults(func=users_list)
     t = us.add_parser("token", help="revoke a user's tokens and print a new one (last line)")
     t.add_argument("name")
+    t.add_argument("--enable", action="store_true", help="also let a removed user sign in again")
     _data_dir_arg(t)
     t.set_defaults(func=users_token)
     r = us.add_parser("remove", help="revoke a user's tokens and cancel its active jobs (jobs are kept)")
@@ -134,7 +135,7 @@ def serve(args: argparse.Namespace) -> int:
 
     s = _settings(args, "host", "port", "data_dir", "backend", "redis_url", "workers", "log_level")
     logging.basicConfig(level=s.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    s.jobs_dir.mkdir(parents=True, exist_ok=True)
+    s.make_private()
     probe = DataDirLock(s.data_dir)
     try:
         probe.acquire()
@@ -223,6 +224,7 @@ def _store(args: argparse.Namespace):
     from service.store import Store
 
     s = _settings(args, "data_dir")
+    s.make_private()
     return Store(s.db_path), s
 
 
@@ -239,7 +241,7 @@ def users_add(args: argparse.Namespace) -> int:
 @_refusing("users token")
 def users_token(args: argparse.Namespace) -> int:
     store, _ = _store(args)
-    token = store.new_token(args.name)
+    token = store.new_token(args.name, enable=args.enable)
     print(f"revoked the old tokens of {args.name}; the new one (shown once):")
     print(token)
     return 0

@@ -36,3 +36,20 @@ class TooLarge(JobError):
 
 class TooMany(JobError):
     """The caller already has the most active jobs allowed."""
+
+
+class NoSpace(JobError):
+    """The server's storage is full (its disk, or the total for all jobs)."""
+
+
+def storage_full(exc: BaseException) -> bool:
+    """Whether ``exc`` says the disk is full: ENOSPC or EDQUOT from the OS, SQLITE_FULL from the job table."""
+    import errno
+    import sqlite3
+
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    return isinstance(exc, sqlite3.OperationalError) and "disk is full" in str(exc)
+
+
+DISK_FULL = "the server's disk is full; delete finished jobs to make room, or ask the admin"

@@ -87,6 +87,24 @@ def download_name(job_id: str, fmt: str) -> str:
     return f"{job_id}.{RESULT_FILES[fmt][0].removeprefix(RESULT + '.')}"
 
 
+def disk_bytes(path: Path) -> int:
+    """The bytes of the files under ``path`` (0 if it does not exist)."""
+    total = 0
+    try:
+        entries = list(os.scandir(path))
+    except OSError:
+        return 0
+    for e in entries:
+        try:
+            if e.is_dir(follow_symlinks=False):
+                total += disk_bytes(Path(e.path))
+            elif e.is_file(follow_symlinks=False):
+                total += e.stat(follow_symlinks=False).st_size
+        except OSError:
+            pass
+    return total
+
+
 def remove(jobs_dir: Path, job_id: str) -> None:
     """A job's directory and everything in it."""
     shutil.rmtree(job_dir(jobs_dir, job_id), ignore_errors=True)

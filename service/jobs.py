@@ -14,15 +14,19 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 import shutil
+import sqlite3
 import threading
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
+from graph.errors import NESTED_TOO_DEEPLY
 from service import jobfiles
 from service.backends.base import Backend
-from service.errors import Forbidden, NotFound, NotReady, TooLarge, TooMany, Unprocessable
+from service.errors import (DISK_FULL, Forbidden, NoSpace, NotFound, NotReady, TooLarge, TooMany, Unprocessable,
+                            storage_full)
 from service.jobfiles import (CALIBRATION_DIR, INPUT, JOB_ID, RESULT_FILES, SKELETON_DIR, keypoints_dir,
                               new_job_id, result_path, staging_dir)
 from service.settings import Settings
@@ -30,6 +34,7 @@ from service.store import STATUSES, Job, QuotaExceeded, Store, User
 from service.uploads import UploadReader
 
 KEYPOINT_SUFFIXES = (".csv", ".h5", ".hdf5")
+CURSOR = re.compile(r"^[0-9]{1,18}$")
 CALIBRATION_SUFFIXES = (".json", ".toml")
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
@@ -53,6 +58,18 @@ def safe_name(filename: str | None, default: str) -> str:
     return base or default
 
 
+def _size(f: BinaryIO) -> int:
+    """Bytes from the stream's position to its end (the upload is spooled: seekable)."""
+    here = f.tell()
+    end = f.seek(0, os.SEEK_END)
+    f.seek(here)
+    return end - here
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:.2f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
+
+
 def _with_suffix(name: str, head: bytes, allowed: tuple[str, ...], sniff) -> str:
     if Path(name).suffix.lower() in allowed:
         return name
@@ -68,12 +85,28 @@ def _calibration_suffix(head: bytes) -> str:
 
 
 def delete_finished(store: Store, jobs_dir: Path, job_id: str) -> bool:
-    """Delete a finished job's row and then its files; False when it is active again (a re-run
-    claimed it meanwhile) or gone. The API's DELETE and ``acinoset jobs prune`` both delete this way."""
-    if not store.delete(job_id):
-        return False
-    jobfiles.remove(jobs_dir, job_id)
-    return True
+    """Delete a finished job's row and then its files; False when it is gone (or not finished).
+    The API's DELETE and ``acinoset jobs prune`` both delete this way.
+
+    On a full disk the job table cannot record the deletion (SQLite's log must grow): the job's
+    files go first, which frees the room, and the row after them. A finished job never runs
+    again, so its files are not needed any more. :class:`NoSpace` if even that cannot be written."""
+    try:
+        deleted = store.delete(job_id)
+    except Exception as e:
+        if not storage_full(e):
+            raise
+        jobfiles.remove(jobs_dir, job_id)
+        try:
+            deleted = store.delete(job_id)
+        except Exception as again:
+            if storage_full(again):
+                raise NoSpace(f"{DISK_FULL} (job {job_id}: its files were removed, its record stays until there "
+                              "is room)") from None
+            raise
+    if deleted:
+        jobfiles.remove(jobs_dir, job_id)
+    return deleted
 
 
 class JobService:
@@ -100,6 +133,8 @@ class JobService:
             data = json.loads(text) if text and text.strip() else {}
         except json.JSONDecodeError as e:
             raise Unprocessable(f"options: not valid JSON ({e.msg} at line {e.lineno} column {e.colno})")
+        except RecursionError:
+            raise Unprocessable(f"options: {NESTED_TOO_DEEPLY}") from None
         if not isinstance(data, dict):
             raise Unprocessable("options: must be a JSON object such as {\"method\": \"fte\", \"fps\": 120}")
         known = [f.name for f in dataclasses.fields(SolveOptions)]
@@ -149,15 +184,24 @@ class JobService:
         self.check_quota(user)
         skeleton_name = safe_name(skeleton.filename, "skeleton.toml") if skeleton is not None else None
         options = self.parse_options(options_text, skeleton_name)
+        upload_bytes = sum(_size(u.file) for u in [*keypoints, calibration, *([skeleton] if skeleton else [])])
+        self.check_storage(user, upload_bytes)
 
-        with self._validating:
-            job_id, inputs = self._store_upload(keypoints, calibration, skeleton, options)
         try:
-            job = self.store.insert_job(job_id, user.id, self.backend.name, options, inputs, s.max_attempts,
-                                        max_active=s.max_active_jobs_per_user)
+            with self._validating:
+                job_id, inputs = self._store_upload(keypoints, calibration, skeleton, options)
+            try:
+                job = self.store.insert_job(job_id, user.id, self.backend.name, options, inputs, s.max_attempts,
+                                            max_active=s.max_active_jobs_per_user)
+            except BaseException:
+                jobfiles.remove(s.jobs_dir, job_id)
+                raise
         except QuotaExceeded:
-            jobfiles.remove(s.jobs_dir, job_id)
             self.check_quota(user)
+            raise
+        except (OSError, sqlite3.OperationalError) as e:
+            if storage_full(e):
+                raise NoSpace(DISK_FULL) from None
             raise
         self.backend.submit(job.id)
         return job
@@ -183,13 +227,41 @@ class JobService:
             inputs = self.reader.inspect(
                 input_dir=str(input_dir), keypoints=manifest["keypoints"], calibration=manifest["calibration"],
                 skeleton_file=manifest["skeleton"], skeleton=options["skeleton"],
-                individual=options.get("individual"), max_frames=s.max_frames)
+                individual=options.get("individual"), max_frames=s.max_frames,
+                max_bodyparts=s.max_bodyparts)
             jobfiles.write_manifest(input_dir, manifest)
             staging.replace(jobfiles.job_dir(s.jobs_dir, job_id))
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
         return job_id, inputs
+
+    def storage_used(self, user: User | None = None) -> int:
+        """Bytes of the job files of ``user`` (everyone's: None)."""
+        if user is None:
+            return jobfiles.disk_bytes(self.settings.jobs_dir)
+        return sum(jobfiles.disk_bytes(jobfiles.job_dir(self.settings.jobs_dir, j)) for j in self.store.job_ids_of(user.id))
+
+    def check_storage(self, user: User, upload_bytes: int) -> None:
+        """Room for ``upload_bytes`` more: :class:`NoSpace` (507) if the disk would keep less than
+        ``min_free_bytes`` free or everyone's jobs would pass ``max_storage_bytes``; :class:`TooLarge`
+        (413) if the user's jobs would pass ``max_storage_bytes_per_user``."""
+        s = self.settings
+        free = shutil.disk_usage(s.jobs_dir).free
+        if free - upload_bytes < s.min_free_bytes:
+            raise NoSpace(f"the server's disk is nearly full ({_gib(free)} free, {_gib(s.min_free_bytes)} kept free: "
+                          "ACINOSET_MIN_FREE_BYTES); delete finished jobs to make room, or ask the admin")
+        if s.max_storage_bytes:
+            total = self.storage_used()
+            if total + upload_bytes > s.max_storage_bytes:
+                raise NoSpace(f"the server's storage for jobs is full ({_gib(total)} of {_gib(s.max_storage_bytes)}: "
+                              "ACINOSET_MAX_STORAGE_BYTES); delete finished jobs to make room, or ask the admin")
+        if s.max_storage_bytes_per_user:
+            mine = self.storage_used(user)
+            if mine + upload_bytes > s.max_storage_bytes_per_user:
+                raise TooLarge(f"your jobs use {_gib(mine)} of your {_gib(s.max_storage_bytes_per_user)} "
+                               f"(ACINOSET_MAX_STORAGE_BYTES_PER_USER) and this upload is {_gib(upload_bytes)}; "
+                               "delete finished jobs to make room")
 
     def check_quota(self, user: User) -> None:
         """:class:`TooMany` if the user already has the most queued and running jobs allowed."""
@@ -215,7 +287,7 @@ class JobService:
                 raise Unprocessable(f"status: {bad[0]!r} is not one of {', '.join(STATUSES)}")
         before = None
         if cursor:
-            if not cursor.isdigit():
+            if not CURSOR.match(cursor):  # a job's seq: at most 18 digits fit SQLite's INTEGER
                 raise Unprocessable("cursor: pass the next_cursor of the previous page")
             before = int(cursor)
         owner_id: int | None = user.id

@@ -2,7 +2,8 @@
 
 FastAPI reads a whole multipart body before any dependency runs. This guard answers first, from the
 headers alone, when the caller has no valid token (401), already has the most active jobs allowed
-(429) or announces a body over ``max_upload_bytes`` (413); it counts the bytes of a body sent
+(429), has no room left for the body it announces (413 over the user's storage quota, 507 when
+the server's disk or storage is full) or announces a body over ``max_upload_bytes`` (413); it counts the bytes of a body sent
 without a length, stopping at the limit (413); and it lets only a few submissions in at a time.
 """
 
@@ -15,7 +16,7 @@ from fastapi import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.auth import authorized_user
-from service.errors import JobError, TooLarge, TooMany
+from service.errors import JobError, NoSpace, TooLarge, TooMany
 from service.settings import Settings
 
 
@@ -74,15 +75,18 @@ class UploadGuard:
 
     def _refuse(self, scope: Scope, headers: dict[str, str]) -> tuple[int, str, dict] | None:
         jobs = getattr(getattr(scope.get("app"), "state", None), "jobs", None)  # the JobService, once started
+        length = headers.get("content-length")
+        announced = int(length) if length is not None and length.isdigit() else None
         if jobs is not None:
             try:
-                jobs.check_quota(authorized_user(jobs.store, headers.get("authorization")))
+                user = authorized_user(jobs.store, headers.get("authorization"))
+                jobs.check_quota(user)
+                jobs.check_storage(user, announced or 0)
             except HTTPException as e:
                 return e.status_code, e.detail, dict(e.headers or {})
-            except TooMany as e:
-                return self.error_status[TooMany], e.detail, {}
-        length = headers.get("content-length")
-        if length is not None and length.isdigit() and int(length) > self.settings.max_upload_bytes:
+            except (TooMany, TooLarge, NoSpace) as e:
+                return self.error_status[type(e)], e.detail, {"connection": "close"}
+        if announced is not None and announced > self.settings.max_upload_bytes:
             return self.error_status[TooLarge], _too_large(self.settings.max_upload_bytes), {"connection": "close"}
         return None
 

@@ -13,12 +13,12 @@ from pydantic import BaseModel, Field
 
 from graph.types import STAGES as SOLVER_STAGES
 from service.jobfiles import RESULT_FILES
-from service.store import DONE, READING, STARTING, WRITING, Job, JobStatus
+from service.store import COMPILING, DONE, READING, STARTING, WRITING, Job, JobStatus
 
 ResultFormat = Literal[tuple(RESULT_FILES)]  # type: ignore[valid-type]  # the download formats
 # What a job's progress can say it is doing, in order: the service's own stages around the solver's
 # (each method reports only some of those); the solver's "done" comes before the results are written.
-STAGES: tuple[str, ...] = (STARTING, READING, *(s for s in SOLVER_STAGES if s != DONE), WRITING, DONE)
+STAGES: tuple[str, ...] = (COMPILING, STARTING, READING, *(s for s in SOLVER_STAGES if s != DONE), WRITING, DONE)
 
 
 class ErrorBody(BaseModel):
@@ -117,6 +117,7 @@ class SkeletonOut(BaseModel):
 class Limits(BaseModel):
     max_upload_bytes: int
     max_frames: int
+    max_bodyparts: int
     max_cameras: int
     max_active_jobs: int
 
@@ -129,13 +130,24 @@ class Me(BaseModel):
     limits: Limits
 
 
+class Disk(BaseModel):
+    free_bytes: int = Field(description="free space on the data dir's disk")
+    total_bytes: int
+    min_free_bytes: int = Field(description="below this, submissions are refused (507) and health is degraded")
+
+
 class Health(BaseModel):
-    status: Literal["ok", "degraded"]
+    status: Literal["ok", "starting", "degraded"] = Field(
+        description="ok: ready to take and run jobs; starting: up, its solver not ready yet (compiling); "
+                    "degraded: it cannot run jobs or has no room for them (detail says why)")
+    ready: bool = Field(description="a job submitted now would be stored and started without delay")
     version: str
     backend: str
     workers: int = Field(description="solves that can run at once (embedded) or connected workers (rq)")
     running: int
     queued: int
+    oldest_queued_seconds: float | None = Field(None, description="how long the oldest queued job has waited")
+    disk: Disk
     detail: str | None = None
 
 

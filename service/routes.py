@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import shutil
+import time
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, Security, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
+from fastapi.security import HTTPBearer
 
 import graph
 from graph.errors import InputError
@@ -14,7 +17,7 @@ from service import metrics
 from service.auth import current_user
 from service.jobs import JobService, Upload
 from service.jobfiles import RESULT_FILES, download_name
-from service.models import (ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
+from service.models import (Disk, ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
                             SkeletonOut, job_out)
 from service.backends.base import Backend
 from service.settings import Settings
@@ -30,7 +33,12 @@ NOT_FOUND = {404: _err("No such job, or it belongs to another user")}
 BAD_REQUEST = {422: _err("A request parameter or field is missing or malformed")}
 SERVER_ERROR = {500: _err("A fault of the server (logged there)")}
 
-router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR})
+# Declares the bearer scheme of every /v1 call in the spec; the check itself is service.auth's
+# (current_user), which answers 401 with the same challenge whether or not a token was sent.
+BEARER = HTTPBearer(auto_error=False, scheme_name="bearer",
+                    description="`Authorization: Bearer TOKEN`; an admin makes tokens with `acinoset users add NAME`")
+
+router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR}, dependencies=[Security(BEARER)])
 public = APIRouter(responses=SERVER_ERROR)
 
 async def _caller(request: Request) -> User:
@@ -69,7 +77,10 @@ JobBackend = Annotated[Backend, Depends(_backend)]
 
 @router.post(
     "/v1/jobs", status_code=202, response_model=JobOut, tags=["jobs"], summary="Submit a job",
-    responses={413: _err("Upload, frame count or camera count over this server's limits"),
+    responses={400: _err("The body is not valid multipart/form-data"),
+               413: _err("Upload, frame count, bodyparts, camera count or the caller's storage over this "
+                         "server's limits"),
+               507: _err("The server's disk or its storage for jobs is full"),
                422: _err("A file the readers refuse (the detail names it), or bad options"),
                429: _err("The caller already has the most queued and running jobs allowed")})
 def submit_job(
@@ -174,18 +185,33 @@ def me(user: CurrentUser, store: JobTable, s: ServerSettings) -> Me:
     """Who the token belongs to, its job counts and this server's limits."""
     counts = store.job_counts(user.id)
     return Me(name=user.name, admin=user.is_admin, active_jobs=store.count_active(user.id), jobs=counts,
-              limits=Limits(max_upload_bytes=s.max_upload_bytes, max_frames=s.max_frames, max_cameras=s.max_cameras,
+              limits=Limits(max_upload_bytes=s.max_upload_bytes, max_frames=s.max_frames, max_bodyparts=s.max_bodyparts,
+                            max_cameras=s.max_cameras,
                             max_active_jobs=s.max_active_jobs_per_user))
 
 
 @public.get("/healthz", response_model=Health, tags=["service"], summary="Health",
-            responses={503: {"model": Health, "description": "The backend cannot run jobs (e.g. Redis unreachable)"}})
-def healthz(backend: JobBackend, store: JobTable):
+            responses={503: {"model": Health, "description": "Not ready: starting (the solver compiles), the "
+                                                              "backend cannot run jobs, or the disk is nearly full"}})
+def healthz(backend: JobBackend, store: JobTable, s: ServerSettings):
     h = backend.health()
     counts = store.status_counts()
-    body = Health(status="ok" if h["ok"] else "degraded", version=graph.__version__, backend=backend.name,
-                  workers=h["workers"], running=counts["running"], queued=counts["queued"], detail=h.get("detail"))
+    du = shutil.disk_usage(s.jobs_dir)
+    oldest = store.oldest_queued_at()
+    status, detail = "ok", h.get("detail")
     if not h["ok"]:
+        status = "degraded"
+    elif du.free <= s.min_free_bytes:
+        status = "degraded"
+        detail = (f"the disk is nearly full: {du.free / 2**20:.0f} MiB free, {s.min_free_bytes / 2**20:.0f} MiB "
+                  "kept free (ACINOSET_MIN_FREE_BYTES); submissions are refused")
+    elif not h.get("ready", True):
+        status = "starting"
+    body = Health(status=status, ready=status == "ok", version=graph.__version__, backend=backend.name,
+                  workers=h["workers"], running=counts["running"], queued=counts["queued"],
+                  oldest_queued_seconds=None if oldest is None else max(0.0, time.time() - oldest),
+                  disk=Disk(free_bytes=du.free, total_bytes=du.total, min_free_bytes=s.min_free_bytes), detail=detail)
+    if status != "ok":
         return JSONResponse(body.model_dump(), status_code=503)
     return body
 

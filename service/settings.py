@@ -47,8 +47,12 @@ class Settings(BaseSettings):
     # limits on what a user can ask for
     max_upload_bytes: int = Field(512 * MiB, ge=1)  # one POST /v1/jobs request, all files together
     max_frames: int = Field(50_000, ge=1)  # frames per keypoint file (7 min at 120 fps)
+    max_bodyparts: int = Field(100, ge=1)  # per keypoint file, each individual's counted (memory: 3 columns each)
     max_cameras: int = Field(64, ge=1)
     max_active_jobs_per_user: int = Field(200, ge=1)  # queued + running
+    max_storage_bytes_per_user: int = Field(20 * 1024 * MiB, ge=0)  # a user's job files, all jobs (0: no limit)
+    max_storage_bytes: int = Field(0, ge=0)  # everyone's job files together (0: no limit but the disk)
+    min_free_bytes: int = Field(1024 * MiB, ge=0)  # submissions are refused (507) below this much free disk
     page_size_max: int = Field(500, ge=1)
     upload_readers: int = Field(2, ge=0, le=64)  # processes that read uploads (0: in the API process)
     upload_niceness: int = Field(5, ge=0, le=19)  # they yield the CPU to the API
@@ -69,6 +73,16 @@ class Settings(BaseSettings):
     @classmethod
     def _absolute(cls, v: Path) -> Path:
         return Path(v).expanduser().resolve()
+
+    def make_private(self) -> None:
+        """The data dir, only for the user the service runs as: this process creates files 0600 and
+        directories 0700 from now on (``umask 077``: the children it forks inherit it), and the data
+        dir, its job table and its jobs dir are made so if they already exist with wider rights."""
+        os.umask(0o077)
+        self.jobs_dir.mkdir(parents=True, exist_ok=True)
+        for path, mode in ((self.data_dir, 0o700), (self.jobs_dir, 0o700), (self.db_path, 0o600)):
+            if path.exists():
+                path.chmod(mode)
 
     @property
     def db_path(self) -> Path:

@@ -42,6 +42,7 @@ FINISHED: tuple[str, ...] = tuple(s for s in STATUSES if s not in ACTIVE)
 
 # The stages of a run the service records itself, around the solver's own (graph.types.STAGES,
 # reported by the solve as it goes; service.models.STAGES publishes the whole sequence):
+COMPILING = "compiling"  # queued while the server compiles its solver, once after an install (set here)
 STARTING = "starting"  # claimed, its process starting (set here)
 READING = "reading"  # reading the input files (service.worker)
 WRITING = "writing"  # writing the result files (service.worker)
@@ -260,9 +261,13 @@ class Store:
                    (key_id, user_id, hash_secret(secret), now))
         return f"{TOKEN_PREFIX}_{key_id}_{secret}"
 
-    def new_token(self, name: str) -> str:
-        """Revoke a user's tokens and issue a new one."""
+    def new_token(self, name: str, enable: bool = False) -> str:
+        """Revoke a user's tokens and issue a new one. A removed user stays removed (:class:`StoreError`)
+        unless ``enable``: a new token alone must not bring it back."""
         with self.transaction() as db:
+            row = db.execute("SELECT disabled FROM users WHERE name = ?", (name,)).fetchone()
+            if row and row[0] and not enable:
+                raise StoreError(f"user {name!r} was removed; give --enable to let it sign in again with a new token")
             uid = self._revoke(db, name)
             db.execute("UPDATE users SET disabled = 0 WHERE id = ?", (uid,))
             return self._new_token(db, uid, time.time())
@@ -378,6 +383,10 @@ class Store:
         counts = _counts(self._db(), None)
         return {s: counts.get(s, 0) for s in STATUSES}
 
+    def oldest_queued_at(self) -> float | None:
+        """When the job that has waited longest in the queue was submitted (None: nothing queued)."""
+        return self._db().execute("SELECT MIN(created_at) FROM jobs WHERE status = 'queued'").fetchone()[0]
+
     def solve_seconds_histogram(self, buckets: list[float]) -> tuple[list[int], int, float]:
         """Cumulative counts of succeeded solves with ``solve_seconds <= b`` per bucket, count, sum."""
         sel = ", ".join(f"SUM(solve_seconds <= {float(b)!r})" for b in buckets)
@@ -388,6 +397,9 @@ class Store:
 
     def all_job_ids(self) -> set[str]:
         return {r[0] for r in self._db().execute("SELECT id FROM jobs").fetchall()}
+
+    def job_ids_of(self, owner_id: int) -> list[str]:
+        return [r[0] for r in self._db().execute("SELECT id FROM jobs WHERE owner_id = ?", (owner_id,)).fetchall()]
 
     # -- jobs: the run of a job --------------------------------------------------------------
 
@@ -408,6 +420,12 @@ class Store:
                 f"lease_until = ?, worker = ?, run_token = ?, stage = '{STARTING}', fraction = 0, iteration = 0, "
                 "cost = NULL WHERE id = ?", (now, now, now + lease_seconds, worker, token, row[0]))
         return self.job(row[0])
+
+    def mark_queued(self, backend: str, stage: str) -> None:
+        """Say why the queued jobs wait (their progress stage) until one is claimed."""
+        with self.transaction() as db:
+            db.execute("UPDATE jobs SET stage = ? WHERE status = 'queued' AND backend = ? AND stage IS NULL",
+                       (stage, backend))
 
     def renew_leases(self, tokens: list[str], lease_seconds: float) -> None:
         if not tokens:

@@ -23,12 +23,14 @@ from service.jobfiles import inside
 
 
 def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skeleton_file: str | None,
-                   skeleton: str, individual: str | None, max_frames: int) -> dict:
+                   skeleton: str, individual: str | None, max_frames: int, max_bodyparts: int) -> dict:
     """Read the stored files (paths relative to ``input_dir``) and describe them for the job table.
-    Raises :class:`~service.errors.TooLarge` or :class:`~service.errors.Unprocessable`."""
+    Each keypoint file's frames and columns are checked before its data are read
+    (:class:`graph.keypoints.ReadLimits`). Raises :class:`~service.errors.TooLarge` or
+    :class:`~service.errors.Unprocessable`."""
     from graph.calibration import load_calibration
-    from graph.errors import InputError
-    from graph.keypoints import check_same_frames, read_keypoints
+    from graph.errors import NESTED_TOO_DEEPLY, InputError, TooLargeInput
+    from graph.keypoints import ReadLimits, check_same_frames, read_keypoints, require_a_marker
     from graph.skeleton import load_skeleton
 
     base = Path(input_dir)
@@ -36,21 +38,22 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
     cal_path = inside(base, calibration)
     sk_path = inside(base, skeleton_file) if skeleton_file else None
     try:
-        kps = []
-        for p in kp_paths:
-            kp = read_keypoints(p, individual=individual)
-            if kp.frames > max_frames:
-                raise TooLarge(f"{p.name}: {kp.frames} frames; this server takes at most {max_frames} frames "
-                                   "per file (ACINOSET_MAX_FRAMES)")
-            kps.append(kp)
+        limits = ReadLimits(max_frames=max_frames, max_bodyparts=max_bodyparts)
+        kps = [read_keypoints(p, individual=individual, limits=limits) for p in kp_paths]
         check_same_frames(kps)
         cal = load_calibration(cal_path)
         if len(cal) != len(kps):
             raise Unprocessable(f"{cal_path.name}: the calibration has {len(cal)} cameras but {len(kps)} keypoint "
                                "files were uploaded (one per camera, in the calibration's order)")
-        load_skeleton(sk_path if sk_path is not None else skeleton, bodyparts=kps[0].bodyparts)
+        sk = load_skeleton(sk_path if sk_path is not None else skeleton, bodyparts=kps[0].bodyparts)
+        if sk.kind != "points":
+            require_a_marker(kps, sk.name, list(sk.markers))
+    except TooLargeInput as e:
+        raise TooLarge(f"{e} on this server (ACINOSET_MAX_{e.limit.upper()})") from None
     except InputError as e:
         raise Unprocessable(str(e)) from None
+    except RecursionError:
+        raise Unprocessable(f"upload: {NESTED_TOO_DEEPLY}") from None
     except (OSError, ValueError, KeyError, IndexError, TypeError, UnicodeDecodeError, MemoryError) as e:
         # a reader tripped on something it did not foresee: still a bad file, still one line
         where = Path(e.filename).name if getattr(e, "filename", None) else "upload"

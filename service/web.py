@@ -19,8 +19,10 @@ import json
 import re
 from pathlib import Path
 
-from fastapi import APIRouter, HTTPException
-from fastapi.responses import FileResponse, HTMLResponse
+from urllib.parse import urlencode, urlsplit
+
+from fastapi import APIRouter, HTTPException, Request, Response
+from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 
 from graph import viewer
 from graph.plot import plotly_js_path
@@ -74,8 +76,25 @@ def jobs_page() -> HTMLResponse:
     return _page("jobs.html")
 
 
+def same_origin_path(target: str) -> bool:
+    """Whether ``target`` (a decoded ``next`` parameter) is a path on this server and nothing else:
+    it starts with one ``/``, has no backslash or control character (browsers read ``/\\host``
+    and ``/\t/host`` as another host) and no scheme or host of its own."""
+    if not target.startswith("/") or target.startswith("//"):
+        return False
+    if "\\" in target or any(ord(c) < 0x20 or ord(c) == 0x7F for c in target):
+        return False
+    parts = urlsplit(target)
+    return not parts.scheme and not parts.netloc
+
+
 @router.get("/login", response_class=HTMLResponse)
-def login_page() -> HTMLResponse:
+def login_page(next: str | None = None, reason: str | None = None) -> Response:
+    """The sign-in page. A ``next`` that is not a path of this server is dropped (the page's script
+    checks it again before it goes there)."""
+    if next is not None and not same_origin_path(next):
+        query = urlencode({"reason": reason} if reason else {})
+        return RedirectResponse("/login" + (f"?{query}" if query else ""), status_code=303, headers=_PAGE_HEADERS)
     return _page("login.html")
 
 
@@ -90,6 +109,29 @@ def job_page(job_id: str) -> HTMLResponse:
     if not _JOB_ID.match(job_id):
         raise HTTPException(404, "no such page")
     return _page("job.html")
+
+
+@router.get("/docs", response_class=HTMLResponse)
+def api_docs(request: Request) -> HTMLResponse:
+    """The REST contract as a page of this server: every operation, its parameters and answers, from
+    the app's OpenAPI spec (the whole spec is ``/openapi.json``). No script, nothing from elsewhere."""
+    spec = request.app.openapi()
+    e = html.escape
+    rows = []
+    for path, ops in spec["paths"].items():
+        for method, op in ops.items():
+            params = ", ".join(f"{p['name']} ({p['in']})" for p in op.get("parameters", []))
+            answers = ", ".join(sorted(op.get("responses", {})))
+            rows.append(f"<tr><td><code>{e(method.upper())}</code></td><td><code>{e(path)}</code></td>"
+                        f"<td>{e(op.get('summary', ''))}</td><td>{e(params)}</td><td>{e(answers)}</td></tr>")
+    body = (f'<!doctype html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>API · acinoset</title>\n'
+            f'<link rel="stylesheet" href="/static/app.css">\n</head>\n<body>\n<a class="skip" href="#main">Skip to '
+            f'content</a>\n<main id="main">\n<h1>{e(spec["info"]["title"])} REST API {e(spec["info"]["version"])}</h1>\n'
+            + "".join(f"<p>{e(par)}</p>\n" for par in spec["info"].get("description", "").split("\n\n"))
+            + '<p>The whole contract: <a href="/openapi.json">/openapi.json</a> (OpenAPI 3).</p>\n'
+            '<table>\n<thead><tr><th>method</th><th>path</th><th>what</th><th>parameters</th><th>answers</th></tr>'
+            '</thead>\n<tbody>\n' + "\n".join(rows) + "\n</tbody>\n</table>\n</main>\n</body>\n</html>\n")
+    return HTMLResponse(body, headers=_PAGE_HEADERS)
 
 
 @router.get("/static/plotly.min.js")

@@ -212,3 +212,24 @@ def test_reprojections_as_dlc_csv(tmp_path):
     assert named[0].name == "cam0_reproj.csv"
     with pytest.raises(ValueError):
         write_reprojections_dlc(tmp_path / "x", res, stems=["only_one"])
+
+
+def test_marker_names_written_to_csv_never_start_a_spreadsheet_formula(tmp_path):
+    """Issue item 11: a bodypart named '=HYPERLINK(...)' (an upload chooses the names under the points
+    skeleton) ran as a formula when a result CSV was opened in a spreadsheet."""
+    import csv
+    import dataclasses
+
+    res = _result()
+    evil = ['=HYPERLINK("http://evil.example","x")', "+1+cmd|' /C calc'!A0", "-2+3", "@SUM(A1:A2)", "\tx"]
+    res = dataclasses.replace(res, markers=evil + list(res.markers[len(evil):]))
+    write_anipose_csv(tmp_path / "run.csv", res)
+    paths = write_reprojections_dlc(tmp_path / "reproj", res)
+    for path in [tmp_path / "run.csv", *paths]:
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+            for row in rows[:1] if path.name == "run.csv" else rows[:3]:  # the header rows: names
+                for cell in row:
+                    assert not cell.startswith(("=", "+", "-", "@", "\t", "\r")), (path.name, cell)
+    assert "'=HYPERLINK" in (tmp_path / "run.csv").read_text().splitlines()[0]
+    assert read_keypoints(paths[0]).bodyparts[:2] == ["'" + evil[0], "'" + evil[1]]

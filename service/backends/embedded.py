@@ -6,7 +6,9 @@ watches it. A process per job means a cancel kills exactly that solve (gtsam's o
 GIL and cannot be interrupted from Python), and a solve that crashes takes nothing else with it.
 
 Processes come from a *forkserver* that imported the solver (and, with ``warm_start``, ran it once
-so numba's kernels are compiled): forking a job costs milliseconds, not an import and a JIT.
+so numba's kernels are compiled): forking a job costs milliseconds, not an import and a JIT. The
+forkserver starts with the server; until it is up no job is started (their progress says
+``compiling``) and ``/healthz`` says ``starting``.
 
 Crash safety:
 
@@ -30,7 +32,10 @@ from dataclasses import dataclass
 
 from service.backends.base import Backend, log
 from service.settings import Settings
-from service.store import Store
+from service.store import COMPILING, Store
+
+WAITING_FOR_SOLVER = ("starting: the solver's kernels are being compiled (once after an install or upgrade, "
+                      "about 1-2 minutes); jobs wait in the queue until then")
 
 
 @dataclass
@@ -67,6 +72,7 @@ class EmbeddedBackend(Backend):
         self._lock = threading.Lock()
         self._host = socket.gethostname()
         self._last_renew = 0.0
+        self._ready = threading.Event()  # the forkserver is up, with the solver compiled if warm_start
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -79,12 +85,18 @@ class EmbeddedBackend(Backend):
         """Start the forkserver (importing and warming the solver) now rather than at the first job."""
         from service.worker import noop
 
+        t0 = time.time()
         try:
             p = self._ctx.Process(target=noop, name="acinoset-forkserver-start", daemon=True)
             p.start()
             p.join()
         except Exception:
             log.exception("could not start the forkserver")
+        finally:
+            self._ready.set()
+            self._wake.set()
+        if time.time() - t0 > 5:
+            log.warning("the solver is ready (it compiled its kernels in %.0f s)", time.time() - t0)
 
     def stop(self) -> None:
         self._stop_thread()
@@ -113,8 +125,11 @@ class EmbeddedBackend(Backend):
 
     def health(self) -> dict:
         alive = self._thread_alive()
-        return {"ok": alive, "workers": self.settings.workers,
-                "detail": None if alive else "the scheduler thread is not running"}
+        ready = self._ready.is_set()
+        detail = None if alive else "the scheduler thread is not running"
+        if alive and not ready:
+            detail = WAITING_FOR_SOLVER if self.settings.warm_start else "starting the solve processes"
+        return {"ok": alive, "ready": ready, "workers": self.settings.workers, "detail": detail}
 
     # -- the scheduler -----------------------------------------------------------------------
 
@@ -129,19 +144,21 @@ class EmbeddedBackend(Backend):
             time.sleep(0.5)
 
     def _reap(self) -> None:
-        """Ended processes: a run that did not record its end was interrupted."""
+        """Ended processes: a run that did not record its end was interrupted. A run is forgotten
+        only once the table says so: if recording the interruption fails (a full disk, a locked
+        table), the run stays watched and the next tick tries again; dropping it first had left
+        its job ``running`` with no process until a restart."""
         with self._lock:
             ended = [r for r in self._runs.values() if r.process.exitcode is not None]
-            for r in ended:
-                del self._runs[r.job_id]
         for r in ended:
             code = r.process.exitcode
             r.process.join(timeout=1)
-            if r.cancelled:
-                continue
-            status = self.store.interrupt(r.job_id, r.token, _describe_exit(code))
-            if status is not None:
-                log.warning("job %s: %s; now %s", r.job_id, _describe_exit(code), status)
+            if not r.cancelled:
+                status = self.store.interrupt(r.job_id, r.token, _describe_exit(code))  # may raise: kept
+                if status is not None:
+                    log.warning("job %s: %s; now %s", r.job_id, _describe_exit(code), status)
+            with self._lock:
+                self._runs.pop(r.job_id, None)
             try:
                 r.process.close()
             except ValueError:
@@ -181,6 +198,9 @@ class EmbeddedBackend(Backend):
     def _fill(self) -> None:
         from service.worker import run_embedded
 
+        if not self._ready.is_set():  # a fork now would block this thread until the forkserver is up
+            self.store.mark_queued(self.name, COMPILING)
+            return
         while True:
             with self._lock:
                 if len(self._runs) >= self.settings.workers:

@@ -13,9 +13,19 @@
       "Your token was not accepted (it may have been revoked). Sign in again.";
   }
 
+  // Where to go after signing in: a path of this server only. The browser's own URL parser decides
+  // (it reads "/\\evil.example", "/\tevil" and "/%0a/evil" as other hosts, which a prefix check misses).
   function safeNext() {
     const next = params.get("next") || "/";
-    return next.startsWith("/") && !next.startsWith("//") && !next.startsWith("/login") ? next : "/";
+    if (!next.startsWith("/") || /[\\\u0000-\u001f\u007f]/.test(next)) return "/";
+    let url;
+    try {
+      url = new URL(next, location.origin);
+    } catch (e) {
+      return "/";
+    }
+    if (url.origin !== location.origin || url.pathname.startsWith("/login")) return "/";
+    return url.pathname + url.search + url.hash;
   }
 
   show.addEventListener("change", () => { input.type = show.checked ? "text" : "password"; });

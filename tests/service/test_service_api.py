@@ -272,8 +272,8 @@ def test_upload_and_frame_limits_answer_413(tmp_path, small_run):
             assert r.status_code == 413 and "MiB per job" in r.json()["detail"], r.text
             r = submit(c, small_run, FAST, calibration=one_cam, cams=small_run.cams[:1])
             assert r.status_code == 413, r.text
-            assert r.json()["detail"] == ("cam1.csv: 60 frames; this server takes at most 50 frames per file "
-                                          "(ACINOSET_MAX_FRAMES)")
+            assert r.json()["detail"] == ("cam1.csv: more than 50 frames; at most 50 frames per file on this "
+                                          "server (ACINOSET_MAX_FRAMES)")
             assert c.get("/v1/jobs").json()["total"] == 0
     finally:
         srv.stop()

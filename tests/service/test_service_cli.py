@@ -119,3 +119,31 @@ def test_an_admin_lists_and_prunes_old_jobs_while_the_server_runs(tmp_path, smal
             assert nobody.returncode == 2 and nobody.stderr.strip() == "acinoset jobs prune: no user named 'zed'"
     finally:
         server.stop()
+
+
+def test_the_data_dir_is_private_and_users_token_keeps_a_removed_user_out(tmp_path):
+    """Issue item 11: the data dir was created with the umask's rights (0755, files 0644), and
+    ``users token`` silently re-enabled a removed user."""
+    import stat
+
+    data = tmp_path / "data"
+    assert acinoset("users", "add", "max", "--data-dir", str(data)).returncode == 0
+    mode = lambda p: stat.S_IMODE(p.stat().st_mode)  # noqa: E731
+    assert mode(data) == 0o700 and mode(data / "jobs") == 0o700 and mode(data / "acinoset.db") == 0o600
+    assert acinoset("users", "remove", "max", "--data-dir", str(data)).returncode == 0
+    refused = acinoset("users", "token", "max", "--data-dir", str(data))
+    assert refused.returncode == 2 and "was removed; give --enable" in refused.stderr, refused
+    back = acinoset("users", "token", "max", "--enable", "--data-dir", str(data))
+    assert back.returncode == 0 and back.stdout.strip().splitlines()[-1].startswith("acn_")
+    # a data dir made before, with wider rights, is narrowed when the server starts
+    old = tmp_path / "old"
+    (old / "jobs").mkdir(parents=True)
+    old.chmod(0o755)
+    from servers import Server
+    srv = Server(old, tmp_path / "server.log", workers=1, env={"ACINOSET_WARM_START": "0"}).start()
+    try:
+        assert mode(old) == 0o700 and mode(old / "acinoset.db") == 0o600
+        files = [p for p in old.rglob("*") if p.is_file()]
+        assert files and all(mode(p) & 0o077 == 0 for p in files), [(p.name, oct(mode(p))) for p in files]
+    finally:
+        srv.stop()

@@ -4,6 +4,8 @@ tokens, unknown jobs, bad options and the spec. The real-server tests beside the
 from __future__ import annotations
 
 import json
+import time
+from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
@@ -32,11 +34,18 @@ def _auth(client, name: str) -> dict:
 
 def test_healthz_is_public_and_reports_an_idle_embedded_backend(app_client):
     r = app_client.get("/healthz")
+    deadline = time.time() + 60
+    while r.status_code == 503 and r.json()["status"] == "starting" and time.time() < deadline:
+        assert r.json()["ready"] is False and r.json()["detail"]  # not ready until its solve processes are
+        time.sleep(0.2)
+        r = app_client.get("/healthz")
     assert r.status_code == 200, r.text
     body = r.json()
-    assert body["status"] == "ok" and body["backend"] == "embedded"
+    assert body["status"] == "ok" and body["ready"] is True and body["backend"] == "embedded"
     assert body["version"] == graph.__version__
     assert body["workers"] == 1 and body["running"] == 0 and body["queued"] == 0
+    assert body["oldest_queued_seconds"] is None
+    assert 0 < body["disk"]["free_bytes"] <= body["disk"]["total_bytes"]
 
 
 def test_no_token_or_a_forged_one_is_401_with_a_bearer_challenge(app_client):
@@ -89,3 +98,114 @@ def test_the_served_spec_is_the_generated_one_and_docs_are_html(app_client):
     assert {"/v1/jobs", "/v1/jobs/{job_id}", "/healthz"} <= set(r.json()["paths"])
     docs = app_client.get("/docs")
     assert docs.status_code == 200 and docs.headers["content-type"].startswith("text/html")
+
+
+@pytest.mark.parametrize("options, says", [
+    ('{"motion_scale": NaN}', "options: motion_scale"),
+    ('{"fps": Infinity}', "options: fps"),
+    ('{"measurement_std_px": -Infinity}', "options: measurement_std_px"),
+    ('{"lag_seconds": -1}', "options: lag_seconds"),
+    ('{"max_iterations": 1000000000000}', "options: max_iterations"),
+])
+def test_nan_infinite_or_impossible_options_are_422_and_leave_nothing(app_client, options, says):
+    """Issue item 7: NaN passed validation, the job row failed to write (500) and the upload stayed on disk."""
+    jobs_dir = app_client.app.state.settings.jobs_dir
+    before = set(jobs_dir.iterdir())
+    files = [("keypoints", ("cam1.csv", b"not read", "text/csv")),
+             ("calibration", ("calibration.toml", b"not read either", "application/octet-stream"))]
+    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=files, data={"options": options})
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"].startswith(says), r.json()
+    assert set(jobs_dir.iterdir()) == before
+
+
+FLY = Path("/work/shared/data/eks_fly") if Path("/work/shared/data/eks_fly").is_dir() else None
+
+
+def _fly_files() -> list:
+    files = [("keypoints", (f"cam{x}.csv", (FLY / f"cam{x}.rng1.csv").read_bytes(), "text/csv")) for x in "ABC"]
+    files.append(("calibration", ("calibration.toml", (FLY / "calibration.toml").read_bytes(), "text/plain")))
+    return files
+
+
+@pytest.mark.skipif(FLY is None, reason="needs the fly recording")
+def test_a_skeleton_matching_no_bodypart_is_refused_at_upload_with_the_points_hint(app_client):
+    """Issue item 5: the fly's legs under the cheetah skeleton were accepted (202) and failed 0.4 s later."""
+    jobs_dir = app_client.app.state.settings.jobs_dir
+    before = set(jobs_dir.iterdir())
+    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=_fly_files(),
+                        data={"options": json.dumps({"method": "tri", "skeleton": "cheetah"})})
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert "matches a marker of the cheetah skeleton" in detail and '"skeleton": "points"' in detail
+    assert "L1A" in detail  # the file's bodyparts, so the user sees why
+    assert set(jobs_dir.iterdir()) == before
+    # the same files with the points skeleton are accepted
+    ok = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=_fly_files(),
+                         data={"options": json.dumps({"method": "tri", "skeleton": "points"})})
+    assert ok.status_code == 202, ok.text
+    app_client.delete(f"/v1/jobs/{ok.json()['id']}", headers=_auth(app_client, "ada"))
+
+
+def test_a_keypoint_file_with_too_many_bodyparts_is_413_before_its_rows_are_read(app_client):
+    """Issue item 6: a CSV with 1e6 columns was accepted and made every GET of its job 3.5 MB."""
+    wide = 3 * 20_000
+    csv = ("scorer" + ",s" * wide + "\nbodyparts" + "".join(f",b{j // 3}" for j in range(wide))
+           + "\ncoords" + ",x,y,likelihood" * (wide // 3) + "\n0" + ",1" * wide + "\n").encode()
+    files = [("keypoints", ("wide.csv", csv, "text/csv")),
+             ("calibration", ("calibration.toml", b"not read", "application/octet-stream"))]
+    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=files,
+                        data={"options": json.dumps({"method": "tri", "skeleton": "points"})})
+    assert r.status_code == 413, r.text
+    assert r.json()["detail"].startswith("wide.csv: ") and "(ACINOSET_MAX_BODYPARTS)" in r.json()["detail"]
+
+
+DEEP = 100_000
+
+
+@pytest.mark.parametrize("field, name, content", [
+    ("calibration", "calib.json", '{"cameras": ' + "[" * DEEP + "]" * DEEP + "}"),
+    ("calibration", "calib.toml", "a = " + "[" * DEEP + "]" * DEEP + "\n"),
+    ("calibration", "calib.toml", "a = " + "{b=" * 5000 + "1" + "}" * 5000 + "\n"),
+    ("skeleton", "body.toml", "a = " + "[" * DEEP + "]" * DEEP + "\n"),
+    ("options", None, '{"fps": ' + "[" * DEEP + "]" * DEEP + "}"),
+])
+def test_deeply_nested_files_and_options_are_422_not_a_recursion_error(app_client, small_run, field, name, content):
+    """Issue item 10: each of these raised RecursionError (a 500 and about 200 KB of log)."""
+    files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in small_run.cams]
+    data = {"options": json.dumps({"method": "tri", "skeleton": "points"})}
+    if field == "options":
+        data = {"options": content}
+    else:
+        files.append((field, (name, content.encode(), "application/octet-stream")))
+    if field != "calibration":
+        files.append(("calibration", ("calibration.toml", small_run.calibration.read_bytes(), "text/plain")))
+    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=files, data=data)
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"] == f"{name or 'options'}: arrays or tables nested too deeply (hundreds of levels inside each other)"
+
+
+@pytest.mark.parametrize("cursor", ["9" * 19, "9" * 30, "9" * 5000, "-1", "1e3", "\u0661"])
+def test_a_cursor_that_is_no_job_seq_is_422(app_client, cursor):
+    """Issue item 10: 30 digits raised OverflowError in SQLite, 5000 digits a ValueError (500s)."""
+    r = app_client.get("/v1/jobs", params={"cursor": cursor}, headers=_auth(app_client, "ada"))
+    assert r.status_code == 422 and r.json()["detail"].startswith("cursor:"), r.text
+
+
+@pytest.mark.parametrize("method, path, allow", [
+    ("PUT", "/v1/jobs/0123456789abcdef0123456789abcdef", "DELETE, GET"),
+    ("PATCH", "/v1/jobs", "GET, POST"),
+    ("POST", "/healthz", "GET"),
+])
+def test_a_405_names_every_method_the_path_answers(app_client, method, path, allow):
+    """Issue item 11: Starlette's Allow named the methods of the first route on the path only
+    (PUT /v1/jobs/{id} said 'GET', not 'DELETE, GET')."""
+    r = app_client.request(method, path, headers=_auth(app_client, "ada"))
+    assert r.status_code == 405 and r.headers["allow"] == allow, (r.status_code, r.headers.get("allow"))
+    assert r.json() == {"detail": "Method Not Allowed"}
+
+
+def test_a_body_that_is_not_multipart_is_400_in_one_line(app_client):
+    r = app_client.post("/v1/jobs", headers={**_auth(app_client, "ada"), "content-type": "multipart/form-data"},
+                        content=b"--xx\r\nbroken")  # no boundary
+    assert r.status_code == 400 and isinstance(r.json()["detail"], str), r.text

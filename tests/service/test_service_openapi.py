@@ -41,3 +41,15 @@ def test_the_api_names_the_clients_depend_on():
     assert {"stage", "iteration", "cost", "fraction"} <= set(doc["components"]["schemas"]["Progress"]["properties"])
     for p in ("/v1/skeletons", "/healthz", "/metrics"):
         assert "get" in paths[p]
+
+
+def test_the_spec_declares_the_bearer_scheme_and_the_refusals_of_a_submission():
+    """Issue item 11: the spec had no security scheme and no 400 for a body that is not multipart."""
+    doc = spec()
+    assert doc["components"]["securitySchemes"]["bearer"] == {
+        "type": "http", "scheme": "bearer", "description": doc["components"]["securitySchemes"]["bearer"]["description"]}
+    for path, ops in doc["paths"].items():
+        for method, op in ops.items():
+            assert (op.get("security") == [{"bearer": []}]) == path.startswith("/v1/"), (method, path)
+    submit = doc["paths"]["/v1/jobs"]["post"]["responses"]
+    assert {"400", "413", "422", "429", "507"} <= set(submit)

@@ -52,6 +52,12 @@ def test_new_token_revokes_the_old_and_remove_disables(store):
         store.add_user("../etc")
     with pytest.raises(StoreError, match="no user"):
         store.new_token("nobody")
+    # a removed user stays removed: a new token does not bring it back unless asked to (issue item 11)
+    with pytest.raises(StoreError, match="was removed; give --enable"):
+        store.new_token("bob")
+    assert store.user("bob").disabled
+    again = store.new_token("bob", enable=True)
+    assert store.authenticate(again).name == "bob" and not store.user("bob").disabled
 
 
 def test_claim_is_fair_between_users(store):

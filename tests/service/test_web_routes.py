@@ -26,7 +26,7 @@ def client(server) -> httpx.Client:
 
 def test_pages_are_html_and_load_only_local_scripts(client):
     c = client
-    for path in ("/", "/login", "/jobs/new", "/jobs/0123456789abcdef0123456789abcdef"):
+    for path in ("/", "/login", "/jobs/new", "/jobs/0123456789abcdef0123456789abcdef", "/docs"):
         r = c.get(path)
         assert r.status_code == 200, path
         assert r.headers["content-type"].startswith("text/html")
@@ -39,7 +39,7 @@ def test_pages_are_html_and_load_only_local_scripts(client):
 
 def test_every_page_has_one_h1_a_title_and_a_language(client):
     c = client
-    for path in ("/", "/login", "/jobs/new", "/jobs/abc"):
+    for path in ("/", "/login", "/jobs/new", "/jobs/abc", "/docs"):
         text = c.get(path).text
         assert '<html lang="en">' in text and "<title>" in text
         assert text.count("<h1") == 1, path
@@ -61,3 +61,17 @@ def test_static_files_are_confined_to_the_folder(client):
                 "/static/%2e%2e%2f%2e%2e%2fpyproject.toml"):
         assert c.get(bad).status_code == 404, bad
     assert c.get("/jobs/..%2F..%2Fetc").status_code == 404
+
+
+def test_every_answer_carries_a_content_security_policy_and_docs_load_nothing_from_elsewhere(client):
+    """Issue item 11: /docs loaded swagger-ui from a CDN without SRI on the origin where the token
+    lives, and no answer had a Content-Security-Policy."""
+    for path in ("/", "/login", "/docs", "/healthz", "/openapi.json", "/v1/jobs", "/static/app.css", "/nope"):
+        r = client.get(path)
+        csp = r.headers.get("content-security-policy", "")
+        assert "default-src 'self'" in csp and "script-src 'self';" in csp and "frame-ancestors 'none'" in csp, path
+        assert r.headers["x-content-type-options"] == "nosniff", path
+    docs = client.get("/docs").text
+    assert "<script" not in docs and "cdn" not in docs.lower() and "http" not in docs.replace("/openapi.json", "")
+    assert "/v1/jobs/{job_id}/result" in docs and "Submit a job" in docs
+    assert client.get("/redoc").status_code == 404
