@@ -47,15 +47,30 @@ def write_dlc_h5(path: Path, bodyparts: list[str], xy: np.ndarray, likelihood: n
     pd.DataFrame(values, columns=columns).to_hdf(path, key="df_with_missing", format="table", mode="w")
 
 
+DEFAULT_SESSIONS = {"2026-11-30": ["run1", "run2"], "2026-12-01": ["run3"]}
+
+
+def simulated_trials(sessions: dict[str, list[str]] | None = None, frames: int = 100, fps: float = 120.0,
+                     seed: int = 0):
+    """``(session, trial, SimulatedRun)`` for every trial, the k-th simulated with seed ``seed + k``
+    (the same runs :func:`write_project` writes, with their truth)."""
+    from graph.simulate import simulate_run
+
+    cal = rig()
+    k = 0
+    for session, trials in (sessions or DEFAULT_SESSIONS).items():
+        for trial in trials:
+            yield session, trial, simulate_run(cal, frames=frames, fps=fps, seed=seed + k, bodyparts=BODYPARTS)
+            k += 1
+
+
 def write_project(root: str | Path, sessions: dict[str, list[str]] | None = None, frames: int = 100,
                   fps: float = 120.0, optim: bool = True, extra_config: str = "", seed: int = 0) -> Path:
     """Write the project; returns its folder. ``sessions``: session -> trial names (default two
     sessions, three trials). The first session has its own calibration, the others find the
     project's by searching upward."""
-    from graph.simulate import simulate_run
-
     root = Path(root)
-    sessions = sessions or {"2026-11-30": ["run1", "run2"], "2026-12-01": ["run3"]}
+    sessions = sessions or DEFAULT_SESSIONS
     cal = rig()
     root.mkdir(parents=True, exist_ok=True)
     constraints = ", ".join(f'["{a}", "{b}"]' for a, b in CONSTRAINTS)
@@ -84,16 +99,12 @@ fps = {fps!r}
 {extra_config}""", encoding="utf-8")
     (root / "calibration").mkdir(exist_ok=True)
     write_anipose_toml(root / "calibration" / "calibration.toml", cal)
-    k = 0
-    for s, (session, trials) in enumerate(sessions.items()):
-        if s == 0:
-            (root / session / "calibration").mkdir(parents=True, exist_ok=True)
-            write_anipose_toml(root / session / "calibration" / "calibration.toml", cal)
+    first = next(iter(sessions))
+    (root / first / "calibration").mkdir(parents=True, exist_ok=True)
+    write_anipose_toml(root / first / "calibration" / "calibration.toml", cal)
+    for session, trial, run in simulated_trials(sessions, frames, fps, seed):
         pose = root / session / "pose-2d"
         pose.mkdir(parents=True, exist_ok=True)
-        for trial in trials:
-            run = simulate_run(cal, frames=frames, fps=fps, seed=seed + k, bodyparts=BODYPARTS)
-            k += 1
-            for name, kp in zip(CAMERAS, run.keypoints):
-                write_dlc_h5(pose / f"{trial}_{name}.h5", kp.bodyparts, kp.xy, kp.likelihood)
+        for name, kp in zip(CAMERAS, run.keypoints):
+            write_dlc_h5(pose / f"{trial}_{name}.h5", kp.bodyparts, kp.xy, kp.likelihood)
     return root
