@@ -12,10 +12,18 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field
 
 from graph.types import STAGES as SOLVER_STAGES
-from service.jobfiles import RESULT_FILES
+from service.jobfiles import DOWNLOADS, RESULT_FILES
 from service.store import DONE, READING, STARTING, WRITING, Job, JobStatus
 
-ResultFormat = Literal[tuple(RESULT_FILES)]  # type: ignore[valid-type]  # the download formats
+ResultFormat = Literal[tuple(DOWNLOADS)]  # type: ignore[valid-type]  # the download formats
+
+
+def offered_formats() -> list[str]:
+    """The download formats this server can give: its own files, and the exports whose libraries
+    are installed here."""
+    from graph.export import available
+
+    return [f for f in DOWNLOADS if f in RESULT_FILES or available(f)]
 # What a job's progress can say it is doing, in order: the service's own stages around the solver's
 # (each method reports only some of those); the solver's "done" comes before the results are written.
 STAGES: tuple[str, ...] = (STARTING, READING, *(s for s in SOLVER_STAGES if s != DONE), WRITING, DONE)
@@ -73,7 +81,7 @@ class ResultSummary(BaseModel):
     outliers: int | None = None
     seconds: dict[str, float | None] = Field(default_factory=dict)
     warnings: list[str] = Field(default_factory=list)
-    formats: list[ResultFormat] = Field(default_factory=lambda: list(RESULT_FILES))
+    formats: list[ResultFormat] = Field(default_factory=offered_formats)
 
 
 class Links(BaseModel):
@@ -169,5 +177,5 @@ def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
         options=job.options, inputs=Inputs(**job.inputs), error=job.error, interruption=job.interruption,
         worker=job.worker, result=summary_of(job.summary) if job.status == "succeeded" else None,
         links=Links(self=href,
-                    result={f: f"{href}/result?format={f}" for f in RESULT_FILES} if job.status == "succeeded" else None,
+                    result={f: f"{href}/result?format={f}" for f in offered_formats()} if job.status == "succeeded" else None,
                     cancel=href))

@@ -13,7 +13,7 @@ from graph.skeleton import available_skeletons, load_skeleton
 from service import metrics
 from service.auth import current_user
 from service.jobs import JobService, Upload
-from service.jobfiles import RESULT_FILES, download_name
+from service.jobfiles import DOWNLOADS, download_name
 from service.models import (ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
                             SkeletonOut, job_out)
 from service.backends.base import Backend
@@ -128,14 +128,19 @@ async def get_job(job_id: str, user: CurrentUser, jobs: Jobs) -> JobOut:
     responses={200: {"description": "The result file", "content": {
                    "text/csv": {"schema": {"type": "string"}},
                    "application/x-hdf5": {"schema": {"type": "string", "format": "binary"}},
-                   "application/json": {"schema": {"type": "object"}}}},
+                   "application/json": {"schema": {"type": "object"}},
+                   "text/plain": {"schema": {"type": "string"}},
+                   "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}},
                **NOT_FOUND, 409: _err("The job has not succeeded (yet)")})
 def get_result(job_id: str, user: CurrentUser, jobs: Jobs,
                format: Annotated[ResultFormat, Query(
                    description="csv: Anipose 3D CSV; h5: everything, HDF5; json: positions and std as JSON; "
-                               "report: the solve report")] = "csv") -> FileResponse:
+                               "report: the solve report; nwb: NWB with ndx-pose; trc: OpenSim TRC (m); c3d: C3D "
+                               "(mm); csv-var: EKS's 3D CSV with posterior variances. The last four are made "
+                               "on the first download (nwb and c3d where the server has acinoset[export])")
+               ] = "csv") -> FileResponse:
     path = jobs.result_file(user, job_id, format)
-    return FileResponse(path, media_type=RESULT_FILES[format][1], filename=download_name(job_id, format))
+    return FileResponse(path, media_type=DOWNLOADS[format][1], filename=download_name(job_id, format))
 
 
 @router.delete(

@@ -22,7 +22,7 @@ from graph.errors import InputError
 from graph.export.base import ExportInput, load_input
 from graph.types import Result
 
-__all__ = ["FORMATS", "EXTENSIONS", "ExportInput", "export", "load_input"]
+__all__ = ["FORMATS", "EXTENSIONS", "ExportInput", "available", "export", "load_input"]
 
 # format -> (module, default file extension)
 _MODULES: dict[str, tuple[str, str]] = {
@@ -33,6 +33,15 @@ _MODULES: dict[str, tuple[str, str]] = {
 }
 FORMATS: tuple[str, ...] = tuple(_MODULES)
 EXTENSIONS: dict[str, str] = {fmt: ext for fmt, (_, ext) in _MODULES.items()}
+# the optional libraries each format needs (the ``export`` extra)
+NEEDS: dict[str, tuple[str, ...]] = {"nwb": ("pynwb", "ndx_pose"), "c3d": ("ezc3d",)}
+
+
+def available(format: str) -> bool:
+    """Whether this install can write ``format`` (its libraries are installed; nothing is imported)."""
+    import importlib.util
+
+    return format in _MODULES and all(importlib.util.find_spec(m) is not None for m in NEEDS.get(format, ()))
 
 
 def export(source: str | Path | Result, format: str, out: str | Path, *,
