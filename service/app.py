@@ -105,6 +105,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(title="acinoset", version=graph.__version__, description=DESCRIPTION, lifespan=lifespan)
     app.state.settings = settings
     app.add_middleware(UploadGuard, settings=settings, error_status=JOB_ERROR_STATUS)
+    app.add_middleware(UploadGuard, settings=settings, error_status=JOB_ERROR_STATUS, path="/v1/batches")
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException):

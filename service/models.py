@@ -24,6 +24,8 @@ def offered_formats() -> list[str]:
     from graph.export import available
 
     return [f for f in DOWNLOADS if f in RESULT_FILES or available(f)]
+
+
 # What a job's progress can say it is doing, in order: the service's own stages around the solver's
 # (each method reports only some of those); the solver's "done" comes before the results are written.
 STAGES: tuple[str, ...] = (STARTING, READING, *(s for s in SOLVER_STAGES if s != DONE), WRITING, DONE)
@@ -179,3 +181,39 @@ def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
         links=Links(self=href,
                     result={f: f"{href}/result?format={f}" for f in offered_formats()} if job.status == "succeeded" else None,
                     cancel=href))
+
+
+# -- batches ---------------------------------------------------------------------------------------
+
+BatchStatus = Literal["running", "succeeded", "partial", "failed"]
+
+
+class BatchTrial(BaseModel):
+    trial: str = Field(description="session/trial, as acinoset anipose names it")
+    job_id: str | None = Field(None, description="the trial's job (none if it was refused)")
+    status: Literal["queued", "running", "succeeded", "failed", "cancelled", "refused", "deleted"]
+    error: str | None = Field(None, description="why it was refused or failed")
+    link: str | None = Field(None, description="the job")
+
+
+class BatchOut(BaseModel):
+    id: str
+    owner: str
+    created_at: datetime
+    project: str = Field(description="the project folder's name")
+    status: BatchStatus = Field(description="running while any job is queued or running; then succeeded (all), "
+                                            "failed (none) or partial")
+    counts: dict[str, int] = Field(description="trials per status")
+    trials: list[BatchTrial]
+    ignored: list[str] = Field(default_factory=list, description="config.toml keys with no equivalent here")
+    notes: list[str] = Field(default_factory=list, description="what was skipped while reading the project")
+    links: dict[str, str]
+
+
+def batch_out(view: dict, base: str = "/v1") -> BatchOut:
+    """A batch as the API shows it, from :meth:`service.batches.BatchService.status`."""
+    trials = [BatchTrial(**t, link=f"{base}/jobs/{t['job_id']}" if t.get("job_id") else None)
+              for t in view["trials"]]
+    return BatchOut(id=view["id"], owner=view["owner"], created_at=_ts(view["created_at"]), project=view["project"],
+                    status=view["status"], counts=view["counts"], trials=trials, ignored=view["ignored"],
+                    notes=view["notes"], links={"self": f"{base}/batches/{view['id']}"})
