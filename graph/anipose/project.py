@@ -148,6 +148,9 @@ def load_project(folder: str | Path = ".") -> Project:
         rel = os.path.relpath(session, root)
         poses = sorted((session / pose_dir).glob("*.h5"))
         if not poses:
+            if pose_dir != pipeline["pose_2d"] and any((session / pipeline["pose_2d"]).glob("*.h5")):
+                notes.append(f"{rel}: [filter] enabled but no {pose_dir}/ (run anipose filter, or set "
+                             "enabled = false: the robust loss stands in for it): skipped")
             continue
         if cal_dir is None:
             notes.append(f"{rel}: no '{pipeline['calibration_videos']}' folder in it or above it: skipped")
