@@ -50,6 +50,9 @@ COMMANDS: tuple[Command, ...] = (
             "simulate a cheetah run on a rig and write DeepLabCut CSVs, calibration and truth"),
     Command("demo", "graph.demo", "simulate a cheetah run on the AcinoSet rig and solve it with every method"),
     Command("plot", "graph.plot", "draw a solved run: PNG figures and an HTML playback file"),
+    Command("anipose", "graph.anipose.cli",
+            "solve an Anipose project's trials unchanged (config.toml, pose-2d, calibration) into pose-3d"),
+    Command("export", "graph.export.cli", "write a solved run as NWB (ndx-pose), OpenSim TRC, C3D or EKS's CSV"),
 )
 
 
@@ -273,7 +276,7 @@ def run_solve(args: argparse.Namespace) -> int:
     written = [args.out]
     io.write_anipose_csv(args.out, result)
     if args.h5:
-        io.write_h5(args.h5, result)
+        io.write_h5(args.h5, result, calibration=calibration)
         written.append(args.h5)
     if args.report:
         Path(args.report).write_text(json.dumps(result.report.to_dict(), indent=2) + "\n", encoding="utf-8")

@@ -8,7 +8,8 @@
   was used, ``ncams`` those cameras' count, ``score`` their mean likelihood.
 * :func:`write_h5` / :func:`read_result`: everything in a :class:`graph.api.Result`, as plain
   HDF5 datasets (no pickles): arrays under their field names, names as UTF-8 string datasets,
-  options and report as JSON attributes.
+  options and report as JSON attributes; optionally the calibration solved with, in metres
+  (:func:`read_calibration`), so exports can carry the rig.
 * :func:`write_reprojections_dlc`: the estimate drawn into each camera, one DeepLabCut CSV per
   camera (likelihood 1 where there is an estimate), to overlay on the videos with DLC's tools.
 """
@@ -25,6 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from graph import __version__
+from graph.calibration import in_metres
+from graph.camera import Calibration, Camera
 from graph.errors import InputError
 from graph.keypoints import spreadsheet_safe
 from graph.keypoints import Keypoints, write_dlc_csv
@@ -133,8 +136,9 @@ def _cell(v: float) -> str:
 # ------------------------------------------------------------------------------------ HDF5 archive
 
 
-def write_h5(path: str | Path, result: Result) -> None:
-    """Everything in ``result`` as plain HDF5 (readable from any language; no pickles)."""
+def write_h5(path: str | Path, result: Result, calibration: Calibration | None = None) -> None:
+    """Everything in ``result`` as plain HDF5 (readable from any language; no pickles); with
+    ``calibration`` (the one solved with), also the rig in metres (:func:`read_calibration`)."""
     import h5py
 
     with h5py.File(path, "w") as f:
@@ -170,6 +174,41 @@ def write_h5(path: str | Path, result: Result) -> None:
         if rep.time_offsets_frames is not None:
             f.create_dataset("time_offsets_frames", data=np.asarray(rep.time_offsets_frames, dtype=float))
             f.create_dataset("time_offsets_std_frames", data=np.asarray(rep.time_offsets_std_frames, dtype=float))
+        if calibration is not None:
+            _write_calibration(f, in_metres(calibration, result.options.calibration_units)[0])
+
+
+def _write_calibration(f, calibration: Calibration) -> None:
+    """Group ``calibration``: per camera (C) ``names``, ``models`` (fisheye|pinhole), ``size`` (C, 2) px,
+    ``K`` (C, 3, 3), ``R`` (C, 3, 3) and ``t`` (C, 3) m with ``X_c = R X_w + t``, ``dist`` (C, 5)
+    (fisheye: k1..k4 then NaN; pinhole: k1, k2, p1, p2, k3)."""
+    g = f.create_group("calibration")
+    g.attrs["units"] = "m"
+    g.attrs["source"] = calibration.source or ""
+    cams = calibration.cameras
+    _strings(g, "names", calibration.names)
+    _strings(g, "models", [c.model for c in cams])
+    g.create_dataset("size", data=np.array([c.size for c in cams], dtype=np.int64).reshape(-1, 2))
+    for name in ("K", "R"):
+        g.create_dataset(name, data=np.stack([getattr(c, name) for c in cams]))
+    g.create_dataset("t", data=np.stack([c.t for c in cams]))
+    g.create_dataset("dist", data=np.stack([np.pad(c.dist, (0, 5 - c.dist.size), constant_values=np.nan)
+                                            for c in cams]))
+
+
+def read_calibration(path: str | Path) -> Calibration | None:
+    """The rig (metres) a result file was solved with, or None if the file does not hold it."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if "calibration" not in f:
+            return None
+        g = f["calibration"]
+        names, models = _read_strings(g, "names"), _read_strings(g, "models")
+        K, R, t, dist, size = (g[k][()] for k in ("K", "R", "t", "dist", "size"))
+        cams = [Camera(K=K[i], dist=dist[i][np.isfinite(dist[i])], R=R[i], t=t[i], model=models[i],
+                       size=tuple(size[i]), name=names[i]) for i in range(len(names))]
+        return Calibration(cameras=cams, source=_attr(g, "source") or "", metadata={"units": "m"})
 
 
 def read_result(path: str | Path) -> Result:

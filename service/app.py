@@ -127,6 +127,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   docs_url=None, redoc_url=None)
     app.state.settings = settings
     app.add_middleware(UploadGuard, settings=settings, error_status=JOB_ERROR_STATUS)
+    app.add_middleware(UploadGuard, settings=settings, error_status=JOB_ERROR_STATUS, path="/v1/batches")
     app.add_middleware(SecurityHeaders)  # outermost: on every answer, the guard's refusals included
 
     @app.exception_handler(StarletteHTTPException)

@@ -3,7 +3,8 @@
 A job's directory, ``<data dir>/jobs/<id>`` (:func:`job_dir`; ids match :data:`JOB_ID`)::
 
     input/                             the upload, as stored by the API (below)
-    result/                            :data:`RESULT_FILES`, one per download format, once succeeded
+    result/                            :data:`RESULT_FILES`, one per download format, once succeeded;
+                                       :data:`EXPORT_FILES` made from result.h5 when first downloaded
     result.<run token>.tmp/            a run's results being written (:func:`result_tmp`), then
                                        moved to result/ when the run is recorded (:func:`install_result`)
     error.log                          tracebacks of failed runs (embedded)
@@ -44,6 +45,14 @@ RESULT_FILES: dict[str, tuple[str, str]] = {  # download format: (file in the jo
     "report": ("report.json", "application/json"),
 }
 RESULT_NAMES: tuple[str, ...] = tuple(file for file, _ in RESULT_FILES.values())
+# formats written from result.h5 when first asked for (graph.export), then kept beside it
+EXPORT_FILES: dict[str, tuple[str, str]] = {
+    "nwb": ("result.nwb", "application/x-hdf5"),
+    "trc": ("result.trc", "text/plain"),
+    "c3d": ("result.c3d", "application/octet-stream"),
+    "csv-var": ("result.var.csv", "text/csv"),
+}
+DOWNLOADS: dict[str, tuple[str, str]] = {**RESULT_FILES, **EXPORT_FILES}
 
 
 def new_job_id() -> str:
@@ -79,12 +88,12 @@ def install_result(job_dir: Path, tmp: Path) -> None:
 
 
 def result_path(job_dir: Path, fmt: str) -> Path:
-    return job_dir / RESULT / RESULT_FILES[fmt][0]
+    return job_dir / RESULT / DOWNLOADS[fmt][0]
 
 
 def download_name(job_id: str, fmt: str) -> str:
     """The file name a download of format ``fmt`` is offered under: ``<id>.csv``, ``<id>.report.json``."""
-    return f"{job_id}.{RESULT_FILES[fmt][0].removeprefix(RESULT + '.')}"
+    return f"{job_id}.{DOWNLOADS[fmt][0].removeprefix(RESULT + '.')}"
 
 
 def disk_bytes(path: Path) -> int:

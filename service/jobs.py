@@ -19,6 +19,7 @@ import re
 import shutil
 import sqlite3
 import threading
+import uuid
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
@@ -27,7 +28,7 @@ from service import jobfiles
 from service.backends.base import Backend
 from service.errors import (DISK_FULL, Forbidden, NoSpace, NotFound, NotReady, TooLarge, TooMany, Unprocessable,
                             storage_full)
-from service.jobfiles import (CALIBRATION_DIR, INPUT, JOB_ID, RESULT_FILES, SKELETON_DIR, keypoints_dir,
+from service.jobfiles import (CALIBRATION_DIR, INPUT, JOB_ID, SKELETON_DIR, keypoints_dir,
                               new_job_id, result_path, staging_dir)
 from service.settings import Settings
 from service.store import STATUSES, Job, QuotaExceeded, Store, User
@@ -307,14 +308,16 @@ class JobService:
         return jobs, total, (str(jobs[-1].seq) if more and jobs else None)
 
     def result_file(self, user: User, job_id: str, fmt: str) -> Path:
-        """The job's result file of download format ``fmt`` (:data:`service.jobfiles.RESULT_FILES`)."""
+        """The job's result file of download format ``fmt`` (:data:`service.jobfiles.DOWNLOADS`)."""
         job = self.visible(user, job_id)
         if job.status != "succeeded":
             why = f": {job.error}" if job.status == "failed" and job.error else ""
             raise NotReady(f"job {job_id} is {job.status}{why}; its result is ready when it succeeded")
         path = result_path(jobfiles.job_dir(self.settings.jobs_dir, job.id), fmt)
+        if fmt in jobfiles.EXPORT_FILES and not path.is_file():
+            export_result(jobfiles.job_dir(self.settings.jobs_dir, job.id), fmt)
         if not path.is_file():
-            raise NotFound(f"job {job_id} has no {RESULT_FILES[fmt][0]} (its result files were removed)")
+            raise NotFound(f"job {job_id} has no {jobfiles.DOWNLOADS[fmt][0]} (its result files were removed)")
         return path
 
     # -- cancel, delete ----------------------------------------------------------------------
@@ -331,3 +334,25 @@ class JobService:
             return now
         delete_finished(self.store, self.settings.jobs_dir, job.id)
         return None
+
+
+def export_result(job_dir: Path, fmt: str) -> None:
+    """Write the export ``fmt`` of a succeeded job from its result.h5 and its uploaded calibration
+    (:func:`graph.export.export`), under a temporary name first, so concurrent downloads of the same
+    format each see a whole file."""
+    from graph.export import available, export
+
+    if not available(fmt):
+        raise Unprocessable(f"this server cannot write {fmt}: it needs acinoset[export] installed")
+    h5 = result_path(job_dir, "h5")
+    if not h5.is_file():
+        return
+    input_dir = job_dir / INPUT
+    calibration = jobfiles.inside(input_dir, jobfiles.read_manifest(input_dir)["calibration"])
+    target = result_path(job_dir, fmt)
+    tmp_dir = target.parent / f".export-{uuid.uuid4().hex}"  # the file keeps its name (TRC writes it inside)
+    tmp_dir.mkdir()
+    try:
+        os.replace(export(h5, fmt, tmp_dir / target.name, calibration=calibration), target)
+    finally:
+        shutil.rmtree(tmp_dir, ignore_errors=True)

@@ -12,10 +12,20 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field
 
 from graph.types import STAGES as SOLVER_STAGES
-from service.jobfiles import RESULT_FILES
+from service.jobfiles import DOWNLOADS, RESULT_FILES
 from service.store import COMPILING, DONE, READING, STARTING, WRITING, Job, JobStatus
 
-ResultFormat = Literal[tuple(RESULT_FILES)]  # type: ignore[valid-type]  # the download formats
+ResultFormat = Literal[tuple(DOWNLOADS)]  # type: ignore[valid-type]  # the download formats
+
+
+def offered_formats() -> list[str]:
+    """The download formats this server can give: its own files, and the exports whose libraries
+    are installed here."""
+    from graph.export import available
+
+    return [f for f in DOWNLOADS if f in RESULT_FILES or available(f)]
+
+
 # What a job's progress can say it is doing, in order: the service's own stages around the solver's
 # (each method reports only some of those); the solver's "done" comes before the results are written.
 STAGES: tuple[str, ...] = (COMPILING, STARTING, READING, *(s for s in SOLVER_STAGES if s != DONE), WRITING, DONE)
@@ -73,7 +83,7 @@ class ResultSummary(BaseModel):
     outliers: int | None = None
     seconds: dict[str, float | None] = Field(default_factory=dict)
     warnings: list[str] = Field(default_factory=list)
-    formats: list[ResultFormat] = Field(default_factory=lambda: list(RESULT_FILES))
+    formats: list[ResultFormat] = Field(default_factory=offered_formats)
 
 
 class Links(BaseModel):
@@ -181,5 +191,41 @@ def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
         options=job.options, inputs=Inputs(**job.inputs), error=job.error, interruption=job.interruption,
         worker=job.worker, result=summary_of(job.summary) if job.status == "succeeded" else None,
         links=Links(self=href,
-                    result={f: f"{href}/result?format={f}" for f in RESULT_FILES} if job.status == "succeeded" else None,
+                    result={f: f"{href}/result?format={f}" for f in offered_formats()} if job.status == "succeeded" else None,
                     cancel=href))
+
+
+# -- batches ---------------------------------------------------------------------------------------
+
+BatchStatus = Literal["running", "succeeded", "partial", "failed"]
+
+
+class BatchTrial(BaseModel):
+    trial: str = Field(description="session/trial, as acinoset anipose names it")
+    job_id: str | None = Field(None, description="the trial's job (none if it was refused)")
+    status: Literal["queued", "running", "succeeded", "failed", "cancelled", "refused", "deleted"]
+    error: str | None = Field(None, description="why it was refused or failed")
+    link: str | None = Field(None, description="the job")
+
+
+class BatchOut(BaseModel):
+    id: str
+    owner: str
+    created_at: datetime
+    project: str = Field(description="the project folder's name")
+    status: BatchStatus = Field(description="running while any job is queued or running; then succeeded (all), "
+                                            "failed (none) or partial")
+    counts: dict[str, int] = Field(description="trials per status")
+    trials: list[BatchTrial]
+    ignored: list[str] = Field(default_factory=list, description="config.toml keys with no equivalent here")
+    notes: list[str] = Field(default_factory=list, description="what was skipped while reading the project")
+    links: dict[str, str]
+
+
+def batch_out(view: dict, base: str = "/v1") -> BatchOut:
+    """A batch as the API shows it, from :meth:`service.batches.BatchService.status`."""
+    trials = [BatchTrial(**t, link=f"{base}/jobs/{t['job_id']}" if t.get("job_id") else None)
+              for t in view["trials"]]
+    return BatchOut(id=view["id"], owner=view["owner"], created_at=_ts(view["created_at"]), project=view["project"],
+                    status=view["status"], counts=view["counts"], trials=trials, ignored=view["ignored"],
+                    notes=view["notes"], links={"self": f"{base}/batches/{view['id']}"})

@@ -15,10 +15,11 @@ from graph.errors import InputError
 from graph.skeleton import available_skeletons, load_skeleton
 from service import metrics
 from service.auth import current_user
+from service.batches import BatchService
 from service.jobs import JobService, Upload
-from service.jobfiles import RESULT_FILES, download_name
-from service.models import (Disk, ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
-                            SkeletonOut, job_out)
+from service.jobfiles import DOWNLOADS, download_name
+from service.models import (BatchOut, Disk, ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
+                            SkeletonOut, batch_out, job_out)
 from service.backends.base import Backend
 from service.settings import Settings
 from service.store import Store, User
@@ -139,14 +140,19 @@ async def get_job(job_id: str, user: CurrentUser, jobs: Jobs) -> JobOut:
     responses={200: {"description": "The result file", "content": {
                    "text/csv": {"schema": {"type": "string"}},
                    "application/x-hdf5": {"schema": {"type": "string", "format": "binary"}},
-                   "application/json": {"schema": {"type": "object"}}}},
+                   "application/json": {"schema": {"type": "object"}},
+                   "text/plain": {"schema": {"type": "string"}},
+                   "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}},
                **NOT_FOUND, 409: _err("The job has not succeeded (yet)")})
 def get_result(job_id: str, user: CurrentUser, jobs: Jobs,
                format: Annotated[ResultFormat, Query(
                    description="csv: Anipose 3D CSV; h5: everything, HDF5; json: positions and std as JSON; "
-                               "report: the solve report")] = "csv") -> FileResponse:
+                               "report: the solve report; nwb: NWB with ndx-pose; trc: OpenSim TRC (m); c3d: C3D "
+                               "(mm); csv-var: EKS's 3D CSV with posterior variances. The last four are made "
+                               "on the first download (nwb and c3d where the server has acinoset[export])")
+               ] = "csv") -> FileResponse:
     path = jobs.result_file(user, job_id, format)
-    return FileResponse(path, media_type=RESULT_FILES[format][1], filename=download_name(job_id, format))
+    return FileResponse(path, media_type=DOWNLOADS[format][1], filename=download_name(job_id, format))
 
 
 @router.delete(
@@ -159,6 +165,41 @@ def delete_job(job_id: str, user: CurrentUser, jobs: Jobs):
     if job is None:
         return Response(status_code=204)
     return job_out(job)
+
+
+async def _batches(request: Request) -> BatchService:
+    return BatchService(request.app.state.jobs)
+
+
+Batches = Annotated[BatchService, Depends(_batches)]
+
+
+@router.post(
+    "/v1/batches", status_code=202, response_model=BatchOut, tags=["batches"],
+    summary="Submit an Anipose project: a job per trial",
+    responses={413: _err("The archive is over this server's upload limit"),
+               422: _err("Not a zip, no config.toml, no trials, or bad options"),
+               429: _err("More trials than the caller may still queue")})
+def submit_batch(
+    user: CurrentUser, batches: Batches, response: Response,
+    project: Annotated[UploadFile, File(description="zip archive of an Anipose project: config.toml at its top "
+                                                    "(or in its one top folder), sessions, pose-2d/*.h5, calibration/")],
+    options: Annotated[str, Form(description="JSON object of solve options overriding the project's "
+                                             "(config.toml [triangulation] and [acinoset])")] = "{}",
+) -> BatchOut:
+    """Read the project as ``acinoset anipose`` does and queue every trial as a job. A trial whose
+    files the readers refuse is listed with its error; the others are queued."""
+    record = batches.submit(user, Upload(project.filename, project.file), options)
+    out = batch_out(batches.status(record))
+    response.headers["Location"] = out.links["self"]
+    return out
+
+
+@router.get("/v1/batches/{batch_id}", response_model=BatchOut, tags=["batches"], summary="A batch's status",
+            responses=NOT_FOUND)
+def get_batch(batch_id: str, user: CurrentUser, batches: Batches) -> BatchOut:
+    """Each trial's job and status, the counts per status and the batch's status."""
+    return batch_out(batches.status(batches.visible(user, batch_id)))
 
 
 @router.get("/v1/skeletons", response_model=list[SkeletonOut], tags=["reference"], summary="Skeletons")

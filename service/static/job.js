@@ -25,6 +25,10 @@
     h5: ["HDF5", "everything: positions, uncertainty, reprojections, residuals, pose parameters", "h5"],
     json: ["JSON", "what this page draws, for your own plots", "json"],
     report: ["Report", "the solver's report (JSON)", "report.json"],
+    nwb: ["NWB", "Neurodata Without Borders with ndx-pose: markers, skeleton, cameras' calibration, sd", "nwb"],
+    trc: ["TRC", "OpenSim marker file, metres", "trc"],
+    c3d: ["C3D", "biomechanics point data, mm, with residuals", "c3d"],
+    "csv-var": ["CSV with variances", "EKS's 3D layout: x, y, z and their posterior variances", "var.csv"],
   };
   let lastStatus = null;
   let timer = null;

@@ -1,0 +1,280 @@
+"""An Anipose project read as Anipose reads it: ``config.toml``, sessions, trials, calibrations.
+
+What ``anipose triangulate`` does, and so what this does (lambdaloop/anipose, ``anipose.py``
+``load_config``, ``common.py`` ``process_all`` / ``find_calibration_folder`` / ``get_cam_name`` /
+``get_video_name``, ``triangulate.py`` ``process_session``):
+
+* ``config.toml`` at the project's top, with Anipose's defaults for missing keys. ``path`` (if it
+  exists on this machine) is the project folder, else the config's folder.
+* Sessions by ``nesting``: 0 the project folder itself; k the folders k levels down (sorted);
+  -1 every folder at every level.
+* A session's calibration: from the session folder up ``nesting`` levels, the first folder holding
+  a ``[pipeline] calibration_videos`` folder (default ``calibration``); the file is
+  ``<that>/<calibration_results>/calibration.toml``.
+* Its 2D poses: ``<session>/<pose_2d>/*.h5`` (``pose-2d``; ``pose-2d-filtered`` when ``[filter]
+  enabled``, as after ``anipose filter``). A file's camera is the first group of
+  ``re.search(cam_regex, stem)``; its trial the stem with ``cam_regex`` removed
+  (``re.sub``, stripped). Cameras in sorted order, taken from the calibration by name.
+* ``[cameras.<name>] offset = [dx, dy]`` is added to that camera's 2D points (a cropped video).
+* Frames: the fewest of the trial's cameras (Anipose truncates to them).
+* Output: ``<session>/<pose_3d>/<trial>.csv`` (``pose-3d``) in Anipose's 3D layout, and ours, the
+  result H5, beside it as ``<trial>.h5``.
+
+Options (:func:`solve_options`): ``[triangulation] score_threshold`` is the likelihood threshold
+(Anipose's default 0.8); ``optim = true`` (Anipose's smoothing with limb constraints) is ``fte``,
+``false`` (plain triangulation) is ``tri``; every bodypart is a free point (``points``) and
+``constraints`` (and ``constraints_weak``) are its bones, soft length terms. Our own options go in
+an ``[acinoset]`` table: ``method``, ``skeleton`` (a name or a TOML file relative to the project),
+``body`` (model, estimate or a file), ``sync``, ``fps`` (else each trial's video frame rate when its
+``videos-raw`` file is readable, else 120), and any other :class:`SolveOptions` field. Keys of
+Anipose's 3D step that have no equivalent here are listed in :attr:`Project.ignored`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from graph.errors import InputError
+from graph.types import SolveOptions
+
+CONFIG = "config.toml"
+CALIBRATION_FILE = "calibration.toml"
+PIPELINE_DEFAULTS = {"pose_2d": "pose-2d", "pose_2d_filter": "pose-2d-filtered", "pose_3d": "pose-3d",
+                     "calibration_videos": "calibration", "calibration_results": "calibration",
+                     "videos_raw": "videos-raw"}
+SCORE_THRESHOLD = 0.8  # Anipose's default
+DEFAULT_NESTING = 1
+# keys of Anipose's 3D step with no equivalent here (what replaces them, for the message)
+IGNORED = {
+    "triangulation": {"ransac": "the robust loss", "scale_smooth": "the motion model",
+                      "scale_length": "the bone terms' own weight", "scale_length_weak": "the bone terms' own weight",
+                      "reproj_error_threshold": "the robust loss", "n_deriv_smooth": "the motion model",
+                      "optim_chunking": "solving whole trials", "optim_chunking_size": "solving whole trials",
+                      "reference_point": "the calibration's frame", "axes": "the calibration's frame",
+                      "cam_align": "the calibration's frame"},
+    "filter": {"type": "the robust loss", "medfilt": "the robust loss", "offset_threshold": "the robust loss",
+               "score_threshold": "score_threshold of [triangulation]", "spline": "the motion model",
+               "n_back": "the robust loss", "multiprocessing": "trial processes"},
+    "filter3d": {"enabled": "the motion model", "medfilt": "the motion model", "offset_threshold": "the motion model"},
+}
+OUR_KEYS = ("method", "skeleton", "body", "sync", "fps")
+
+
+@dataclass
+class Trial:
+    """One trial: a camera's DLC H5 per camera, the session's calibration, and where results go."""
+
+    session: str  # the session folder, relative to the project ("." for nesting 0)
+    name: str
+    cameras: list[str]  # sorted, as Anipose orders them
+    pose_files: list[Path]  # one per camera, in ``cameras``' order
+    calibration: Path
+    csv: Path
+    h5: Path
+    fps: float | None = None  # from the trial's videos, when readable
+
+    @property
+    def label(self) -> str:
+        return self.name if self.session == "." else f"{self.session}/{self.name}"
+
+    def inputs(self, config: Path) -> list[Path]:
+        return [*self.pose_files, self.calibration, config]
+
+
+@dataclass
+class Project:
+    """An Anipose project: its trials and the options they are solved with."""
+
+    root: Path
+    config: Path
+    options: SolveOptions
+    offsets: dict[str, tuple[float, float]]
+    trials: list[Trial]
+    ignored: list[str] = field(default_factory=list)  # "[section] key (what stands in)"
+    notes: list[str] = field(default_factory=list)  # sessions without a calibration, ...
+
+
+def load_project(folder: str | Path = ".") -> Project:
+    """Read ``folder/config.toml`` and find every trial, as ``anipose triangulate`` would."""
+    folder = Path(folder).resolve()
+    config_path = folder / CONFIG
+    if not config_path.is_file():
+        raise InputError(f"no {CONFIG} here: not an Anipose project folder", folder)
+    try:
+        config = tomllib.loads(config_path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"not valid TOML ({e})", config_path) from None
+    notes: list[str] = []
+    root = folder
+    if isinstance(config.get("path"), str):
+        given = Path(os.path.expanduser(config["path"]))
+        if given.is_dir():
+            root = given.resolve()
+        elif given.resolve() != folder:
+            notes.append(f"path = {config['path']!r} does not exist here; using {folder}")
+    model_type = config.get("model_type", "deeplabcut")
+    if model_type != "deeplabcut":
+        raise InputError(f"model_type {model_type!r}: only DeepLabCut H5 poses are read", config_path)
+    tri = _table(config, "triangulation", config_path)
+    if "cam_regex" not in tri:
+        raise InputError("[triangulation] has no cam_regex (how a pose file names its camera)", config_path)
+    try:
+        cam_regex = re.compile(tri["cam_regex"])
+    except (re.error, TypeError) as e:
+        raise InputError(f"[triangulation] cam_regex is not a regular expression ({e})", config_path) from None
+    pipeline = {**PIPELINE_DEFAULTS, **_table(config, "pipeline", config_path)}
+    nesting = config.get("nesting", DEFAULT_NESTING)
+    if not isinstance(nesting, int) or isinstance(nesting, bool):
+        raise InputError(f"nesting must be an integer, not {nesting!r}", config_path)
+    filt = _table(config, "filter", config_path)
+    pose_dir = pipeline["pose_2d_filter"] if filt.get("enabled", False) else pipeline["pose_2d"]
+
+    options = solve_options(config, root, config_path)
+    offsets = {}
+    for name, cam in _table(config, "cameras", config_path).items():
+        off = cam.get("offset", (0, 0)) if isinstance(cam, dict) else None
+        if not (isinstance(off, (list, tuple)) and len(off) == 2 and all(isinstance(v, (int, float)) for v in off)):
+            raise InputError(f"[cameras.{name}] offset must be [dx, dy] pixels", config_path)
+        offsets[str(name)] = (float(off[0]), float(off[1]))
+
+    trials: list[Trial] = []
+    for session in sessions(root, nesting):
+        cal_dir = find_calibration_folder(session, root, nesting, pipeline["calibration_videos"])
+        rel = os.path.relpath(session, root)
+        poses = sorted((session / pose_dir).glob("*.h5"))
+        if not poses:
+            if pose_dir != pipeline["pose_2d"] and any((session / pipeline["pose_2d"]).glob("*.h5")):
+                notes.append(f"{rel}: [filter] enabled but no {pose_dir}/ (run anipose filter, or set "
+                             "enabled = false: the robust loss stands in for it): skipped")
+            continue
+        if cal_dir is None:
+            notes.append(f"{rel}: no '{pipeline['calibration_videos']}' folder in it or above it: skipped")
+            continue
+        by_trial: dict[str, dict[str, Path]] = {}
+        for p in poses:
+            match = cam_regex.search(p.stem)
+            if not match or not match.groups():
+                notes.append(f"{rel}/{pose_dir}/{p.name}: cam_regex finds no camera in its name: skipped")
+                continue
+            by_trial.setdefault(cam_regex.sub("", p.stem).strip(), {})[match.groups()[0].strip()] = p
+        out_dir = session / pipeline["pose_3d"]
+        for name in sorted(by_trial, key=_natural):
+            files = by_trial[name]
+            cams = sorted(files)
+            trials.append(Trial(session=rel, name=name, cameras=cams, pose_files=[files[c] for c in cams],
+                                calibration=cal_dir / pipeline["calibration_results"] / CALIBRATION_FILE,
+                                csv=out_dir / f"{name}.csv", h5=out_dir / f"{name}.h5",
+                                fps=None if "fps" in _table(config, "acinoset", config_path)
+                                else _video_fps(session / pipeline["videos_raw"], files[cams[0]].stem,
+                                                config.get("video_extension", "avi"))))
+    return Project(root=root, config=config_path, options=options, offsets=offsets, trials=trials,
+                   ignored=ignored_keys(config), notes=notes)
+
+
+def solve_options(config: dict, root: Path, config_path: Path) -> SolveOptions:
+    """The :class:`SolveOptions` a project's ``config.toml`` asks for (see the module's docstring)."""
+    tri = _table(config, "triangulation", config_path)
+    ours = dict(_table(config, "acinoset", config_path))
+    known = {f.name for f in dataclasses.fields(SolveOptions)}
+    unknown = sorted(set(ours) - known)
+    if unknown:
+        raise InputError(f"[acinoset] has unknown keys {', '.join(unknown)} (known: {', '.join(OUR_KEYS)}, "
+                         "or any solve option)", config_path)
+    threshold = tri.get("score_threshold", SCORE_THRESHOLD)
+    bones = [tuple(map(str, pair)) for key in ("constraints", "constraints_weak") for pair in tri.get(key, [])]
+    if any(len(b) != 2 for b in bones):
+        raise InputError("[triangulation] constraints must be pairs of bodyparts", config_path)
+    kw = {"method": "fte" if tri.get("optim", False) else "tri", "skeleton": "points",
+          "likelihood_threshold": float(threshold), "bone_lengths": bones or None}
+    kw.update(ours)
+    skel = kw["skeleton"]
+    if isinstance(skel, str) and skel not in ("cheetah", "points") and not Path(skel).is_absolute():
+        kw["skeleton"] = str(root / skel)
+    if isinstance(kw.get("body"), str) and kw["body"] not in ("model", "estimate", "given"):
+        from graph.io import read_body
+
+        body_file = Path(kw["body"]) if Path(kw["body"]).is_absolute() else root / kw["body"]
+        kw["body"], kw["body_lengths"] = "given", read_body(body_file)
+    if kw["skeleton"] != "points":
+        kw["bone_lengths"] = None  # bones between free points only
+    try:
+        return SolveOptions(**kw)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"[acinoset] / [triangulation]: {e}", config_path) from None
+
+
+def ignored_keys(config: dict) -> list[str]:
+    """The keys the user set that steer Anipose's 3D step and have no equivalent here."""
+    out = []
+    for section, keys in IGNORED.items():
+        table = config.get(section, {})
+        if not isinstance(table, dict):
+            continue
+        for key, instead in keys.items():
+            if key in table and not (section == "filter3d" and key == "enabled" and not table[key]):
+                out.append(f"[{section}] {key} ({instead} stands in)")
+    return out
+
+
+def sessions(root: Path, nesting: int) -> list[Path]:
+    """Anipose's ``process_all``: the session folders for ``nesting``."""
+    if nesting == 0:
+        return [root]
+    out: list[Path] = []
+
+    def walk(folder: Path, level: int) -> None:
+        for sub in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
+            if nesting < 0:
+                out.append(sub)
+                walk(sub, level + 1)
+            elif level == nesting:
+                out.append(sub)
+            elif level < nesting:
+                walk(sub, level + 1)
+
+    walk(root, 1)
+    return out
+
+
+def find_calibration_folder(session: Path, root: Path, nesting: int, calibration_videos: str) -> Path | None:
+    """Anipose's ``find_calibration_folder``: the session folder or one of its ``nesting`` parents
+    (the nearest) that holds a ``calibration_videos`` folder. With nesting -1, up to the project."""
+    levels = nesting if nesting >= 0 else len(session.relative_to(root).parts)
+    folder = session
+    for _ in range(levels + 1):
+        if (folder / calibration_videos).is_dir():
+            return folder
+        folder = folder.parent
+    return None
+
+
+def _table(config: dict, name: str, path: Path) -> dict:
+    t = config.get(name, {})
+    if not isinstance(t, dict):
+        raise InputError(f"[{name}] must be a table", path)
+    return t
+
+
+def _natural(text: str) -> list:
+    """Anipose's ``natural_keys``: trial2 before trial10."""
+    return [int(c) if c.isdigit() else c for c in re.split(r"(\d+)", text)]
+
+
+def _video_fps(videos: Path, stem: str, extension: str) -> float | None:
+    """The frame rate of ``videos/<stem>.<extension>`` when OpenCV can read it."""
+    path = videos / f"{stem}.{str(extension).lstrip('.')}"
+    if not path.is_file():
+        return None
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    try:
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+    finally:
+        cap.release()
+    return fps if 0 < fps < 10000 else None

@@ -1,0 +1,144 @@
+"""``acinoset anipose`` on a simulated project in Anipose's real layout (two sessions, three trials,
+DeepLabCut H5 written by pandas/PyTables): the same 3D as ``acinoset solve`` on each trial, a re-run
+that does nothing, one failed trial that does not stop the others, and the project read as Anipose
+reads it."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from graph.anipose import load_project
+from graph.anipose.simulate import CONSTRAINTS, write_project
+from graph.errors import InputError
+from graph.io import read_anipose_csv, read_result
+
+pytest.importorskip("tables")
+EXE = Path(sys.executable).with_name("acinoset")
+FPS = 120.0
+
+
+def acinoset(*args, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run([str(EXE), *map(str, args)], capture_output=True, text=True, cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory) -> Path:
+    root = write_project(tmp_path_factory.mktemp("anipose") / "project", frames=60, fps=FPS)
+    first = acinoset("anipose", "--jobs", "2", cwd=root)  # PROJECT_DIR defaults to the current folder
+    assert first.returncode == 0, first.stderr
+    assert "3 trials: 3 solved, 0 up to date, 0 failed" in first.stdout
+    assert "ignored (no equivalent here): [triangulation] scale_smooth" in first.stderr
+    for trial in ("2026-11-30/run1", "2026-11-30/run2", "2026-12-01/run3"):
+        assert f"{trial}: started" in first.stderr and f"{trial}: solved: fte, 60 frames" in first.stderr
+    return root
+
+
+def test_each_trial_equals_acinoset_solve(project, tmp_path):
+    trials = load_project(project).trials
+    assert [t.label for t in trials] == ["2026-11-30/run1", "2026-11-30/run2", "2026-12-01/run3"]
+    # the first session has its own calibration; the second finds the project's, one level up
+    assert trials[0].calibration == project / "2026-11-30" / "calibration" / "calibration.toml"
+    assert trials[2].calibration == project / "calibration" / "calibration.toml"
+    bones = ",".join(f"{a}-{b}" for a, b in CONSTRAINTS)
+    for t in trials:
+        assert t.csv == project / t.session / "pose-3d" / f"{t.name}.csv" and t.h5 == t.csv.with_suffix(".h5")
+        out = tmp_path / t.name
+        solo = acinoset("solve", *t.pose_files, "--calibration", t.calibration, "--method", "fte",
+                        "--skeleton", "points", "--bones", bones, "--likelihood-threshold", "0.5",
+                        "--fps", FPS, "--out", out.with_suffix(".csv"), "--h5", out.with_suffix(".h5"))
+        assert solo.returncode == 0, solo.stderr
+        ours, theirs = read_result(t.h5), read_result(out.with_suffix(".h5"))
+        assert ours.markers == theirs.markers and ours.camera_names == theirs.camera_names == ["A", "B", "C"]
+        assert np.array_equal(np.isnan(ours.positions), np.isnan(theirs.positions))
+        np.testing.assert_allclose(ours.positions, theirs.positions, atol=1e-9, rtol=0)
+        np.testing.assert_allclose(ours.std, theirs.std, atol=1e-9, rtol=0)
+        csv = read_anipose_csv(t.csv)  # Anipose's layout, readable by Anipose's tools
+        np.testing.assert_allclose(csv.positions, theirs.positions, atol=1e-9, rtol=0)
+        assert csv.fnum.tolist() == list(range(60))
+
+
+def test_a_rerun_is_a_no_op_until_an_input_changes(project):
+    trials = load_project(project).trials
+    before = {p: p.stat().st_mtime_ns for t in trials for p in (t.csv, t.h5)}
+    again = acinoset("anipose", project)
+    assert again.returncode == 0 and "3 trials: 0 solved, 3 up to date, 0 failed" in again.stdout
+    assert {p: p.stat().st_mtime_ns for p in before} == before
+    # a newer pose file: that trial alone is solved again
+    pose = trials[1].pose_files[0]
+    newer = max(before.values()) + 10**9
+    os.utime(pose, ns=(newer, newer))
+    third = acinoset("anipose", project, "--jobs", "1")
+    assert "3 trials: 1 solved, 2 up to date, 0 failed" in third.stdout, third.stderr
+    assert trials[1].csv.stat().st_mtime_ns > before[trials[1].csv]
+    assert trials[0].csv.stat().st_mtime_ns == before[trials[0].csv]
+
+
+def test_a_failed_trial_is_reported_and_the_others_go_on(tmp_path):
+    root = write_project(tmp_path / "p", sessions={"s1": ["good", "bad"]}, frames=40, optim=False)
+    (root / "s1" / "pose-2d" / "bad_B.h5").write_bytes(b"not an HDF5 file")
+    run = acinoset("anipose", root, "--jobs", "2")
+    assert run.returncode == 1
+    assert "2 trials: 1 solved, 0 up to date, 1 failed" in run.stdout
+    assert "failed: s1/bad: bad_B.h5:" in run.stdout
+    assert (root / "s1" / "pose-3d" / "good.csv").is_file()
+    assert not (root / "s1" / "pose-3d" / "bad.csv").exists()
+    assert read_result(root / "s1" / "pose-3d" / "good.h5").method == "tri"  # optim = false: triangulation
+
+
+def test_the_project_is_read_as_anipose_reads_it(tmp_path):
+    root = write_project(tmp_path / "p", sessions={"mouse1": ["t1"]}, frames=5, optim=False,
+                         extra_config='method = "ekf"\n\n[cameras.B]\noffset = [224, 120]\n\n'
+                                      '[filter3d]\nenabled = true\n')
+    # nesting 2: sessions are two levels down; the calibration is searched up to the project
+    (root / "animal").mkdir()
+    os.rename(root / "mouse1", root / "animal" / "mouse1")
+    import shutil
+
+    shutil.rmtree(root / "animal" / "mouse1" / "calibration")  # so it is found two levels up
+    text = (root / "config.toml").read_text().replace("nesting = 1", "nesting = 2")
+    (root / "config.toml").write_text(text.replace("[filter]\nenabled = false", "[filter]\nenabled = true"))
+    filtered = root / "animal" / "mouse1" / "pose-2d-filtered"
+    os.rename(root / "animal" / "mouse1" / "pose-2d", filtered)  # [filter] enabled: anipose filter's output
+    (filtered / "notes_X.txt").write_text("not a pose file")
+    (filtered / "readme.h5").write_bytes(b"")  # no camera in its name
+    p = load_project(root)
+    assert [t.label for t in p.trials] == ["animal/mouse1/t1"]
+    t = p.trials[0]
+    assert t.cameras == ["A", "B", "C"] and t.pose_files[0] == filtered / "t1_A.h5"
+    assert t.calibration == root / "calibration" / "calibration.toml"
+    assert p.options.method == "ekf" and p.options.likelihood_threshold == 0.5 and p.options.fps == FPS
+    assert p.options.bone_lengths == CONSTRAINTS
+    assert p.offsets == {"B": (224.0, 120.0)}
+    assert any("readme.h5: cam_regex finds no camera" in n for n in p.notes)
+    assert any(k.startswith("[filter3d] enabled") for k in p.ignored)
+
+    (root / "config.toml").write_text(text.replace("[acinoset]\n", '[acinoset]\ncolour = "red"\n'))
+    with pytest.raises(InputError, match=r"config.toml: \[acinoset\] has unknown keys colour"):
+        load_project(root)
+    bad = acinoset("anipose", tmp_path)
+    assert bad.returncode == 2 and "no config.toml here" in bad.stderr
+
+
+def test_offsets_are_added_to_the_cameras_points(tmp_path):
+    """[cameras.B] offset: B's points are in a crop; adding the offset gives the full frame's."""
+    from graph.anipose import run_project
+    from graph.keypoints import read_keypoints
+
+    from graph.anipose.simulate import write_dlc_h5
+
+    plain = write_project(tmp_path / "plain", sessions={"s": ["t"]}, frames=20, optim=False)
+    cropped = write_project(tmp_path / "crop", sessions={"s": ["t"]}, frames=20, optim=False,
+                            extra_config="\n[cameras.B]\noffset = [100, -50]\n")
+    kp = read_keypoints(cropped / "s" / "pose-2d" / "t_B.h5")
+    write_dlc_h5(cropped / "s" / "pose-2d" / "t_B.h5", kp.bodyparts, kp.xy - [100, -50], kp.likelihood)
+    for root in (plain, cropped):
+        (outcome,) = run_project(load_project(root))
+        assert outcome.status == "solved", outcome.message
+    a, b = (read_result(r / "s" / "pose-3d" / "t.h5") for r in (plain, cropped))
+    np.testing.assert_allclose(a.positions, b.positions, atol=1e-9, rtol=0)
