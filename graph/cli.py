@@ -50,6 +50,7 @@ COMMANDS: tuple[Command, ...] = (
             "simulate a cheetah run on a rig and write DeepLabCut CSVs, calibration and truth"),
     Command("demo", "graph.demo", "simulate a cheetah run on the AcinoSet rig and solve it with every method"),
     Command("plot", "graph.plot", "draw a solved run: PNG figures and an HTML playback file"),
+    Command("video", "graph.video.cli", "draw a solved run over each camera's video, with a 3D view (H.264 MP4)"),
 )
 
 

@@ -135,6 +135,12 @@ class SimulatedRun:
     noise_seed: int | None = None  # the detections' own seed, if any (module docstring)
     time_offsets: np.ndarray | None = None  # (C,) frames: camera c's frame n is the truth at n + offset
     true_lengths: dict[str, float] = field(default_factory=dict)  # the animal's length of each group (m)
+    # (C, N, M, 3) where the cameras' clocks differ: the true positions each camera saw at its frames
+    seen_positions: np.ndarray | None = None
+
+    def camera_positions(self, c: int) -> np.ndarray:
+        """(N, M, 3): the true positions at camera ``c``'s frames (its own clock)."""
+        return self.positions if self.seen_positions is None else self.seen_positions[c]
 
     @property
     def frames(self) -> int:
@@ -451,7 +457,7 @@ def simulate_run(calibration: Calibration, frames: int = 200, fps: float = 120.0
                         param_names=list(sk.param_names), keypoints=kps, calibration=calibration, fps=fps,
                         projections=proj, outlier=outlier, swapped=swapped, dropout=dropout,
                         observation=model, stage=stage, seed=seed, bones=bones, notes=notes,
-                        noise_seed=noise_seed, time_offsets=offsets,
+                        noise_seed=noise_seed, time_offsets=offsets, seen_positions=seen if seen.ndim == 4 else None,
                         true_lengths={g: float(L) for g, L in zip(true_sk.length_groups, true_sk.model_lengths)})
 
 
@@ -557,6 +563,11 @@ def register(subparsers) -> None:
     p.add_argument("--swaps", type=float, default=0.0, help="left/right swap probability p_s")
     p.add_argument("--dropouts", type=int, default=0, help="number of blind-camera stretches")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--time-offsets", default=None, metavar="T1,T2,...",
+                   help="each camera's clock offset in frames (camera frame n is the truth at n + T); default all 0")
+    p.add_argument("--videos", action="store_true",
+                   help="also film the run: cam1.mp4 ... of the animal over a textured ground, as each camera "
+                        "sees it (H.264; needs the 'video' extra)")
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=_cli)
 
@@ -569,14 +580,25 @@ def _cli(args) -> int:
     rig = Path(args.rig) if args.rig else default_rig_path()
     calibration = load_calibration(rig)
     try:
+        offsets = None if args.time_offsets is None else [float(v) for v in args.time_offsets.split(",")]
+    except ValueError:
+        raise InputError(f"--time-offsets takes numbers of frames as 0,0.4,-1.2, not {args.time_offsets!r}") from None
+    if args.videos:
+        from graph.video import ffmpeg_exe
+
+        ffmpeg_exe()  # the one-line message naming the extra, before any work
+    try:
         run = simulate_run(calibration, frames=args.frames, fps=args.fps, noise=args.noise,
                            outliers=args.outliers, outlier_std=args.outlier_std, swaps=args.swaps,
-                           dropouts=args.dropouts, seed=args.seed, confident_outliers=args.confident)
+                           dropouts=args.dropouts, seed=args.seed, confident_outliers=args.confident,
+                           time_offsets=offsets)
     except ValueError as e:
         if isinstance(e, InputError):
             raise
         raise InputError(str(e)) from None
     written = write_run(run, args.out, rig_path=rig)
+    if args.videos:
+        written += _film(run, args.out)
     print(f"simulated {run.frames} frames, {len(run.calibration)} cameras, {len(run.markers)} markers: "
           f"{int(run.outlier.sum())} outliers, {int(run.swapped.sum())} swapped, "
           f"{int(run.dropout.sum())} dropped, {int((~run.visible).sum())} outside the image")
@@ -584,3 +606,21 @@ def _cli(args) -> int:
         print(f"note: {note}")
     print(f"wrote {len(written)} files to {args.out}")
     return 0
+
+
+def _film(run: SimulatedRun, out: str | Path) -> list[Path]:
+    """``--videos``: one H.264 MP4 per camera (:func:`graph.video.write_simulated_videos`), with a
+    progress bar on a terminal."""
+    import sys
+
+    from graph.video import write_simulated_videos
+    from graph.video.cli import FrameProgress
+
+    bar = FrameProgress(sys.stderr, 1, label="camera-frames filmed") if sys.stderr.isatty() else None
+    try:
+        return write_simulated_videos(run, out, progress=bar, seed=run.seed)
+    except ValueError as e:
+        raise InputError(str(e)) from None
+    finally:
+        if bar is not None:
+            bar.close()
