@@ -262,3 +262,26 @@ def test_missing_extra_is_named_in_one_line(monkeypatch):
     monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
     with pytest.raises(InputError, match=r"^videos need the 'video' extra: pip install 'acinoset\[video\]'$"):
         ffmpeg_exe()
+
+
+def test_plot_frame_picker_draws_one_cameras_frame(filmed, tmp_path):
+    run, videos, _ = filmed
+    h5 = tmp_path / "r.h5"
+    write_h5(h5, truth_result(run))
+    proc = run_cli("plot", h5, "--out", tmp_path / "p", "--frame", "6", "--camera", "3", "--video", videos[2])
+    assert proc.returncode == 0, proc.stderr
+    png = tmp_path / "p" / "cam3_frame6.png"
+    assert proc.stdout.strip().endswith("cam3_frame6.png")
+    img = cv2.imread(str(png))
+    assert img.shape[:2] == (190, 338)
+    uv = run.projections[2, 6]
+    a, b = max(run.bones, key=lambda ab: np.linalg.norm(uv[run.markers.index(ab[0])] - uv[run.markers.index(ab[1])]))
+    mid = (uv[run.markers.index(a)] + uv[run.markers.index(b)]) / 2
+    x, y = int(round(mid[0])), int(round(mid[1]))
+    assert np.abs(img[y, x].astype(int) - np.array(bone_color(a, b))).max() < 60, (a, b, img[y, x])
+    # the same frame of the footage, without the drawing, differs only near the animal
+    plain = decode_cv2(videos[2])[6]
+    assert np.abs(img.astype(int) - plain.astype(int)).max(axis=2)[:40, 200:].max() < 40
+
+    bad = run_cli("plot", h5, "--out", tmp_path / "p", "--frame", "99", "--camera", "cam3", "--video", videos[2])
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--frame 99" in bad.stderr
