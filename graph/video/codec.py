@@ -203,13 +203,16 @@ class FrameWriter:
     """Encode :class:`YuvFrame` s (or BGR images) to an H.264 MP4 (``yuv420p``) at ``fps``."""
 
     def __init__(self, path: str | Path, width: int, height: int, fps: float, crf: int = CRF,
-                 preset: str = PRESET, threads: int = 1):
+                 preset: str = PRESET, threads: int = 1, bitrate: float | None = None):
+        """``crf`` sets a constant quality; a ``bitrate`` (bits per second) instead sets the average
+        rate, as a camera does."""
         if width % 2 or height % 2:
             raise ValueError(f"H.264 in yuv420p needs even sizes, not {width}x{height}")
         self.path, self.width, self.height = Path(path), width, height
         rate = Fraction(fps).limit_denominator(1001)
         args = ["-y", "-f", "rawvideo", "-pix_fmt", "yuv420p", "-s", f"{width}x{height}", "-r", f"{rate}",
-                "-i", "-", "-an", "-c:v", "libx264", "-preset", preset, "-crf", str(crf),
+                "-i", "-", "-an", "-c:v", "libx264", "-preset", preset,
+                *(["-crf", str(crf)] if bitrate is None else ["-b:v", f"{int(bitrate)}"]),
                 "-pix_fmt", "yuv420p", "-threads", str(threads), "-movflags", "+faststart", str(self.path)]
         self._ff = _Ffmpeg(args, "encode", path, stdin=subprocess.PIPE, bufsize=0)
         self.frames_written = 0

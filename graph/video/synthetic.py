@@ -11,7 +11,8 @@ so it changes every frame) keeps the codec's work realistic.
 The animal is drawn from its true markers at that camera's frames (its own clock): each bone a
 thick line, ``width_m * f / depth`` pixels wide (torso, neck, legs, tail and head of their own
 widths), far bones first, over its shadow straight below on the ground. The footage goes through
-:class:`graph.video.codec.FrameWriter` (H.264, ``yuv420p``) at a camera-like quality.
+:class:`graph.video.codec.FrameWriter` (H.264, ``yuv420p``) at a camera's bitrate (a GoPro's 60 Mbit/s at
+2704x1520 and 120 fps: ``CAMERA_BITS_PER_PIXEL``), so decoding it costs what real footage costs.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ SKY_TOP, SKY_LOW = (235, 200, 150), (245, 235, 220)  # BGR
 HAZE = (150, 175, 185)
 FUR, FUR_EDGE = (70, 150, 215), (30, 60, 95)
 NOISE_FRAMES = 4
-CAMERA_CRF = 18  # footage as a camera keeps it: little visible loss
+SENSOR_NOISE = 12  # the noise's range in grey levels (uniform, sd 3.5): footage of a real camera's bitrate
+CAMERA_BITS_PER_PIXEL = 0.12  # a GoPro's 60 Mbit/s at 2704x1520 and 120 fps, at any size and rate
 
 
 def _width_m(a: str, b: str) -> float:
@@ -76,25 +78,22 @@ def camera_background(camera: Camera, ground_z: float, texture: np.ndarray) -> n
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (ground_z - C[2]) / d[..., 2]
     hit = np.isfinite(s) & (s > 0)
-    s = np.where(hit, s, np.nan)
-    X = C[0] + s * d[..., 0]
-    Y = C[1] + s * d[..., 1]
-    dist = np.where(hit, s * np.linalg.norm(d, axis=-1), np.inf)
+    s = np.where(hit, s, 0.0)
 
     def up(a):
         a = np.where(np.isfinite(a), a, 0.0).astype(np.float32)
         return cv2.resize(a, (us.shape[1] * step, us.shape[0] * step), interpolation=cv2.INTER_LINEAR)[:H, :W]
 
-    map_x = up(X / TEXEL_M) % TEXTURE_PX
-    map_y = up(Y / TEXEL_M) % TEXTURE_PX
-    ground = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP).astype(np.float32)
-    haze = np.clip((up(np.where(hit, dist, HAZE_TO_M)) - HAZE_FROM_M) / (HAZE_TO_M - HAZE_FROM_M), 0, 1)[..., None]
-    ground = ground * (1 - haze) + np.array(HAZE, np.float32) * haze
+    map_x = up((C[0] + s * d[..., 0]) / TEXEL_M) % TEXTURE_PX
+    map_y = up((C[1] + s * d[..., 1]) / TEXEL_M) % TEXTURE_PX
+    ground = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    dist = np.where(hit, s * np.linalg.norm(d, axis=-1), HAZE_TO_M)
+    haze = np.clip((up(dist) - HAZE_FROM_M) / (HAZE_TO_M - HAZE_FROM_M), 0, 1)
+    out = cv2.blendLinear(ground, np.full_like(ground, HAZE), np.ascontiguousarray(1 - haze), haze)
     rows = np.linspace(0, 1, H, dtype=np.float32)[:, None, None]
-    sky = np.array(SKY_TOP, np.float32) * (1 - rows) + np.array(SKY_LOW, np.float32) * rows
-    sky_mask = up(~hit) > 0.5
-    out = np.where(sky_mask[..., None], np.broadcast_to(sky, (H, W, 3)), ground)
-    return np.clip(out, 0, 255).astype(np.uint8)
+    sky = (np.array(SKY_TOP, np.float32) * (1 - rows) + np.array(SKY_LOW, np.float32) * rows).astype(np.uint8)
+    cv2.copyTo(np.ascontiguousarray(np.broadcast_to(sky, (H, W, 3))), (up(~hit) > 0.5).astype(np.uint8), out)
+    return out
 
 
 class AnimalPainter:
@@ -172,16 +171,17 @@ def write_simulated_videos(run, out: str | Path, names: list[str] | None = None,
         if W % 2 or H % 2:
             raise ValueError(f"camera {cam.name or c + 1}: H.264 in yuv420p needs even image sizes, not {W}x{H}")
         background = camera_background(cam, run.stage.ground_z, texture)
-        noise = [rng.integers(0, 5, size=(H, W, 3), dtype=np.uint8) for _ in range(NOISE_FRAMES)]
+        noise = [rng.integers(0, SENSOR_NOISE + 1, size=(H, W, 3), dtype=np.uint8) for _ in range(NOISE_FRAMES)]
         painter = AnimalPainter(cam, run.markers, run.bones, run.stage.ground_z)
         X = run.camera_positions(c)
         path = out / names[c]
-        with FrameWriter(path, W, H, run.fps, crf=CAMERA_CRF, preset="veryfast", threads=2) as writer:
+        bitrate = CAMERA_BITS_PER_PIXEL * W * H * run.fps
+        with FrameWriter(path, W, H, run.fps, bitrate=bitrate, preset="veryfast", threads=2) as writer:
             for n in range(run.frames):
                 img = background.copy()
                 painter.draw(img, X[n])
                 cv2.add(img, noise[n % NOISE_FRAMES], dst=img)
-                cv2.subtract(img, (2, 2, 2, 0), dst=img)
+                cv2.subtract(img, (SENSOR_NOISE // 2,) * 3 + (0,), dst=img)
                 writer.write(img)
                 if progress is not None:
                     progress(c * run.frames + n + 1, total)
