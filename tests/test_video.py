@@ -285,3 +285,4 @@ def test_plot_frame_picker_draws_one_cameras_frame(filmed, tmp_path):
 
     bad = run_cli("plot", h5, "--out", tmp_path / "p", "--frame", "99", "--camera", "cam3", "--video", videos[2])
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--frame 99" in bad.stderr
+
