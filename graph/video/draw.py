@@ -23,6 +23,8 @@ What a camera's frame shows (:func:`draw_camera_frame`), only where the camera h
 from __future__ import annotations
 
 import colorsys
+import functools
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -38,6 +40,7 @@ OUTLIER = (0, 0, 255)
 TEXT = (255, 255, 255)
 
 
+@functools.lru_cache(maxsize=256)
 def yuv(color: tuple[int, int, int]) -> tuple[int, int, int]:
     """A BGR colour as BT.601 video-range (Y, U, V) (module docstring)."""
     b, g, r = (c / 255.0 for c in color)
@@ -48,7 +51,8 @@ def yuv(color: tuple[int, int, int]) -> tuple[int, int, int]:
 
 
 def _fixed(p) -> tuple[int, int]:
-    return int(round(p[0] * (1 << SHIFT))), int(round(p[1] * (1 << SHIFT)))
+    """Pixel coordinates as OpenCV's fixed point (``SHIFT`` fractional bits), rounded."""
+    return math.floor(p[0] * (1 << SHIFT) + 0.5), math.floor(p[1] * (1 << SHIFT) + 0.5)
 
 
 class Painter:
@@ -60,21 +64,24 @@ class Painter:
     def line(self, p0, p1, color, thickness: int) -> None:
         Y, U, V = yuv(color)
         f = self.frame
-        cv2.line(f.y, _fixed(p0), _fixed(p1), Y, thickness, cv2.LINE_AA, SHIFT)
-        h0, h1 = (p0[0] / 2, p0[1] / 2), (p1[0] / 2, p1[1] / 2)
+        a, b = _fixed(p0), _fixed(p1)
+        cv2.line(f.y, a, b, Y, thickness, cv2.LINE_AA, SHIFT)
+        a, b = (a[0] >> 1, a[1] >> 1), (b[0] >> 1, b[1] >> 1)  # the same point at half the resolution
         tc = thickness // 2 + 1  # a chroma sample covers 2x2 pixels: a line thinner than 2 would miss some
-        cv2.line(f.u, _fixed(h0), _fixed(h1), U, tc, cv2.LINE_8, SHIFT)
-        cv2.line(f.v, _fixed(h0), _fixed(h1), V, tc, cv2.LINE_8, SHIFT)
+        cv2.line(f.u, a, b, U, tc, cv2.LINE_8, SHIFT)
+        cv2.line(f.v, a, b, V, tc, cv2.LINE_8, SHIFT)
 
     def circle(self, c, radius: float, color, thickness: int = -1) -> None:
         """A disc (``thickness`` -1) or a ring."""
         Y, U, V = yuv(color)
         f = self.frame
-        cv2.circle(f.y, _fixed(c), int(round(radius * (1 << SHIFT))), Y, thickness, cv2.LINE_AA, SHIFT)
+        a = _fixed(c)
+        r = math.floor(radius * (1 << SHIFT) + 0.5)
+        cv2.circle(f.y, a, r, Y, thickness, cv2.LINE_AA, SHIFT)
         tc = thickness if thickness < 0 else thickness // 2 + 1
-        rc = int(round(radius / 2 * (1 << SHIFT)))
-        cv2.circle(f.u, _fixed((c[0] / 2, c[1] / 2)), rc, U, tc, cv2.LINE_8, SHIFT)
-        cv2.circle(f.v, _fixed((c[0] / 2, c[1] / 2)), rc, V, tc, cv2.LINE_8, SHIFT)
+        a = (a[0] >> 1, a[1] >> 1)
+        cv2.circle(f.u, a, r >> 1, U, tc, cv2.LINE_8, SHIFT)
+        cv2.circle(f.v, a, r >> 1, V, tc, cv2.LINE_8, SHIFT)
 
     def cross(self, c, size: float, color, thickness: int) -> None:
         x, y = c
@@ -173,14 +180,17 @@ def draw_camera_frame(frame: YuvFrame, overlay: CameraOverlay, n: int, style: St
         return False
     style = style or Style.for_width(frame.width)
     paint = Painter(frame)
-    uv = overlay.reprojections[n]
-    ok = np.isfinite(uv).all(axis=-1)
+    uv_n = overlay.reprojections[n]
+    ok = np.isfinite(uv_n).all(axis=-1).tolist()
+    uv = uv_n.tolist()
     if overlay.detections is not None:
-        z = overlay.detections[n]
-        lik = overlay.likelihood[n] if overlay.likelihood is not None else np.ones(len(z))
-        seen = np.isfinite(z).all(axis=-1)
-        for m in np.flatnonzero(seen):
-            p = float(np.clip(lik[m], 0.0, 1.0))
+        z_n = overlay.detections[n]
+        lik = (np.clip(overlay.likelihood[n], 0.0, 1.0) if overlay.likelihood is not None
+               else np.ones(len(z_n))).tolist()
+        seen = np.isfinite(z_n).all(axis=-1)
+        z = z_n.tolist()
+        for m in np.flatnonzero(seen).tolist():
+            p = lik[m]
             radius = style.detection * (0.35 + 0.65 * p)
             used = p >= overlay.threshold
             paint.circle(z[m], radius + 1, (0, 0, 0), -1 if used else max(1, style.bone))
@@ -188,10 +198,11 @@ def draw_camera_frame(frame: YuvFrame, overlay: CameraOverlay, n: int, style: St
     for (i, j), color in zip(overlay.bones, overlay.bone_colors):
         if ok[i] and ok[j]:
             paint.line(uv[i], uv[j], color, style.bone)
-    for m in np.flatnonzero(ok):
-        paint.circle(uv[m], style.joint, (255, 255, 255))
+    for m, visible in enumerate(ok):
+        if visible:
+            paint.circle(uv[m], style.joint, (255, 255, 255))
     if overlay.detections is not None:
-        for m in np.flatnonzero(seen & overlay.outlier[n]):
+        for m in np.flatnonzero(seen & overlay.outlier[n]).tolist():
             paint.cross(z[m], style.detection * 1.4, OUTLIER, style.bone)
     paint.text((8 * style.text / 0.45, 30 * style.text / 0.45), f"{overlay.name}  frame {n}", style.text)
     return True

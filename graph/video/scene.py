@@ -135,18 +135,20 @@ class SceneView:
         extent = np.nanmax(np.ptp(self.positions, axis=1)) if np.isfinite(self.positions).any() else 1.0
         self.animal = float(max(extent, 0.2)) if np.isfinite(extent) else 1.0
         self.inset = (int(w * 0.4) // 2 * 2, int(h * 0.4) // 2 * 2)
+        self._inset_background = np.full((self.inset[1], self.inset[0], 3), BACKGROUND, np.uint8)
         self._background = self._draw_static()
 
     # ------------------------------------------------------------------------------- static layer
 
-    def _grid_lines(self, centre: np.ndarray, half: float, step: float) -> np.ndarray:
-        """Segments (L, 2, 3) of a ground grid round ``centre``, each square split in four (so a
-        line crossing behind the camera is dropped in pieces, not drawn through infinity)."""
+    def _grid_lines(self, centre: np.ndarray, half: float, step: float, pieces: int = 4) -> np.ndarray:
+        """Segments (L, 2, 3) of a ground grid round ``centre``, each side of a square in ``pieces``
+        (so a line crossing behind the camera is dropped in pieces, not drawn through infinity;
+        the close-up's grid is all in front of its camera and takes whole lines)."""
         c = centre - (centre @ self.up - self.ground) * self.up
         o1, o2 = np.floor((c @ self.e1) / step) * step, np.floor((c @ self.e2) / step) * step
         base = c - (c @ self.e1) * self.e1 - (c @ self.e2) * self.e2
         ticks = np.arange(-half, half + step / 2, step)
-        sub = np.linspace(-half, half, int(round(2 * half / step)) * 4 + 1)
+        sub = np.linspace(-half, half, int(round(2 * half / step)) * pieces + 1 if pieces else 2)
         segs = []
         for a, b, oa, ob in ((self.e1, self.e2, o1, o2), (self.e2, self.e1, o2, o1)):
             for k in ticks:
@@ -219,12 +221,12 @@ class SceneView:
         self._draw_skeleton(img, self.scene, X, 2.0 * self.unit)
         # the close-up, in the lower right
         iw, ih = self.inset
-        sub = np.full((ih, iw, 3), BACKGROUND, np.uint8)
+        sub = self._inset_background.copy()
         follow = self.centre_path[min(max(n, 0), len(self.centre_path) - 1)] if len(self.centre_path) else np.zeros(3)
         R, t = look_from(follow, self.forward, self.up, 4.0 * self.animal)
         box = follow + np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)]) * (0.6 * self.animal)
         close = VirtualCamera(fit_intrinsics(R, t, box, (iw, ih), margin=0.02), R, t)
-        self._draw_segments(sub, close, self._grid_lines(follow, 2.0 * self.animal, 0.25), GRID, 1)
+        self._draw_segments(sub, close, self._grid_lines(follow, 2.0 * self.animal, 0.25, pieces=0), GRID, 1)
         self._draw_skeleton(sub, close, X, 3.0 * self.unit)
         cv2.rectangle(sub, (0, 0), (iw - 1, ih - 1), (110, 110, 110), 1)
         img[h - ih:, w - iw:] = sub
