@@ -53,6 +53,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("anipose", "graph.anipose.cli",
             "solve an Anipose project's trials unchanged (config.toml, pose-2d, calibration) into pose-3d"),
     Command("export", "graph.export.cli", "write a solved run as NWB (ndx-pose), OpenSim TRC, C3D or EKS's CSV"),
+    Command("video", "graph.video.cli", "draw a solved run over each camera's video, with a 3D view (H.264 MP4)"),
 )
 
 

@@ -12,6 +12,10 @@ Written to ``--out``::
     comparison.png    3D error against the truth over time and per marker, every method
     <method>/         result.csv (Anipose 3D layout), result.h5, report.json, the figures of
                       graph.plot and playback.html
+
+With ``--videos`` (the ``video`` extra) the run is also filmed (``input/cam1.mp4`` ..., at the rig's
+2704x1520, about a minute a camera on two cores) and ``fte/videos/`` gets the labelled videos of the
+fte estimate over that footage, its 3D view and the combined grid (:mod:`graph.video`).
 """
 
 from __future__ import annotations
@@ -37,10 +41,12 @@ DEMO_METHODS = ("tri", "ekf", "fte")
 
 
 def run_demo(out: str | Path, frames: int = 200, fps: float = 120.0, noise: float = 5.0, outliers: float = 0.1,
-             outlier_std: float = 100.0, seed: int = 0, figures: bool = True, log=print) -> list:
+             outlier_std: float = 100.0, seed: int = 0, figures: bool = True, videos: bool = False,
+             log=print) -> list:
     """Simulate, solve with each method, evaluate and write everything; return the evaluations.
 
-    ``figures=False`` skips the per-method figures and playback files (the comparison is drawn).
+    ``figures=False`` skips the per-method figures and playback files (the comparison is drawn);
+    ``videos=True`` films the run and draws the fte estimate over it (module docstring).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -75,8 +81,33 @@ def run_demo(out: str | Path, frames: int = 200, fps: float = 120.0, noise: floa
         log(line)
     _write_summary(out, evaluations, run)
     plot_comparison(out / "comparison.png", evaluations, run)
+    if videos:
+        _videos(run, results[DEMO_METHODS.index("fte")], out, log)
     log(f"\nwrote {out}/summary.csv, summary.json, comparison.png, input/ and one folder per method")
     return evaluations
+
+
+def _videos(run, result, out: Path, log) -> None:
+    """Film the run into ``input/`` and draw the fte estimate over it into ``fte/videos/``."""
+    import sys
+
+    from graph.video import render_videos, write_simulated_videos
+    from graph.video.cli import FrameProgress
+
+    log(f"filming the run: {len(run.keypoints)} cameras x {run.frames} frames ...")
+    bar = FrameProgress(sys.stderr, 1, label="camera-frames filmed") if sys.stderr.isatty() else None
+    try:
+        footage = write_simulated_videos(run, out / "input", progress=bar, seed=run.seed)
+    finally:
+        if bar is not None:
+            bar.close()
+    bar = FrameProgress(sys.stderr, len(footage)) if sys.stderr.isatty() else None
+    try:
+        done = render_videos(result, footage, out / "fte" / "videos", combined=True, progress=bar)
+    finally:
+        if bar is not None:
+            bar.close()
+    log(f"labelled videos of the fte estimate in {done.seconds:.1f} s -> {out / 'fte' / 'videos'}")
 
 
 def _draw(result, folder: Path, calibration, log) -> None:
@@ -195,6 +226,9 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-figures", action="store_true",
                    help="skip each method's figures and playback file (comparison.png is still drawn)")
+    p.add_argument("--videos", action="store_true",
+                   help="also film the run (input/cam1.mp4 ...) and draw the fte estimate over it (fte/videos/); "
+                        "about a minute a camera; needs the 'video' extra")
     p.set_defaults(func=_cli)
 
 
@@ -206,9 +240,13 @@ def _cli(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError("exists and is not a folder", out)
+    if args.videos:
+        from graph.video import ffmpeg_exe
+
+        ffmpeg_exe()  # the one-line message naming the extra, before any work
     try:
         run_demo(out, frames=args.frames, fps=args.fps, noise=args.noise, outliers=args.outliers,
-                 outlier_std=args.outlier_std, seed=args.seed, figures=not args.no_figures)
+                 outlier_std=args.outlier_std, seed=args.seed, figures=not args.no_figures, videos=args.videos)
     except ValueError as e:
         if isinstance(e, InputError):
             raise

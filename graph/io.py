@@ -40,7 +40,8 @@ _MARKER_FIELDS = ("x", "y", "z", "error", "ncams", "score")
 
 # Arrays of a Result written as datasets of the same name; the optional ones may be None.
 _ARRAYS = ("positions", "std", "reprojections", "residuals", "ncams", "score", "outlier")
-_OPTIONAL_ARRAYS = ("params", "rates", "params_std", "causal_positions", "camera_centers")
+_OPTIONAL_ARRAYS = ("params", "rates", "params_std", "causal_positions", "camera_centers", "detections",
+                    "likelihood")
 
 
 # ------------------------------------------------------------------------------ Anipose 3D CSV

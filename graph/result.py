@@ -65,7 +65,8 @@ def build_result(prob: Problem, method: str, *, positions, std, reprojections, s
         camera_names=prob.calibration.names, fps=prob.options.fps, report=report, options=prob.options,
         param_names=list(sk.param_names) if params is not None else [], params=params, rates=rates,
         params_std=params_std, causal_positions=causal_positions, bones=list(sk.bones),
-        camera_centers=np.stack([c.center for c in prob.calibration.cameras]))
+        camera_centers=np.stack([c.center for c in prob.calibration.cameras]),
+        detections=prob.meas.transpose(1, 0, 2, 3), likelihood=prob.likelihood.transpose(1, 0, 2))
 
 
 MISFIT_REJECTED = 0.25  # a camera with this share of its detections rejected does not fit the others

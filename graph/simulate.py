@@ -136,6 +136,12 @@ class SimulatedRun:
     noise_seed: int | None = None  # the detections' own seed, if any (module docstring)
     time_offsets: np.ndarray | None = None  # (C,) frames: camera c's frame n is the truth at n + offset
     true_lengths: dict[str, float] = field(default_factory=dict)  # the animal's length of each group (m)
+    # (C, N, M, 3) where the cameras' clocks differ: the true positions each camera saw at its frames
+    seen_positions: np.ndarray | None = None
+
+    def camera_positions(self, c: int) -> np.ndarray:
+        """(N, M, 3): the true positions at camera ``c``'s frames (its own clock)."""
+        return self.positions if self.seen_positions is None else self.seen_positions[c]
 
     @property
     def frames(self) -> int:
@@ -452,7 +458,7 @@ def simulate_run(calibration: Calibration, frames: int = 200, fps: float = 120.0
                         param_names=list(sk.param_names), keypoints=kps, calibration=calibration, fps=fps,
                         projections=proj, outlier=outlier, swapped=swapped, dropout=dropout,
                         observation=model, stage=stage, seed=seed, bones=bones, notes=notes,
-                        noise_seed=noise_seed, time_offsets=offsets,
+                        noise_seed=noise_seed, time_offsets=offsets, seen_positions=seen if seen.ndim == 4 else None,
                         true_lengths={g: float(L) for g, L in zip(true_sk.length_groups, true_sk.model_lengths)})
 
 
@@ -565,6 +571,9 @@ def register(subparsers) -> None:
                    help="each length group of the true animal drawn within 1 +- this (0.15: +-15 %%)")
     p.add_argument("--time-offsets", default=None, metavar="T1,T2,...",
                    help="each camera's clock in frames (camera frame n shows the truth at n + T)")
+    p.add_argument("--videos", action="store_true",
+                   help="also film the run: cam1.mp4 ... of the animal over a textured ground, as each camera "
+                        "sees it (H.264; needs the 'video' extra)")
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=_cli)
 
@@ -586,6 +595,10 @@ def _cli(args) -> int:
             raise InputError(f"--time-offsets takes frames as 0,0.4,-1.2, not {args.time_offsets!r}") from None
         if len(offsets) != len(calibration):
             raise InputError(f"--time-offsets gives {len(offsets)} offsets for {len(calibration)} cameras")
+    if args.videos:
+        from graph.video import ffmpeg_exe
+
+        ffmpeg_exe()  # the one-line message naming the extra, before any work
     try:
         run = simulate_run(calibration, frames=args.frames, fps=args.fps, noise=args.noise,
                            outliers=args.outliers, outlier_std=args.outlier_std, swaps=args.swaps,
@@ -596,6 +609,8 @@ def _cli(args) -> int:
             raise
         raise InputError(str(e)) from None
     written = write_run(run, args.out, rig_path=rig)
+    if args.videos:
+        written += _film(run, args.out)
     print(f"simulated {run.frames} frames, {len(run.calibration)} cameras, {len(run.markers)} markers: "
           f"{int(run.outlier.sum())} outliers, {int(run.swapped.sum())} swapped, "
           f"{int(run.dropout.sum())} dropped, {int((~run.visible).sum())} outside the image")
@@ -603,3 +618,21 @@ def _cli(args) -> int:
         print(f"note: {note}")
     print(f"wrote {len(written)} files to {args.out}")
     return 0
+
+
+def _film(run: SimulatedRun, out: str | Path) -> list[Path]:
+    """``--videos``: one H.264 MP4 per camera (:func:`graph.video.write_simulated_videos`), with a
+    progress bar on a terminal."""
+    import sys
+
+    from graph.video import write_simulated_videos
+    from graph.video.cli import FrameProgress
+
+    bar = FrameProgress(sys.stderr, 1, label="camera-frames filmed") if sys.stderr.isatty() else None
+    try:
+        return write_simulated_videos(run, out, progress=bar, seed=run.seed)
+    except ValueError as e:
+        raise InputError(str(e)) from None
+    finally:
+        if bar is not None:
+            bar.close()

@@ -174,6 +174,9 @@ class Result:
     causal_positions: np.ndarray | None = None  # "ekf": the per-frame causal estimate (N, M, 3)
     bones: list[tuple[str, str]] = field(default_factory=list)  # for drawing
     camera_centers: np.ndarray | None = None  # (C, 3) world positions of the cameras, for drawing
+    # the detections the solve was given, per camera frame, for drawing over the videos
+    detections: np.ndarray | None = None  # (C, N, M, 2) pixels, NaN where missing
+    likelihood: np.ndarray | None = None  # (C, N, M), 0 where missing
 
     @property
     def error(self) -> np.ndarray:

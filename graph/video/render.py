@@ -1,0 +1,286 @@
+"""Labelled videos of a solved run: each camera's own footage with the estimate drawn on it, a 3D
+view, and optionally one grid of them all, written in one streaming pass over the videos.
+
+Frames and clocks. The result holds, per camera, the reprojections, detections and outlier flags of
+that camera's own frames (``Result.reprojections[c, m]`` is camera c's frame m), so each camera's
+video is drawn frame by frame as it is. The 3D view is on the reference clock (camera 1's, the
+result's frame n). The cameras' clocks may differ: camera c's frame m was taken at reference time
+``m + tau_c`` (``report.time_offsets_frames``, when the solve estimated or was given them), so
+the grid's frame n shows camera c's frame ``m = n - round(tau_c)`` (the one nearest in time) beside
+the 3D view of frame n; a camera with no such frame shows a blank tile.
+
+Memory. Every video is decoded and encoded by ffmpeg processes one frame at a time
+(:mod:`graph.video.codec`); the grid keeps, per camera, only the small tiles of the
+``max round(tau) - min round(tau)`` frames it still has to show. Nothing grows with the length of
+the video but the result's own arrays.
+
+Output (in ``out``): ``<video stem>_labeled.mp4`` per camera at the input's size and rate,
+``3d.mp4`` (the 3D view, ``SCENE_SIZE``) and, with ``combined``, ``combined.mp4``; the same number
+of frames as the input (or as ``frames`` asks).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from graph.errors import InputError
+from graph.types import Result
+from graph.video.codec import FrameReader, FrameWriter, VideoInfo, YuvFrame, probe, read_frame
+from graph.video.draw import CameraOverlay, Painter, Style, draw_camera_frame
+from graph.video.scene import SceneView
+
+SCENE_SIZE = (1280, 720)
+GRID_WIDTH = 1920  # the combined grid's width at most
+TILE_WIDTH = 640  # a tile's width at most
+FPS_TOLERANCE = 0.01  # relative difference of frame rates that gets a warning
+
+Progress = Callable[[int, int], None]  # (frames done, frames in all)
+
+
+@dataclass
+class RenderedVideos:
+    """What :func:`render_videos` wrote."""
+
+    cameras: list[Path]
+    scene: Path | None
+    combined: Path | None
+    frames: int
+    fps: float
+    first_frame: int
+    seconds: float
+    camera_frames_per_second: float
+    offsets_frames: list[int] = field(default_factory=list)
+
+    @property
+    def paths(self) -> list[Path]:
+        return [*self.cameras, *(p for p in (self.scene, self.combined) if p is not None)]
+
+
+def camera_overlays(result: Result) -> list[CameraOverlay]:
+    """One :class:`CameraOverlay` per camera of ``result``."""
+    index = {m: i for i, m in enumerate(result.markers)}
+    bones = [(index[a], index[b]) for a, b in result.bones if a in index and b in index]
+    out = []
+    for c, name in enumerate(result.camera_names):
+        out.append(CameraOverlay(
+            name=name, markers=list(result.markers), bones=bones,
+            reprojections=np.asarray(result.reprojections[c], dtype=np.float64),
+            detections=None if result.detections is None else np.asarray(result.detections[c], dtype=np.float64),
+            likelihood=None if result.likelihood is None else np.asarray(result.likelihood[c], dtype=np.float64),
+            outlier=np.asarray(result.outlier[c], dtype=bool),
+            threshold=float(result.options.likelihood_threshold)))
+    return out
+
+
+def frame_offsets(result: Result) -> list[int]:
+    """Each camera's clock offset in whole frames, ``round(tau_c)`` (module docstring); zeros when
+    the result has none."""
+    tau = result.report.time_offsets_frames
+    C = len(result.camera_names)
+    if not tau or len(tau) != C:
+        return [0] * C
+    return [int(round(float(t))) if t is not None and math.isfinite(float(t)) else 0 for t in tau]
+
+
+def parse_frames(text: str | None, frames: int) -> tuple[int, int]:
+    """``A:B`` (Python's slice: frames A to B-1; either may be left out) within ``frames``."""
+    if text is None:
+        return 0, frames
+    parts = text.split(":")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        a = int(parts[0]) if parts[0].strip() else 0
+        b = int(parts[1]) if parts[1].strip() else frames
+    except ValueError:
+        raise InputError(f"--frames takes A:B (frames A to B-1), not {text!r}") from None
+    if a < 0 or b > frames or a >= b:
+        raise InputError(f"--frames {text}: the videos have frames 0 to {frames - 1}; give 0 <= A < B <= {frames}")
+    return a, b
+
+
+def check_videos(result: Result, videos: list[str | Path]) -> list[VideoInfo]:
+    """Probe ``videos`` and check they fit ``result``: one per camera, each with the result's
+    number of frames (one-line :class:`InputError` otherwise)."""
+    C = len(result.camera_names)
+    if len(videos) != C:
+        raise InputError(f"{len(videos)} video(s) given for a result of {C} cameras "
+                         f"({', '.join(result.camera_names)}): one per camera, in that order")
+    infos = [probe(v) for v in videos]
+    N = result.positions.shape[0]
+    for info in infos:
+        if info.frames != N:
+            raise InputError(f"has {info.frames} frames but the result has {N} (one estimate per video frame: "
+                             "give the videos the keypoints came from)", info.path)
+        if abs(info.fps - result.fps) > FPS_TOLERANCE * result.fps:
+            warnings.warn(f"{Path(info.path).name}: {info.fps:g} fps, the result was solved at {result.fps:g} fps; "
+                          "the output keeps the video's rate", UserWarning, stacklevel=3)
+    return infos
+
+
+def output_names(infos: list[VideoInfo]) -> list[str]:
+    """``<stem>_labeled.mp4`` per video; numbered when two videos share a stem."""
+    stems = [Path(i.path).stem for i in infos]
+    if len(set(stems)) < len(stems):
+        stems = [f"{c + 1}_{s}" for c, s in enumerate(stems)]
+    return [f"{s}_labeled.mp4" for s in stems]
+
+
+class Grid:
+    """The combined view: C camera tiles and the 3D view in ``cols x rows`` equal tiles."""
+
+    def __init__(self, infos: list[VideoInfo], tiles: int):
+        self.cols = math.ceil(math.sqrt(tiles))
+        self.rows = math.ceil(tiles / self.cols)
+        w0, h0 = infos[0].even_size
+        tw = min(TILE_WIDTH, GRID_WIDTH // self.cols) // 2 * 2
+        th = max(2, int(round(tw * h0 / w0)) // 2 * 2)
+        self.tile = (tw, th)
+        self.fits = [self._fit(*i.even_size) for i in infos]
+        self.width, self.height = tw * self.cols, th * self.rows
+
+    def _fit(self, w: int, h: int) -> tuple[int, int]:
+        tw, th = self.tile
+        s = min(tw / w, th / h)
+        return max(2, int(w * s) // 2 * 2), max(2, int(h * s) // 2 * 2)
+
+    def shrink(self, frame: YuvFrame, c: int) -> YuvFrame:
+        """Camera ``c``'s frame at its tile's size (area averaging)."""
+        w, h = self.fits[c]
+        out = YuvFrame(w, h)
+        cv2.resize(frame.y, (w, h), dst=out.y, interpolation=cv2.INTER_AREA)
+        cv2.resize(frame.u, (w // 2, h // 2), dst=out.u, interpolation=cv2.INTER_AREA)
+        cv2.resize(frame.v, (w // 2, h // 2), dst=out.v, interpolation=cv2.INTER_AREA)
+        return out
+
+    def blank(self) -> YuvFrame:
+        f = YuvFrame(self.width, self.height)
+        f.y[:] = 16
+        f.u[:] = 128
+        f.v[:] = 128
+        return f
+
+    def place(self, canvas: YuvFrame, k: int, tile: YuvFrame) -> None:
+        """Put ``tile`` centred in slot ``k`` (row-major)."""
+        tw, th = self.tile
+        x0 = (k % self.cols) * tw + (tw - tile.width) // 2 // 2 * 2
+        y0 = (k // self.cols) * th + (th - tile.height) // 2 // 2 * 2
+        canvas.y[y0:y0 + tile.height, x0:x0 + tile.width] = tile.y
+        canvas.u[y0 // 2:(y0 + tile.height) // 2, x0 // 2:(x0 + tile.width) // 2] = tile.u
+        canvas.v[y0 // 2:(y0 + tile.height) // 2, x0 // 2:(x0 + tile.width) // 2] = tile.v
+
+    def label(self, canvas: YuvFrame, k: int, text: str) -> None:
+        tw, th = self.tile
+        Painter(canvas).text(((k % self.cols) * tw + 10, (k // self.cols) * th + th // 2), text, 0.5)
+
+
+def render_videos(result: Result, videos: list[str | Path], out: str | Path, frames: str | None = None,
+                  combined: bool = False, up: np.ndarray | None = None, progress: Progress | None = None,
+                  scene_size: tuple[int, int] = SCENE_SIZE) -> RenderedVideos:
+    """Write the labelled videos of ``result`` over ``videos`` (one per camera, in the result's
+    order) into the folder ``out`` (module docstring). ``frames`` is ``"A:B"`` (default: all)."""
+    t0 = time.perf_counter()
+    infos = check_videos(result, videos)
+    a, b = parse_frames(frames, infos[0].frames)
+    count = b - a
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    overlays = camera_overlays(result)
+    offsets = frame_offsets(result)
+    fps = infos[0].fps
+    C = len(infos)
+    index = {m: i for i, m in enumerate(result.markers)}
+    bones = [(index[x], index[y]) for x, y in result.bones if x in index and y in index]
+    title = f"{result.method} estimate, {result.skeleton} skeleton"
+
+    def scene_of(size):
+        return SceneView(result.positions, list(result.markers), bones, result.camera_centers,
+                         list(result.camera_names), result.fps, size=size, up=up, title=title)
+
+    scene = scene_of(scene_size)
+    grid = Grid(infos, C + 1) if combined else None
+    grid_scene = scene_of(grid.tile) if grid else None
+    styles = [Style.for_width(i.even_size[0]) for i in infos]
+    paths = [out / name for name in output_names(infos)]
+    scene_path = out / "3d.mp4"
+    grid_path = out / "combined.mp4" if grid else None
+
+    with contextlib.ExitStack() as stack:
+        readers = [stack.enter_context(FrameReader(info, start=a, count=count)) for info in infos]
+        writers = [stack.enter_context(FrameWriter(p, *info.even_size, fps)) for p, info in zip(paths, infos)]
+        scene_writer = stack.enter_context(FrameWriter(scene_path, *scene_size, fps))
+        grid_writer = stack.enter_context(FrameWriter(grid_path, grid.width, grid.height, fps)) if grid else None
+        tiles: list[dict[int, YuvFrame]] = [{} for _ in range(C)]
+        next_ref = a  # the next frame of the grid to write (reference clock)
+
+        def emit_grid(upto: int) -> None:
+            """Write the grid's frames ``next_ref .. upto - 1`` and forget tiles no longer needed."""
+            nonlocal next_ref
+            while next_ref < upto:
+                canvas = grid.blank()
+                for c in range(C):
+                    m = next_ref - offsets[c]
+                    if m in tiles[c]:
+                        grid.place(canvas, c, tiles[c][m])
+                    else:
+                        grid.label(canvas, c, f"{result.camera_names[c]}: no frame {m}")
+                grid.place(canvas, C, YuvFrame.from_bgr(grid_scene.render(next_ref)))
+                grid_writer.write(canvas)
+                next_ref += 1
+                for c in range(C):
+                    for m in [m for m in tiles[c] if m < next_ref - offsets[c]]:
+                        del tiles[c][m]
+
+        for i in range(count):
+            n = a + i
+            for c, (reader, writer) in enumerate(zip(readers, writers)):
+                frame = reader.read()
+                if frame is None:
+                    raise InputError(f"ended after {reader.frames_read} of {count} frames "
+                                     f"(from frame {a}): the file is shorter than its container says", infos[c].path)
+                draw_camera_frame(frame, overlays[c], n, styles[c])
+                writer.write(frame)
+                if grid:
+                    tiles[c][n] = grid.shrink(frame, c)
+            scene_writer.write(YuvFrame.from_bgr(scene.render(n)))
+            if grid:
+                # grid frame r shows camera c's frame r - k_c: all are in once r - k_c <= n for every c
+                # (or beyond the frames rendered)
+                emit_grid(min(n + min(offsets) + 1, b) if i < count - 1 else b)
+            if progress is not None:
+                progress(i + 1, count)
+        if grid:
+            emit_grid(b)
+    seconds = time.perf_counter() - t0
+    return RenderedVideos(cameras=paths, scene=scene_path, combined=grid_path, frames=count, fps=fps,
+                          first_frame=a, seconds=seconds, camera_frames_per_second=C * count / max(seconds, 1e-9),
+                          offsets_frames=offsets)
+
+
+def camera_frame_png(result: Result, camera: int, video: str | Path, frame: int, path: str | Path) -> Path:
+    """One camera's frame of ``video`` with the estimate drawn on it (as in the labelled videos),
+    written as a PNG. ``camera`` counts from 0, in the result's camera order."""
+    C = len(result.camera_names)
+    if not 0 <= camera < C:
+        raise InputError(f"the result has cameras 1 to {C} ({', '.join(result.camera_names)}), not camera {camera + 1}")
+    info = probe(video)
+    N = result.positions.shape[0]
+    if info.frames != N:
+        raise InputError(f"has {info.frames} frames but the result has {N} (one estimate per video frame)", video)
+    if not 0 <= frame < N:
+        raise InputError(f"--frame {frame}: the run has frames 0 to {N - 1}")
+    image = read_frame(info, frame)
+    draw_camera_frame(image, camera_overlays(result)[camera], frame, Style.for_width(image.width))
+    path = Path(path)
+    if not cv2.imwrite(str(path), image.to_bgr()[: info.height, : info.width]):
+        raise InputError("could not be written as a PNG", path)
+    return path
