@@ -50,6 +50,7 @@ COMMANDS: tuple[Command, ...] = (
             "simulate a cheetah run on a rig and write DeepLabCut CSVs, calibration and truth"),
     Command("demo", "graph.demo", "simulate a cheetah run on the AcinoSet rig and solve it with every method"),
     Command("plot", "graph.plot", "draw a solved run: PNG figures and an HTML playback file"),
+    Command("calibrate", "graph.calibrate.cli", "calibrate cameras from board views, or refine a rig from keypoints"),
 )
 
 

@@ -15,11 +15,25 @@ Modules: :mod:`.board` (specs, corner geometry), :mod:`.views` (the detections J
 figures), :mod:`.simulate` (synthetic rigs and board images with a known truth), :mod:`.cli`.
 """
 
-from graph.calibrate.board import Board, parse_board
-from graph.calibrate.detect import detect_views as load_views
-from graph.calibrate.extrinsics import RigResult, calibrate_extrinsics
-from graph.calibrate.intrinsics import IntrinsicsResult, calibrate_intrinsics
-from graph.calibrate.views import BoardViews, read_detections
+from __future__ import annotations
 
-__all__ = ["Board", "BoardViews", "IntrinsicsResult", "RigResult", "calibrate_extrinsics", "calibrate_intrinsics",
-           "load_views", "parse_board", "read_detections"]
+import importlib
+
+_EXPORTS = {
+    "Board": "graph.calibrate.board", "parse_board": "graph.calibrate.board",
+    "BoardViews": "graph.calibrate.views", "read_detections": "graph.calibrate.views",
+    "load_views": "graph.calibrate.detect",
+    "IntrinsicsResult": "graph.calibrate.intrinsics", "calibrate_intrinsics": "graph.calibrate.intrinsics",
+    "RigResult": "graph.calibrate.extrinsics", "calibrate_extrinsics": "graph.calibrate.extrinsics",
+}
+_RENAMED = {"load_views": "detect_views"}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    """The front door's names, imported when first used (so ``acinoset calibrate --help`` loads no
+    solver)."""
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'graph.calibrate' has no attribute {name!r}")
+    return getattr(importlib.import_module(_EXPORTS[name]), _RENAMED.get(name, name))

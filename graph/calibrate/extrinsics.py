@@ -183,11 +183,7 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
     frames = sorted({f for d in pnp for f in d if sum(f in e for e in pnp) >= 2}, key=_natural)
     if not frames:
         raise InputError("no frame shows the board to two cameras")
-    board_pose = []
-    for f in frames:
-        best = min((i for i in range(n) if f in pnp[i]), key=lambda i: -np.isfinite(
-            views[i].corners[pnp[i][f][1]]).all(axis=1).sum())
-        board_pose.append(compose(cam_pose[best], pnp[best][f][0]))
+    board_pose = [board_start(f, cam_pose, pnp, range(n), scale) for f in frames]
     which = [[pnp[i][f][1] for f in frames if f in pnp[i]] for i in range(n)]
     boards = [[b for b, f in enumerate(frames) if f in pnp[i]] for i in range(n)]
     views_frames = [[f for f in frames if f in pnp[i]] for i in range(n)]
@@ -222,7 +218,7 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
         rig = sol.rig
         sigma = bundle.noise_sigma(sol.residuals)
         rms = bundle.view_rms(sol.residuals, cur)
-        bad = outlier_views(rms)
+        bad = worst_per_frame(outlier_views(rms), rms, [view_frame[g] for g in np.flatnonzero(keep)])
         if not bad.any():
             break
         idx = np.flatnonzero(keep)
@@ -231,6 +227,11 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
             dropped[view_cam[g]].append({"frame": view_frame[g], "reason": f"outlier: {rms[v]:.2f} px RMS, "
                                          f"median view {np.median(rms):.2f} px"})
             keep[g] = False
+            # the frame's board pose again, from the views left (it may have followed the wrong one)
+            b = frames.index(view_frame[g])
+            left = [int(view_cam[h]) for h in np.flatnonzero(keep) if view_frame[h] == view_frame[g]]
+            poses = {i: (rig.R_cam[i], rig.t_cam[i]) for i in range(n)}
+            rig.R_board[b], rig.t_board[b] = board_start(view_frame[g], poses, pnp, left, scale)
     cur = obs.keep_views(keep)
     e = sol.residuals
     # 4. uncertainty and the world frame
@@ -274,6 +275,27 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
         "error": float(np.sqrt((e * e).sum(axis=1).mean())), "units": "m", "origin": origin, "board": board.spec})
     return RigResult(calibration, float(np.sqrt((e * e).sum(axis=1).mean())), sigma, reports, overlap, baselines,
                      frames, board_poses, residuals, corners_used, total_it, total_s, origin, notes)
+
+
+def board_start(frame: str, cam_pose: dict, pnp: list[dict], cams, scale: float) -> tuple:
+    """The board's pose in the world at ``frame``: the medoid of what each camera's PnP says (camera
+    pose composed with the board's pose in it), so that one camera's wrong detection is outvoted."""
+    cand = [compose(cam_pose[i], pnp[i][frame][0]) for i in cams if frame in pnp[i]]
+    if not cand:
+        return np.eye(3), np.zeros(3)
+    return cand[medoid(cand, scale)]
+
+
+def worst_per_frame(bad: np.ndarray, rms: np.ndarray, frames: list[str]) -> np.ndarray:
+    """Of the outlier views ``bad`` of each frame, only the worst: one wrong detection spoils the
+    board's pose and with it the other cameras' views of that frame, which fit again once it is gone."""
+    out = np.zeros_like(bad)
+    worst: dict[str, int] = {}
+    for v in np.flatnonzero(bad):
+        if frames[v] not in worst or rms[v] > rms[worst[frames[v]]]:
+            worst[frames[v]] = v
+    out[list(worst.values())] = True
+    return out
 
 
 def _natural(s: str):

@@ -20,8 +20,10 @@ def inverse(a: tuple) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rotation_angle(R: np.ndarray) -> float:
-    """The angle (radians) of a rotation: ``acos((trace R - 1) / 2)``."""
-    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    """The angle (radians) of a rotation, ``atan2(|vee(R - R^T)| / 2, (trace R - 1) / 2)`` (accurate near 0,
+    where ``acos`` of the cosine alone loses half the digits)."""
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.arctan2(s, (np.trace(R) - 1.0) / 2.0))
 
 
 def board_in_camera(camera: Camera, uv: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
