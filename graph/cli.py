@@ -54,6 +54,7 @@ COMMANDS: tuple[Command, ...] = (
             "solve an Anipose project's trials unchanged (config.toml, pose-2d, calibration) into pose-3d"),
     Command("export", "graph.export.cli", "write a solved run as NWB (ndx-pose), OpenSim TRC, C3D or EKS's CSV"),
     Command("video", "graph.video.cli", "draw a solved run over each camera's video, with a 3D view (H.264 MP4)"),
+    Command("calibrate", "graph.calibrate.cli", "calibrate cameras from board views, or refine a rig from keypoints"),
 )
 
 

@@ -1,0 +1,83 @@
+"""Projection of points in a camera's frame with its Jacobians, for the bundle adjustment.
+
+Intrinsics as one vector ``theta``:
+
+* fisheye (OpenCV, 8): ``[fx, fy, cx, cy, k1, k2, k3, k4]``
+* pinhole (OpenCV radial-tangential, 9): ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``
+
+With ``x = X/Z, y = Y/Z`` and the distorted ``(x', y')`` of :mod:`graph.camera`, pixels are
+``u = fx x' + cx, v = fy y' + cy``. Derivatives with respect to the distortion coefficients:
+
+* fisheye, ``r = |(x, y)|, th = atan r``: ``d x'/d k_i = x th^(2i+1) / r`` (and y alike), i = 1..4;
+* pinhole, ``r2 = x^2 + y^2``: ``d(x', y')/d k1 = (x, y) r2``, ``/d k2 = (x, y) r2^2``,
+  ``/d k3 = (x, y) r2^3``, ``/d p1 = (2xy, r2 + 2y^2)``, ``/d p2 = (r2 + 2x^2, 2xy)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from graph.camera import FISHEYE, PINHOLE, Camera, _fisheye_distort, _radtan_distort
+
+N_INTRINSICS = {FISHEYE: 8, PINHOLE: 9}
+
+
+def intrinsics_of(camera: Camera) -> np.ndarray:
+    K = camera.K
+    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *camera.dist], dtype=np.float64)
+
+
+def camera_with(theta: np.ndarray, model: str, size: tuple[int, int], name: str = "",
+                R: np.ndarray | None = None, t: np.ndarray | None = None) -> Camera:
+    K = np.array([[theta[0], 0.0, theta[2]], [0.0, theta[1], theta[3]], [0.0, 0.0, 1.0]])
+    return Camera(K=K, dist=np.asarray(theta[4:]), R=np.eye(3) if R is None else R,
+                  t=np.zeros(3) if t is None else t, model=model, size=size, name=name)
+
+
+def project(theta: np.ndarray, model: str, Xc: np.ndarray, jacobians: bool = True):
+    """Pixels (M, 2) of camera-frame points ``Xc`` (M, 3); with ``jacobians``, also
+    ``d uv / d Xc`` (M, 2, 3) and ``d uv / d theta`` (M, 2, P)."""
+    Xc = np.asarray(Xc, dtype=np.float64)
+    z = Xc[:, 2]
+    x, y = Xc[:, 0] / z, Xc[:, 1] / z
+    fx, fy, cx, cy = theta[:4]
+    d = np.asarray(theta[4:])
+    if model == FISHEYE:
+        xd, yd, D = _fisheye_distort(x, y, d, jacobians)
+    else:
+        xd, yd, D = _radtan_distort(x, y, d, jacobians)
+    uv = np.stack([fx * xd + cx, fy * yd + cy], axis=1)
+    if not jacobians:
+        return uv
+    M = len(Xc)
+    dn = np.zeros((M, 2, 3))
+    dn[:, 0, 0] = 1 / z
+    dn[:, 0, 2] = -x / z
+    dn[:, 1, 1] = 1 / z
+    dn[:, 1, 2] = -y / z
+    F = np.array([[fx, 0.0], [0.0, fy]])
+    J_X = np.einsum("ij,mjk,mkl->mil", F, D, dn)
+    J_t = np.zeros((M, 2, N_INTRINSICS[model]))
+    J_t[:, 0, 0] = xd
+    J_t[:, 1, 1] = yd
+    J_t[:, 0, 2] = 1.0
+    J_t[:, 1, 3] = 1.0
+    if model == FISHEYE:
+        r = np.hypot(x, y)
+        th = np.arctan(r)
+        small = r < 1e-12
+        ratio = np.where(small, 1.0, th / np.where(small, 1.0, r))  # th / r -> 1 at the centre
+        for i in range(4):
+            g = ratio * th ** (2 * i + 2)
+            J_t[:, 0, 4 + i] = fx * x * g
+            J_t[:, 1, 4 + i] = fy * y * g
+    else:
+        r2 = x * x + y * y
+        for col, p in ((4, r2), (5, r2 * r2), (8, r2 ** 3)):
+            J_t[:, 0, col] = fx * x * p
+            J_t[:, 1, col] = fy * y * p
+        J_t[:, 0, 6] = fx * 2 * x * y
+        J_t[:, 1, 6] = fy * (r2 + 2 * y * y)
+        J_t[:, 0, 7] = fx * (r2 + 2 * x * x)
+        J_t[:, 1, 7] = fy * 2 * x * y
+    return uv, J_X, J_t

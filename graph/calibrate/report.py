@@ -1,0 +1,83 @@
+"""Pictures of a calibration (matplotlib, PNG): the rig and the board views in 3D, the residuals
+per camera, and how much of each image the board covered."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from graph.calibrate.extrinsics import RigResult
+from graph.plot import _figure, _set_equal_3d
+
+
+def rig_figure(result: RigResult, path: Path, board_outline: np.ndarray) -> Path:
+    """Cameras (centre and viewing direction) and the board of every view used, in the world frame."""
+    fig = _figure(7.5, 6.0)
+    ax = fig.add_subplot(projection="3d")
+    cams = result.calibration.cameras
+    centres = np.stack([c.center for c in cams])
+    boards = [board_outline @ T[:3, :3].T + T[:3, 3] for T in result.board_poses.values()]
+    scale = 0.1 * float(np.ptp(np.vstack([centres, *boards]), axis=0).max())
+    pts = [centres]
+    for X in boards:
+        ax.plot(*np.vstack([X, X[:1]]).T, color="0.55", lw=0.8)
+        pts.append(X)
+    for c, name in zip(cams, result.calibration.names):
+        C = c.center
+        d = c.R[2] * scale
+        ax.scatter(*C, color="tab:blue", s=24)
+        ax.plot(*np.stack([C, C + d]).T, color="tab:blue", lw=1.5)
+        ax.text(*(C + 0.3 * d), name, fontsize=8)
+    _set_equal_3d(ax, np.vstack(pts), min_extent=0.1)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
+    ax.set_title(f"{len(cams)} cameras, {len(result.board_poses)} board views, RMS {result.rms_px:.2f} px "
+                 f"(origin: {result.origin})", fontsize=9)
+    fig.savefig(path)
+    return path
+
+
+def residuals_figure(result: RigResult, path: Path) -> Path:
+    """The length of every corner's residual, per camera (box plot), and the RMS of each."""
+    fig = _figure(7.0, 3.8)
+    ax = fig.add_subplot()
+    data = [np.linalg.norm(e, axis=1) for e in result.residuals]
+    ax.boxplot(data, showfliers=True, flierprops={"markersize": 2})
+    ax.set_xticks(range(1, len(data) + 1), [f"{c.name}\n{c.rms_px:.2f} px" for c in result.cameras], fontsize=8)
+    ax.set_ylabel("reprojection error (px)")
+    ax.set_title("residual per corner, by camera (RMS below the name)", fontsize=9)
+    fig.savefig(path)
+    return path
+
+
+def coverage_figure(result: RigResult, path: Path) -> Path:
+    """Every corner the solve used, in each camera's image, coloured by its error."""
+    n = len(result.residuals)
+    cols = min(3, n)
+    rows = (n + cols - 1) // cols
+    fig = _figure(3.6 * cols, 2.4 * rows)
+    for i, (uv, e, cam) in enumerate(zip(result.corners_used, result.residuals, result.calibration.cameras)):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        W, H = cam.size
+        sc = ax.scatter(uv[:, 0], uv[:, 1], c=np.linalg.norm(e, axis=1), s=2, cmap="viridis")
+        ax.set_xlim(0, W)
+        ax.set_ylim(H, 0)
+        ax.set_aspect("equal")
+        ax.set_title(result.calibration.names[i], fontsize=8)
+        ax.tick_params(labelsize=6)
+        fig.colorbar(sc, ax=ax, shrink=0.8).ax.tick_params(labelsize=6)
+    fig.suptitle("corners used, coloured by reprojection error (px)", fontsize=9)
+    fig.savefig(path)
+    return path
+
+
+def write_figures(result: RigResult, directory: str | Path, board) -> list[Path]:
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    obj = board.object_points()
+    grid = board.corner_grid
+    outline = obj[[0, grid[0] - 1, len(obj) - 1, len(obj) - grid[0]]]
+    return [rig_figure(result, d / "rig.png", outline), residuals_figure(result, d / "residuals.png"),
+            coverage_figure(result, d / "coverage.png")]

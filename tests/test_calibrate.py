@@ -1,0 +1,430 @@
+"""Calibration (graph.calibrate): board geometry, the bundle adjustment's Jacobians, AcinoSet's real
+detections and results, synthetic rigs with a known truth, detection on rendered images, and the
+command line's contract."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from graph.calibrate import bundle
+from graph.calibrate.board import parse_board
+from graph.calibrate.detect import Detector, cache_path_for, detect_views
+from graph.calibrate.extrinsics import calibrate_extrinsics
+from graph.calibrate.intrinsics import calibrate_intrinsics
+from graph.calibrate.model import intrinsics_of
+from graph.calibrate.poses import rotation_angle
+from graph.calibrate.simulate import render_board, rig_views
+from graph.calibrate.views import BoardViews, read_detections
+from graph.calibration import load_calibration
+from graph.camera import FISHEYE, PINHOLE, Camera
+from graph.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "tests" / "data" / "acinoset_calib"  # AcinoSet's public detections and results (SOURCE.md)
+INTRINSIC = DATA / "intrinsic_calib_2021"
+EX1 = DATA / "Ex1_static"
+BOARD_2021 = "checkerboard:9x6:0.031"
+
+
+def in_camera1(cal_cameras):
+    """Camera centres and rotations of a rig expressed in its first camera's frame."""
+    R0, t0 = cal_cameras[0].R, cal_cameras[0].t
+    return [(c.R @ R0.T, R0 @ c.center + t0) for c in cal_cameras]
+
+
+# ------------------------------------------------------------------------------- board geometry
+
+
+def test_checkerboard_corner_order_is_opencvs():
+    b = parse_board("checkerboard:9x6:0.031")
+    P = b.object_points()
+    assert P.shape == (54, 3) and b.corner_grid == (9, 6)
+    # AcinoSet's (and OpenCV's sample code's) object points
+    ref = np.mgrid[0:9, 0:6].T.reshape(-1, 2) * 0.031
+    np.testing.assert_allclose(P[:, :2], ref)
+    assert np.all(P[:, 2] == 0)
+    assert np.allclose(P[1] - P[0], [0.031, 0, 0]) and np.allclose(P[9] - P[0], [0, 0.031, 0])
+
+
+def test_charuco_corners_match_opencv():
+    import cv2
+
+    b = parse_board("charuco:7x5:0.04:0.03:4X4_50")
+    assert b.dictionary == "DICT_4X4_50" and b.n_corners == 24
+    board = cv2.aruco.CharucoBoard((7, 5), 0.04, 0.03, cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
+    np.testing.assert_allclose(b.object_points(), np.asarray(board.getChessboardCorners()).reshape(-1, 3), atol=1e-7)
+
+
+@pytest.mark.parametrize("spec, fragment", [
+    ("checkerboard:9x6", "expected checkerboard"),
+    ("checkerboard:9by6:0.03", "expected checkerboard"),
+    ("checkerboard:9x6:-1", "positive length"),
+    ("checkerboard:7x7:0.03", "square checkerboard"),
+    ("charuco:7x5:0.04:0.05:DICT_4X4_50", "smaller than the square"),
+    ("charuco:7x5:0.04:0.03:DICT_NOPE", "unknown ArUco dictionary"),
+    ("circles:4x11:0.02", "expected checkerboard"),
+])
+def test_bad_board_specs(spec, fragment):
+    with pytest.raises(InputError, match=fragment):
+        parse_board(spec)
+
+
+def test_square_in_millimetres_is_noticed():
+    assert parse_board("checkerboard:9x6:31").looks_like_mm()
+    assert not parse_board("checkerboard:9x6:0.031").looks_like_mm()
+
+
+# ------------------------------------------------------------------------------ bundle Jacobians
+
+
+def _small_problem(model: str, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    board = parse_board("checkerboard:5x4:0.05")
+    theta = np.array([900.0, 910.0, 640.0, 360.0, 0.1, -0.05, 0.02, -0.01]) if model == FISHEYE else \
+        np.array([900.0, 910.0, 640.0, 360.0, -0.2, 0.05, 0.001, -0.002, 0.01])
+    R_cam = np.stack([bundle.exp_so3(rng.normal(0, 0.1, 3)) for _ in range(2)])
+    t_cam = rng.normal(0, 0.2, (2, 3))
+    R_board = np.stack([bundle.exp_so3(rng.normal(0, 0.3, 3)) for _ in range(2)])
+    t_board = np.array([[0.0, 0.0, 1.5], [0.1, -0.1, 1.8]])
+    rig = bundle.Rig([model, model], [theta, theta.copy()], R_cam, t_cam, R_board, t_board)
+    P = board.object_points()
+    view = np.repeat(np.arange(4), len(P))
+    obs = bundle.Observations(view, np.array([0, 1, 0, 1]), np.array([0, 0, 1, 1]),
+                              np.zeros((4 * len(P), 2)), np.tile(P, (4, 1)))
+    return rig, obs
+
+
+@pytest.mark.parametrize("model", [FISHEYE, PINHOLE])
+def test_bundle_jacobians_match_finite_differences(model):
+    rig, obs = _small_problem(model)
+    e, Jc, Jb, Jk = bundle.residuals(rig, obs)
+    h = 1e-6
+    cam = obs.cam[obs.view]
+    brd = obs.board[obs.view]
+    for k in range(6):
+        xi = np.zeros(6)
+        xi[k] = h
+        for which, J, idx in (("cam", Jc, cam), ("board", Jb, brd)):
+            for target in range(2):
+                r = rig.copy()
+                if which == "cam":
+                    r.R_cam[target], r.t_cam[target] = bundle.retract(rig.R_cam[target], rig.t_cam[target], xi)
+                else:
+                    r.R_board[target], r.t_board[target] = bundle.retract(rig.R_board[target], rig.t_board[target], xi)
+                num = (bundle.residuals(r, obs, jacobians=False) - e) / h
+                m = idx == target
+                np.testing.assert_allclose(J[m, :, k], num[m], atol=2e-3 * np.abs(num[m]).max() + 1e-4,
+                                           err_msg=f"{which} {target} xi[{k}]")
+    P = len(rig.intrinsics[0])
+    for k in range(P):
+        r = rig.copy()
+        step = h * max(1.0, abs(rig.intrinsics[0][k]))
+        r.intrinsics[0][k] += step
+        num = (bundle.residuals(r, obs, jacobians=False) - e) / step
+        m = cam == 0
+        np.testing.assert_allclose(Jk[m, :, k], num[m], atol=1e-4 * np.abs(num[m]).max() + 1e-5, err_msg=f"theta[{k}]")
+
+
+def test_bundle_recovers_a_perturbed_rig_exactly():
+    """Noise-free corners from a known rig: the solve from a perturbed start returns the truth."""
+    rig, obs = _small_problem(FISHEYE, seed=3)
+    obs.uv = obs.uv + bundle.residuals(rig, obs, jacobians=False)  # perfect measurements
+    start = rig.copy()
+    start.R_cam[1], start.t_cam[1] = bundle.retract(rig.R_cam[1], rig.t_cam[1], np.r_[0.02, -0.01, 0.01, 0.03, 0, -0.02])
+    start.R_board, start.t_board = bundle.retract(rig.R_board, rig.t_board, np.full((2, 6), 0.01))
+    sol = bundle.solve(start, obs, bundle.Settings(fixed_cams=frozenset({0}), huber_px=2.0))
+    np.testing.assert_allclose(sol.rig.t_cam[1], rig.t_cam[1], atol=1e-8)
+    assert rotation_angle(sol.rig.R_cam[1].T @ rig.R_cam[1]) < 1e-8
+    assert np.abs(sol.residuals).max() < 1e-6
+
+
+# ------------------------------------------------------------------------- AcinoSet's real files
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_detections_reader_on_acinoset_files(n):
+    board = parse_board(BOARD_2021)
+    v = read_detections(INTRINSIC / f"points_{n}.json", board)
+    assert v.image_size == (1920, 1080) and v.board_shape == (9, 6) and v.square == pytest.approx(0.031)
+    assert v.corners.shape == (len(v.frames), 54, 2) and len(v.frames) >= 16
+    assert np.isfinite(v.corners).all()
+    # the corner order is the board's: with AcinoSet's own intrinsics every view fits a board pose
+    ref = json.loads((INTRINSIC / f"camera_{n}.json").read_text())
+    cam = Camera(K=ref["k"], dist=np.ravel(ref["d"]), R=np.eye(3), t=np.zeros(3), model=FISHEYE, size=(1920, 1080))
+    from graph.calibrate.poses import board_in_camera
+
+    for corners in v.corners[:4]:
+        R, t = board_in_camera(cam, corners, board.object_points())
+        uv = Camera(K=cam.K, dist=cam.dist, R=R, t=t).project(board.object_points())
+        assert np.sqrt(((uv - corners) ** 2).sum(axis=1).mean()) < 1.0
+
+
+def test_detections_reader_spellings_and_errors(tmp_path):
+    doc = {"board_shape": [3, 2], "board_edge_len": 0.05, "camera_resolution": [640, 480],
+           "points": {"1.png": [[[1, 2], [3, 4]], [[5, 6], [7, 8]], [[9, 10], [11, 12]]]}}
+    p = tmp_path / "d.json"
+    p.write_text(json.dumps(doc))
+    v = read_detections(p, parse_board("checkerboard:3x2:0.05"))
+    assert v.square == 0.05 and v.corners.shape == (1, 6, 2)
+    with pytest.raises(InputError, match=r"d.json: board_shape \[3, 2\] does not match"):
+        read_detections(p, parse_board("checkerboard:4x2:0.05"))
+    with pytest.raises(InputError, match="does not match the board's square"):
+        read_detections(p, parse_board("checkerboard:3x2:0.03"))
+    doc["points"]["2.png"] = [[1, 2]]
+    p.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="frame '2.png': 1 corners, the board has 6"):
+        read_detections(p, parse_board("checkerboard:3x2:0.05"))
+
+
+def _opencv_fisheye(views: BoardViews, board):
+    """OpenCV's fisheye calibration of the same points (AcinoSet's flags) and its RMS residual length."""
+    import cv2
+
+    from graph.calibrate.intrinsics import _cv_flag
+
+    obj = [board.object_points().reshape(1, -1, 3)] * len(views)
+    img = [c.reshape(1, -1, 2) for c in views.corners]
+    flags = _cv_flag("CALIB_RECOMPUTE_EXTRINSIC") | _cv_flag("CALIB_CHECK_COND") | _cv_flag("CALIB_FIX_SKEW")
+    _, K, D, rv, tv = cv2.fisheye.calibrate(obj, img, views.image_size, None, None, flags=flags,
+                                            criteria=(3, 100, 1e-10))
+    sq = []
+    for o, m, r, t in zip(obj, img, rv, tv):
+        uv, _ = cv2.fisheye.projectPoints(o, r, t, K, D)
+        sq.append(((uv.reshape(-1, 2) - m.reshape(-1, 2)) ** 2).sum(axis=1))
+    return K, np.sqrt(np.concatenate(sq).mean())
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_intrinsics_equal_opencv_on_acinoset_2021(n):
+    board = parse_board(BOARD_2021)
+    views = read_detections(INTRINSIC / f"points_{n}.json", board)
+    result = calibrate_intrinsics(views, board, FISHEYE)
+    K_cv, rms_cv = _opencv_fisheye(views, board)
+    K = result.camera.K
+    for (a, b) in ((0, 0), (1, 1), (0, 2), (1, 2)):
+        assert abs(K[a, b] - K_cv[a, b]) <= 0.005 * K_cv[a, b], (a, b, K[a, b], K_cv[a, b])
+    assert len(result.views_used) == len(views)  # every view kept, as OpenCV
+    assert result.rms_px <= rms_cv + 1e-6, (result.rms_px, rms_cv)
+    assert 0.1 < result.coverage < 1 and set(result.view_rms_px) == set(views.frames)
+    assert np.all(np.sqrt(np.diag(result.covariance))[:2] < 5)  # focal lengths known to a few px
+
+
+def test_ex1_static_pair_matches_acinoset_sba():
+    board = parse_board(BOARD_2021)
+    sba = load_calibration(EX1 / "4_cam_scene_static_sba.json")
+    views = [read_detections(EX1 / f"points_cam{n}.json", board) for n in (3, 4)]
+    r = calibrate_extrinsics(views, board, intrinsics=sba.cameras)
+    c = r.calibration.cameras
+    baseline = np.linalg.norm(c[0].center - c[1].center)
+    assert abs(baseline - 0.392) <= 0.01 * 0.392, baseline
+    rel, rel_sba = c[1].R @ c[0].R.T, sba.cameras[1].R @ sba.cameras[0].R.T
+    assert np.degrees(rotation_angle(rel.T @ rel_sba)) < 0.5
+    assert r.rms_px <= 1.5
+    rep = r.to_dict()
+    assert rep["cameras"][1]["views_used"] == 10 and rep["overlap"][0]["shared_views"] == 10
+    assert 0 < max(rep["cameras"][1]["position_std_mm"]) < 5
+
+
+# ---------------------------------------------------------------------------------- synthetic rigs
+
+
+def test_synthetic_six_camera_rig_recovered(rig):
+    """The AcinoSet 2019 rig (6 fisheye cameras, 13 m across) as the truth: 40 board views shared by
+    two or more cameras, 0.2 px noise (what detection on rendered images measures, see below), 5 %
+    corners missing, 3 wrong detections (corners in reverse order)."""
+    board = parse_board("checkerboard:9x6:0.12")
+    views, _ = rig_views(rig, board, 40, noise_px=0.2, missing=0.05, bad_views=3, seed=1)
+    r = calibrate_extrinsics(views, board, intrinsics=rig.cameras)
+    truth = in_camera1(rig.cameras)
+    for cam, (R, C), rep in zip(r.calibration.cameras, truth, r.cameras):
+        err_mm = np.linalg.norm(cam.center - C) * 1000
+        assert err_mm < 2.0, (rep.name, err_mm)
+        assert np.degrees(rotation_angle(cam.R.T @ R)) < 0.05
+        if rep.name != "cam1":  # the marginals' sd is the right size: the error is within 4 sd
+            assert err_mm < 4 * np.linalg.norm(rep.position_std_mm)
+    assert sum(len(c.views_dropped) for c in r.cameras) == 3  # the three wrong detections, nothing else
+    assert r.rms_px < 0.35
+
+
+def test_disconnected_camera_graph_names_the_groups(rig):
+    board = parse_board("checkerboard:9x6:0.12")
+    views, _ = rig_views(rig, board, 30, seed=2)
+    frames = sorted({f for v in views for f in v.frames}, key=int)
+    a, b = set(frames[::2]), set(frames[1::2])  # cameras 1-3 saw the board only at even views, 4-6 at odd
+    split = []
+    for i, v in enumerate(views):
+        keep = [k for k, f in enumerate(v.frames) if f in (a if i < 3 else b)]
+        split.append(v.subset(keep))
+    with pytest.raises(InputError, match=r"2 groups .*\{cam1, cam2, cam3\}; \{cam4, cam5, cam6\}"):
+        calibrate_extrinsics(split, board, intrinsics=rig.cameras)
+
+
+def test_origin_on_a_board_puts_it_at_the_origin_z_up(rig):
+    board = parse_board("checkerboard:9x6:0.12")
+    views, truth = rig_views(rig, board, 20, noise_px=0.1, seed=4)
+    frame = views[0].frames[0]
+    r = calibrate_extrinsics(views, board, intrinsics=rig.cameras, origin=f"board:{frame}")
+    T = r.board_poses[frame]
+    np.testing.assert_allclose(T[:3, 3], 0, atol=1e-9)
+    assert abs(T[2, 2]) > 0.999  # the board's plane is the world's xy plane
+    assert np.median([c.center[2] for c in r.calibration.cameras]) > 0  # the cameras above it
+    R, t = truth[frame]  # distances are the truth's
+    assert np.linalg.norm(r.calibration.cameras[1].center - r.calibration.cameras[0].center) == pytest.approx(
+        np.linalg.norm(rig.cameras[1].center - rig.cameras[0].center), abs=0.003)
+    with pytest.raises(InputError, match="no frame 'nope'"):
+        calibrate_extrinsics(views, board, intrinsics=rig.cameras, origin="board:nope")
+
+
+# ------------------------------------------------------------------------------------- detection
+
+
+def _image_camera():
+    return Camera(K=[[1400, 0, 960], [0, 1400, 540], [0, 0, 1]], dist=np.zeros(5), R=np.eye(3), t=np.zeros(3),
+                  model=PINHOLE, size=(1920, 1080))
+
+
+def _poses(board, n, seed=0):
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        R = bundle.exp_so3(np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3)]))
+        t = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.1, 0.1), rng.uniform(1.0, 1.6)])
+        yield R, t - R @ board.object_points().mean(axis=0)
+
+
+@pytest.mark.parametrize("spec, tolerance", [("checkerboard:9x6:0.05", 0.15), ("charuco:7x5:0.06:0.045:DICT_4X4_50", 0.3)])
+def test_detection_on_rendered_images(spec, tolerance):
+    board = parse_board(spec)
+    detector = Detector(board)
+    cam = _image_camera()
+    for k, (R, t) in enumerate(_poses(board, 4)):
+        img, truth = render_board(cam, board, R, t, seed=k)
+        corners = detector(img)
+        assert corners is not None and corners.shape == truth.shape
+        err = np.linalg.norm(corners - truth, axis=1)
+        assert np.isfinite(err).sum() >= 0.9 * len(err) and np.nanmax(err) < tolerance, np.nanmax(err)
+    assert detector(np.full((1080, 1920), 128, np.uint8)) is None
+
+
+def test_images_folder_detected_cached_and_calibrated(tmp_path):
+    """A folder of rendered images: detected with a progress report, cached (a second run reads the
+    cache), and the intrinsics come back (pinhole, the truth has no distortion)."""
+    import cv2
+
+    board = parse_board("checkerboard:9x6:0.05")
+    cam = _image_camera()
+    folder = tmp_path / "cam1"
+    folder.mkdir()
+    for k, (R, t) in enumerate(_poses(board, 8, seed=5)):
+        img, _ = render_board(cam, board, R, t, seed=k)
+        cv2.imwrite(str(folder / f"{k:03d}.png"), img)
+    cv2.imwrite(str(folder / "999.png"), np.full((1080, 1920), 128, np.uint8))  # no board
+    steps = []
+    v = detect_views(folder, board, progress=lambda done, total: steps.append((done, total)))
+    assert len(v) == 8 and "999.png" not in v.frames and steps[-1] == (9, 9)
+    assert cache_path_for(folder).exists()
+    steps.clear()
+    again = detect_views(folder, board, progress=lambda done, total: steps.append(done))
+    assert not steps and again.frames == v.frames and np.allclose(again.corners, v.corners)
+    result = calibrate_intrinsics(v, board, PINHOLE)
+    th, th0 = intrinsics_of(result.camera), intrinsics_of(cam)
+    np.testing.assert_allclose(th[:4], th0[:4], rtol=0.01)
+    assert result.rms_px < 0.15
+
+
+def test_no_board_found_is_one_line(tmp_path):
+    import cv2
+
+    folder = tmp_path / "empty"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.png"), np.full((480, 640), 128, np.uint8))
+    with pytest.raises(InputError, match=r"^empty: no board found"):
+        detect_views(folder, parse_board("checkerboard:9x6:0.05"))
+
+
+def test_video_source_every_n_frames(tmp_path):
+    import cv2
+
+    board = parse_board("checkerboard:9x6:0.05")
+    cam = Camera(K=[[700, 0, 320], [0, 700, 240], [0, 0, 1]], dist=np.zeros(5), R=np.eye(3), t=np.zeros(3),
+                 model=PINHOLE, size=(640, 480))
+    path = tmp_path / "cam.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30, (640, 480), isColor=False)
+    for k, (R, t) in enumerate(_poses(board, 6, seed=7)):
+        img, _ = render_board(cam, board, R, t + [0, 0, 0.4], seed=k)
+        writer.write(img)
+    writer.release()
+    v = detect_views(path, board, every=2, cache=False)
+    assert v.frames == ["0", "2", "4"] and v.image_size == (640, 480)
+
+
+# ------------------------------------------------------------------------------------ command line
+
+
+def run_cli(*args, cwd=None) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, "-m", "graph.cli", *map(str, args)], capture_output=True, text=True,
+                          env=env, cwd=cwd, timeout=300)
+
+
+def test_cli_intrinsics_then_extrinsics(tmp_path):
+    cams = []
+    for n in (3, 4):
+        out = tmp_path / f"camera_{n}.json"
+        p = run_cli("calibrate", "intrinsics", INTRINSIC / f"points_{n}.json", "--board", BOARD_2021,
+                    "--out", out, "--report", tmp_path / f"r{n}.json")
+        assert p.returncode == 0, p.stderr
+        cam = json.loads(out.read_text())
+        assert set(cam) >= {"camera_resolution", "k", "d"} and np.shape(cam["d"]) == (4, 1)
+        assert json.loads((tmp_path / f"r{n}.json").read_text())["rms_px"] < 0.4
+        cams.append(out)
+    p = run_cli("calibrate", "extrinsics", EX1 / "points_cam3.json", EX1 / "points_cam4.json", "--board", BOARD_2021,
+                "--intrinsics", *cams, "--out", tmp_path / "calibration.toml", "--scene", tmp_path / "scene.json",
+                "--report", tmp_path / "r.json", "--figures", tmp_path / "figs")
+    assert p.returncode == 0, p.stderr
+    cal = load_calibration(tmp_path / "calibration.toml")
+    assert len(cal) == 2 and cal.metadata["error"] < 1.6
+    scene = load_calibration(tmp_path / "scene.json")
+    np.testing.assert_allclose(scene.cameras[1].t, cal.cameras[1].t)
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert rep["rms_px"] < 1.6 and [c["name"] for c in rep["cameras"]] == ["cam1", "cam2"]
+    assert {"rms_px", "views_used", "views_dropped"} <= set(rep["cameras"][0])
+    assert sorted(x.name for x in (tmp_path / "figs").iterdir()) == ["coverage.png", "residuals.png", "rig.png"]
+
+
+@pytest.mark.parametrize("case, fragment", [
+    ("one", "at least two cameras"),
+    ("resolution", "mismatched resolutions"),
+    ("board", "board_shape [9, 6] does not match"),
+    ("few", "too few board views"),
+])
+def test_cli_bad_input_is_one_line(tmp_path, case, fragment):
+    src = [EX1 / "points_cam3.json", EX1 / "points_cam4.json"]
+    extra = []
+    board = BOARD_2021
+    cmd = "extrinsics"
+    if case == "one":
+        src = src[:1]
+    elif case == "resolution":
+        cam = tmp_path / "c.json"
+        cam.write_text(json.dumps({"camera_resolution": [2704, 1520], "k": np.eye(3).tolist(), "d": [0, 0, 0, 0]}))
+        extra = ["--intrinsics", cam, cam]
+    elif case == "board":
+        board = "checkerboard:8x6:0.031"
+    elif case == "few":
+        doc = json.loads(src[0].read_text())
+        doc["points"] = dict(list(doc["points"].items())[:2])
+        src = [tmp_path / "few.json"]
+        src[0].write_text(json.dumps(doc))
+        cmd = "intrinsics"
+    out = ["--out", tmp_path / ("c.toml" if cmd == "extrinsics" else "c.json")]
+    p = run_cli("calibrate", cmd, *src, "--board", board, *extra, *out)
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(lines) == 1 and "Traceback" not in p.stderr, p.stderr
+    assert lines[0].startswith("acinoset: error: ") and fragment in lines[0], lines[0]
