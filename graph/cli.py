@@ -50,6 +50,7 @@ COMMANDS: tuple[Command, ...] = (
             "simulate a cheetah run on a rig and write DeepLabCut CSVs, calibration and truth"),
     Command("demo", "graph.demo", "simulate a cheetah run on the AcinoSet rig and solve it with every method"),
     Command("plot", "graph.plot", "draw a solved run: PNG figures and an HTML playback file"),
+    Command("evaluate", "graph.evaluate", "score a 3D method on a recording: leave one camera out"),
 )
 
 
@@ -153,15 +154,27 @@ def _fail(message: str) -> int:
 
 def register(sub) -> None:
     """``acinoset solve``."""
-    from graph.calibration import CALIBRATION_UNITS
-    from graph.types import METHODS, SolveOptions
-
-    defaults = SolveOptions()
     p = sub.add_parser("solve", description="Estimate 3D trajectories from one DeepLabCut CSV/H5 file per camera, "
                        "given in the calibration's camera order.")
     p.add_argument("keypoints", nargs="+", metavar="CAM.csv", help="DeepLabCut CSV or H5, one per camera")
     p.add_argument("--calibration", required=True, metavar="FILE",
                    help="Anipose calibration.toml or AcinoSet scene JSON")
+    add_solve_options(p)
+    p.add_argument("--out", required=True, metavar="OUT.csv", help="3D result in Anipose's CSV layout")
+    p.add_argument("--h5", default=None, metavar="OUT.h5", help="also write everything as HDF5")
+    p.add_argument("--report", default=None, metavar="REPORT.json", help="also write the solver report")
+    p.add_argument("--reprojections", default=None, metavar="DIR",
+                   help="also write the estimate reprojected into each camera as DeepLabCut CSVs")
+    p.set_defaults(func=run_solve)
+
+
+def add_solve_options(p) -> None:
+    """The options of a solve (``--method`` .. ``--time-offsets``), for ``solve`` and the commands
+    that solve as it does; :func:`solve_options` reads them back."""
+    from graph.calibration import CALIBRATION_UNITS
+    from graph.types import METHODS, SolveOptions
+
+    defaults = SolveOptions()
     p.add_argument("--method", choices=METHODS, default=defaults.method)
     p.add_argument("--fps", type=float, default=defaults.fps, help=f"frame rate (default {defaults.fps:g})")
     p.add_argument("--skeleton", default=defaults.skeleton, metavar="cheetah|points|PATH",
@@ -185,12 +198,6 @@ def register(sub) -> None:
                    help="the cameras' clocks: as given (in sync, or --time-offsets) or estimated with the trajectory")
     p.add_argument("--time-offsets", default=None, metavar="T1,T2,...",
                    help="each camera's time offset in frames (camera frame n is at n + T), camera 1 the reference")
-    p.add_argument("--out", required=True, metavar="OUT.csv", help="3D result in Anipose's CSV layout")
-    p.add_argument("--h5", default=None, metavar="OUT.h5", help="also write everything as HDF5")
-    p.add_argument("--report", default=None, metavar="REPORT.json", help="also write the solver report")
-    p.add_argument("--reprojections", default=None, metavar="DIR",
-                   help="also write the estimate reprojected into each camera as DeepLabCut CSVs")
-    p.set_defaults(func=run_solve)
 
 
 def _noise_option(text: str):
@@ -225,10 +232,10 @@ def _offsets_option(text: str | None) -> list[float] | None:
         raise ValueError(f"--time-offsets takes numbers of frames as 0,0.4,-1.2, not {text!r}") from None
 
 
-def run_solve(args: argparse.Namespace) -> int:
-    from graph import api
-    from graph.calibration import load_calibration
-    from graph.keypoints import check_same_frames, read_keypoints
+def solve_options(args: argparse.Namespace):
+    """The :class:`~graph.types.SolveOptions` of :func:`add_solve_options`'s arguments; a
+    :class:`UsageError` for a malformed one."""
+    from graph.types import SolveOptions
 
     try:
         bones = None
@@ -239,14 +246,22 @@ def run_solve(args: argparse.Namespace) -> int:
         std_px = _noise_option(args.measurement_std)
         body, lengths = _body_option(args.body)
         offsets = _offsets_option(args.time_offsets)
-        options = api.SolveOptions(body=body, body_lengths=lengths, sync=args.sync, time_offsets=offsets,
-                                   method=args.method, fps=args.fps, skeleton=args.skeleton,
-                                   measurement_std_px=std_px,
-                                   likelihood_threshold=args.likelihood_threshold, individual=args.individual,
-                                   calibration_units=args.calibration_units, bone_lengths=bones,
-                                   uncertainty=args.uncertainty)
+        options = SolveOptions(body=body, body_lengths=lengths, sync=args.sync, time_offsets=offsets,
+                               method=args.method, fps=args.fps, skeleton=args.skeleton, measurement_std_px=std_px,
+                               likelihood_threshold=args.likelihood_threshold, individual=args.individual,
+                               calibration_units=args.calibration_units, bone_lengths=bones,
+                               uncertainty=args.uncertainty)
     except ValueError as e:
         raise UsageError(str(e)) from None
+    return options
+
+
+def run_solve(args: argparse.Namespace) -> int:
+    from graph import api
+    from graph.calibration import load_calibration
+    from graph.keypoints import check_same_frames, read_keypoints
+
+    options = solve_options(args)
     for out in (args.out, args.h5, args.report):
         if out is not None and not Path(out).parent.is_dir():
             raise InputError("the output folder does not exist", out)

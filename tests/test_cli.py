@@ -296,3 +296,21 @@ def test_measured_detection_noise(run_dir, tmp_path):
     assert fixed.returncode == 0, fixed.stderr
     warned = [line for line in fixed.stderr.splitlines() if "standard deviations are about" in line]
     assert len(warned) == 1 and warned[0].startswith("acinoset: warning: ") and "too large" in warned[0], fixed.stderr
+
+
+def test_evaluate_loco(run_dir, tmp_path):
+    """``acinoset evaluate loco``: each camera predicted from the other two, a table and a JSON."""
+    out = tmp_path / "loco.json"
+    proc = run_cli("evaluate", "loco", *cams(run_dir), "--calibration", run_dir / "calibration.toml",
+                   "--method", "tri", "--skeleton", "points", "--fps", FPS, "--json", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "leave one camera out" in proc.stdout and "all" in proc.stdout
+    doc = json.loads(out.read_text())
+    assert [c["camera"] for c in doc["cameras"]] == load_calibration(run_dir / "calibration.toml").names
+    assert doc["options"]["method"] == "tri" and doc["confidence"] == 0.9
+    assert 0.3 < doc["median_px"] < 5.0 and doc["p90_px"] > doc["median_px"] and doc["coverage"] > 0.9
+    two = run_cli("evaluate", "loco", *cams(run_dir)[:2], "--calibration", run_dir / "calibration.toml")
+    assert_user_error(two, "calibration.toml", "3 cameras but 2 keypoint files")
+    proc = run_cli("evaluate", "loco", *cams(run_dir), "--calibration", run_dir / "calibration.toml",
+                   "--confidence", "1.5")
+    assert proc.returncode == 2 and "--confidence" in proc.stderr and "Traceback" not in proc.stderr
