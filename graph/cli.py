@@ -184,6 +184,9 @@ def add_solve_options(p) -> None:
     p.add_argument("--measurement-std", default=str(defaults.measurement_std_px), metavar="PX|auto",
                    help=f"detection noise in pixels per coordinate (default {defaults.measurement_std_px:g}, the "
                         "paper's), or 'auto' to measure it from the data; the 3D uncertainties scale with it")
+    p.add_argument("--motion-scale", default=str(defaults.motion_scale), metavar="S|auto",
+                   help=f"multiplies the motion model's process noise (default {defaults.motion_scale}; larger follows "
+                        "the data more), or 'auto' to fit it to the data (fte: per marker for free points)")
     p.add_argument("--individual", default=None, metavar="NAME", help="multi-animal files: which individual")
     p.add_argument("--calibration-units", choices=list(CALIBRATION_UNITS), default="auto",
                    help="units of the calibration's translations (default: auto, which recognises millimetres)")
@@ -200,16 +203,16 @@ def add_solve_options(p) -> None:
                    help="each camera's time offset in frames (camera frame n is at n + T), camera 1 the reference")
 
 
-def _noise_option(text: str):
-    """``--measurement-std``: a positive number of pixels or ``auto``."""
+def _auto_option(text: str, option: str = "--measurement-std", unit: str = "a number of pixels"):
+    """A positive number or ``auto`` (``--measurement-std``, ``--motion-scale``)."""
     if text.strip().lower() == "auto":
         return "auto"
     try:
         value = float(text)
     except ValueError:
-        raise ValueError(f"--measurement-std takes a number of pixels or 'auto', not {text!r}") from None
+        raise ValueError(f"{option} takes {unit} or 'auto', not {text!r}") from None
     if not value > 0:
-        raise ValueError(f"--measurement-std must be positive, not {text}")
+        raise ValueError(f"{option} must be positive, not {text}")
     return value
 
 
@@ -243,11 +246,13 @@ def solve_options(args: argparse.Namespace):
             bones = [tuple(pair.split("-", 1)) for pair in args.bones.split(",") if pair.strip()]
             if any(len(b) != 2 or not all(b) for b in bones):
                 raise ValueError("--bones takes pairs of bodyparts as A-B,C-D")
-        std_px = _noise_option(args.measurement_std)
+        std_px = _auto_option(args.measurement_std)
+        motion = _auto_option(args.motion_scale, "--motion-scale", "a positive number")
         body, lengths = _body_option(args.body)
         offsets = _offsets_option(args.time_offsets)
         options = SolveOptions(body=body, body_lengths=lengths, sync=args.sync, time_offsets=offsets,
                                method=args.method, fps=args.fps, skeleton=args.skeleton, measurement_std_px=std_px,
+                               motion_scale=motion,
                                likelihood_threshold=args.likelihood_threshold, individual=args.individual,
                                calibration_units=args.calibration_units, bone_lengths=bones,
                                uncertainty=args.uncertainty)
@@ -297,6 +302,10 @@ def run_solve(args: argparse.Namespace) -> int:
     rep = result.report
     rmse = "n/a" if rep.reprojection_rmse_px != rep.reprojection_rmse_px else f"{rep.reprojection_rmse_px:.2f} px"
     noise = f", detection noise {rep.sigma_px:.2f} px (measured)" if options.measurement_std_px == "auto" else ""
+    if rep.motion_scales:
+        v = sorted(rep.motion_scales.values())
+        noise += (f", motion scale {v[0]:.3g} (fitted)" if len(v) == 1 else
+                  f", motion scales {v[0]:.3g}-{v[-1]:.3g} (fitted, median {v[len(v) // 2]:.3g})")
     print(f"{rep.method}: {rep.frames} frames, {rep.cameras} cameras, {rep.markers} markers, "
           f"reprojection RMSE {rmse}{noise}, {rep.seconds.get('total', 0.0):.2f} s -> {', '.join(map(str, written))}")
     return 0

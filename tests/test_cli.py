@@ -314,3 +314,17 @@ def test_evaluate_loco(run_dir, tmp_path):
     proc = run_cli("evaluate", "loco", *cams(run_dir), "--calibration", run_dir / "calibration.toml",
                    "--confidence", "1.5")
     assert proc.returncode == 2 and "--confidence" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_solve_motion_scale_auto(run_dir, tmp_path):
+    """``--motion-scale auto``: the fitted scales are in the report and said on the summary line;
+    a malformed value is one line."""
+    report = tmp_path / "report.json"
+    proc = run_cli(*solve_args(run_dir, tmp_path)[:-2], "--method", "fte", "--motion-scale", "auto",
+                   "--out", tmp_path / "out.csv", "--report", report)
+    assert proc.returncode == 0, proc.stderr
+    assert "motion scales" in proc.stdout and "(fitted" in proc.stdout
+    scales = json.loads(report.read_text())["motion_scales"]
+    assert set(scales) == set(MARKERS) and all(v > 0 for v in scales.values())
+    bad = run_cli(*solve_args(run_dir, tmp_path), "--motion-scale", "smooth")
+    assert bad.returncode == 2 and "--motion-scale" in bad.stderr and len(bad.stderr.splitlines()) == 1
