@@ -324,20 +324,25 @@ def _toml_value(v) -> str:
 RIG_SIZE_MM_GUESS = 50.0  # a rig whose cameras sit this many units apart is not in metres
 
 
+def resolve_units(calibration: Calibration, units: str) -> tuple[str, str | None]:
+    """The units of the calibration's translations (a key of :data:`CALIBRATION_UNITS` other than
+    ``auto``) and a note when guessed: with ``units="auto"`` a rig whose cameras are more than 50
+    units from their centroid is taken to be in millimetres (and said so), otherwise metres."""
+    if CALIBRATION_UNITS[units] != 0.0:
+        return units, None
+    centres = np.stack([c.center for c in calibration.cameras])
+    spread = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1)))
+    if spread > RIG_SIZE_MM_GUESS:
+        return "mm", (f"{calibration.source or 'calibration'}: cameras are {spread:.0f} units from their centre; "
+                      "taking the calibration to be in millimetres (set calibration units to override)")
+    return "m", None
+
+
 def in_metres(calibration: Calibration, units: str) -> tuple[Calibration, str | None]:
     """The calibration with translations in metres. Anipose calibrations are in the units of the
-    calibration board, often millimetres; with ``units="auto"`` a rig whose cameras are more than
-    50 units from their centroid is taken to be in millimetres (and said so)."""
+    calibration board, often millimetres; ``units="auto"`` guesses them (:func:`resolve_units`)."""
+    units, note = resolve_units(calibration, units)
     scale = CALIBRATION_UNITS[units]
-    note = None
-    if scale == 0.0:
-        centres = np.stack([c.center for c in calibration.cameras])
-        spread = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1)))
-        scale = 1.0
-        if spread > RIG_SIZE_MM_GUESS:
-            scale = 0.001
-            note = (f"{calibration.source or 'calibration'}: cameras are {spread:.0f} units from their centre; "
-                    "taking the calibration to be in millimetres (set calibration units to override)")
     if scale == 1.0:
         return calibration, note
     cams = [replace(c, t=c.t * scale) for c in calibration.cameras]

@@ -55,6 +55,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("export", "graph.export.cli", "write a solved run as NWB (ndx-pose), OpenSim TRC, C3D or EKS's CSV"),
     Command("video", "graph.video.cli", "draw a solved run over each camera's video, with a 3D view (H.264 MP4)"),
     Command("calibrate", "graph.calibrate.cli", "calibrate cameras from board views, or refine a rig from keypoints"),
+    Command("evaluate", "graph.evaluate", "score a 3D method on a recording: leave one camera out"),
 )
 
 
@@ -158,15 +159,27 @@ def _fail(message: str) -> int:
 
 def register(sub) -> None:
     """``acinoset solve``."""
-    from graph.calibration import CALIBRATION_UNITS
-    from graph.types import METHODS, SolveOptions
-
-    defaults = SolveOptions()
     p = sub.add_parser("solve", description="Estimate 3D trajectories from one DeepLabCut CSV/H5 file per camera, "
                        "given in the calibration's camera order.")
     p.add_argument("keypoints", nargs="+", metavar="CAM.csv", help="DeepLabCut CSV or H5, one per camera")
     p.add_argument("--calibration", required=True, metavar="FILE",
                    help="Anipose calibration.toml or AcinoSet scene JSON")
+    add_solve_options(p)
+    p.add_argument("--out", required=True, metavar="OUT.csv", help="3D result in Anipose's CSV layout")
+    p.add_argument("--h5", default=None, metavar="OUT.h5", help="also write everything as HDF5")
+    p.add_argument("--report", default=None, metavar="REPORT.json", help="also write the solver report")
+    p.add_argument("--reprojections", default=None, metavar="DIR",
+                   help="also write the estimate reprojected into each camera as DeepLabCut CSVs")
+    p.set_defaults(func=run_solve)
+
+
+def add_solve_options(p) -> None:
+    """The options of a solve (``--method`` .. ``--time-offsets``), for ``solve`` and the commands
+    that solve as it does; :func:`solve_options` reads them back."""
+    from graph.calibration import CALIBRATION_UNITS
+    from graph.types import METHODS, SolveOptions
+
+    defaults = SolveOptions()
     p.add_argument("--method", choices=METHODS, default=defaults.method)
     p.add_argument("--fps", type=float, default=defaults.fps, help=f"frame rate (default {defaults.fps:g})")
     p.add_argument("--skeleton", default=defaults.skeleton, metavar="cheetah|points|PATH",
@@ -176,6 +189,9 @@ def register(sub) -> None:
     p.add_argument("--measurement-std", default=str(defaults.measurement_std_px), metavar="PX|auto",
                    help=f"detection noise in pixels per coordinate (default {defaults.measurement_std_px:g}, the "
                         "paper's), or 'auto' to measure it from the data; the 3D uncertainties scale with it")
+    p.add_argument("--motion-scale", default=str(defaults.motion_scale), metavar="S|auto",
+                   help=f"multiplies the motion model's process noise (default {defaults.motion_scale}; larger follows "
+                        "the data more), or 'auto' to fit it to the data (fte: per marker for free points)")
     p.add_argument("--individual", default=None, metavar="NAME", help="multi-animal files: which individual")
     p.add_argument("--calibration-units", choices=list(CALIBRATION_UNITS), default="auto",
                    help="units of the calibration's translations (default: auto, which recognises millimetres)")
@@ -190,24 +206,18 @@ def register(sub) -> None:
                    help="the cameras' clocks: as given (in sync, or --time-offsets) or estimated with the trajectory")
     p.add_argument("--time-offsets", default=None, metavar="T1,T2,...",
                    help="each camera's time offset in frames (camera frame n is at n + T), camera 1 the reference")
-    p.add_argument("--out", required=True, metavar="OUT.csv", help="3D result in Anipose's CSV layout")
-    p.add_argument("--h5", default=None, metavar="OUT.h5", help="also write everything as HDF5")
-    p.add_argument("--report", default=None, metavar="REPORT.json", help="also write the solver report")
-    p.add_argument("--reprojections", default=None, metavar="DIR",
-                   help="also write the estimate reprojected into each camera as DeepLabCut CSVs")
-    p.set_defaults(func=run_solve)
 
 
-def _noise_option(text: str):
-    """``--measurement-std``: a positive number of pixels or ``auto``."""
+def _auto_option(text: str, option: str = "--measurement-std", unit: str = "a number of pixels"):
+    """A positive number or ``auto`` (``--measurement-std``, ``--motion-scale``)."""
     if text.strip().lower() == "auto":
         return "auto"
     try:
         value = float(text)
     except ValueError:
-        raise ValueError(f"--measurement-std takes a number of pixels or 'auto', not {text!r}") from None
+        raise ValueError(f"{option} takes {unit} or 'auto', not {text!r}") from None
     if not value > 0:
-        raise ValueError(f"--measurement-std must be positive, not {text}")
+        raise ValueError(f"{option} must be positive, not {text}")
     return value
 
 
@@ -230,10 +240,10 @@ def _offsets_option(text: str | None) -> list[float] | None:
         raise ValueError(f"--time-offsets takes numbers of frames as 0,0.4,-1.2, not {text!r}") from None
 
 
-def run_solve(args: argparse.Namespace) -> int:
-    from graph import api
-    from graph.calibration import load_calibration
-    from graph.keypoints import check_same_frames, read_keypoints
+def solve_options(args: argparse.Namespace):
+    """The :class:`~graph.types.SolveOptions` of :func:`add_solve_options`'s arguments; a
+    :class:`UsageError` for a malformed one."""
+    from graph.types import SolveOptions
 
     try:
         bones = None
@@ -241,17 +251,27 @@ def run_solve(args: argparse.Namespace) -> int:
             bones = [tuple(pair.split("-", 1)) for pair in args.bones.split(",") if pair.strip()]
             if any(len(b) != 2 or not all(b) for b in bones):
                 raise ValueError("--bones takes pairs of bodyparts as A-B,C-D")
-        std_px = _noise_option(args.measurement_std)
+        std_px = _auto_option(args.measurement_std)
+        motion = _auto_option(args.motion_scale, "--motion-scale", "a positive number")
         body, lengths = _body_option(args.body)
         offsets = _offsets_option(args.time_offsets)
-        options = api.SolveOptions(body=body, body_lengths=lengths, sync=args.sync, time_offsets=offsets,
-                                   method=args.method, fps=args.fps, skeleton=args.skeleton,
-                                   measurement_std_px=std_px,
-                                   likelihood_threshold=args.likelihood_threshold, individual=args.individual,
-                                   calibration_units=args.calibration_units, bone_lengths=bones,
-                                   uncertainty=args.uncertainty)
+        options = SolveOptions(body=body, body_lengths=lengths, sync=args.sync, time_offsets=offsets,
+                               method=args.method, fps=args.fps, skeleton=args.skeleton, measurement_std_px=std_px,
+                               motion_scale=motion,
+                               likelihood_threshold=args.likelihood_threshold, individual=args.individual,
+                               calibration_units=args.calibration_units, bone_lengths=bones,
+                               uncertainty=args.uncertainty)
     except ValueError as e:
         raise UsageError(str(e)) from None
+    return options
+
+
+def run_solve(args: argparse.Namespace) -> int:
+    from graph import api
+    from graph.calibration import load_calibration
+    from graph.keypoints import check_same_frames, read_keypoints
+
+    options = solve_options(args)
     for out in (args.out, args.h5, args.report):
         if out is not None and not Path(out).parent.is_dir():
             raise InputError("the output folder does not exist", out)
@@ -290,6 +310,10 @@ def run_solve(args: argparse.Namespace) -> int:
     rep = result.report
     rmse = "n/a" if rep.reprojection_rmse_px != rep.reprojection_rmse_px else f"{rep.reprojection_rmse_px:.2f} px"
     noise = f", detection noise {rep.sigma_px:.2f} px (measured)" if options.measurement_std_px == "auto" else ""
+    if rep.motion_scales:
+        v = sorted(rep.motion_scales.values())
+        noise += (f", motion scale {v[0]:.3g} (fitted)" if len(v) == 1 else
+                  f", motion scales {v[0]:.3g}-{v[-1]:.3g} (fitted, median {v[len(v) // 2]:.3g})")
     print(f"{rep.method}: {rep.frames} frames, {rep.cameras} cameras, {rep.markers} markers, "
           f"reprojection RMSE {rmse}{noise}, {rep.seconds.get('total', 0.0):.2f} s -> {', '.join(map(str, written))}")
     return 0

@@ -103,7 +103,11 @@ class TrajectoryProblem:
         self.Q0 = Q0
         N, P = Q0.shape
         self.N, self.P = N, P
-        self.sigma3 = sk.process_noise * prob.options.motion_scale * prob.dt**2
+        # the third difference's sd per parameter at motion scale 1, and the scale of each group
+        # (motion_scale "auto" starts at 1 and is fitted: :func:`refit_motion`)
+        self.base_sigma3 = sk.process_noise * prob.dt**2
+        scale = prob.options.motion_scale
+        self.sigma3 = self.base_sigma3 * (1.0 if scale == "auto" else float(scale))
         self.bones = sk.bone_index if sk.kind == "points" else np.zeros((0, 2), dtype=np.int64)
         if bone_len is None:
             bone_len = np.zeros(len(self.bones))
@@ -119,6 +123,7 @@ class TrajectoryProblem:
             self.groups = [np.arange(3 * m, 3 * m + 3) for m in range(len(sk.markers))]
         else:
             self.groups = [np.arange(P)]
+        self.motion_scales = np.full(len(self.groups), 1.0 if scale == "auto" else float(scale))
         self._motion = self._motion_factors()
         self._ordering = gtsam.Ordering()
         for k in range(len(self.groups) * N):
@@ -127,14 +132,31 @@ class TrajectoryProblem:
     def key(self, n: int, group: int) -> int:
         return group * self.N + n
 
+    def set_motion_scales(self, scales: np.ndarray) -> None:
+        """Each group's process noise scaled by its entry of ``scales``; the motion factors anew."""
+        self.motion_scales = np.asarray(scales, dtype=np.float64).copy()
+        sigma3 = self.base_sigma3.copy()
+        for s, idx in zip(self.motion_scales, self.groups):
+            sigma3[idx] = sigma3[idx] * s
+        self.sigma3 = sigma3
+        self._motion = self._motion_factors()
+
+    def group_names(self) -> list[str]:
+        """A name per group: the marker's for free points without bones, else ``all``."""
+        if len(self.groups) == 1:
+            return ["all"]
+        return list(self.prob.skeleton.markers)
+
     def _motion_factors(self) -> list:
         """``(q_{n+3} - 3 q_{n+2} + 3 q_{n+1} - q_n) / sigma_3 = 0`` per group: a GaussianConditional
         on ``q_{n+3}`` given the three before it, as a 4-key JacobianFactor, kept in Hessian form
         (elimination is then Cholesky throughout, a third faster than mixing in QR)."""
         out = []
         for gi, idx in enumerate(self.groups):
-            eye = np.eye(len(idx))
-            model = gtsam.noiseModel.Diagonal.Sigmas(self.sigma3[idx])
+            # whitened by hand (unit noise): GTSAM takes a sigma below 1e-9 for a hard constraint, and a
+            # small animal in metres, smoothed hard, has third differences that small
+            eye = np.diag(1.0 / self.sigma3[idx])
+            model = gtsam.noiseModel.Unit.Create(len(idx))
             zero = np.zeros(len(idx))
             k = [self.key(n, gi) for n in range(self.N)]
             out += [gtsam.HessianFactor(gtsam.JacobianFactor(gtsam.GaussianConditional(
@@ -295,6 +317,37 @@ def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, cost: float, max_itera
     return Q, iterations, cost
 
 
+MOTION_TOLERANCE = 0.1  # fit again while a scale moved by more than this fraction
+MOTION_ROUNDS = 2
+
+
+def fit_motion(tp: TrajectoryProblem, X) -> float:
+    """Set each group's motion scale to the one of largest marginal likelihood given the data's
+    quadratic model at ``X`` (:func:`graph.smoothing.fit_motion_scales`). The evidence solves the
+    linearised smoother for every scale tried, so ``X`` need not be its optimum: a start near the
+    data will do. Returns how far the scales moved (largest ``|log(new / old)|``)."""
+    from graph.smoothing import fit_motion_scales
+
+    nrm = tp.normals(X)
+    scales = fit_motion_scales(nrm.H, nrm.g, tp.poses(X), tp.Q0, PRIOR_SIGMA, tp.base_sigma3, tp.groups)
+    moved = float(np.max(np.abs(np.log(scales / tp.motion_scales))))
+    tp.set_motion_scales(scales)
+    return moved
+
+
+def refit_motion(tp: TrajectoryProblem, X, cost: float, max_iterations: int):
+    """``motion_scale="auto"`` at the smoother's optimum ``X``: fit the scales again
+    (:func:`fit_motion`) and, while one moves by more than ``MOTION_TOLERANCE``, solve again.
+    Returns (X, iterations, cost)."""
+    iterations = 0
+    for _ in range(MOTION_ROUNDS):
+        if fit_motion(tp, X) <= np.log1p(MOTION_TOLERANCE):
+            break
+        X, more, cost = optimise(tp, X, max_iterations, stretches=(1.0,))
+        iterations += more
+    return X, iterations, cost
+
+
 def marker_std(dpos: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
     """Per-marker 3D standard deviations (N, M, 3) from the pose covariances ``Sigma`` (N, P, P)
     and the marker Jacobians ``dpos`` (N, M, 3, P): the square roots of diag(J_p Sigma_n J_p^T),
@@ -338,10 +391,18 @@ def solve_from(tp: TrajectoryProblem, X0, t0: float, progress: ProgressCallback 
     t_init = time.perf_counter() - t0
     if progress:
         progress(Progress(stage="optimise", fraction=0.1))
+    if o.motion_scale == "auto":
+        fit_motion(tp, X0)  # a first fit at the start, so that the solve begins with a fair motion model
     X, iterations, cost = optimise(tp, X0, o.max_iterations, progress, stretches=(4.0, 1.0) if o.robust else (1.0,))
     if o.measurement_std_px == "auto":
         X, more, cost = remeasure_noise(tp, X, cost, o.max_iterations)
         iterations += more
+    if o.motion_scale == "auto":
+        X, more, cost = refit_motion(tp, X, cost, o.max_iterations)
+        iterations += more
+        if o.measurement_std_px == "auto":
+            X, more, cost = remeasure_noise(tp, X, cost, o.max_iterations)
+            iterations += more
     t_solve = time.perf_counter() - t0 - t_init
     if progress:
         progress(Progress(stage="uncertainty", fraction=0.95, iteration=iterations, cost=cost))
@@ -372,6 +433,8 @@ def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[st
     est = tp.estimate(X, normals, prob.options.uncertainty)
     pos, std, params_std = est.positions, est.std, est.params_std
     report = dict(est.report or {})
+    if prob.options.motion_scale == "auto":
+        report["motion_scales"] = {name: float(v) for name, v in zip(tp.group_names(), tp.motion_scales)}
     report["warnings"] = list(notes or []) + report.get("warnings", [])
     causal_pos = prob.skeleton.positions(causal) if causal is not None else None
     if prob.skeleton.kind == "points":

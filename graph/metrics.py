@@ -27,8 +27,10 @@ result says how many values it used).
 
 from __future__ import annotations
 
+import time
 import warnings
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -322,3 +324,175 @@ def evaluate(result, run, likelihood_threshold: float | None = None) -> Evaluati
         reprojection_truth=reprojection_error(reproj, truth_uv, markers),
         reprojection_detections=reprojection_error(reproj, det, markers, mask=inlier, box_reference=truth_uv),
         pck=score, seconds=float(result.report.seconds.get("total", float("nan"))), notes=notes)
+
+
+# ------------------------------------------------------------------------- leave one camera out
+
+LOCO_CONFIDENCE = 0.9  # a held-out detection is judged when its likelihood is at least this
+
+
+@dataclass
+class HeldOutCamera:
+    """One camera left out: the reconstruction from the others projected into it, against its own
+    confident detections. ``errors`` (N, M) are the pixel distances, NaN where not judged."""
+
+    camera: str
+    median_px: float
+    p90_px: float
+    mean_px: float
+    count: int  # confident detections with a prediction
+    confident: int  # the camera's confident detections
+    coverage: float  # count / confident
+    seconds: float  # the reconstruction's wall time
+    per_marker_median_px: dict[str, float]
+    errors: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"camera": self.camera, "median_px": self.median_px, "p90_px": self.p90_px, "mean_px": self.mean_px,
+                "count": self.count, "confident": self.confident, "coverage": self.coverage,
+                "seconds": self.seconds, "per_marker_median_px": self.per_marker_median_px}
+
+
+@dataclass
+class LeaveOneCameraOut:
+    """Leave-one-camera-out prediction error (:func:`leave_one_camera_out`): per held-out camera and
+    over all of them pooled (every judged detection of every camera counts once)."""
+
+    method: str
+    confidence: float
+    markers: list[str]
+    cameras: list[HeldOutCamera]
+    median_px: float
+    p90_px: float
+    mean_px: float
+    count: int
+    coverage: float
+    seconds: float  # all the reconstructions together
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {"method": self.method, "confidence": self.confidence, "median_px": self.median_px,
+                "p90_px": self.p90_px, "mean_px": self.mean_px, "count": self.count, "coverage": self.coverage,
+                "seconds": self.seconds, "cameras": [c.to_dict() for c in self.cameras], "notes": self.notes}
+
+
+# reconstruct(keypoints of the kept cameras, their calibration) -> (marker names, positions (N, M, 3)),
+# the positions in the world frame and units of the calibration it is given
+Reconstructor = Callable[[list, "Calibration"], tuple[list[str], np.ndarray]]
+
+
+def held_out_errors(camera, positions: np.ndarray, markers: list[str], detections,
+                    confidence: float = LOCO_CONFIDENCE) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel distances (N, M) between ``positions`` (N, M, 3; the camera's world units) projected by
+    ``camera`` and the camera's own :class:`~graph.keypoints.Keypoints` ``detections``, matched by
+    bodypart name, where the detection's likelihood is at least ``confidence``; NaN elsewhere. Also
+    the mask (N, M) of the confident detections (judged or not: a missing prediction is not judged)."""
+    from graph.keypoints import match_bodyparts
+
+    N, M = positions.shape[:2]
+    match = match_bodyparts(detections, markers)
+    z = np.full((N, M, 2), np.nan)
+    lik = np.zeros((N, M))
+    have = match.index >= 0
+    z[:, have] = detections.xy[:, match.index[have]]
+    lik[:, have] = np.nan_to_num(detections.likelihood[:, match.index[have]], nan=0.0)
+    confident = (lik >= confidence) & np.isfinite(z).all(axis=-1)
+    uv = camera.project(np.asarray(positions, dtype=np.float64))
+    e = np.linalg.norm(uv - z, axis=-1)
+    return np.where(confident, e, np.nan), confident
+
+
+def leave_one_camera_out(keypoints: list, calibration, options=None, *, confidence: float = LOCO_CONFIDENCE,
+                         reconstruct: Reconstructor | None = None, method: str | None = None,
+                         progress: Callable[[str], None] | None = None) -> LeaveOneCameraOut:
+    """Judge a 3D method on a recording without 3D truth: for each camera c, reconstruct from the
+    other cameras, project into c and compare with c's confident detections (likelihood at least
+    ``confidence``). Needs three or more cameras (two left after one is held out).
+
+    The error of camera c, frame n, marker m is ``e = |pi_c(X_nm) - z_cnm|`` (pixels) over the set
+    of c's detections with likelihood >= ``confidence`` for which the reconstruction has a position;
+    the result gives its median, 90th percentile and mean per camera and pooled over all cameras, and
+    the share of the confident detections that got a position (``coverage``: a method that leaves
+    hard points out scores them not at all, so compare coverages too). The markers judged are the
+    reconstruction's (matched to each camera's bodyparts by name).
+
+    By default each reconstruction is :func:`graph.api.solve` with ``options`` (its
+    :class:`~graph.types.SolveOptions`, default ones if None). The calibration's units are settled
+    once on the whole rig (``options.calibration_units``; two cameras alone may look like a rig in
+    metres when the whole one is in millimetres) and every reconstruction is given them. Another
+    method is scored the same way by passing ``reconstruct(keypoints, calibration) -> (markers,
+    positions)``, which gets the kept cameras in the calibration's own units and returns positions
+    in those units.
+    """
+    from graph.calibration import CALIBRATION_UNITS, resolve_units
+    from graph.camera import Calibration
+    from graph.errors import InputError
+    from graph.keypoints import check_same_frames
+
+    C = len(calibration)
+    if C < 3:
+        raise InputError(f"leaving one camera out needs three or more cameras; the calibration has {C}",
+                         calibration.source or None)
+    if len(keypoints) != C:
+        raise InputError(f"{len(keypoints)} keypoint file(s) given for a calibration of {C} camera(s)",
+                         calibration.source or None)
+    if not 0.0 <= confidence <= 1.0:
+        raise ValueError(f"confidence must be in [0, 1], not {confidence}")
+    check_same_frames(keypoints)
+    notes: list[str] = []
+    if reconstruct is None:
+        from dataclasses import replace
+
+        from graph.types import SolveOptions
+
+        options = options or SolveOptions()
+        units, note = resolve_units(calibration, options.calibration_units)
+        scale = CALIBRATION_UNITS[units]
+        if note:
+            notes.append(note)
+        options = replace(options, calibration_units=units)
+        reconstruct = _solver_reconstruct(options, scale)
+        method = method or options.method
+    method = method or getattr(reconstruct, "__name__", "reconstruct")
+
+    held: list[HeldOutCamera] = []
+    markers: list[str] | None = None
+    for c in range(C):
+        keep = [i for i in range(C) if i != c]
+        name = calibration.names[c]
+        if progress:
+            progress(f"camera {c + 1}/{C} ({name}) held out")
+        sub = Calibration(cameras=[calibration.cameras[i] for i in keep], source=calibration.source,
+                          metadata=dict(calibration.metadata))
+        t0 = time.perf_counter()
+        names, positions = reconstruct([keypoints[i] for i in keep], sub)
+        seconds = time.perf_counter() - t0
+        markers = list(names) if markers is None else markers
+        positions = align_markers(list(names), np.asarray(positions, dtype=np.float64), markers)
+        e, confident = held_out_errors(calibration.cameras[c], positions, markers, keypoints[c], confidence)
+        n_conf = int(confident.sum())
+        held.append(HeldOutCamera(
+            camera=name, median_px=_stat(e, np.median), p90_px=_stat(e, lambda v: np.percentile(v, 90)),
+            mean_px=_stat(e, np.mean), count=int(np.isfinite(e).sum()), confident=n_conf,
+            coverage=float(np.isfinite(e).sum() / n_conf) if n_conf else float("nan"), seconds=seconds,
+            per_marker_median_px={m: _stat(e[:, k], np.median) for k, m in enumerate(markers)}, errors=e))
+    pooled = np.concatenate([h.errors.ravel() for h in held])
+    n_conf = sum(h.confident for h in held)
+    count = int(np.isfinite(pooled).sum())
+    return LeaveOneCameraOut(
+        method=method, confidence=confidence, markers=markers or [], cameras=held,
+        median_px=_stat(pooled, np.median), p90_px=_stat(pooled, lambda v: np.percentile(v, 90)),
+        mean_px=_stat(pooled, np.mean), count=count, coverage=count / n_conf if n_conf else float("nan"),
+        seconds=float(sum(h.seconds for h in held)), notes=notes)
+
+
+def _solver_reconstruct(options, scale: float) -> Reconstructor:
+    """:func:`graph.api.solve` with ``options`` as a reconstructor: positions back in the
+    calibration's units (``scale`` metres per unit)."""
+    from graph.api import solve
+
+    def reconstruct(keypoints, calibration):
+        result = solve(keypoints, calibration, options)
+        return list(result.markers), np.asarray(result.positions) / scale
+
+    return reconstruct

@@ -136,6 +136,7 @@ class SimulatedRun:
     noise_seed: int | None = None  # the detections' own seed, if any (module docstring)
     time_offsets: np.ndarray | None = None  # (C,) frames: camera c's frame n is the truth at n + offset
     true_lengths: dict[str, float] = field(default_factory=dict)  # the animal's length of each group (m)
+    process_noise: float | None = None  # random_jerk_run: the true sd of the frame-to-frame change of acceleration
     # (C, N, M, 3) where the cameras' clocks differ: the true positions each camera saw at its frames
     seen_positions: np.ndarray | None = None
 
@@ -460,6 +461,43 @@ def simulate_run(calibration: Calibration, frames: int = 200, fps: float = 120.0
                         observation=model, stage=stage, seed=seed, bones=bones, notes=notes,
                         noise_seed=noise_seed, time_offsets=offsets, seen_positions=seen if seen.ndim == 4 else None,
                         true_lengths={g: float(L) for g, L in zip(true_sk.length_groups, true_sk.model_lengths)})
+
+
+def random_jerk_run(calibration: Calibration, frames: int = 300, fps: float = 120.0, process_noise: float = 0.5,
+                    noise: float = 2.0, markers: int = 8, spread: float = 0.15, seed: int = 0) -> SimulatedRun:
+    """Free points that move exactly as the smoothers' motion model says, seen by ``calibration``:
+    a run whose true smoothness is known, for fitting it (``motion_scale="auto"``).
+
+    Each of ``markers`` points (named ``p1``, ``p2``, ...) starts within ``spread`` m of the stage's
+    centre at head height; every coordinate's third difference over frames is white,
+    ``x_{n+3} - 3 x_{n+2} + 3 x_{n+1} - x_n ~ N(0, (h^2 process_noise)^2)`` (h = 1/fps: the change of
+    acceleration from frame to frame has sd ``process_noise``, m/s^2, the unit of a skeleton's process
+    noise). The triple sum of those draws has its least-squares quadratic taken off, which keeps the
+    points near the centre and leaves every third difference as drawn. Detections: Gaussian noise of
+    ``noise`` px, no outliers (:func:`observe`). The run's ``process_noise`` holds the truth."""
+    if frames < 4:
+        raise ValueError("frames must be at least 4")
+    rng = np.random.default_rng(seed)
+    stage = rig_stage(calibration)
+    h = 1.0 / fps
+    jerk = rng.normal(0.0, h * h * process_noise, (frames - 3, markers, 3))
+    x = np.zeros((frames, markers, 3))
+    x[3:] = jerk
+    for _ in range(3):  # x_n = sum of draws thrice: its third difference is the draw
+        x = np.cumsum(x, axis=0)
+    t = np.arange(frames, dtype=float)
+    basis = np.stack([np.ones_like(t), t, t * t], axis=1)
+    coef, *_ = np.linalg.lstsq(basis, x.reshape(frames, -1), rcond=None)
+    x = x - (basis @ coef).reshape(x.shape)
+    centre = np.array([*stage.centre, stage.ground_z + 0.6])
+    positions = centre + rng.normal(0.0, spread, (1, markers, 3)) + x
+    names = [f"p{k + 1}" for k in range(markers)]
+    model = ObservationModel(noise_px=noise, outlier_rate=0.0)
+    kps, proj, outlier, swapped, dropout = observe(calibration, positions, names, fps, model, rng)
+    return SimulatedRun(skeleton="points", markers=names, positions=positions, params=None, param_names=[],
+                        keypoints=kps, calibration=calibration, fps=fps, projections=proj, outlier=outlier,
+                        swapped=swapped, dropout=dropout, observation=model, stage=stage, seed=seed,
+                        process_noise=process_noise)
 
 
 # ---------------------------------------------------------------------------------------- writing

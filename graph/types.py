@@ -47,7 +47,9 @@ class SolveOptions:
     measurement_std_px: float | Literal["auto"] = 5.0  # detection noise (px per coordinate); "auto": measured
     robust: bool = True  # the redescending loss; False gives plain least squares
     max_iterations: int = 50
-    motion_scale: float = 1.0  # multiplies every process-noise std (larger: follows data more)
+    # multiplies every process-noise std (larger: follows the data more); "auto": fitted to the data by
+    # the marginal likelihood (graph.smoothing), per marker for free points, one scale for a skeleton
+    motion_scale: float | Literal["auto"] = 1.0
     bone_lengths: list[tuple[str, str]] | None = None  # soft bone-length terms for "points"
     individual: str | None = None  # multi-animal DLC files: which individual
     lag_seconds: float = 0.25  # "ekf": the fixed-lag window
@@ -77,8 +79,12 @@ class SolveOptions:
             raise ValueError(f"calibration_units must be one of {', '.join(CALIBRATION_UNITS)}")
         if not (1 <= self.max_iterations <= MAX_ITERATIONS):
             raise ValueError(f"max_iterations must be from 1 to {MAX_ITERATIONS}, not {self.max_iterations}")
-        if not (0 < self.motion_scale <= MAX_MOTION_SCALE):
-            raise ValueError(f"motion_scale must be positive and at most {MAX_MOTION_SCALE:g}, not {self.motion_scale}")
+        if self.motion_scale != "auto" and not (isinstance(self.motion_scale, (int, float))
+                                                 and 0 < self.motion_scale <= MAX_MOTION_SCALE):
+            raise ValueError(f"motion_scale must be positive and at most {MAX_MOTION_SCALE:g}, or 'auto', "
+                             f"not {self.motion_scale!r}")
+        if self.motion_scale == "auto" and self.method == "ekf":
+            raise ValueError("motion_scale 'auto' is fitted by the fte smoother; ekf takes a number")
         if not (0 < self.lag_seconds <= MAX_LAG_SECONDS):
             raise ValueError(f"lag_seconds must be positive and at most {MAX_LAG_SECONDS:g}, not {self.lag_seconds}")
         if self.body not in BODIES:
@@ -132,6 +138,8 @@ class SolveReport:
     bounds_active: int = 0
     sigma_px: float = float("nan")  # the detection noise the loss and the uncertainties assumed (px)
     noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.noise)
+    # motion_scale "auto": the scale fitted per group ({marker: scale} for free points, {"all": scale})
+    motion_scales: dict[str, float] | None = None
     # the body's lengths, where estimated: {group or bone: {length_m, std_m, model_m}}
     body_lengths: dict[str, dict[str, float]] | None = None
     # the cameras' offsets (frames, camera 1 = 0), where estimated or given, and their sd

@@ -158,6 +158,8 @@ class JobService:
             msg = err["msg"].removeprefix("Value error, ")
             if where == "measurement_std_px":
                 msg = "must be a positive number of pixels or 'auto'"
+            elif where == "motion_scale":
+                msg = "must be a positive number or 'auto'"
             raise Unprocessable(f"options: {where + ': ' if where else ''}{msg}")
         except (TypeError, ValueError) as e:
             raise Unprocessable(f"options: {e}")

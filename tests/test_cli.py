@@ -296,3 +296,35 @@ def test_measured_detection_noise(run_dir, tmp_path):
     assert fixed.returncode == 0, fixed.stderr
     warned = [line for line in fixed.stderr.splitlines() if "standard deviations are about" in line]
     assert len(warned) == 1 and warned[0].startswith("acinoset: warning: ") and "too large" in warned[0], fixed.stderr
+
+
+def test_evaluate_loco(run_dir, tmp_path):
+    """``acinoset evaluate loco``: each camera predicted from the other two, a table and a JSON."""
+    out = tmp_path / "loco.json"
+    proc = run_cli("evaluate", "loco", *cams(run_dir), "--calibration", run_dir / "calibration.toml",
+                   "--method", "tri", "--skeleton", "points", "--fps", FPS, "--json", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "leave one camera out" in proc.stdout and "all" in proc.stdout
+    doc = json.loads(out.read_text())
+    assert [c["camera"] for c in doc["cameras"]] == load_calibration(run_dir / "calibration.toml").names
+    assert doc["options"]["method"] == "tri" and doc["confidence"] == 0.9
+    assert 0.3 < doc["median_px"] < 5.0 and doc["p90_px"] > doc["median_px"] and doc["coverage"] > 0.9
+    two = run_cli("evaluate", "loco", *cams(run_dir)[:2], "--calibration", run_dir / "calibration.toml")
+    assert_user_error(two, "calibration.toml", "3 cameras but 2 keypoint files")
+    proc = run_cli("evaluate", "loco", *cams(run_dir), "--calibration", run_dir / "calibration.toml",
+                   "--confidence", "1.5")
+    assert proc.returncode == 2 and "--confidence" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_solve_motion_scale_auto(run_dir, tmp_path):
+    """``--motion-scale auto``: the fitted scales are in the report and said on the summary line;
+    a malformed value is one line."""
+    report = tmp_path / "report.json"
+    proc = run_cli(*solve_args(run_dir, tmp_path)[:-2], "--method", "fte", "--motion-scale", "auto",
+                   "--out", tmp_path / "out.csv", "--report", report)
+    assert proc.returncode == 0, proc.stderr
+    assert "motion scales" in proc.stdout and "(fitted" in proc.stdout
+    scales = json.loads(report.read_text())["motion_scales"]
+    assert set(scales) == set(MARKERS) and all(v > 0 for v in scales.values())
+    bad = run_cli(*solve_args(run_dir, tmp_path), "--motion-scale", "smooth")
+    assert bad.returncode == 2 and "--motion-scale" in bad.stderr and len(bad.stderr.splitlines()) == 1

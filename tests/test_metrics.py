@@ -157,3 +157,78 @@ def test_evaluate_a_shifted_answer_and_markers_by_name():
     # 10 mm at 4-10 m from a 1240 px focal length is 1-3 px: every marker within nose-to-eye
     assert 0.5 < ev.reprojection_truth.rmse_px < 4.0
     assert ev.pck.overall == 1.0
+
+
+# ------------------------------------------------------------------------- leave one camera out
+
+
+def _three_camera_run(noise=2.0, frames=80):
+    rig = load_calibration(default_rig_path())
+    from graph.camera import Calibration
+
+    cal = Calibration(cameras=rig.cameras[:4], source="rig")
+    return simulate_run(cal, frames=frames, noise=noise, outliers=0.0, seed=3), cal
+
+
+def _in_mm(cal):
+    from dataclasses import replace
+
+    from graph.camera import Calibration
+
+    return Calibration(cameras=[replace(c, t=c.t * 1000.0) for c in cal.cameras], source="rig_mm")
+
+
+def test_loco_of_the_truth_is_the_detection_noise():
+    """Oracle: the true positions predict each held-out camera up to its detection noise, whose
+    length is Rayleigh distributed (median sigma sqrt(2 ln 2), 90th percentile sigma sqrt(2 ln 10));
+    the same in millimetres."""
+    from graph.metrics import leave_one_camera_out
+
+    sigma = 2.0
+    run, cal = _three_camera_run(noise=sigma, frames=150)
+    truth = lambda kps, sub: (run.markers, run.positions)  # noqa: E731
+    score = leave_one_camera_out(run.keypoints, cal, reconstruct=truth, method="truth")
+    assert score.method == "truth" and len(score.cameras) == 4
+    assert score.median_px == pytest.approx(sigma * math.sqrt(2 * math.log(2)), rel=0.05)
+    assert score.p90_px == pytest.approx(sigma * math.sqrt(2 * math.log(10)), rel=0.05)
+    lik = np.stack([k.likelihood for k in run.keypoints])
+    confident = (lik >= 0.9) & np.isfinite(np.stack([k.xy for k in run.keypoints])).all(-1)
+    assert score.count == int(confident.sum()) and score.coverage == 1.0
+    assert [c.count for c in score.cameras] == [int(confident[c].sum()) for c in range(4)]
+    mm = leave_one_camera_out(run.keypoints, _in_mm(cal), reconstruct=lambda k, s: (run.markers, run.positions * 1e3))
+    assert mm.median_px == pytest.approx(score.median_px, rel=1e-9)
+    # a stricter confidence judges fewer detections; a missing prediction lowers the coverage
+    gaps = run.positions[:, :5].copy()
+    gaps[::2] = np.nan
+    part = leave_one_camera_out(run.keypoints, cal, reconstruct=lambda k, s: (run.markers[:5], gaps), confidence=0.95)
+    assert part.count < score.count and part.coverage == pytest.approx(0.5, abs=0.05)
+    assert part.markers == run.markers[:5]  # the markers the reconstruction has are judged
+
+
+def test_loco_with_the_solver_in_metres_and_millimetres():
+    """The default reconstruction is the solve; the calibration's units are settled on the whole rig,
+    so the same rig in millimetres scores the same."""
+    from graph.metrics import leave_one_camera_out
+
+    run, cal = _three_camera_run(noise=2.0)
+    opts = SolveOptions(method="tri", skeleton="points", fps=run.fps)
+    m = leave_one_camera_out(run.keypoints, cal, opts)
+    mm = leave_one_camera_out(run.keypoints, _in_mm(cal), opts)
+    assert m.method == "tri" and mm.notes and "millimetres" in mm.notes[0]
+    assert mm.median_px == pytest.approx(m.median_px, rel=1e-6)
+    assert mm.p90_px == pytest.approx(m.p90_px, rel=1e-6)
+    assert 1.0 < m.median_px < 6.0 and m.p90_px > m.median_px and m.coverage > 0.95
+    d = m.to_dict()
+    assert d["median_px"] == m.median_px and len(d["cameras"]) == 4 and "errors" not in d["cameras"][0]
+
+
+def test_loco_needs_three_cameras():
+    from graph.camera import Calibration
+    from graph.errors import InputError
+    from graph.metrics import leave_one_camera_out
+
+    run, cal = _three_camera_run(frames=10)
+    with pytest.raises(InputError, match="three or more cameras"):
+        leave_one_camera_out(run.keypoints[:2], Calibration(cameras=cal.cameras[:2]))
+    with pytest.raises(InputError, match="keypoint file"):
+        leave_one_camera_out(run.keypoints[:3], cal)

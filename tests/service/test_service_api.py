@@ -101,6 +101,17 @@ def test_a_simulated_run_through_rest_gives_the_cli_csv(alice, small_run, tmp_pa
     assert report["frames"] == small_run.frames and report["method"] == "fte"
 
 
+def test_smoothing_fitted_to_the_data(alice, small_run):
+    """motion_scale "auto": the job takes it and its report gives the scale fitted per marker."""
+    r = submit(alice, small_run, {"method": "fte", "skeleton": "points", "motion_scale": "auto"})
+    assert r.status_code == 202, r.text
+    assert r.json()["options"]["motion_scale"] == "auto"
+    done = wait_finished(alice, r.json()["id"])
+    assert done["status"] == "succeeded", done
+    report = alice.get(f"/v1/jobs/{done['id']}/result", params={"format": "report"}).json()
+    assert report["motion_scales"] and all(v > 0 for v in report["motion_scales"].values())
+
+
 def test_an_acinoset_json_calibration_works_too(alice, small_run):
     r = submit(alice, small_run, FAST, calibration=small_run.scene)
     assert r.status_code == 202, r.text
@@ -220,6 +231,8 @@ def _bad_cases(run):
         "bad fps": (_files(run), {"method": "tri", "fps": -3}, "fps must be positive"),
         "bad noise": (_files(run), {"method": "tri", "measurement_std_px": "loud"},
                       "options: measurement_std_px: must be a positive number of pixels or 'auto'"),
+        "bad motion scale": (_files(run), {"method": "tri", "motion_scale": "smooth"},
+                             "options: motion_scale: must be a positive number or 'auto'"),
         "skeleton as a server path": (_files(run), {"skeleton": "/etc/passwd"}, "unknown skeleton '/etc/passwd'"),
         "no calibration": (_files(run)[:-1], FAST, "calibration"),
         "no keypoints": (_files(run)[-1:], FAST, "keypoints"),

@@ -1,0 +1,174 @@
+"""Leave one camera out on a real recording: acinoset against aniposelib and EKS on the fly data.
+
+    .venv/bin/python bench/bench_fly_loco.py [--data DIR] [--repeats 3] [--eks-repeats 1]
+                                            [--eks-python eks-venv/bin/python]
+
+The data (``/work/shared/data/eks_fly``, see its SOURCE.md): a tethered fly, 3 cameras of 832x632 px,
+500 frames, 12 leg keypoints, two DeepLabCut ensemble members per camera (``camX.rng1.csv``,
+``camX.rng2.csv``), an Anipose calibration in millimetres with near-telecentric lenses. There is no
+3D truth, so every method is scored by :func:`graph.metrics.leave_one_camera_out`: for each camera,
+reconstruct from the other two and predict that camera's detections of likelihood >= 0.9 (of
+member 1, the one every single-member method gets); median and 90th percentile pixel error pooled
+over the three held-out cameras, and the coverage (share of those detections that got a position).
+
+What runs, on the same data in one run:
+
+* acinoset ``fte --skeleton points`` (free points, no bones), 300 frames per second assumed (SOURCE.md),
+  every other option at its default, on member 1; the three reconstructions timed in process
+  (wall clock around :func:`graph.api.solve`, compiled kernels loaded by an untimed warm-up);
+* aniposelib ``CameraGroup.triangulate_optim`` on member 1 with every option at its default
+  (smoothing ``scale_smooth=4``, ``n_deriv_smooth=1``, ``reproj_loss='soft_l1'``,
+  ``reproj_error_threshold=15``) and detections below Anipose's score threshold (0.8) set to NaN, as
+  ``anipose triangulate`` does; the calibration as shipped (millimetres). Timed after an untimed
+  warm-up call that pays its numba compile;
+* EKS (``ensemble-kalman-smoother``), ``ensemble_kalman_smoother_multicam`` on both members with
+  aniposelib's camera group (its nonlinear path, smoothing fitted by maximum likelihood), every
+  option at its default, run by ``bench/eks_multicam_run.py`` in EKS's own virtualenv (it pins
+  jax<=0.4.36; see bench/bench_eks.py for the install). Its time is the smoother call in that
+  process (jax compiles in every call, as a user sees it), not the process start.
+
+Prints a Markdown table and writes bench/results/fly_loco.json. Times are medians over repeats;
+the machine is shared, so ratios matter more than seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import harness as h
+import numpy as np
+
+from graph.api import SolveOptions
+from graph.calibration import load_calibration
+from graph.keypoints import read_keypoints
+from graph.metrics import leave_one_camera_out
+
+DATA = Path("/work/shared/data/eks_fly")
+FPS = 300.0  # assumed (SOURCE.md)
+LETTERS = "ABC"
+
+
+def member_files(data: Path, member: int) -> list[Path]:
+    return [data / f"cam{x}.rng{member}.csv" for x in LETTERS]
+
+
+def aniposelib_reconstruct(data: Path, score_threshold: float):
+    """``triangulate_optim`` at its defaults on the kept cameras (calibration units: mm)."""
+    from aniposelib.cameras import CameraGroup
+
+    full = CameraGroup.load(str(data / "calibration.toml"))
+
+    def reconstruct(keypoints, calibration):
+        cg = full.subset_cameras_names(calibration.names)
+        pts = np.stack([k.xy for k in keypoints]).copy()
+        pts[np.stack([k.likelihood for k in keypoints]) < score_threshold] = np.nan
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            X = cg.triangulate_optim(pts)
+        return list(keypoints[0].bodyparts), np.asarray(X)
+
+    return reconstruct
+
+
+def eks_reconstruct(data: Path, eks_python: str, members: list[int], log: list):
+    """EKS's multi-camera smoother on ``members`` of the kept cameras, in its own process."""
+    here = Path(__file__).resolve().parent
+
+    def reconstruct(keypoints, calibration):
+        idx = [load_calibration(data / "calibration.toml").names.index(n) for n in calibration.names]
+        with tempfile.TemporaryDirectory() as tmp:
+            req = {"calibration": str(data / "calibration.toml"), "cameras": calibration.names,
+                   "members": [[str(member_files(data, m)[i]) for i in idx] for m in members],
+                   "out": str(Path(tmp) / "out.npz")}
+            (Path(tmp) / "req.json").write_text(json.dumps(req))
+            w0 = time.perf_counter()
+            proc = subprocess.run([eks_python, str(here / "eks_multicam_run.py"), str(Path(tmp) / "req.json")],
+                                  capture_output=True, text=True)
+            wall = time.perf_counter() - w0
+            if proc.returncode:
+                raise RuntimeError(f"EKS failed: {proc.stderr[-2000:]}")
+            out = np.load(req["out"])
+            log.append({"cameras": calibration.names, "seconds": float(out["seconds"]), "process_s": wall,
+                        "smooth_param": out["smooth_param"].tolist()})
+            return [str(k) for k in out["keypoints"]], out["positions"]
+
+    return reconstruct
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--repeats", type=int, default=3, help="LOCO runs of acinoset and aniposelib")
+    ap.add_argument("--eks-repeats", type=int, default=1, help="LOCO runs of EKS")
+    ap.add_argument("--eks-python", default="/work/venv-eks/bin/python", help="python of EKS's virtualenv ('' skips)")
+    ap.add_argument("--skip-aniposelib", action="store_true")
+    args = ap.parse_args()
+    warnings.filterwarnings("ignore")
+    data = args.data
+    cal = load_calibration(data / "calibration.toml")
+    kps = [read_keypoints(p) for p in member_files(data, 1)]
+    info = h.machine()
+    print(f"# fly LOCO: {kps[0].frames} frames, {len(cal)} cameras, {len(kps[0].bodyparts)} keypoints; "
+          f"{info['cpu']}, {info['cores']} cores, load {info['load_average'][0]:.1f}", flush=True)
+
+    ours = {"acinoset fte points": SolveOptions(method="fte", skeleton="points", fps=FPS)}
+    methods = {name: (lambda o=o: leave_one_camera_out(kps, cal, o, method=name)) for name, o in ours.items()}
+    eks_log: list = []
+    if not args.skip_aniposelib:
+        rec = aniposelib_reconstruct(data, h.ANIPOSE_DEFAULTS["score_threshold"])
+        methods["aniposelib triangulate_optim"] = lambda: leave_one_camera_out(
+            kps, cal, reconstruct=rec, method="aniposelib triangulate_optim")
+    if args.eks_python:
+        rec_eks = eks_reconstruct(data, args.eks_python, [1, 2], eks_log)
+        methods["EKS multicam, 2 members"] = lambda: leave_one_camera_out(
+            kps, cal, reconstruct=rec_eks, method="EKS multicam, 2 members")
+
+    # warm-up: acinoset's kernels, aniposelib's numba compile (a short slice)
+    short = [type(k)(bodyparts=k.bodyparts, xy=k.xy[:40], likelihood=k.likelihood[:40], source=k.source) for k in kps]
+    for name, o in ours.items():
+        leave_one_camera_out(short, cal, o)
+    if not args.skip_aniposelib:
+        leave_one_camera_out(short, cal, reconstruct=aniposelib_reconstruct(data, 0.8))
+
+    summary = {}
+    for name, run in methods.items():
+        repeats = args.eks_repeats if name.startswith("EKS") else args.repeats
+        scores, seconds = [], []
+        for r in range(repeats):
+            eks_log.clear()
+            s = run()
+            scores.append(s)
+            seconds.append(sum(e["seconds"] for e in eks_log) if name.startswith("EKS") else s.seconds)
+            print(f"  {name:<40} run {r + 1}: median {s.median_px:.3f} px  p90 {s.p90_px:.3f} px  "
+                  f"coverage {s.coverage:.3f}  {seconds[-1]:.2f} s", flush=True)
+        last = scores[-1]
+        summary[name] = {**last.to_dict(), "seconds_runs": seconds, "median_s": statistics.median(seconds),
+                         "median_px_runs": [s.median_px for s in scores], "p90_px_runs": [s.p90_px for s in scores]}
+        if name.startswith("EKS"):
+            summary[name]["eks_calls"] = list(eks_log)
+
+    ref = summary.get("aniposelib triangulate_optim")
+    rows = []
+    for name, s in summary.items():
+        rows.append([name, s["median_px"], s["p90_px"], s["coverage"],
+                     *[c["median_px"] for c in s["cameras"]], s["median_s"],
+                     ref["median_s"] / s["median_s"] if ref else float("nan")])
+    print()
+    print(h.markdown_table(["method", "median px", "p90 px", "coverage", *[f"median {n}" for n in cal.names],
+                            "s (3 solves)", "speed-up vs aniposelib"], rows))
+    path = h.save("fly_loco", {"machine": info, "args": {k: str(v) for k, v in vars(args).items()}, "fps": FPS,
+                               "anipose_score_threshold": h.ANIPOSE_DEFAULTS["score_threshold"],
+                               "results": summary})
+    print(f"\nwrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

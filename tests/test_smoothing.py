@@ -1,0 +1,106 @@
+"""motion_scale="auto": the marginal likelihood of the smoothing, checked against dense algebra,
+and recovered on simulated runs whose true smoothness and noise are known."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from graph.api import SolveOptions, solve
+from graph.calibration import default_rig_path, load_calibration
+from graph.skeleton import POINTS_PROCESS_NOISE
+from graph.simulate import random_jerk_run, simulate_run
+from graph.smoothing import GroupEvidence, best_scale, third_difference_gram
+
+
+def _d3(N: int) -> np.ndarray:
+    D = np.zeros((N - 3, N))
+    for j in range(N - 3):
+        D[j, j:j + 4] = [-1.0, 3.0, -3.0, 1.0]
+    return D
+
+
+def test_third_difference_gram_is_dense_d3t_d3():
+    N = 9
+    G = _d3(N).T @ _d3(N)
+    T = third_difference_gram(N)
+    for L in range(4):
+        np.testing.assert_allclose(T[L, :N - L], np.diagonal(G, -L))
+
+
+def test_evidence_equals_the_dense_gaussian_evidence():
+    """For a quadratic data term the banded evidence is the Gaussian marginal likelihood computed
+    densely (the detections y ~ N(x, H^-1), the anchor x0 ~ N(x, I/w), x from the motion prior,
+    made proper by a tiny eps I whose normaliser does not depend on s), up to a constant."""
+    rng = np.random.default_rng(4)
+    N, d = 12, 2
+    A = rng.normal(size=(N, d, d))
+    H = np.einsum("nij,nkj->nik", A, A) + 0.5 * np.eye(d)  # per-frame information
+    x = rng.normal(size=(N, d))  # where the quadratic is taken
+    y = x + rng.normal(scale=0.3, size=(N, d))  # its minimum
+    g = np.einsum("nij,nj->ni", H, x - y)  # gradient at x of 1/2 (x-y)^T H (x-y)
+    x0 = y + rng.normal(scale=0.5, size=(N, d))
+    w, sigma, eps = 0.05, np.array([0.4, 1.3]), 1e-7
+    ev = GroupEvidence(H, g, x, x0, w, sigma)
+    Hd = np.zeros((N * d, N * d))
+    for n in range(N):
+        Hd[n * d:(n + 1) * d, n * d:(n + 1) * d] = H[n]
+    D = _d3(N)
+    R = np.block([[np.linalg.inv(Hd), np.zeros((N * d, N * d))], [np.zeros((N * d, N * d)), np.eye(N * d) / w]])
+    B = np.vstack([np.eye(N * d), np.eye(N * d)])
+    z = np.concatenate([y.ravel(), x0.ravel()])
+
+    def dense(s):
+        c = 1.0 / (s * sigma) ** 2
+        Am = sum(c[i] * np.kron(D.T @ D, np.diag(np.eye(d)[i])) for i in range(d))
+        P = np.linalg.inv(Am + eps * np.eye(N * d))
+        S = B @ P @ B.T + R
+        # N(0, (Am + eps I)^-1)'s normaliser det(Am + eps I)^(1/2) is pdet(Am)^(1/2) eps^(3d/2) to first
+        # order: the improper prior's pdet times a constant, which the differences below cancel
+        return -0.5 * z @ np.linalg.solve(S, z) - 0.5 * np.linalg.slogdet(S)[1]
+
+    scales = [0.05, 0.3, 1.0, 4.0]
+    ours = np.array([ev(s) for s in scales])
+    ref = np.array([dense(s) for s in scales])
+    np.testing.assert_allclose(ours - ours[0], ref - ref[0], rtol=1e-5, atol=1e-4)
+    s_best = best_scale(ev, lo=1e-3, hi=1e3)
+    assert ev(s_best) >= max(ev(s_best * 1.1), ev(s_best / 1.1))
+
+
+@pytest.mark.parametrize("process_noise, noise_px", [(0.1, 2.0), (0.5, 4.0)])
+def test_auto_recovers_the_true_smoothness_and_noise(process_noise, noise_px):
+    """Free points moving exactly as the motion model says (graph.simulate.random_jerk_run):
+    motion_scale and measurement_std_px 'auto' find the true process noise and detection noise
+    within 20 %, and the fitted smoothing is nearer the truth than the default's."""
+    cal = load_calibration(default_rig_path())
+    run = random_jerk_run(cal, frames=300, process_noise=process_noise, noise=noise_px, seed=2)
+    auto = solve(run.keypoints, cal, SolveOptions(skeleton="points", fps=run.fps, motion_scale="auto",
+                                                  measurement_std_px="auto"))
+    scales = auto.report.motion_scales
+    assert set(scales) == set(run.markers)
+    fitted = np.array(list(scales.values())) * POINTS_PROCESS_NOISE
+    assert np.median(fitted) == pytest.approx(process_noise, rel=0.2)
+    assert np.all(np.abs(np.log(fitted / process_noise)) < math.log(1.5))  # every marker within 1.5x
+    assert auto.report.sigma_px == pytest.approx(noise_px, rel=0.2)
+    fixed = solve(run.keypoints, cal, SolveOptions(skeleton="points", fps=run.fps, measurement_std_px="auto"))
+    err = lambda r: float(np.nanmean(np.linalg.norm(r.positions - run.positions, axis=-1)))  # noqa: E731
+    assert err(auto) < err(fixed)
+    assert fixed.report.motion_scales is None
+
+
+def test_auto_on_a_kinematic_skeleton_and_its_limits():
+    """A kinematic skeleton gets one scale ('all'), reported and finite; ekf refuses 'auto';
+    the option takes only positive numbers or 'auto'."""
+    cal = load_calibration(default_rig_path())
+    run = simulate_run(cal, frames=60, seed=5, outliers=0.0)
+    r = solve(run.keypoints, cal, SolveOptions(fps=run.fps, motion_scale="auto", uncertainty=False))
+    assert list(r.report.motion_scales) == ["all"]
+    assert 1e-6 <= r.report.motion_scales["all"] <= 1e6
+    assert r.report.to_dict()["motion_scales"] == r.report.motion_scales
+    with pytest.raises(ValueError, match="ekf"):
+        SolveOptions(method="ekf", motion_scale="auto")
+    for bad in ("fast", 0.0, -1.0):
+        with pytest.raises(ValueError, match="motion_scale"):
+            SolveOptions(motion_scale=bad)
