@@ -117,9 +117,11 @@ def main() -> None:
         peer = {"anipose": subprocess.run([sys.executable, "-c", "import importlib.metadata as m; "
                                            "print(m.version('anipose'))"], env=env, capture_output=True,
                                           text=True).stdout.strip(), "aniposelib": md.version("aniposelib")}
+    info["load_average_after"] = list(os.getloadavg())
     n = len(trials)
     rows = [[name, f"{s:.1f}", f"{s / n:.2f}"] for name, s in times.items()]
-    print(f"{n} trials x {args.frames} frames, 3 cameras, 8 markers; load average {info.get('load_average')}")
+    print(f"{n} trials x {args.frames} frames, 3 cameras, 8 markers; load average before "
+          f"{info.get('load_average')}, after {info['load_average_after']}")
     print(h.markdown_table(["run", "wall s (whole project)", "s per trial"], rows))
     for tool, e in accuracy.items():
         print(f"{tool}: mean 3D error {e['mean_mm']:.1f} mm, median {e['median_mm']:.1f} mm, "
