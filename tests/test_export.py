@@ -100,6 +100,21 @@ def test_nwb_round_trips_through_pynwb_and_ndx_pose(fly, tmp_path):
             np.testing.assert_allclose(d.rotation_matrix[:], cam.R, atol=1e-7)
             np.testing.assert_allclose(d.translation_vector[:], cam.t, atol=1e-7)
             np.testing.assert_allclose(d.distortion_coefficients[:], cam.dist, rtol=1e-6)
+    assert list(pynwb.validate(path=str(out))) == []  # the NWB schema and ndx-pose's, checked by pynwb
+
+
+def test_movement_loads_our_nwb(fly, tmp_path):
+    """A second reader of the NWB file: movement's NWB loader (3D, no confidence: NaN)."""
+    pytest.importorskip("movement")
+    pytest.importorskip("ndx_pose")
+    from movement.io import load_poses
+
+    res = load_input(fly).result
+    ds = load_poses.from_nwb_file(export(fly, "nwb", tmp_path / "fly.nwb"))
+    assert list(ds.keypoints.values) == res.markers and ds.attrs["fps"] == FPS
+    got = ds.position.transpose("time", "keypoints", "space", "individuals").values[..., 0]
+    np.testing.assert_allclose(got, res.positions, atol=TOL, rtol=0)
+    assert np.isnan(ds.confidence.values).all()
 
 
 def _read_trc(path: Path):
