@@ -247,3 +247,27 @@ def test_export_command(fly, tmp_path):
     missing = subprocess.run([str(exe), "export", str(tmp_path / "none.h5"), "--format", "nwb", "--out",
                               str(tmp_path / "c.nwb")], capture_output=True, text=True)
     assert missing.returncode == 2 and "none.h5: no such file" in missing.stderr
+
+
+def test_a_result_file_without_its_calibration(fly, tmp_path):
+    """Older result files hold no calibration: C3D residuals are 0 with a warning, NWB has plain
+    devices; given the calibration file, both are as with it stored."""
+    ezc3d = pytest.importorskip("ezc3d")
+    pynwb = pytest.importorskip("pynwb")
+    from graph.io import read_result, write_h5
+
+    old = tmp_path / "old.h5"
+    write_h5(old, read_result(fly))
+    assert load_input(old).calibration is None
+    with pytest.warns(UserWarning, match="holds no calibration"):
+        export(old, "c3d", tmp_path / "old.c3d")
+    has = np.isfinite(read_result(fly).positions).all(-1).T
+    residual = ezc3d.c3d(str(tmp_path / "old.c3d"))["data"]["meta_points"]["residuals"][0]
+    assert (residual[has] == 0).all() and (residual[~has] == -1).all()
+    export(old, "nwb", tmp_path / "old.nwb")
+    with pynwb.NWBHDF5IO(str(tmp_path / "old.nwb"), "r", load_namespaces=True) as io:
+        assert {type(d).__name__ for d in io.read().devices.values()} == {"Device"}
+    given = export(old, "c3d", tmp_path / "given.c3d", calibration=_shared_data() / "calibration.toml")
+    stored = export(fly, "c3d", tmp_path / "stored.c3d")
+    np.testing.assert_array_equal(ezc3d.c3d(str(given))["data"]["meta_points"]["residuals"],
+                                  ezc3d.c3d(str(stored))["data"]["meta_points"]["residuals"])
