@@ -78,8 +78,8 @@ def run_project(project: Project, jobs: int = 1, force: bool = False,
             report(TrialEvent(trial.label, "skipped", 1.0, outcomes[i].message))
         else:
             todo.append(i)
-    args = {i: (project.trials[i], trial_options(project, project.trials[i]), project.offsets, project.config)
-            for i in todo}
+    args = {i: (project.trials[i], trial_options(project, project.trials[i]), project.offsets, project.config,
+                project.frame) for i in todo}
     if jobs <= 1 or len(todo) <= 1:
         for i in todo:
             outcomes[i] = _finish(project.trials[i], solve_trial(*args[i], progress=report), report)
@@ -119,13 +119,15 @@ def _drain(queue, report) -> None:
             return
 
 
-def _solve_in_worker(trial: Trial, options: SolveOptions, offsets, config: Path, queue) -> TrialOutcome:
-    return solve_trial(trial, options, offsets, config, progress=queue.put)
+def _solve_in_worker(trial: Trial, options: SolveOptions, offsets, config: Path, frame, queue) -> TrialOutcome:
+    return solve_trial(trial, options, offsets, config, frame, progress=queue.put)
 
 
 def solve_trial(trial: Trial, options: SolveOptions, offsets: dict[str, tuple[float, float]], config: Path,
+                frame: tuple[list, str] | None = None,
                 progress: Callable[[TrialEvent], None] | None = None) -> TrialOutcome:
-    """Solve one trial and write its CSV and H5; never raises (a failure is the outcome)."""
+    """Solve one trial and write its CSV (in Anipose's frame of ``frame`` = (axes, reference_point),
+    if given) and H5; never raises (a failure is the outcome)."""
     import warnings
 
     t0 = time.perf_counter()
@@ -139,7 +141,12 @@ def solve_trial(trial: Trial, options: SolveOptions, offsets: dict[str, tuple[fl
 
         trial.csv.parent.mkdir(parents=True, exist_ok=True)
         tmp_csv, tmp_h5 = (p.with_name(f".{p.name}.partial") for p in (trial.csv, trial.h5))
-        io.write_anipose_csv(tmp_csv, result)
+        csv_frame = None
+        if frame is not None:
+            from graph.anipose.frame import anipose_frame
+
+            csv_frame = anipose_frame(result.positions, result.markers, *frame)
+        io.write_anipose_csv(tmp_csv, result, frame=csv_frame)
         io.write_h5(tmp_h5, result, calibration=calibration)
         os.replace(tmp_h5, trial.h5)
         os.replace(tmp_csv, trial.csv)  # the CSV last: it is what Anipose's tools look for
