@@ -89,6 +89,10 @@ def test_a_failed_trial_is_reported_and_the_others_go_on(tmp_path):
     assert (root / "s1" / "pose-3d" / "good.csv").is_file()
     assert not (root / "s1" / "pose-3d" / "bad.csv").exists()
     assert read_result(root / "s1" / "pose-3d" / "good.h5").method == "tri"  # optim = false: triangulation
+    again = acinoset("anipose", root)  # the failed trial is tried again; the solved one is up to date
+    assert "2 trials: 0 solved, 1 up to date, 1 failed" in again.stdout
+    forced = acinoset("anipose", root, "--force")
+    assert "2 trials: 1 solved, 0 up to date, 1 failed" in forced.stdout
 
 
 def test_the_project_is_read_as_anipose_reads_it(tmp_path):
