@@ -86,9 +86,12 @@ def run_project(project: Project, jobs: int = 1, force: bool = False,
     else:
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(["graph.api", "graph.io"])
+        workers = min(jobs, len(todo))
+        threads = max(1, (os.cpu_count() or 1) // workers)
         with multiprocessing.Manager() as manager:
             queue = manager.Queue()
-            with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx) as pool:
+            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_share_cores,
+                                     initargs=(threads,)) as pool:
                 futures = {pool.submit(_solve_in_worker, *args[i], queue): i for i in todo}
                 pending = set(futures)
                 while pending:
@@ -103,6 +106,15 @@ def run_project(project: Project, jobs: int = 1, force: bool = False,
                         outcomes[i] = _finish(project.trials[i], outcome, report)
                 _drain(queue, report)
     return [outcomes[i] for i in range(len(project.trials))]
+
+
+def _share_cores(threads: int) -> None:
+    """A worker's share of the cores: the compiled kernels' threads (numba's parallel loops, which
+    write one output per index, so the results do not depend on the count), so that N workers do
+    not each start a thread per core."""
+    import numba
+
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
 
 
 def _finish(trial: Trial, outcome: TrialOutcome, report) -> TrialOutcome:
