@@ -18,7 +18,7 @@ that loads the compiled kernels):
   --no-deps anipose`` beside aniposelib, into a folder given by ``--anipose-path``) on a copy.
 
 The 3D error of each tool's ``pose-3d`` CSVs against the simulated truth is reported too. Writes
-bench/results/anipose.json and prints a Markdown table.
+bench/results/anipose.json (``--name``) and prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -73,6 +73,7 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=120.0)
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
     ap.add_argument("--anipose-path", default=None, help="a folder holding the anipose package (pip --target)")
+    ap.add_argument("--name", default="anipose", help="results file: bench/results/NAME.json")
     args = ap.parse_args()
 
     sessions = {f"2026-12-{s + 1:02d}": [f"trial{s * args.trials + t + 1}" for t in range(args.trials)]
@@ -126,7 +127,7 @@ def main() -> None:
     for tool, e in accuracy.items():
         print(f"{tool}: mean 3D error {e['mean_mm']:.1f} mm, median {e['median_mm']:.1f} mm, "
               f"coverage {e['coverage']:.3f}")
-    path = h.save("anipose", {"machine": info, "args": vars(args), "trials": n, "times_s": times,
+    path = h.save(args.name, {"machine": info, "args": vars(args), "trials": n, "times_s": times,
                               "accuracy": accuracy, "peer_versions": peer})
     print(f"-> {path}")
     shutil.rmtree(tmp, ignore_errors=True)
