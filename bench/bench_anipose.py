@@ -18,7 +18,7 @@ that loads the compiled kernels):
   --no-deps anipose`` beside aniposelib, into a folder given by ``--anipose-path``) on a copy.
 
 The 3D error of each tool's ``pose-3d`` CSVs against the simulated truth is reported too. Writes
-bench/results/anipose.json and prints a Markdown table.
+bench/results/anipose.json (``--name``) and prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -73,6 +73,7 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=120.0)
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
     ap.add_argument("--anipose-path", default=None, help="a folder holding the anipose package (pip --target)")
+    ap.add_argument("--name", default="anipose", help="results file: bench/results/NAME.json")
     args = ap.parse_args()
 
     sessions = {f"2026-12-{s + 1:02d}": [f"trial{s * args.trials + t + 1}" for t in range(args.trials)]
@@ -117,14 +118,16 @@ def main() -> None:
         peer = {"anipose": subprocess.run([sys.executable, "-c", "import importlib.metadata as m; "
                                            "print(m.version('anipose'))"], env=env, capture_output=True,
                                           text=True).stdout.strip(), "aniposelib": md.version("aniposelib")}
+    info["load_average_after"] = list(os.getloadavg())
     n = len(trials)
     rows = [[name, f"{s:.1f}", f"{s / n:.2f}"] for name, s in times.items()]
-    print(f"{n} trials x {args.frames} frames, 3 cameras, 8 markers; load average {info.get('load_average')}")
+    print(f"{n} trials x {args.frames} frames, 3 cameras, 8 markers; load average before "
+          f"{info.get('load_average')}, after {info['load_average_after']}")
     print(h.markdown_table(["run", "wall s (whole project)", "s per trial"], rows))
     for tool, e in accuracy.items():
         print(f"{tool}: mean 3D error {e['mean_mm']:.1f} mm, median {e['median_mm']:.1f} mm, "
               f"coverage {e['coverage']:.3f}")
-    path = h.save("anipose", {"machine": info, "args": vars(args), "trials": n, "times_s": times,
+    path = h.save(args.name, {"machine": info, "args": vars(args), "trials": n, "times_s": times,
                               "accuracy": accuracy, "peer_versions": peer})
     print(f"-> {path}")
     shutil.rmtree(tmp, ignore_errors=True)

@@ -61,9 +61,17 @@ class Points3D:
     center: np.ndarray  # (3,)
 
 
-def write_anipose_csv(path: str | Path, result: Result) -> None:
-    """Anipose's ``pose-3d`` CSV (column order as ``anipose triangulate``), floats as ``repr``."""
+def write_anipose_csv(path: str | Path, result: Result,
+                      frame: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    """Anipose's ``pose-3d`` CSV (column order as ``anipose triangulate``), floats as ``repr``.
+
+    ``frame = (M, center)``: the positions written as ``M X - center``, with ``M`` and ``center`` in
+    their columns, as Anipose writes a run it turned into the frame of ``[triangulation] axes``
+    (:func:`graph.anipose.frame.anipose_frame`). Without it, the calibration's frame (identity, 0)."""
     pos = np.asarray(result.positions, dtype=np.float64)
+    M, center = (np.eye(3), np.zeros(3)) if frame is None else (np.asarray(frame[0], float), np.asarray(frame[1], float))
+    if frame is not None:
+        pos = pos @ M.T - center
     n, m = pos.shape[:2]
     has = np.isfinite(pos).all(axis=-1)
     error = np.where(has, result.error, np.nan)
@@ -71,7 +79,7 @@ def write_anipose_csv(path: str | Path, result: Result) -> None:
     score = np.where(has, np.asarray(result.score, dtype=np.float64), np.nan)
     header = [spreadsheet_safe(f"{name}_{f}") for name in result.markers for f in _MARKER_FIELDS]
     header += [f"M_{i}{j}" for i in range(3) for j in range(3)] + [f"center_{i}" for i in range(3)] + ["fnum"]
-    frame_const = [_cell(v) for v in np.eye(3).ravel()] + [_cell(0.0)] * 3
+    frame_const = [_cell(v) for v in M.ravel()] + [_cell(v) for v in center]
     per_marker = np.concatenate([pos, error[..., None], ncams[..., None], score[..., None]], axis=-1)
     per_marker = per_marker.reshape(n, 6 * m)
     with open(path, "w", newline="", encoding="utf-8") as f:

@@ -71,8 +71,10 @@ class BatchService:
                       for i, t in enumerate(project.trials)]
         finally:
             shutil.rmtree(staging, ignore_errors=True)
+        ignored = project.ignored + (["[triangulation] axes, reference_point (a job's CSV is in the "
+                                      "calibration's frame)"] if project.frame else [])
         record = {"id": batch_id, "owner_id": user.id, "owner": user.name, "created_at": time.time(),
-                  "project": root.name, "trials": trials, "ignored": project.ignored, "notes": project.notes}
+                  "project": root.name, "trials": trials, "ignored": ignored, "notes": project.notes}
         self.dir.mkdir(parents=True, exist_ok=True)
         tmp = self.dir / f".{batch_id}.json.tmp"
         tmp.write_text(json.dumps(record, indent=1), encoding="utf-8")

@@ -107,15 +107,16 @@ def load_inputs(input_dir: Path):
 
 # -- outputs -----------------------------------------------------------------------------------
 
-def write_results(result, out_dir: Path) -> dict:
-    """Write every result format into ``out_dir``; return the report as a dict."""
+def write_results(result, out_dir: Path, calibration=None) -> dict:
+    """Write every result format into ``out_dir`` (the H5 with the calibration solved with, so the
+    exports carry the rig); return the report as a dict."""
     from graph.io import write_anipose_csv, write_h5
     from graph.plot import result_payload  # what the job page draws: one definition for both sides
 
     out_dir.mkdir(parents=True, exist_ok=True)
     name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}
     write_anipose_csv(out_dir / name["csv"], result)
-    write_h5(out_dir / name["h5"], result)
+    write_h5(out_dir / name["h5"], result, calibration=calibration)
     report = result.report.to_dict()
     (out_dir / name["json"]).write_text(json.dumps(result_payload(result), separators=(",", ":"), allow_nan=False))
     (out_dir / name["report"]).write_text(json.dumps(report, indent=2))
@@ -156,7 +157,7 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
     keypoints, calibration, options = load_inputs(input_dir)
     result = solve(keypoints, calibration, options, progress=progress)
     progress.report(WRITING, 1.0, result.report.iterations, result.report.cost)
-    return write_results(result, out_dir)
+    return write_results(result, out_dir, calibration)
 
 
 def one_line(e: BaseException) -> str:

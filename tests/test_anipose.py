@@ -89,6 +89,10 @@ def test_a_failed_trial_is_reported_and_the_others_go_on(tmp_path):
     assert (root / "s1" / "pose-3d" / "good.csv").is_file()
     assert not (root / "s1" / "pose-3d" / "bad.csv").exists()
     assert read_result(root / "s1" / "pose-3d" / "good.h5").method == "tri"  # optim = false: triangulation
+    again = acinoset("anipose", root)  # the failed trial is tried again; the solved one is up to date
+    assert "2 trials: 0 solved, 1 up to date, 1 failed" in again.stdout
+    forced = acinoset("anipose", root, "--force")
+    assert "2 trials: 1 solved, 0 up to date, 1 failed" in forced.stdout
 
 
 def test_the_project_is_read_as_anipose_reads_it(tmp_path):
@@ -142,3 +146,45 @@ def test_offsets_are_added_to_the_cameras_points(tmp_path):
         assert outcome.status == "solved", outcome.message
     a, b = (read_result(r / "s" / "pose-3d" / "t.h5") for r in (plain, cropped))
     np.testing.assert_allclose(a.positions, b.positions, atol=1e-9, rtol=0)
+
+
+def test_anipose_frame_recovers_a_known_frame():
+    """Points given in a frame where nose->l_eye is +x and nose->neck_base is +z, seen in a world
+    rotated and shifted from it: Anipose's construction gives back that frame, nose at the origin."""
+    from scipy.spatial.transform import Rotation
+
+    from graph.anipose.frame import anipose_frame
+
+    R = Rotation.random(random_state=4).as_matrix()
+    shift = np.array([0.3, -1.2, 2.0])
+    local = {"nose": [0, 0, 0], "l_eye": [1, 0, 0], "neck_base": [0, 0, 1], "spine": [0.2, 0.5, -0.3]}
+    markers = list(local)
+    p = np.array([local[m] for m in markers], dtype=float)
+    frames = np.repeat(p[None], 50, axis=0)
+    world = (frames + shift) @ R  # X = R^T (p + shift)
+    world[5, 1] = np.nan  # a frame without l_eye: left out of its median
+    M, center = anipose_frame(world, markers, [["x", "nose", "l_eye"], ["z", "nose", "neck_base"]], "nose")
+    np.testing.assert_allclose(M, R, atol=1e-12)
+    np.testing.assert_allclose(world[0] @ M.T - center, p, atol=1e-12)
+    with pytest.raises(InputError, match="'tail'"):
+        anipose_frame(world, markers, [["x", "nose", "tail"], ["z", "nose", "neck_base"]], "nose")
+
+
+def test_the_csv_is_in_the_axes_frame(tmp_path):
+    from graph.anipose import run_project
+
+    root = write_project(tmp_path / "p", sessions={"s": ["t"]}, frames=20, optim=False)
+    text = (root / "config.toml").read_text().replace(
+        "scale_smooth = 2", 'scale_smooth = 2\naxes = [["x", "neck_base", "nose"], ["z", "l_shoulder", "neck_base"]]\n'
+                            'reference_point = "spine"')
+    (root / "config.toml").write_text(text)
+    project = load_project(root)
+    assert project.frame is not None and not any("axes" in k for k in project.ignored)
+    (outcome,) = run_project(project)
+    assert outcome.status == "solved", outcome.message
+    res = read_result(outcome.trial.h5)  # the H5 stays in the calibration's frame
+    csv = read_anipose_csv(outcome.trial.csv)
+    assert not np.allclose(csv.M, np.eye(3))
+    np.testing.assert_allclose(csv.positions, res.positions @ csv.M.T - csv.center, atol=1e-12)
+    spine = csv.positions[:, csv.markers.index("spine")]
+    np.testing.assert_allclose(np.nanmedian(spine, axis=0), 0.0, atol=1e-12)  # the reference point's median

@@ -100,6 +100,21 @@ def test_nwb_round_trips_through_pynwb_and_ndx_pose(fly, tmp_path):
             np.testing.assert_allclose(d.rotation_matrix[:], cam.R, atol=1e-7)
             np.testing.assert_allclose(d.translation_vector[:], cam.t, atol=1e-7)
             np.testing.assert_allclose(d.distortion_coefficients[:], cam.dist, rtol=1e-6)
+    assert list(pynwb.validate(path=str(out))) == []  # the NWB schema and ndx-pose's, checked by pynwb
+
+
+def test_movement_loads_our_nwb(fly, tmp_path):
+    """A second reader of the NWB file: movement's NWB loader (3D, no confidence: NaN)."""
+    pytest.importorskip("movement")
+    pytest.importorskip("ndx_pose")
+    from movement.io import load_poses
+
+    res = load_input(fly).result
+    ds = load_poses.from_nwb_file(export(fly, "nwb", tmp_path / "fly.nwb"))
+    assert list(ds.keypoints.values) == res.markers and ds.attrs["fps"] == FPS
+    got = ds.position.transpose("time", "keypoints", "space", "individuals").values[..., 0]
+    np.testing.assert_allclose(got, res.positions, atol=TOL, rtol=0)
+    assert np.isnan(ds.confidence.values).all()
 
 
 def _read_trc(path: Path):
@@ -232,3 +247,27 @@ def test_export_command(fly, tmp_path):
     missing = subprocess.run([str(exe), "export", str(tmp_path / "none.h5"), "--format", "nwb", "--out",
                               str(tmp_path / "c.nwb")], capture_output=True, text=True)
     assert missing.returncode == 2 and "none.h5: no such file" in missing.stderr
+
+
+def test_a_result_file_without_its_calibration(fly, tmp_path):
+    """Older result files hold no calibration: C3D residuals are 0 with a warning, NWB has plain
+    devices; given the calibration file, both are as with it stored."""
+    ezc3d = pytest.importorskip("ezc3d")
+    pynwb = pytest.importorskip("pynwb")
+    from graph.io import read_result, write_h5
+
+    old = tmp_path / "old.h5"
+    write_h5(old, read_result(fly))
+    assert load_input(old).calibration is None
+    with pytest.warns(UserWarning, match="holds no calibration"):
+        export(old, "c3d", tmp_path / "old.c3d")
+    has = np.isfinite(read_result(fly).positions).all(-1).T
+    residual = ezc3d.c3d(str(tmp_path / "old.c3d"))["data"]["meta_points"]["residuals"][0]
+    assert (residual[has] == 0).all() and (residual[~has] == -1).all()
+    export(old, "nwb", tmp_path / "old.nwb")
+    with pynwb.NWBHDF5IO(str(tmp_path / "old.nwb"), "r", load_namespaces=True) as io:
+        assert {type(d).__name__ for d in io.read().devices.values()} == {"Device"}
+    given = export(old, "c3d", tmp_path / "given.c3d", calibration=_shared_data() / "calibration.toml")
+    stored = export(fly, "c3d", tmp_path / "stored.c3d")
+    np.testing.assert_array_equal(ezc3d.c3d(str(given))["data"]["meta_points"]["residuals"],
+                                  ezc3d.c3d(str(stored))["data"]["meta_points"]["residuals"])

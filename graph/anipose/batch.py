@@ -78,17 +78,20 @@ def run_project(project: Project, jobs: int = 1, force: bool = False,
             report(TrialEvent(trial.label, "skipped", 1.0, outcomes[i].message))
         else:
             todo.append(i)
-    args = {i: (project.trials[i], trial_options(project, project.trials[i]), project.offsets, project.config)
-            for i in todo}
+    args = {i: (project.trials[i], trial_options(project, project.trials[i]), project.offsets, project.config,
+                project.frame) for i in todo}
     if jobs <= 1 or len(todo) <= 1:
         for i in todo:
             outcomes[i] = _finish(project.trials[i], solve_trial(*args[i], progress=report), report)
     else:
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(["graph.api", "graph.io"])
+        workers = min(jobs, len(todo))
+        threads = max(1, (os.cpu_count() or 1) // workers)
         with multiprocessing.Manager() as manager:
             queue = manager.Queue()
-            with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx) as pool:
+            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_share_cores,
+                                     initargs=(threads,)) as pool:
                 futures = {pool.submit(_solve_in_worker, *args[i], queue): i for i in todo}
                 pending = set(futures)
                 while pending:
@@ -105,6 +108,15 @@ def run_project(project: Project, jobs: int = 1, force: bool = False,
     return [outcomes[i] for i in range(len(project.trials))]
 
 
+def _share_cores(threads: int) -> None:
+    """A worker's share of the cores: the compiled kernels' threads (numba's parallel loops, which
+    write one output per index, so the results do not depend on the count), so that N workers do
+    not each start a thread per core."""
+    import numba
+
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+
+
 def _finish(trial: Trial, outcome: TrialOutcome, report) -> TrialOutcome:
     outcome.trial = trial
     report(TrialEvent(trial.label, outcome.status, 1.0, outcome.message))
@@ -119,13 +131,15 @@ def _drain(queue, report) -> None:
             return
 
 
-def _solve_in_worker(trial: Trial, options: SolveOptions, offsets, config: Path, queue) -> TrialOutcome:
-    return solve_trial(trial, options, offsets, config, progress=queue.put)
+def _solve_in_worker(trial: Trial, options: SolveOptions, offsets, config: Path, frame, queue) -> TrialOutcome:
+    return solve_trial(trial, options, offsets, config, frame, progress=queue.put)
 
 
 def solve_trial(trial: Trial, options: SolveOptions, offsets: dict[str, tuple[float, float]], config: Path,
+                frame: tuple[list, str] | None = None,
                 progress: Callable[[TrialEvent], None] | None = None) -> TrialOutcome:
-    """Solve one trial and write its CSV and H5; never raises (a failure is the outcome)."""
+    """Solve one trial and write its CSV (in Anipose's frame of ``frame`` = (axes, reference_point),
+    if given) and H5; never raises (a failure is the outcome)."""
     import warnings
 
     t0 = time.perf_counter()
@@ -139,7 +153,12 @@ def solve_trial(trial: Trial, options: SolveOptions, offsets: dict[str, tuple[fl
 
         trial.csv.parent.mkdir(parents=True, exist_ok=True)
         tmp_csv, tmp_h5 = (p.with_name(f".{p.name}.partial") for p in (trial.csv, trial.h5))
-        io.write_anipose_csv(tmp_csv, result)
+        csv_frame = None
+        if frame is not None:
+            from graph.anipose.frame import anipose_frame
+
+            csv_frame = anipose_frame(result.positions, result.markers, *frame)
+        io.write_anipose_csv(tmp_csv, result, frame=csv_frame)
         io.write_h5(tmp_h5, result, calibration=calibration)
         os.replace(tmp_h5, trial.h5)
         os.replace(tmp_csv, trial.csv)  # the CSV last: it is what Anipose's tools look for

@@ -28,6 +28,8 @@ an ``[acinoset]`` table: ``method``, ``skeleton`` (a name or a TOML file relativ
 ``body`` (model, estimate or a file), ``sync``, ``fps`` (else each trial's video frame rate when its
 ``videos-raw`` file is readable, else 120), and any other :class:`SolveOptions` field. Keys of
 Anipose's 3D step that have no equivalent here are listed in :attr:`Project.ignored`.
+``axes`` with ``reference_point`` turn the CSVs into Anipose's frame (:mod:`graph.anipose.frame`);
+the H5 stays in the calibration's.
 """
 
 from __future__ import annotations
@@ -55,8 +57,7 @@ IGNORED = {
                       "scale_length": "the bone terms' own weight", "scale_length_weak": "the bone terms' own weight",
                       "reproj_error_threshold": "the robust loss", "n_deriv_smooth": "the motion model",
                       "optim_chunking": "solving whole trials", "optim_chunking_size": "solving whole trials",
-                      "reference_point": "the calibration's frame", "axes": "the calibration's frame",
-                      "cam_align": "the calibration's frame"},
+                      "cam_align": "axes and reference_point"},
     "filter": {"type": "the robust loss", "medfilt": "the robust loss", "offset_threshold": "the robust loss",
                "score_threshold": "score_threshold of [triangulation]", "spline": "the motion model",
                "n_back": "the robust loss", "multiprocessing": "trial processes"},
@@ -95,6 +96,8 @@ class Project:
     options: SolveOptions
     offsets: dict[str, tuple[float, float]]
     trials: list[Trial]
+    # [triangulation] axes and reference_point: the CSVs' frame (graph.anipose.frame), or None
+    frame: tuple[list, str] | None = None
     ignored: list[str] = field(default_factory=list)  # "[section] key (what stands in)"
     notes: list[str] = field(default_factory=list)  # sessions without a calibration, ...
 
@@ -172,8 +175,13 @@ def load_project(folder: str | Path = ".") -> Project:
                                 fps=None if "fps" in _table(config, "acinoset", config_path)
                                 else _video_fps(session / pipeline["videos_raw"], files[cams[0]].stem,
                                                 config.get("video_extension", "avi"))))
+    frame = None
+    if "axes" in tri and "reference_point" in tri:  # as Anipose: both, or the calibration's frame
+        frame = (tri["axes"], str(tri["reference_point"]))
+        if not isinstance(frame[0], list) or not all(isinstance(a, list) and len(a) == 3 for a in frame[0]):
+            raise InputError('[triangulation] axes must be a list of ["x|y|z", bodypart, bodypart]', config_path)
     return Project(root=root, config=config_path, options=options, offsets=offsets, trials=trials,
-                   ignored=ignored_keys(config), notes=notes)
+                   frame=frame, ignored=ignored_keys(config), notes=notes)
 
 
 def solve_options(config: dict, root: Path, config_path: Path) -> SolveOptions:

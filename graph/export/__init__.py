@@ -14,6 +14,7 @@ one line naming the extra.
 
 from __future__ import annotations
 
+import functools
 import importlib
 from pathlib import Path
 
@@ -37,8 +38,10 @@ EXTENSIONS: dict[str, str] = {fmt: ext for fmt, (_, ext) in _MODULES.items()}
 NEEDS: dict[str, tuple[str, ...]] = {"nwb": ("pynwb", "ndx_pose"), "c3d": ("ezc3d",)}
 
 
+@functools.lru_cache(maxsize=None)
 def available(format: str) -> bool:
-    """Whether this install can write ``format`` (its libraries are installed; nothing is imported)."""
+    """Whether this install can write ``format`` (its libraries are installed; nothing is imported;
+    looked up once per process)."""
     import importlib.util
 
     return format in _MODULES and all(importlib.util.find_spec(m) is not None for m in NEEDS.get(format, ()))

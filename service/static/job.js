@@ -28,7 +28,7 @@
     nwb: ["NWB", "Neurodata Without Borders with ndx-pose: markers, skeleton, cameras' calibration, sd", "nwb"],
     trc: ["TRC", "OpenSim marker file, metres", "trc"],
     c3d: ["C3D", "biomechanics point data, mm, with residuals", "c3d"],
-    "csv-var": ["CSV with variances", "EKS's 3D layout: x, y, z and their posterior variances", "var.csv"],
+    "csv-var": ["EKS CSV", "EKS's 3D layout: x, y, z and their posterior variances", "var.csv"],
   };
   let lastStatus = null;
   let timer = null;

@@ -41,6 +41,9 @@ def test_each_export_is_what_the_command_writes(job, small_run, tmp_path):
     from graph.io import read_result
 
     res = read_result(h5)
+    from graph.io import read_calibration
+
+    assert read_calibration(h5).names == res.camera_names  # the job's H5 carries its rig
     for fmt in EXPORTS:
         r = client.get(done["links"]["result"][fmt])
         assert r.status_code == 200, r.text
