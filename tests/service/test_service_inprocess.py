@@ -4,6 +4,7 @@ tokens, unknown jobs, bad options and the spec. The real-server tests beside the
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
@@ -23,9 +24,14 @@ def app_client(tmp_path_factory):
     data = tmp_path_factory.mktemp("inprocess_data")
     tokens = {"ada": add_user(data, "ada"), "root": add_user(data, "root", admin=True)}
     app = create_app(Settings(data_dir=data, workers=1, upload_readers=0, warm_start=False))
-    with TestClient(app) as client:
-        client.tokens = tokens
-        yield client
+    environ = dict(os.environ)  # the app sets up its solve processes' environment in this process
+    try:
+        with TestClient(app) as client:
+            client.tokens = tokens
+            yield client
+    finally:  # later tests of this process compile kernels: numba rereads its settings from it
+        os.environ.clear()
+        os.environ.update(environ)
 
 
 def _auth(client, name: str) -> dict:
