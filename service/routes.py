@@ -78,6 +78,9 @@ JobBackend = Annotated[Backend, Depends(_backend)]
 @router.post(
     "/v1/jobs", status_code=202, response_model=JobOut, tags=["jobs"], summary="Submit a job",
     responses={400: _err("The body is not valid multipart/form-data"),
+               408: _err("The upload stalled or took too long (ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS, "
+                         "ACINOSET_UPLOAD_TIMEOUT_SECONDS)"),
+               503: _err("Too many uploads arriving at once; try again after Retry-After seconds"),
                413: _err("Upload, frame count, bodyparts, camera count or the caller's storage over this "
                          "server's limits"),
                507: _err("The server's disk or its storage for jobs is full"),
