@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 import time
+from datetime import datetime, timezone
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, Security, UploadFile
@@ -12,6 +13,7 @@ from fastapi.security import HTTPBearer
 
 import graph
 from graph.errors import InputError
+from graph.types import Method
 from graph.skeleton import available_skeletons, load_skeleton
 from service import metrics
 from service.auth import current_user
@@ -117,13 +119,26 @@ def list_jobs(
     limit: Annotated[int, Query(ge=1, description="jobs per page (at most 500)")] = 50,
     cursor: Annotated[str | None, Query(description="next_cursor of the previous page")] = None,
     owner: Annotated[str | None, Query(description="admins: only this user's jobs")] = None,
+    label: Annotated[str | None, Query(max_length=200, description="only jobs whose label contains this (any case)")] = None,
+    method: Annotated[Method | None, Query(description="only jobs solved with this method")] = None,
+    since: Annotated[datetime | None, Query(description="only jobs submitted at or after this time (ISO 8601)")] = None,
+    warnings: Annotated[bool | None, Query(
+        description="true: only jobs that succeeded with warnings; false: only those that succeeded without")] = None,
 ) -> JobList:
     """The caller's jobs, newest first (an admin's call lists everyone's)."""
-    rows, total, next_cursor = jobs.list(user, list(status) if status else None, limit, cursor, owner)
+    rows, total, next_cursor = jobs.list(user, list(status) if status else None, limit, cursor, owner, label=label,
+                                         method=method, since=_epoch(since), warnings=warnings)
     nxt = None
     if next_cursor is not None:
         nxt = f"{request.url.path}?{request.url.include_query_params(cursor=next_cursor).query}"
     return JobList(jobs=[job_out(j) for j in rows], total=total, next_cursor=next_cursor, next=nxt)
+
+
+def _epoch(t: datetime | None) -> float | None:
+    """Seconds since the epoch; a time without a zone is UTC."""
+    if t is None:
+        return None
+    return (t if t.tzinfo else t.replace(tzinfo=timezone.utc)).timestamp()
 
 
 @router.get("/v1/jobs/{job_id}", response_model=JobOut, tags=["jobs"], summary="A job's status",
