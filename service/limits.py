@@ -146,6 +146,8 @@ def _too_large(limit: int) -> str:
 
 def _replay(body, receive: Receive, chunk: int) -> Receive:
     """A ``receive`` that hands the app the stored body, then waits on the client (a disconnect)."""
+    size = body.seek(0, 2)
+    body.seek(0)
     done = False
 
     async def replayed() -> Message:
@@ -153,18 +155,11 @@ def _replay(body, receive: Receive, chunk: int) -> Receive:
         if done:
             return await receive()
         data = body.read(chunk)
-        more = body.tell() < _size(body)
+        more = body.tell() < size
         done = not more
         return {"type": "http.request", "body": data, "more_body": more}
 
     return replayed
-
-
-def _size(f) -> int:
-    here = f.tell()
-    end = f.seek(0, 2)
-    f.seek(here)
-    return end
 
 
 async def _answer(send: Send, status: int, detail: str, extra: dict[str, str]) -> None:
