@@ -89,3 +89,30 @@ def test_more_uploads_arriving_at_once_than_allowed_get_503(server, small_run):
     time.sleep(0.5)
     with server.client(server.token) as c:
         assert submit(c, small_run, FAST).status_code == 202
+
+
+def test_connections_beyond_the_cap_are_answered_503(tmp_path):
+    """ACINOSET_MAX_CONNECTIONS caps the open connections (uvicorn's limit_concurrency): idle clients
+    that hold sockets open cannot take every slot of the server's event loop."""
+    import httpx
+
+    data = tmp_path / "data"
+    srv = Server(data, tmp_path / "server.log", workers=1,
+                 env={"ACINOSET_WARM_START": "0", "ACINOSET_MAX_CONNECTIONS": "4"}).start(ready=(200,))
+    held = []
+    try:
+        for _ in range(4):
+            s = socket.create_connection(("127.0.0.1", srv.port), timeout=10)
+            s.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")  # answered, then kept alive
+            s.recv(4096)
+            held.append(s)
+        assert httpx.get(srv.url + "/healthz", timeout=10).status_code == 503
+        for s in held:
+            s.close()
+        held.clear()
+        time.sleep(0.5)
+        assert httpx.get(srv.url + "/healthz", timeout=10).status_code == 200
+    finally:
+        for s in held:
+            s.close()
+        srv.stop()
