@@ -168,7 +168,7 @@ def serve(args: argparse.Namespace) -> int:
     # status poll does not queue behind an upload being stored.
     sys.setswitchinterval(0.001)
     uvicorn.run(create_app(s), host=s.host, port=s.port, log_level=s.log_level, access_log=bool(args.access_log),
-                timeout_graceful_shutdown=10)
+                timeout_graceful_shutdown=10, limit_concurrency=s.max_connections, timeout_keep_alive=5)
     return 0
 
 

@@ -59,6 +59,21 @@ def safe_name(filename: str | None, default: str) -> str:
     return base or default
 
 
+LABEL_MAX = 200
+
+
+def _label(value) -> str | None:
+    """A job's label: text of at most :data:`LABEL_MAX` characters, no control characters; None if empty."""
+    if value is None:
+        return None
+    if not isinstance(value, str):
+        raise Unprocessable("options: label must be text, e.g. \"label\": \"cheetah 3, run 2\"")
+    value = " ".join(value.split())
+    if len(value) > LABEL_MAX or any(ord(c) < 0x20 or 0x7F <= ord(c) < 0xA0 for c in value):
+        raise Unprocessable(f"options: label must be at most {LABEL_MAX} printable characters")
+    return value or None
+
+
 def _size(f: BinaryIO) -> int:
     """Bytes from the stream's position to its end (the upload is spooled: seekable)."""
     here = f.tell()
@@ -123,8 +138,9 @@ class JobService:
 
     # -- submit ------------------------------------------------------------------------------
 
-    def parse_options(self, text: str | None, skeleton_file: str | None) -> dict:
-        """The ``options`` form field: a JSON object of :class:`graph.api.SolveOptions` fields."""
+    def parse_options(self, text: str | None, skeleton_file: str | None) -> tuple[dict, str | None]:
+        """The ``options`` form field: a JSON object of :class:`graph.api.SolveOptions` fields, and
+        the job's ``label`` (the user's name for the run, not an option of the solve)."""
         from pydantic import TypeAdapter, ValidationError
 
         from graph.api import SolveOptions
@@ -138,6 +154,7 @@ class JobService:
             raise Unprocessable(f"options: {NESTED_TOO_DEEPLY}") from None
         if not isinstance(data, dict):
             raise Unprocessable("options: must be a JSON object such as {\"method\": \"fte\", \"fps\": 120}")
+        label = _label(data.pop("label", None))
         known = [f.name for f in dataclasses.fields(SolveOptions)]
         unknown = sorted(set(data) - set(known))
         if unknown:
@@ -163,7 +180,7 @@ class JobService:
             raise Unprocessable(f"options: {where + ': ' if where else ''}{msg}")
         except (TypeError, ValueError) as e:
             raise Unprocessable(f"options: {e}")
-        return json.loads(json.dumps(opts.to_dict()))
+        return json.loads(json.dumps(opts.to_dict())), label
 
     def _save(self, upload: Upload, dest_dir: Path, default: str, allowed: tuple[str, ...], sniff) -> Path:
         head = upload.file.read(16)
@@ -186,7 +203,7 @@ class JobService:
                            f"{s.max_cameras} cameras per job (ACINOSET_MAX_CAMERAS)")
         self.check_quota(user)
         skeleton_name = safe_name(skeleton.filename, "skeleton.toml") if skeleton is not None else None
-        options = self.parse_options(options_text, skeleton_name)
+        options, label = self.parse_options(options_text, skeleton_name)
         upload_bytes = sum(_size(u.file) for u in [*keypoints, calibration, *([skeleton] if skeleton else [])])
         self.check_storage(user, upload_bytes)
 
@@ -195,7 +212,7 @@ class JobService:
                 job_id, inputs = self._store_upload(keypoints, calibration, skeleton, options)
             try:
                 job = self.store.insert_job(job_id, user.id, self.backend.name, options, inputs, s.max_attempts,
-                                            max_active=s.max_active_jobs_per_user)
+                                            max_active=s.max_active_jobs_per_user, label=label)
             except BaseException:
                 jobfiles.remove(s.jobs_dir, job_id)
                 raise
@@ -283,7 +300,8 @@ class JobService:
         return job
 
     def list(self, user: User, statuses: list[str] | None, limit: int, cursor: str | None,
-             owner: str | None) -> tuple[list[Job], int, str | None]:
+             owner: str | None, label: str | None = None, method: str | None = None, since: float | None = None,
+             warnings: bool | None = None) -> tuple[list[Job], int, str | None]:
         if statuses:
             bad = [st for st in statuses if st not in STATUSES]
             if bad:
@@ -304,7 +322,8 @@ class JobService:
         elif owner and owner != user.name:
             raise Forbidden("only admins can list other users' jobs")
         limit = max(1, min(limit, self.settings.page_size_max))
-        jobs, total = self.store.jobs(owner_id, statuses, limit + 1, before)
+        jobs, total = self.store.jobs(owner_id, statuses, limit + 1, before, label=label, method=method, since=since,
+                                      warnings=warnings)
         more = len(jobs) > limit
         jobs = jobs[:limit]
         return jobs, total, (str(jobs[-1].seq) if more and jobs else None)

@@ -5,6 +5,7 @@ Separate from the job table (:mod:`service.store`): a :class:`JobOut` is built f
 
 from __future__ import annotations
 
+import re
 import time
 from datetime import datetime, timezone
 from typing import Any, Literal
@@ -13,7 +14,7 @@ from pydantic import BaseModel, Field
 
 from graph.types import STAGES as SOLVER_STAGES
 from service.jobfiles import DOWNLOADS, RESULT_FILES
-from service.store import COMPILING, DONE, READING, STARTING, WRITING, Job, JobStatus
+from service.store import COMPILING, DONE, READING, STARTING, WRITING, ErrorKind, Job, JobStatus
 
 ResultFormat = Literal[tuple(DOWNLOADS)]  # type: ignore[valid-type]  # the download formats
 
@@ -95,7 +96,10 @@ class Links(BaseModel):
 class JobOut(BaseModel):
     id: str
     owner: str
+    label: str | None = Field(None, description="the user's name for the run (options.label at submission)")
     status: JobStatus
+    has_warnings: bool = Field(False, description="succeeded, with warnings in its report (result.warnings): "
+                                                  "check them before trusting the result")
     attempts: int = Field(description="runs started so far (a run interrupted by a crash is tried again)")
     max_attempts: int
     progress: Progress | None = None
@@ -103,6 +107,10 @@ class JobOut(BaseModel):
     options: dict[str, Any]
     inputs: Inputs
     error: str | None = Field(None, description="why the job failed")
+    error_kind: ErrorKind | None = Field(
+        None, description="what failed: input (a file or option the solver refused: fix it and submit again), "
+                          "limit (a limit of this server: time, memory), interrupted (its runs kept dying), "
+                          "internal (a fault of the software: report the job id)")
     interruption: str | None = Field(None, description="the latest run that was interrupted, and why")
     worker: str | None = Field(None, description="host:pid (embedded) or worker name (rq) of the latest run")
     result: ResultSummary | None = None
@@ -165,11 +173,24 @@ def _ts(t: float | None) -> datetime | None:
     return None if t is None else datetime.fromtimestamp(t, tz=timezone.utc)
 
 
+# An absolute path in a message (a server's file, say /srv/acinoset/jobs/<id>/input/keypoints/01/cam1.csv):
+# a slash not after a word character, a dot, a colon or a slash (so not inside a URL), then directories.
+_ABSOLUTE_PATH = re.compile(r"(?<![\w.:/])/(?:[^\s/'\"()<>,;:]+/)+([^\s/'\"()<>,;:]+)")
+
+
+def without_paths(text: str | None) -> str | None:
+    """``text`` with every absolute path cut to its file name: what the solver says of the server's
+    files names them the way the user uploaded them, not where the server keeps them."""
+    return None if text is None else _ABSOLUTE_PATH.sub(r"\1", text)
+
+
 def summary_of(report: dict | None) -> ResultSummary | None:
     if not report:
         return None
     keys = ResultSummary.model_fields.keys() - {"formats"}
-    return ResultSummary(**{k: report[k] for k in keys if report.get(k) is not None})
+    summary = ResultSummary(**{k: report[k] for k in keys if report.get(k) is not None})
+    summary.warnings = [without_paths(w) for w in summary.warnings]
+    return summary
 
 
 def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
@@ -183,13 +204,16 @@ def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
     progress = None
     if job.stage is not None or job.fraction is not None:
         progress = Progress(stage=job.stage, fraction=job.fraction, iteration=job.iteration, cost=job.cost)
+    result = summary_of(job.summary) if job.status == "succeeded" else None
     return JobOut(
-        id=job.id, owner=job.owner, status=job.status, attempts=job.attempts, max_attempts=job.max_attempts,
+        id=job.id, owner=job.owner, label=job.label, status=job.status,
+        has_warnings=bool(result is not None and result.warnings), attempts=job.attempts, max_attempts=job.max_attempts,
         progress=progress,
         timings=Timings(created_at=_ts(job.created_at), started_at=_ts(job.started_at),
                         finished_at=_ts(job.finished_at), queued_seconds=queued, run_seconds=run),
-        options=job.options, inputs=Inputs(**job.inputs), error=job.error, interruption=job.interruption,
-        worker=job.worker, result=summary_of(job.summary) if job.status == "succeeded" else None,
+        options=job.options, inputs=Inputs(**job.inputs), error=without_paths(job.error),
+        error_kind=job.error_kind if job.status == "failed" else None, interruption=without_paths(job.interruption),
+        worker=job.worker, result=result,
         links=Links(self=href,
                     result={f: f"{href}/result?format={f}" for f in offered_formats()} if job.status == "succeeded" else None,
                     cancel=href))

@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import shutil
 import time
+import re
+from datetime import datetime, timezone
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, Security, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from fastapi.security import HTTPBearer
+from pydantic import BeforeValidator
 
 import graph
 from graph.errors import InputError
+from graph.types import Method
 from graph.skeleton import available_skeletons, load_skeleton
 from service import metrics
 from service.auth import current_user
@@ -28,6 +32,8 @@ from service.store import Store, User
 def _err(description: str) -> dict:
     return {"model": ErrorBody, "description": description}
 
+
+IsoTime = Annotated[datetime, BeforeValidator(lambda v: _iso_only(v))]
 
 AUTH_ERRORS = {401: _err("No token, or an unknown or revoked one")}
 NOT_FOUND = {404: _err("No such job, or it belongs to another user")}
@@ -79,6 +85,9 @@ JobBackend = Annotated[Backend, Depends(_backend)]
 @router.post(
     "/v1/jobs", status_code=202, response_model=JobOut, tags=["jobs"], summary="Submit a job",
     responses={400: _err("The body is not valid multipart/form-data"),
+               408: _err("The upload stalled or took too long (ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS, "
+                         "ACINOSET_UPLOAD_TIMEOUT_SECONDS)"),
+               503: _err("Too many uploads arriving at once; try again after Retry-After seconds"),
                413: _err("Upload, frame count, bodyparts, camera count or the caller's storage over this "
                          "server's limits"),
                507: _err("The server's disk or its storage for jobs is full"),
@@ -87,7 +96,8 @@ JobBackend = Annotated[Backend, Depends(_backend)]
 def submit_job(
     user: CurrentUser, jobs: Jobs, response: Response,
     keypoints: Annotated[list[UploadFile], File(
-        description="DeepLabCut keypoints (.csv or .h5), one file per camera, repeated, in the calibration's order")],
+        description="DeepLabCut keypoints (.csv or .h5), one file per camera, repeated, in the calibration's order",
+        json_schema_extra={"minItems": 1})],
     calibration: Annotated[UploadFile, File(description="AcinoSet scene JSON or Anipose calibration TOML")],
     options: Annotated[str, Form(
         description='JSON object of solve options, e.g. {"method": "fte", "fps": 120, "skeleton": "cheetah", '
@@ -95,7 +105,8 @@ def submit_job(
                     'the detection noise from the data, motion_scale "auto" fits the smoothing to it; body "estimate" (the default), "model" or "given" with '
                     'body_lengths {group: metres}; sync "given" (the default, with time_offsets in frames per '
                     'camera) or "estimate"; see GET /v1/skeletons')] = "{}",
-    skeleton: Annotated[UploadFile | None, File(
+    # a file or nothing: declared as a file only (a form field "null" is no file, and is refused)
+    skeleton: Annotated[UploadFile, File(
         description="optional skeleton spec (.toml) to use instead of a named skeleton")] = None,
 ) -> JobOut:
     """Validate the files with the library's readers, store them and queue the solve. Answers 202 with
@@ -113,15 +124,35 @@ def list_jobs(
     user: CurrentUser, jobs: Jobs, request: Request,
     status: Annotated[list[JobStatus] | None, Query(description="only jobs in these states (repeat for several)")] = None,
     limit: Annotated[int, Query(ge=1, description="jobs per page (at most 500)")] = 50,
-    cursor: Annotated[str | None, Query(description="next_cursor of the previous page")] = None,
+    cursor: Annotated[str | None, Query(pattern=r"^[0-9]{1,18}$", description="next_cursor of the previous page")] = None,
     owner: Annotated[str | None, Query(description="admins: only this user's jobs")] = None,
+    label: Annotated[str | None, Query(max_length=200, description="only jobs whose label contains this (any case)")] = None,
+    method: Annotated[Method | None, Query(description="only jobs solved with this method")] = None,
+    since: Annotated[IsoTime | None, Query(description="only jobs submitted at or after this time (ISO 8601)")] = None,
+    warnings: Annotated[bool | None, Query(
+        description="true: only jobs that succeeded with warnings; false: only those that succeeded without")] = None,
 ) -> JobList:
     """The caller's jobs, newest first (an admin's call lists everyone's)."""
-    rows, total, next_cursor = jobs.list(user, list(status) if status else None, limit, cursor, owner)
+    rows, total, next_cursor = jobs.list(user, list(status) if status else None, limit, cursor, owner, label=label,
+                                         method=method, since=_epoch(since), warnings=warnings)
     nxt = None
     if next_cursor is not None:
         nxt = f"{request.url.path}?{request.url.include_query_params(cursor=next_cursor).query}"
     return JobList(jobs=[job_out(j) for j in rows], total=total, next_cursor=next_cursor, next=nxt)
+
+
+def _iso_only(value):
+    """A time as ISO 8601 text only: pydantic would also take a bare number as seconds since 1970."""
+    if isinstance(value, str) and re.fullmatch(r"\s*[-+]?[0-9.eE+-]+\s*", value):
+        raise ValueError("give a date and time in ISO 8601, such as 2026-12-01T20:00:00Z")
+    return value
+
+
+def _epoch(t: datetime | None) -> float | None:
+    """Seconds since the epoch; a time without a zone is UTC."""
+    if t is None:
+        return None
+    return (t if t.tzinfo else t.replace(tzinfo=timezone.utc)).timestamp()
 
 
 @router.get("/v1/jobs/{job_id}", response_model=JobOut, tags=["jobs"], summary="A job's status",

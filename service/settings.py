@@ -54,6 +54,10 @@ class Settings(BaseSettings):
     max_storage_bytes: int = Field(0, ge=0)  # everyone's job files together (0: no limit but the disk)
     min_free_bytes: int = Field(1024 * MiB, ge=0)  # submissions are refused (507) below this much free disk
     page_size_max: int = Field(500, ge=1)
+    upload_idle_timeout_seconds: float = Field(30.0, gt=0)  # an upload that sends nothing this long: 408
+    upload_timeout_seconds: float = Field(1800.0, gt=0)  # a whole upload's body at most (408)
+    max_receiving_uploads: int = Field(16, ge=1)  # upload bodies received at once (503 beyond)
+    max_connections: int = Field(512, ge=1)  # open connections to the server (503 beyond)
     upload_readers: int = Field(2, ge=0, le=64)  # processes that read uploads (0: in the API process)
     upload_niceness: int = Field(5, ge=0, le=19)  # they yield the CPU to the API
 

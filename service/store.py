@@ -102,11 +102,18 @@ CREATE TABLE IF NOT EXISTS jobs (
     error          TEXT,
     interruption   TEXT,
     summary        TEXT,
-    solve_seconds  REAL
+    solve_seconds  REAL,
+    label          TEXT,
+    error_kind     TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_by_status ON jobs(status, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_owner ON jobs(owner_id, seq);
 """
+# Columns added since the first release, for job tables made before them (ALTER TABLE ... ADD COLUMN).
+ADDED_COLUMNS = {"label": "TEXT", "error_kind": "TEXT"}
+# Why a failed job failed: its input (a file or option the solver refuses), a limit of this server,
+# runs that kept being interrupted, or an error of the software itself.
+ErrorKind = Literal["input", "limit", "interrupted", "internal"]
 
 
 class StoreError(ValueError):
@@ -155,6 +162,8 @@ class Job:
     interruption: str | None
     summary: dict | None
     solve_seconds: float | None
+    label: str | None = None
+    error_kind: str | None = None
 
     @property
     def active(self) -> bool:
@@ -164,7 +173,7 @@ class Job:
 _JOB_COLUMNS = ("j.seq, j.id, j.owner_id, u.name, j.status, j.backend, j.created_at, j.started_at, "
                 "j.finished_at, j.updated_at, j.attempts, j.max_attempts, j.lease_until, j.worker, "
                 "j.run_token, j.options, j.inputs, j.stage, j.fraction, j.iteration, j.cost, j.error, "
-                "j.interruption, j.summary, j.solve_seconds")
+                "j.interruption, j.summary, j.solve_seconds, j.label, j.error_kind")
 _JOB_SELECT = f"SELECT {_JOB_COLUMNS} FROM jobs j JOIN users u ON u.id = j.owner_id"
 
 
@@ -204,7 +213,12 @@ class Store:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._local = threading.local()
-        self._db().executescript(SCHEMA)
+        db = self._db()
+        db.executescript(SCHEMA)
+        have = {row[1] for row in db.execute("PRAGMA table_info(jobs)")}
+        for name, kind in ADDED_COLUMNS.items():
+            if name not in have:
+                db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {kind}")
 
     # -- connections -------------------------------------------------------------------------
 
@@ -325,16 +339,16 @@ class Store:
     # -- jobs: submit, read, list ------------------------------------------------------------
 
     def insert_job(self, job_id: str, owner_id: int, backend: str, options: dict, inputs: dict,
-                   max_attempts: int, max_active: int | None = None) -> Job:
+                   max_attempts: int, max_active: int | None = None, label: str | None = None) -> Job:
         """A new queued job; :class:`QuotaExceeded` if its owner already has ``max_active`` active jobs."""
         now = time.time()
         with self.transaction() as db:
             if max_active is not None and _count_active(db, owner_id) >= max_active:
                 raise QuotaExceeded()
             db.execute(
-                "INSERT INTO jobs(id, owner_id, status, backend, created_at, updated_at, max_attempts, options, inputs) "
-                "VALUES (?, ?, 'queued', ?, ?, ?, ?, ?, ?)",
-                (job_id, owner_id, backend, now, now, max_attempts, _json(options), _json(inputs)))
+                "INSERT INTO jobs(id, owner_id, status, backend, created_at, updated_at, max_attempts, options, inputs, "
+                "label) VALUES (?, ?, 'queued', ?, ?, ?, ?, ?, ?, ?)",
+                (job_id, owner_id, backend, now, now, max_attempts, _json(options), _json(inputs), label))
         job = self.job(job_id)
         assert job is not None
         return job
@@ -344,8 +358,11 @@ class Store:
         return _job(row) if row else None
 
     def jobs(self, owner_id: int | None = None, statuses: list[str] | None = None, limit: int = 50,
-             before_seq: int | None = None) -> tuple[list[Job], int]:
-        """Jobs newest first, and how many match in all. ``owner_id=None``: everyone's."""
+             before_seq: int | None = None, label: str | None = None, method: str | None = None,
+             since: float | None = None, warnings: bool | None = None) -> tuple[list[Job], int]:
+        """Jobs newest first, and how many match in all. ``owner_id=None``: everyone's. ``label``:
+        those whose label contains it (any case); ``since``: submitted then or later (epoch s);
+        ``warnings``: succeeded with (True) or without (False) warnings in their report."""
         where, args = [], []
         if owner_id is not None:
             where.append("j.owner_id = ?")
@@ -353,6 +370,18 @@ class Store:
         if statuses:
             where.append(f"j.status IN ({','.join('?' * len(statuses))})")
             args.extend(statuses)
+        if label:
+            where.append("j.label LIKE ? ESCAPE '\\'")
+            args.append("%" + re.sub(r"([%_\\])", r"\\\1", label) + "%")
+        if method:
+            where.append("json_extract(j.options, '$.method') = ?")
+            args.append(method)
+        if since is not None:
+            where.append("j.created_at >= ?")
+            args.append(since)
+        if warnings is not None:
+            has = "json_array_length(COALESCE(json_extract(j.summary, '$.warnings'), '[]')) > 0"
+            where.append(f"j.status = 'succeeded' AND {'' if warnings else 'NOT '}{has}")
         cond = (" WHERE " + " AND ".join(where)) if where else ""
         db = self._db()
         total = db.execute(f"SELECT COUNT(*) FROM jobs j{cond}", args).fetchone()[0]
@@ -445,7 +474,8 @@ class Store:
                 (stage, fraction, iteration, cost, time.time(), job_id, token)).rowcount == 1
 
     def finish(self, job_id: str, token: str, status: str, *, summary: dict | None = None,
-               error: str | None = None, commit: Callable[[], None] | None = None) -> bool:
+               error: str | None = None, error_kind: ErrorKind | None = None,
+               commit: Callable[[], None] | None = None) -> bool:
         """End a run as ``succeeded`` or ``failed``. ``commit`` (moving the result files in place)
         runs inside the transaction, only if the run still owns the job. False if it does not."""
         assert status in ("succeeded", "failed")
@@ -459,8 +489,9 @@ class Store:
                 commit()
             db.execute(
                 "UPDATE jobs SET status = ?, finished_at = ?, updated_at = ?, lease_until = NULL, summary = ?, "
-                f"error = ?, solve_seconds = ?, {_ENDED_PROGRESS} WHERE id = ?",
+                f"error = ?, error_kind = ?, solve_seconds = ?, {_ENDED_PROGRESS} WHERE id = ?",
                 (status, now, now, _json(summary) if summary is not None else None, error,
+                 (error_kind or "internal") if status == "failed" else None,
                  (now - row[0]) if status == "succeeded" and row[0] else None, status, status, job_id))
         return True
 
@@ -481,7 +512,7 @@ class Store:
             note = f"attempt {attempts} of {max_attempts} interrupted: {reason}"
             if attempts >= max_attempts:
                 db.execute("UPDATE jobs SET status = 'failed', finished_at = ?, updated_at = ?, lease_until = NULL, "
-                           "run_token = NULL, error = ?, interruption = ? WHERE id = ?",
+                           "run_token = NULL, error = ?, error_kind = 'interrupted', interruption = ? WHERE id = ?",
                            (now, now, f"gave up after {attempts} interrupted attempts; last: {reason}", note, job_id))
                 return "failed"
             db.execute("UPDATE jobs SET status = 'queued', updated_at = ?, lease_until = NULL, run_token = NULL, "
@@ -565,7 +596,7 @@ class Store:
 
     def mirror_finished(self, job_id: str, token: str, status: str, attempts: int, *, summary: dict | None = None,
                         error: str | None = None, solve_seconds: float | None = None, worker: str | None = None,
-                        commit: Callable[[], None] | None = None) -> bool:
+                        error_kind: ErrorKind | None = None, commit: Callable[[], None] | None = None) -> bool:
         """A remote run ended. ``commit`` stores the result files, inside the transaction."""
         assert status in ("succeeded", "failed")
         now = time.time()
@@ -577,10 +608,11 @@ class Store:
                 commit()
             db.execute(
                 "UPDATE jobs SET status = ?, attempts = MAX(attempts, ?, 1), finished_at = ?, updated_at = ?, "
-                "started_at = COALESCE(started_at, ?), lease_until = NULL, summary = ?, error = ?, solve_seconds = ?, "
-                f"worker = COALESCE(?, worker), {_ENDED_PROGRESS} WHERE id = ?",
+                "started_at = COALESCE(started_at, ?), lease_until = NULL, summary = ?, error = ?, error_kind = ?, "
+                f"solve_seconds = ?, worker = COALESCE(?, worker), {_ENDED_PROGRESS} WHERE id = ?",
                 (status, attempts, now, now, now - (solve_seconds or 0.0), _json(summary) if summary else None,
-                 error, solve_seconds if status == "succeeded" else None, worker, status, status, job_id))
+                 error, (error_kind or "internal") if status == "failed" else None,
+                 solve_seconds if status == "succeeded" else None, worker, status, status, job_id))
         return True
 
     def adopt(self, backend: str, reason: str) -> dict[str, int]:

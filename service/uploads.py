@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import multiprocessing
 import threading
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
@@ -76,13 +76,20 @@ def _helper_init(niceness: int) -> None:
 class UploadReader:
     """:func:`inspect_upload` in ``processes`` helper processes (0: in the calling thread), run at
     a lower priority than the API (``niceness``) so that a burst of uploads waits for the CPU
-    rather than the status polls."""
+    rather than the status polls.
+
+    A helper dies with the thread that started it (``PR_SET_PDEATHSIG`` names a thread, not a
+    process), and the process pool starts helpers from the thread that hands it work. So work is
+    handed over from one thread of this reader's own, alive until :meth:`close`: handed over from
+    the API's threads, whose pool retires a thread idle for 10 s, the helpers were killed after a
+    quiet spell and the next upload was refused as 'crashed a reader process'."""
 
     def __init__(self, processes: int = 2, niceness: int = 0):
         self.processes = processes
         self.niceness = niceness
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
+        self._handover = ThreadPoolExecutor(1, thread_name_prefix="acinoset-upload-readers")
 
     def _executor(self) -> ProcessPoolExecutor:
         with self._lock:
@@ -97,7 +104,7 @@ class UploadReader:
             return inspect_upload(**kwargs)
         pool = self._executor()
         try:
-            return pool.submit(inspect_upload, **kwargs).result()
+            return self._handover.submit(pool.submit, inspect_upload, **kwargs).result().result()
         except BrokenProcessPool:
             with self._lock:
                 if self._pool is pool:
@@ -111,3 +118,4 @@ class UploadReader:
             pool, self._pool = self._pool, None
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
+        self._handover.shutdown(wait=False)

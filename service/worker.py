@@ -167,6 +167,16 @@ def one_line(e: BaseException) -> str:
     return text if isinstance(e, InputError) else f"{type(e).__name__}: {text}"
 
 
+def error_kind(e: BaseException) -> str:
+    """``input`` when the solver refused the job's files or options (:class:`graph.errors.InputError`),
+    ``limit`` when the run ran out of memory, ``internal`` for any other error (a fault of the software)."""
+    from graph.errors import InputError
+
+    if isinstance(e, InputError):
+        return "input"
+    return "limit" if isinstance(e, MemoryError) else "internal"
+
+
 # -- embedded: one child process per job -------------------------------------------------------
 
 def die_with_parent() -> None:
@@ -238,7 +248,7 @@ def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_
         pass
     except Exception as e:  # noqa: BLE001 - any error of the solve fails the job with its message
         _log_traceback(job_dir)
-        store.finish(job_id, token, "failed", error=one_line(e))
+        store.finish(job_id, token, "failed", error=one_line(e), error_kind=error_kind(e))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
         store.close()
@@ -288,6 +298,6 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -
             report = solve_job(input_dir, out_dir, ThrottledProgress(sink, progress_interval))
         except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
             traceback.print_exc()
-            return {"status": "failed", "error": one_line(e), "worker": worker}
+            return {"status": "failed", "error": one_line(e), "error_kind": error_kind(e), "worker": worker}
         rq_job.connection.set(result_key(token), pack_files(out_dir, list(RESULT_NAMES)))
         return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker}

@@ -182,7 +182,7 @@ class EmbeddedBackend(Backend):
                 r.cancelled = True
                 r.process.kill()
                 r.process.join(timeout=5)
-                self.store.finish(r.job_id, r.token, "failed",
+                self.store.finish(r.job_id, r.token, "failed", error_kind="limit",
                                   error=f"the solve ran longer than the time limit of "
                                         f"{self.settings.job_timeout_seconds:g} s")
 

@@ -332,7 +332,7 @@ class RQBackend(Backend):
             self.store.mirror_finished(row.id, rj.id, "failed", attempt, error="the worker returned no result")
         elif rv["status"] == "failed":
             self.store.mirror_finished(row.id, rj.id, "failed", attempt, error=rv.get("error") or "failed",
-                                       worker=rv.get("worker"))
+                                       error_kind=rv.get("error_kind"), worker=rv.get("worker"))
         elif archive is None:
             self.store.mirror_finished(row.id, rj.id, "failed", attempt, error="the worker's result files are "
                                        "missing from Redis", worker=rv.get("worker"))

@@ -105,24 +105,28 @@
   };
   const statusWord = (status) => String(status).replace(/_/g, " ");
 
-  /** A status as icon and word (never colour alone). */
-  function statusBadge(status) {
-    const [icon] = LOOK[status] || ["?"];
-    return el("span", { class: `status status-${status}`, "data-status": status },
-      el("span", { "aria-hidden": "true", text: icon }), statusWord(status));
+  /** A status as icon and word (never colour alone); a job that succeeded with warnings in its
+   * report says so ("succeeded with warnings", its own icon and data-warnings). */
+  function statusBadge(status, job) {
+    const warned = status === "succeeded" && job && job.has_warnings;
+    const [icon] = warned ? ["⚠"] : LOOK[status] || ["?"];
+    return el("span", { class: `status status-${status}${warned ? " status-warnings" : ""}`, "data-status": status,
+      "data-warnings": warned ? "true" : null },
+      el("span", { "aria-hidden": "true", text: icon }), statusWord(status) + (warned ? " with warnings" : ""));
   }
 
   /** A status in a sentence, for the job page ("" for a status without one). */
   function statusSentence(status) { return (LOOK[status] || [null, ""])[1]; }
 
+  /** A moment as its date and time of day in this browser's zone, "2026-12-02 14:05:09" (a night's
+   * runs span two dates: the date is always shown). */
   function fmtDate(iso) {
     if (!iso) return "–";
     const d = new Date(iso);
     if (isNaN(d)) return String(iso);
-    const today = new Date();
-    const sameDay = d.toDateString() === today.toDateString();
-    const time = d.toLocaleTimeString([], { hour: "2-digit", minute: "2-digit", second: "2-digit" });
-    return sameDay ? time : `${d.toLocaleDateString()} ${time}`;
+    const two = (n) => String(n).padStart(2, "0");
+    return `${d.getFullYear()}-${two(d.getMonth() + 1)}-${two(d.getDate())} ` +
+      `${two(d.getHours())}:${two(d.getMinutes())}:${two(d.getSeconds())}`;
   }
 
   function fmtSeconds(s) {
@@ -132,6 +136,13 @@
     const m = Math.floor(s / 60), r = Math.round(s % 60);
     if (m < 60) return `${m} min ${r} s`;
     return `${Math.floor(m / 60)} h ${m % 60} min`;
+  }
+
+  /** Why a queued job waits. */
+  function queuedText(job) {
+    return job.progress && job.progress.stage === "compiling"
+      ? "Waiting: the server is compiling its solver (once after an install or upgrade, a minute or two)."
+      : "Waiting for a free worker.";
   }
 
   function progressText(job) {
@@ -164,6 +175,6 @@
   }
 
   window.Acino = { TOKEN_KEY, ApiError, el, token, requireToken, api, download, STATUSES, isActive, statusBadge,
-    statusWord, statusSentence, fmtDate, fmtSeconds, progressText, header, toLogin,
+    statusWord, statusSentence, fmtDate, fmtSeconds, progressText, queuedText, header, toLogin,
     setToken(t) { localStorage.setItem(TOKEN_KEY, t); } };
 })();

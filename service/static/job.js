@@ -44,6 +44,7 @@
     const o = job.options || {};
     const i = job.inputs || {};
     fact("Job id", el("code", { text: job.id }));
+    fact("Label", job.label);
     fact("Owner", job.owner);
     fact("Method", `${o.method} with the ${o.skeleton} skeleton at ${o.fps} fps, likelihood threshold ${o.likelihood_threshold}`);
     fact("Input", `${i.cameras} cameras, ${i.frames} frames, ${(i.bodyparts || []).length} bodyparts`);
@@ -60,28 +61,42 @@
     if (r) {
       fact("Reprojection RMSE", r.reprojection_rmse_px != null ? `${r.reprojection_rmse_px.toFixed(2)} px` : null);
       fact("Rejected detections", r.outliers != null ? `${r.outliers} of ${r.observations}` : null);
-      if (r.warnings && r.warnings.length) fact("Warnings", el("ul", {}, r.warnings.map((w) => el("li", { text: w }))));
+
     }
   }
 
   function drawAlert(job) {
     alertBox.replaceChildren();
+    if (job.status === "succeeded" && job.has_warnings) {
+      const r = job.result || {};
+      alertBox.append(el("section", { class: "notice", role: "status", "data-testid": "job-warnings" },
+        el("h2", { text: "Succeeded with warnings" }),
+        el("p", { text: "The solve finished, but it found something about the input to check before you trust the result:" }),
+        el("ul", {}, (r.warnings || []).map((w) => el("li", { text: w })))));
+    }
     if (job.status === "failed") {
       const err = (job.error || "").trim();
-      // A readers' or solver's message about the input is one plain line; anything shaped like an
-      // exception name is a fault on the server's side, explained as such.
-      const internal = !err || /^[A-Z][A-Za-z0-9_.]*(Error|Exception|Interrupt)\b/.test(err) || /Traceback|internal error/i.test(err);
-      const box = el("section", { class: "alert", role: "alert", "data-testid": "job-error" },
+      // The server says what failed (error_kind): the input, a limit of the server, runs that kept
+      // dying, or the software itself. Only the last is put down to the software.
+      const kind = job.error_kind || "internal";
+      const box = el("section", { class: "alert", role: "alert", "data-testid": "job-error", "data-kind": kind },
         el("h2", { text: "This job failed" }));
-      if (internal) {
-        box.append(
-          el("p", { text: "The solver stopped on an unexpected error inside the server. Your files were accepted, " +
-            "so this is most likely not a problem with them: send the job id " + job.id + " to whoever runs this server." }),
-          err ? el("details", {}, el("summary", { text: "Technical detail" }), el("p", { class: "error-text", text: err })) : null);
+      const detail = err ? el("p", { class: "error-text", text: err }) : null;
+      if (kind === "input") {
+        box.append(detail, el("p", { text: "The solver could not use the input: fix what the message names " +
+          "(one of the uploaded files or an option) and submit the job again." }));
+      } else if (kind === "limit") {
+        box.append(detail, el("p", { text: "The run hit a limit of this server (its time or memory). A shorter " +
+          "run, fewer frames or cameras, or a faster method fits; or ask whoever runs this server." }));
+      } else if (kind === "interrupted") {
+        box.append(detail, el("p", { text: "Every run of this job was interrupted (the solve process died or the " +
+          "server restarted). A very large input can cause that; otherwise send the job id " + job.id +
+          " to whoever runs this server." }));
       } else {
         box.append(
-          el("p", { class: "error-text", text: err }),
-          el("p", { text: "Fix what the message names (one of the uploaded files or an option) and submit the job again." }));
+          el("p", { text: "The solver stopped on an error it did not expect. Send the job id " + job.id +
+            " to whoever runs this server, with the detail below; it may also come from something unusual in the files." }),
+          err ? el("details", {}, el("summary", { text: "Technical detail" }), detail) : null);
       }
       box.append(el("p", {}, el("a", { class: "button", href: "/jobs/new", text: "Submit a new job" })));
       alertBox.append(box);
@@ -99,7 +114,7 @@
     const f = job.progress && job.progress.fraction != null ? job.progress.fraction : null;
     if (f === null) bar.removeAttribute("value");
     else { bar.value = f; bar.setAttribute("aria-valuetext", `${Math.round(100 * f)} percent`); }
-    progressText.textContent = job.status === "queued" ? "Waiting for a free worker." : (A.progressText(job) || "Starting.");
+    progressText.textContent = job.status === "queued" ? A.queuedText(job) : (A.progressText(job) || "Starting.");
   }
 
   function drawActions(job) {
@@ -163,7 +178,8 @@
     }
     document.title = `Job ${short} · ${job.status} · acinoset`;
     if (job.status !== lastStatus) {
-      statusLine.replaceChildren(A.statusBadge(job.status), " ", A.statusSentence(job.status));
+      statusLine.replaceChildren(A.statusBadge(job.status, job), " ",
+        job.status === "succeeded" && job.has_warnings ? "Done, with warnings to check." : A.statusSentence(job.status));
       drawAlert(job);
       drawActions(job);
       lastStatus = job.status;

@@ -20,6 +20,10 @@
   }
   filter.append(...all.filter((s) => !active.includes(s)).map((s) => el("option", { value: s, text: A.statusWord(s) })));
   filter.value = params.get("status") || "";
+  // The other filters, each kept in the page's address as the API's own parameter.
+  const others = { warnings: document.getElementById("warnings-filter"), method: document.getElementById("method-filter"),
+    label: document.getElementById("label-filter") };
+  for (const [name, input] of Object.entries(others)) input.value = params.get(name) || "";
   let limit = 50;
   let timer = null;
 
@@ -27,6 +31,7 @@
     const q = new URLSearchParams({ limit: String(limit) });
     if (filter.value === "active") for (const s of A.STATUSES.active) q.append("status", s);
     else if (filter.value) q.append("status", filter.value);
+    for (const [name, input] of Object.entries(others)) if (input.value.trim()) q.set(name, input.value.trim());
     return q.toString();
   }
 
@@ -38,7 +43,7 @@
   }
 
   function progressCell(job) {
-    if (job.status === "queued") return el("td", { class: "progress-cell" }, el("span", { class: "small", text: "waiting for a free worker" }));
+    if (job.status === "queued") return el("td", { class: "progress-cell" }, el("span", { class: "small", text: A.queuedText(job) }));
     if (job.status !== "running") {
       if (job.status === "failed") return el("td", { class: "progress-cell small", text: (job.error || "").slice(0, 120) });
       const r = job.result;
@@ -75,10 +80,11 @@
     const active = A.isActive(job.status);
     return el("tr", { "data-job": job.id, "data-status": job.status },
       el("td", {}, el("a", { href: `/jobs/${encodeURIComponent(job.id)}`, "aria-label": `Job ${short}, open`, text: short })),
-      el("td", { text: A.fmtDate(job.timings && job.timings.created_at) }),
+      el("td", { text: job.label || "" }),
+      el("td", {}, el("time", { datetime: job.timings && job.timings.created_at, text: A.fmtDate(job.timings && job.timings.created_at) })),
       el("td", { text: `${opts.method || "?"} · ${opts.skeleton || "?"} · ${opts.fps ?? "?"} fps` }),
       el("td", { text: inputText(job) }),
-      el("td", {}, A.statusBadge(job.status)),
+      el("td", {}, A.statusBadge(job.status, job)),
       progressCell(job),
       el("td", { text: A.fmtSeconds(job.timings && job.timings.run_seconds) }),
       el("td", {}, el("button", { type: "button", class: active ? "" : "danger",
@@ -102,8 +108,8 @@
       const focusJob = focused ? focused.dataset.job : null;
       const focusLabel = focusJob ? document.activeElement.getAttribute("aria-label") : null;
       if (!jobs.length) {
-        body.replaceChildren(el("tr", {}, el("td", { colspan: "8" },
-          filter.value ? "No jobs match this filter. " : "No jobs yet. ",
+        body.replaceChildren(el("tr", {}, el("td", { colspan: "9" },
+          filter.value || Object.values(others).some((i) => i.value.trim()) ? "No jobs match this filter. " : "No jobs yet. ",
           el("a", { href: "/jobs/new", text: "Submit one" }), ".")));
       } else body.replaceChildren(...jobs.map(row));
       if (focusJob && focusLabel) {
@@ -122,12 +128,20 @@
     if (document.visibilityState === "visible") timer = setTimeout(refresh, next);
   }
 
-  filter.addEventListener("change", () => {
+  function filtered() {
     const q = new URLSearchParams(location.search);
     if (filter.value) q.set("status", filter.value); else q.delete("status");
+    for (const [name, input] of Object.entries(others)) {
+      if (input.value.trim()) q.set(name, input.value.trim()); else q.delete(name);
+    }
     history.replaceState(null, "", `${location.pathname}${q.toString() ? "?" + q : ""}`);
     refresh();
-  });
+  }
+  filter.addEventListener("change", filtered);
+  others.warnings.addEventListener("change", filtered);
+  others.method.addEventListener("change", filtered);
+  let typing = null;
+  others.label.addEventListener("input", () => { clearTimeout(typing); typing = setTimeout(filtered, 300); });
   more.addEventListener("click", () => { limit = Math.min(500, limit + 50); refresh(); });
   document.addEventListener("visibilitychange", () => { if (document.visibilityState === "visible") refresh(); });
   refresh();

@@ -93,6 +93,8 @@
       body: document.getElementById("body-estimate").checked ? "estimate" : "model",
       sync: document.getElementById("sync-estimate").checked ? "estimate" : "given",
     };
+    const label = document.getElementById("label").value.trim();
+    if (label) options.label = label;
     const data = new FormData();
     for (const f of files) data.append("keypoints", f, f.name);
     data.append("calibration", calib.files[0], calib.files[0].name);

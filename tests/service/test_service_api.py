@@ -355,3 +355,25 @@ def test_an_h5_upload_carrying_a_pickle_is_refused_without_running_it(alice, sma
     r = submit(alice, small_run, FAST, cams=[evil, *small_run.cams[1:]])
     assert r.status_code == 422 and r.json()["detail"].startswith("evil.h5: ") and "would run code" in r.json()["detail"]
     assert not marker.exists()
+
+
+def test_an_upload_after_the_api_threads_idled_out_is_read(alice, small_run):
+    """The upload readers were spawned from whichever API thread submitted first and die with
+    that thread (PR_SET_PDEATHSIG); the thread pool retires a thread idle for 10 s, so the next
+    upload after a quiet spell found its readers killed: 422 'reading the upload crashed a reader'."""
+    import time
+
+    from concurrent.futures import ThreadPoolExecutor
+
+    def busy() -> None:  # calls answered in the API's thread pool, at once: it grows, then retires the idle
+        with ThreadPoolExecutor(8) as pool:
+            assert all(r.status_code == 200 for r in pool.map(lambda _: alice.get("/v1/me"), range(16)))
+
+    busy()
+    first = submit(alice, small_run, FAST)
+    assert first.status_code == 202, first.text
+    busy()
+    time.sleep(12)
+    busy()
+    second = submit(alice, small_run, FAST)
+    assert second.status_code == 202, second.text

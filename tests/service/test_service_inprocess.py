@@ -8,6 +8,7 @@ import os
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
@@ -215,3 +216,65 @@ def test_a_body_that_is_not_multipart_is_400_in_one_line(app_client):
     r = app_client.post("/v1/jobs", headers={**_auth(app_client, "ada"), "content-type": "multipart/form-data"},
                         content=b"--xx\r\nbroken")  # no boundary
     assert r.status_code == 400 and isinstance(r.json()["detail"], str), r.text
+
+
+def _wait(client, job_id: str, timeout: float = 300) -> dict:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        job = client.get(f"/v1/jobs/{job_id}", headers=_auth(client, "root")).json()
+        if job["status"] in ("succeeded", "failed", "cancelled"):
+            return job
+        time.sleep(0.2)
+    raise AssertionError(f"job {job_id} did not finish: {job}")
+
+
+def test_labels_filters_warnings_without_paths_and_what_failed(app_client, small_run, tmp_path):
+    """Issue items 3 and 15: a run's label, a filter beyond status, 'succeeded with warnings', warnings
+    that named the server's absolute paths, and a failed job that says whether its input was at fault."""
+    from graph.keypoints import Keypoints, read_keypoints, write_dlc_csv
+
+    lured = []  # each camera with one more bodypart, 'lure', which the cheetah skeleton does not have
+    for p in small_run.cams:
+        kp = read_keypoints(p)
+        extra = Keypoints(bodyparts=kp.bodyparts + ["lure"], xy=np.concatenate([kp.xy, kp.xy[:, :1]], axis=1),
+                          likelihood=np.concatenate([kp.likelihood, kp.likelihood[:, :1]], axis=1))
+        write_dlc_csv(tmp_path / p.name, extra)
+        lured.append(tmp_path / p.name)
+
+    def post(cams, options):
+        files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in cams]
+        files.append(("calibration", ("calibration.toml", small_run.calibration.read_bytes(), "text/plain")))
+        r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=files, data={"options": json.dumps(options)})
+        assert r.status_code == 202, r.text
+        return r.json()
+
+    warned = post(lured, {"method": "tri", "skeleton": "cheetah", "label": "  cheetah 3,\trun 2 "})
+    assert warned["label"] == "cheetah 3, run 2" and "label" not in warned["options"]
+    clean = post(small_run.cams, {"method": "tri", "skeleton": "points", "label": "fly 1"})
+    refused = post(small_run.cams, {"method": "tri", "skeleton": "points", "likelihood_threshold": 1.0})
+    warned, clean, refused = (_wait(app_client, j["id"]) for j in (warned, clean, refused))
+
+    assert warned["status"] == "succeeded" and warned["has_warnings"] is True
+    text = " ".join(warned["result"]["warnings"])
+    assert "lure" in text and "cam1.csv" in text
+    assert str(app_client.app.state.settings.data_dir) not in text and "/input/" not in text
+    assert clean["status"] == "succeeded" and clean["has_warnings"] is False
+    assert refused["status"] == "failed" and refused["error_kind"] == "input", refused
+    assert "/" not in (refused["error"] or "").replace("n/a", "")
+
+    def listed(**params) -> list[str]:
+        r = app_client.get("/v1/jobs", params=params, headers=_auth(app_client, "ada"))
+        assert r.status_code == 200, r.text
+        return [j["id"] for j in r.json()["jobs"]]
+
+    assert listed(label="RUN 2") == [warned["id"]]
+    assert listed(label="%") == [] and listed(label="_") == []  # no wildcards
+    assert listed(warnings="true") == [warned["id"]]
+    assert clean["id"] in listed(warnings="false") and warned["id"] not in listed(warnings="false")
+    assert set(listed(method="tri")) >= {warned["id"], clean["id"], refused["id"]} and listed(method="fte") == []
+    assert listed(since="2999-01-01T00:00:00Z") == [] and warned["id"] in listed(since="2000-01-01T00:00:00")
+    bad = app_client.get("/v1/jobs", params={"method": "magic"}, headers=_auth(app_client, "ada"))
+    assert bad.status_code == 422
+    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), data={"options": json.dumps({"label": "x" * 201})},
+                        files=[("keypoints", ("a.csv", b"x", "text/csv")), ("calibration", ("c.toml", b"x", "text/plain"))])
+    assert r.status_code == 422 and "label must be at most 200" in r.json()["detail"]

@@ -10,6 +10,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -157,6 +158,9 @@ def test_failed_job_shows_its_error(page, server, simulated_run):
     assert "This job failed" in text
     assert "likelihood threshold" in text
     assert "Traceback" not in text
+    # it was the input: the page says so, and does not put it down to the software (issue item 15)
+    assert error.get_attribute("data-kind") == "input"
+    assert "could not use the input" in text and "not a problem with" not in text and "did not expect" not in text
     assert page.locator("#job-status [data-status=failed]").inner_text().strip().endswith("failed")
     assert page.locator("#downloads").is_hidden()
 
@@ -267,3 +271,56 @@ def test_sign_in_goes_on_to_the_page_asked_for(page, server):
     page.get_by_label("API token").fill(token)
     page.get_by_role("button", name="Sign in").click()
     page.wait_for_url(re.compile("^" + re.escape(base) + r"/jobs/new\?x=1$"))
+
+
+def test_the_list_shows_dates_labels_warnings_and_filters(page, server, simulated_run, tmp_path):
+    """Issue items 3 and 15: the list showed a time of day only, had no label per run and no filter but
+    status; a job whose report has warnings looked like any success; warnings named the server's paths."""
+    import httpx
+
+    from graph.keypoints import Keypoints, read_keypoints, write_dlc_csv
+
+    base, token = server
+    files = []
+    for i in range(1, 7):  # one more bodypart than the cheetah has: its report warns about it
+        kp = read_keypoints(simulated_run / f"cam{i}.csv")
+        write_dlc_csv(tmp_path / f"cam{i}.csv", Keypoints(
+            bodyparts=kp.bodyparts + ["lure"], xy=np.concatenate([kp.xy, kp.xy[:, :1]], axis=1),
+            likelihood=np.concatenate([kp.likelihood, kp.likelihood[:, :1]], axis=1)))
+        files.append(("keypoints", (f"cam{i}.csv", (tmp_path / f"cam{i}.csv").read_bytes(), "text/csv")))
+    files.append(("calibration", ("calibration.toml", (simulated_run / "calibration.toml").read_bytes(), "text/plain")))
+    with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=60) as c:
+        r = c.post("/v1/jobs", files=files, data={"options": '{"method": "tri", "skeleton": "cheetah", "fps": 120, '
+                                                             '"label": "lure night 7"}'})
+        assert r.status_code == 202, r.text
+        job = r.json()["id"]
+        deadline = time.time() + 300
+        while c.get(f"/v1/jobs/{job}").json()["status"] != "succeeded" and time.time() < deadline:
+            time.sleep(0.3)
+    _sign_in(page, token)
+    row = page.locator(f"tr[data-job='{job}']")
+    row.wait_for()
+    text = row.inner_text()
+    assert "lure night 7" in text
+    assert re.search(r"\d{4}-\d{2}-\d{2} \d{2}:\d{2}:\d{2}", text), text  # the date, not only the time
+    assert row.locator("[data-warnings=true]").inner_text().strip().endswith("succeeded with warnings")
+    page.get_by_label("Label contains").fill("NIGHT 7")
+    page.wait_for_url(re.compile(r"label=NIGHT"))
+    from playwright.sync_api import expect
+
+    rows = page.locator("#jobs-body tr[data-job]")
+    expect(rows).to_have_count(1)
+    page.get_by_label("Result").select_option("true")
+    expect(rows).to_have_count(1)
+    page.get_by_label("Result").select_option("false")
+    expect(rows).to_have_count(0)
+    page.get_by_label("Result").select_option("")
+    page.get_by_label("Label contains").fill("no such label")
+    expect(rows).to_have_count(0)
+    page.goto(f"/jobs/{job}")
+    warnings = page.get_by_test_id("job-warnings")
+    warnings.wait_for()
+    said = warnings.inner_text()
+    assert "Succeeded with warnings" in said and "lure" in said and "cam1.csv" in said
+    assert "/jobs/" not in said and "/input/" not in said  # no path of the server's
+    assert "lure night 7" in page.locator("#job-facts").inner_text()
