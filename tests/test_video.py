@@ -200,6 +200,11 @@ def test_grid_matches_frames_by_the_cameras_offsets(tmp_path):
         else:
             assert tile_level(n, 1) < 25  # no such frame of camera 2: a blank tile
 
+    # --frames 3:7 starts at frame 3 exactly (ffmpeg's accurate seek) and writes 4 frames
+    part = render_videos(result, videos, tmp_path / "part", frames="3:7")
+    levels = decode_ffmpeg(part.cameras[0], W, H)
+    assert [int(np.median(f)) for f in levels] == pytest.approx([40 + 15 * m for m in range(3, 7)], abs=3)
+
 
 def test_simulated_footage_shows_the_animal_where_the_cameras_project_it(filmed):
     run, videos, _ = filmed
