@@ -138,7 +138,10 @@ def test_frame_without_estimate_is_unchanged():
 def test_labelled_videos_decode_as_h264_with_the_input_frames(filmed, tmp_path):
     run, videos, _ = filmed
     result = truth_result(run, no_estimate={0: [4]})
-    done = render_videos(result, videos, tmp_path, combined=True)
+    calls = []
+    done = render_videos(result, videos, tmp_path, combined=True, progress=lambda *a: calls.append(a))
+    assert calls[-1] == (7 * FRAMES, 7 * FRAMES) and len(calls) == 7 * FRAMES  # camera-frames and 3D frames
+    assert not list(tmp_path.glob(".tiles-*"))  # the grid's temporary tiles are gone
     assert [p.name for p in done.cameras] == [f"cam{c + 1}_labeled.mp4" for c in range(6)]
     for path in done.paths:
         info = probe(path)
