@@ -96,7 +96,6 @@ def main() -> None:
     doc = {"machine": machine(), "peer": "anipose 1.1.24 label-2d-proj (get_projected_points + visualize_labels)",
            "cameras": args.cameras, "frames": int(proj.shape[2]), "wall_s": wall, "cpu_s": cpu,
            "peak_rss_mb_python": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-           "peak_rss_mb_ffmpeg": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
            "output_bytes": {p.name: p.stat().st_size for p in sorted(out.iterdir())}}
     print(f"anipose label-2d-proj, {len(args.cameras)} camera(s) x {doc['frames']} frames: {wall:.1f} s wall, "
           f"{cpu:.1f} s CPU")
