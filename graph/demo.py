@@ -95,13 +95,13 @@ def _videos(run, result, out: Path, log) -> None:
     from graph.video.cli import FrameProgress
 
     log(f"filming the run: {len(run.keypoints)} cameras x {run.frames} frames ...")
-    bar = FrameProgress(sys.stderr, 1, label="camera-frames filmed") if sys.stderr.isatty() else None
+    bar = FrameProgress(sys.stderr, label="camera-frames filmed") if sys.stderr.isatty() else None
     try:
         footage = write_simulated_videos(run, out / "input", progress=bar, seed=run.seed)
     finally:
         if bar is not None:
             bar.close()
-    bar = FrameProgress(sys.stderr, len(footage)) if sys.stderr.isatty() else None
+    bar = FrameProgress(sys.stderr) if sys.stderr.isatty() else None
     try:
         done = render_videos(result, footage, out / "fte" / "videos", combined=True, progress=bar)
     finally:

@@ -666,7 +666,7 @@ def _film(run: SimulatedRun, out: str | Path) -> list[Path]:
     from graph.video import write_simulated_videos
     from graph.video.cli import FrameProgress
 
-    bar = FrameProgress(sys.stderr, 1, label="camera-frames filmed") if sys.stderr.isatty() else None
+    bar = FrameProgress(sys.stderr, label="camera-frames filmed") if sys.stderr.isatty() else None
     try:
         return write_simulated_videos(run, out, progress=bar, seed=run.seed)
     except ValueError as e:

@@ -138,7 +138,10 @@ def test_frame_without_estimate_is_unchanged():
 def test_labelled_videos_decode_as_h264_with_the_input_frames(filmed, tmp_path):
     run, videos, _ = filmed
     result = truth_result(run, no_estimate={0: [4]})
-    done = render_videos(result, videos, tmp_path, combined=True)
+    calls = []
+    done = render_videos(result, videos, tmp_path, combined=True, progress=lambda *a: calls.append(a))
+    assert calls[-1] == (7 * FRAMES, 7 * FRAMES) and len(calls) == 7 * FRAMES  # camera-frames and 3D frames
+    assert not list(tmp_path.glob(".tiles-*"))  # the grid's temporary tiles are gone
     assert [p.name for p in done.cameras] == [f"cam{c + 1}_labeled.mp4" for c in range(6)]
     for path in done.paths:
         info = probe(path)
@@ -199,6 +202,11 @@ def test_grid_matches_frames_by_the_cameras_offsets(tmp_path):
             assert tile_level(n, 1) == pytest.approx(40 + 15 * (n - 2), abs=3)
         else:
             assert tile_level(n, 1) < 25  # no such frame of camera 2: a blank tile
+
+    # --frames 3:7 starts at frame 3 exactly (ffmpeg's accurate seek) and writes 4 frames
+    part = render_videos(result, videos, tmp_path / "part", frames="3:7")
+    levels = decode_ffmpeg(part.cameras[0], W, H)
+    assert [int(np.median(f)) for f in levels] == pytest.approx([40 + 15 * m for m in range(3, 7)], abs=3)
 
 
 def test_simulated_footage_shows_the_animal_where_the_cameras_project_it(filmed):

@@ -13,10 +13,10 @@ AXES = {"x": (1, 0, 0), "-x": (-1, 0, 0), "y": (0, 1, 0), "-y": (0, -1, 0), "z":
 
 
 class FrameProgress:
-    """``[#####-----]  50% 75/150 frames, 52 camera-frames/s`` on one terminal line."""
+    """``[#####-----]  50% 450/900 camera-frames, 52/s`` on one terminal line."""
 
-    def __init__(self, stream, cameras: int, label: str = "frames", width: int = 30, min_interval: float = 0.2):
-        self.stream, self.cameras, self.label, self.width = stream, cameras, label, width
+    def __init__(self, stream, label: str = "camera-frames", width: int = 30, min_interval: float = 0.2):
+        self.stream, self.label, self.width = stream, label, width
         self.min_interval = min_interval
         self._t0 = time.monotonic()
         self._last = 0.0
@@ -29,9 +29,9 @@ class FrameProgress:
         self._last = now
         frac = done / max(total, 1)
         filled = int(round(frac * self.width))
-        rate = done * self.cameras / max(now - self._t0, 1e-9)
+        rate = done / max(now - self._t0, 1e-9)
         self.stream.write(f"\r[{'#' * filled}{'-' * (self.width - filled)}] {frac * 100:3.0f}% "
-                          f"{done}/{total} {self.label}, {rate:.0f} camera-frames/s   ")
+                          f"{done}/{total} {self.label}, {rate:.0f}/s   ")
         self.stream.flush()
         self._shown = True
 
@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise InputError("--out must be a folder, and this is a file", args.out)
     result = read_result(args.result)
-    bar = FrameProgress(sys.stderr, len(args.videos)) if sys.stderr.isatty() else None
+    bar = FrameProgress(sys.stderr) if sys.stderr.isatty() else None
     try:
         done = render_videos(result, args.videos, args.out, frames=args.frames, combined=args.combined,
                              up=np.array(AXES[args.up], dtype=float), progress=bar)

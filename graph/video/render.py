@@ -10,9 +10,10 @@ the grid's frame n shows camera c's frame ``m = n - round(tau_c)`` (the one near
 the 3D view of frame n; a camera with no such frame shows a blank tile.
 
 Memory. Every video is decoded and encoded by ffmpeg processes one frame at a time
-(:mod:`graph.video.codec`); the grid keeps, per camera, only the small tiles of the
-``max round(tau) - min round(tau)`` frames it still has to show. Nothing grows with the length of
-the video but the result's own arrays.
+(:mod:`graph.video.codec`), and only ``CAMERAS_AT_ONCE`` cameras at a time (an ffmpeg decoder and
+encoder of 2704x1520 frames hold about 300 MB between them, whatever the length); the grid is drawn
+in a second pass from each camera's tiles, kept as small temporary videos, one tile at a time.
+Nothing grows with the length of the video but the result's own arrays.
 
 Output (in ``out``): ``<video stem>_labeled.mp4`` per camera at the input's size and rate,
 ``3d.mp4`` (the 3D view, ``SCENE_SIZE``) and, with ``combined``, ``combined.mp4``; the same number
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import tempfile
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -42,6 +44,8 @@ SCENE_SIZE = (1280, 720)
 GRID_WIDTH = 1920  # the combined grid's width at most
 TILE_WIDTH = 640  # a tile's width at most
 FPS_TOLERANCE = 0.01  # relative difference of frame rates that gets a warning
+CAMERAS_AT_ONCE = 2  # cameras decoded and encoded together (bench/RESULTS.md: memory against speed)
+TILE_CRF = 18  # the grid's tiles, kept between the passes as small H.264 videos
 
 Progress = Callable[[int, int], None]  # (frames done, frames in all)
 
@@ -185,9 +189,15 @@ class Grid:
 
 def render_videos(result: Result, videos: list[str | Path], out: str | Path, frames: str | None = None,
                   combined: bool = False, up: np.ndarray | None = None, progress: Progress | None = None,
-                  scene_size: tuple[int, int] = SCENE_SIZE) -> RenderedVideos:
+                  scene_size: tuple[int, int] = SCENE_SIZE, cameras_at_once: int = CAMERAS_AT_ONCE) -> RenderedVideos:
     """Write the labelled videos of ``result`` over ``videos`` (one per camera, in the result's
-    order) into the folder ``out`` (module docstring). ``frames`` is ``"A:B"`` (default: all)."""
+    order) into the folder ``out`` (module docstring). ``frames`` is ``"A:B"`` (default: all).
+
+    Two passes. First the cameras, ``cameras_at_once`` at a time (each a decoder and an encoder of
+    full frames, some 300 MB at 2704x1520: this bounds the memory), each frame drawn and written to
+    its labelled video and, for the grid, shrunk to a tile and written to a small temporary video.
+    Then the 3D view and the grid, frame by frame on the reference clock, from the tiles' videos.
+    ``progress(done, total)`` counts camera-frames and 3D frames."""
     t0 = time.perf_counter()
     infos = check_videos(result, videos)
     a, b = parse_frames(frames, infos[0].frames)
@@ -206,64 +216,101 @@ def render_videos(result: Result, videos: list[str | Path], out: str | Path, fra
         return SceneView(result.positions, list(result.markers), bones, result.camera_centers,
                          list(result.camera_names), result.fps, size=size, up=up, title=title)
 
-    scene = scene_of(scene_size)
     grid = Grid(infos, C + 1) if combined else None
-    grid_scene = scene_of(grid.tile) if grid else None
-    styles = [Style.for_width(i.even_size[0]) for i in infos]
     paths = [out / name for name in output_names(infos)]
     scene_path = out / "3d.mp4"
     grid_path = out / "combined.mp4" if grid else None
+    total, done = (C + 1) * count, 0
 
-    with contextlib.ExitStack() as stack:
-        readers = [stack.enter_context(FrameReader(info, start=a, count=count)) for info in infos]
-        writers = [stack.enter_context(FrameWriter(p, *info.even_size, fps)) for p, info in zip(paths, infos)]
-        scene_writer = stack.enter_context(FrameWriter(scene_path, *scene_size, fps))
-        grid_writer = stack.enter_context(FrameWriter(grid_path, grid.width, grid.height, fps)) if grid else None
-        tiles: list[dict[int, YuvFrame]] = [{} for _ in range(C)]
-        next_ref = a  # the next frame of the grid to write (reference clock)
+    def tick():
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(done, total)
 
-        def emit_grid(upto: int) -> None:
-            """Write the grid's frames ``next_ref .. upto - 1`` and forget tiles no longer needed."""
-            nonlocal next_ref
-            while next_ref < upto:
-                canvas = grid.blank()
-                for c in range(C):
-                    m = next_ref - offsets[c]
-                    if m in tiles[c]:
-                        grid.place(canvas, c, tiles[c][m])
-                    else:
-                        grid.label(canvas, c, f"{result.camera_names[c]}: no frame {m}")
-                grid.place(canvas, C, YuvFrame.from_bgr(grid_scene.render(next_ref)))
-                grid_writer.write(canvas)
-                next_ref += 1
-                for c in range(C):
-                    for m in [m for m in tiles[c] if m < next_ref - offsets[c]]:
-                        del tiles[c][m]
-
-        for i in range(count):
-            n = a + i
-            for c, (reader, writer) in enumerate(zip(readers, writers)):
-                frame = reader.read()
-                if frame is None:
-                    raise InputError(f"ended after {reader.frames_read} of {count} frames "
-                                     f"(from frame {a}): the file is shorter than its container says", infos[c].path)
-                draw_camera_frame(frame, overlays[c], n, styles[c])
-                writer.write(frame)
-                if grid:
-                    tiles[c][n] = grid.shrink(frame, c)
-            scene_writer.write(YuvFrame.from_bgr(scene.render(n)))
+    with tempfile.TemporaryDirectory(prefix=".tiles-", dir=out) as tmp:
+        tile_paths = [Path(tmp) / f"{c}.mp4" for c in range(C)]
+        # pass 1: the cameras' labelled videos (and their tiles)
+        step = max(1, int(cameras_at_once))
+        for group in [list(range(C))[i:i + step] for i in range(0, C, step)]:
+            with contextlib.ExitStack() as stack:
+                readers = {c: stack.enter_context(FrameReader(infos[c], start=a, count=count)) for c in group}
+                writers = {c: stack.enter_context(FrameWriter(paths[c], *infos[c].even_size, fps)) for c in group}
+                tiles = {c: stack.enter_context(FrameWriter(tile_paths[c], *grid.fits[c], fps, crf=TILE_CRF))
+                         for c in group} if grid else {}
+                styles = {c: Style.for_width(infos[c].even_size[0]) for c in group}
+                for i in range(count):
+                    for c in group:
+                        frame = readers[c].read()
+                        if frame is None:
+                            raise InputError(f"ended after {readers[c].frames_read} of {count} frames (from frame "
+                                             f"{a}): the file is shorter than its container says", infos[c].path)
+                        draw_camera_frame(frame, overlays[c], a + i, styles[c])
+                        writers[c].write(frame)
+                        if grid:
+                            tiles[c].write(grid.shrink(frame, c))
+                        tick()
+        # pass 2: the 3D view and the grid, on the reference clock
+        scene = scene_of(scene_size)
+        grid_scene = scene_of(grid.tile) if grid else None
+        with contextlib.ExitStack() as stack:
+            scene_writer = stack.enter_context(FrameWriter(scene_path, *scene_size, fps))
             if grid:
-                # grid frame r shows camera c's frame r - k_c: all are in once r - k_c <= n for every c
-                # (or beyond the frames rendered)
-                emit_grid(min(n + min(offsets) + 1, b) if i < count - 1 else b)
-            if progress is not None:
-                progress(i + 1, count)
-        if grid:
-            emit_grid(b)
+                grid_writer = stack.enter_context(FrameWriter(grid_path, grid.width, grid.height, fps))
+                streams = [stack.enter_context(TileStream(p, a, count)) for p in tile_paths]
+            for n in range(a, b):
+                scene_writer.write(YuvFrame.from_bgr(scene.render(n)))
+                if grid:
+                    canvas = grid.blank()
+                    for c in range(C):
+                        m = n - offsets[c]  # camera c's frame nearest in time to reference frame n
+                        tile = streams[c].frame(m)
+                        if tile is not None:
+                            grid.place(canvas, c, tile)
+                        else:
+                            grid.label(canvas, c, f"{result.camera_names[c]}: no frame {m}")
+                    grid.place(canvas, C, YuvFrame.from_bgr(grid_scene.render(n)))
+                    grid_writer.write(canvas)
+                tick()
     seconds = time.perf_counter() - t0
     return RenderedVideos(cameras=paths, scene=scene_path, combined=grid_path, frames=count, fps=fps,
                           first_frame=a, seconds=seconds, camera_frames_per_second=C * count / max(seconds, 1e-9),
                           offsets_frames=offsets)
+
+
+class TileStream:
+    """A camera's tiles (frames ``first .. first+count-1``) read forward on demand: ``frame(m)``
+    is tile m, or None outside those frames. The grid asks for them in increasing order, so only
+    the last tile is kept."""
+
+    def __init__(self, path: Path, first: int, count: int):
+        self.first, self.count = first, count
+        self.reader = FrameReader(probe(path))
+        self.kept: dict[int, YuvFrame] = {}
+        self.next = first
+        self.lowest = first
+
+    def frame(self, m: int) -> YuvFrame | None:
+        if not self.first <= m < self.first + self.count:
+            return None
+        while self.next <= m:
+            tile = self.reader.read()
+            if tile is None:
+                return None
+            self.kept[self.next] = tile.copy()
+            self.next += 1
+        for old in [k for k in self.kept if k < m]:  # the grid asks for m, m+1, ... from now on
+            del self.kept[old]
+        return self.kept.get(m)
+
+    def close(self) -> None:
+        self.reader.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
 
 def camera_frame_png(result: Result, camera: int, video: str | Path, frame: int, path: str | Path) -> Path:

@@ -30,6 +30,7 @@ GRID = (80, 74, 70)
 CAMERA = (200, 200, 200)
 PATH = (120, 200, 120)
 TRAIL_SECONDS = 1.0
+INSET = 0.4  # the close-up's share of the view's width and height
 
 
 @dataclass
@@ -64,10 +65,10 @@ def look_from(centre: np.ndarray, forward: np.ndarray, up: np.ndarray, distance:
 
 
 def fit_intrinsics(R: np.ndarray, t: np.ndarray, points: np.ndarray, size: tuple[int, int],
-                   margin: float = 0.08) -> np.ndarray:
+                   margin: float = 0.08, bottom: float = 0.0) -> np.ndarray:
     """``K`` that frames ``points`` (K, 3) in an image of ``size`` (w, h) with the same focal length
-    on both axes (module docstring)."""
-    w, h = size
+    on both axes (module docstring), leaving the lowest ``bottom`` fraction of the height free."""
+    w, h = size[0], size[1] * (1 - bottom)
     Xc = points @ R.T + t
     Xc = Xc[Xc[:, 2] > 1e-6]
     x, y = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2]
@@ -130,11 +131,12 @@ class SceneView:
         framed = np.concatenate([finite[:: max(1, len(finite) // 2000)], cams[np.isfinite(cams).all(axis=1)]])
         radius = float(np.max(np.linalg.norm(framed - centre, axis=1))) + 1.0
         R, t = look_from(centre, self.forward, self.up, 3.0 * radius)
-        self.scene = VirtualCamera(fit_intrinsics(R, t, framed, size), R, t)
+        # the close-up takes the lower right: the scene is framed above it, so no camera hides under it
+        self.scene = VirtualCamera(fit_intrinsics(R, t, framed, size, bottom=INSET), R, t)
         # the close-up: framed on the animal's extent, a third of the view
         extent = np.nanmax(np.ptp(self.positions, axis=1)) if np.isfinite(self.positions).any() else 1.0
         self.animal = float(max(extent, 0.2)) if np.isfinite(extent) else 1.0
-        self.inset = (int(w * 0.4) // 2 * 2, int(h * 0.4) // 2 * 2)
+        self.inset = (int(w * INSET) // 2 * 2, int(h * INSET) // 2 * 2)
         self._inset_background = np.full((self.inset[1], self.inset[0], 3), BACKGROUND, np.uint8)
         self._background = self._draw_static()
 
