@@ -1,8 +1,8 @@
 """Security headers on every answer: an ASGI middleware (it adds headers and never reads a body).
 
 The pages and the API share one origin, where the browser keeps the user's token: the
-Content-Security-Policy lets them load scripts, styles, images and API calls from this server
-only (plotly.js and the result view are served from here), and no page may be framed. Inline
+Content-Security-Policy lets them load scripts, styles, images, videos and API calls from this
+server only (plotly.js and the result view are served from here), and no page may be framed. Inline
 ``style`` attributes are allowed (the pages and plotly set element styles); inline scripts are not.
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-CSP = ("default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; "
+CSP = ("default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; media-src 'self'; "
        "font-src 'self' data:; connect-src 'self'; worker-src 'self' blob:; object-src 'none'; base-uri 'none'; "
        "frame-ancestors 'none'; form-action 'self'")
 

@@ -4,6 +4,8 @@ A job's directory, ``<data dir>/jobs/<id>`` (:func:`job_dir`; ids match :data:`J
 
     input/                             the upload, as stored by the API (below)
     result/                            :data:`RESULT_FILES`, one per download format, once succeeded;
+                                       videos/camera01.mp4 ..., 3d.mp4, combined.mp4 when the job had videos
+                                       (:func:`video_result_name`);
                                        :data:`EXPORT_FILES` made from result.h5 when first downloaded
     result.<run token>.tmp/            a run's results being written (:func:`result_tmp`), then
                                        moved to result/ when the run is recorded (:func:`install_result`)
@@ -14,6 +16,8 @@ and becomes the job's directory only once it is accepted. Input layout, named by
 
     manifest.json                      {"keypoints": [...], "calibration": ..., "skeleton": ..., "options": {...}}
     keypoints/01/<uploaded name>.csv   one directory per camera, in the calibration's order (:func:`keypoints_dir`)
+    videos/01/<uploaded name>.mp4      optional: each camera's footage (:func:`video_dir`); or the manifest's
+                                       "video_paths" name files on shared storage under the admin's video root
     calibration/<uploaded name>.toml
     skeleton/<uploaded name>.toml      optional
 
@@ -53,6 +57,35 @@ EXPORT_FILES: dict[str, tuple[str, str]] = {
     "csv-var": ("result.var.csv", "text/csv"),
 }
 DOWNLOADS: dict[str, tuple[str, str]] = {**RESULT_FILES, **EXPORT_FILES}
+VIDEOS_DIR = "videos"  # input: each camera's footage; result: the labelled videos
+VIDEO_VIEWS = ("3d", "combined")  # the labelled videos beside the cameras' (named by camera number, from 1)
+_VIDEO_RESULT = re.compile(r"^videos/(camera[0-9]{2}|3d|combined)\.mp4$")
+
+
+def video_dir(input_dir: Path, camera: int) -> Path:
+    """The directory of camera ``camera``'s uploaded video (0-based, in the calibration's order)."""
+    return input_dir / VIDEOS_DIR / f"{camera + 1:02d}"
+
+
+def video_result_name(view: str) -> str:
+    """The result file of a labelled video: ``view`` is a camera's number (``"1"``...) or one of
+    :data:`VIDEO_VIEWS`; ValueError for anything else."""
+    if view in VIDEO_VIEWS:
+        return f"{VIDEOS_DIR}/{view}.mp4"
+    if view.isdigit() and 1 <= int(view) <= 99:
+        return f"{VIDEOS_DIR}/camera{int(view):02d}.mp4"
+    raise ValueError(f"no video {view!r}: name a camera's number (1, 2, ...), 3d or combined")
+
+
+def is_result_name(rel: str) -> bool:
+    """Whether ``rel`` is a file a run may put in a job's result dir (:data:`RESULT_NAMES`, the videos)."""
+    return rel in RESULT_NAMES or bool(_VIDEO_RESULT.match(rel))
+
+
+def result_names(out_dir: Path) -> list[str]:
+    """The result files a run wrote into ``out_dir``, relative to it (what travels back from RQ)."""
+    videos = sorted(f"{VIDEOS_DIR}/{p.name}" for p in (out_dir / VIDEOS_DIR).glob("*.mp4"))
+    return [*RESULT_NAMES, *(v for v in videos if is_result_name(v))]
 
 
 def new_job_id() -> str:
@@ -146,6 +179,15 @@ def inside(base: Path, rel: str) -> Path:
     return base.joinpath(*p.parts)
 
 
+def input_videos(input_dir: Path) -> list[Path]:
+    """The job's videos, one per camera (none when it was given none): uploaded ones in
+    ``input_dir``, or the files on shared storage its manifest names."""
+    m = read_manifest(input_dir)
+    if m.get("videos"):
+        return [inside(input_dir, rel) for rel in m["videos"]]
+    return [Path(p) for p in m.get("video_paths") or []]
+
+
 def input_key(token: str) -> str:
     """Redis key of the input files of the RQ job ``token``."""
     return f"acinoset:input:{token}"
@@ -168,16 +210,18 @@ def pack_files(base: Path, rels: list[str]) -> bytes:
     return buf.getvalue()
 
 
-def unpack_files(archive: bytes, base: Path, allowed: tuple[str, ...] | None = None) -> list[str]:
+def unpack_files(archive: bytes, base: Path, allowed=None) -> list[str]:
     """Extract :func:`pack_files`' archive under ``base`` (names that would leave it are refused;
-    with ``allowed``, other names are skipped). Returns the names extracted."""
+    with ``allowed``, a tuple of names or a test of a name, other names are skipped). Returns the
+    names extracted."""
     import io
     import zipfile
 
     names = []
     with zipfile.ZipFile(io.BytesIO(archive)) as z:
         for info in z.infolist():
-            if info.is_dir() or (allowed is not None and info.filename not in allowed):
+            ok = allowed is None or (allowed(info.filename) if callable(allowed) else info.filename in allowed)
+            if info.is_dir() or not ok:
                 continue
             p = inside(base, info.filename)
             p.parent.mkdir(parents=True, exist_ok=True)
@@ -190,5 +234,6 @@ def unpack_files(archive: bytes, base: Path, allowed: tuple[str, ...] | None = N
 def input_archive(input_dir: Path) -> bytes:
     """What an RQ worker needs to run a job: the manifest and the input files, zipped."""
     m = read_manifest(input_dir)
-    rels = [MANIFEST, *m["keypoints"], m["calibration"], *([m["skeleton"]] if m.get("skeleton") else [])]
+    rels = [MANIFEST, *m["keypoints"], m["calibration"], *([m["skeleton"]] if m.get("skeleton") else []),
+            *(m.get("videos") or [])]
     return pack_files(input_dir, rels)

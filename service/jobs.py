@@ -29,7 +29,7 @@ from service.backends.base import Backend
 from service.errors import (DISK_FULL, Forbidden, NoSpace, NotFound, NotReady, TooLarge, TooMany, Unprocessable,
                             storage_full)
 from service.jobfiles import (CALIBRATION_DIR, INPUT, JOB_ID, SKELETON_DIR, keypoints_dir,
-                              new_job_id, result_path, staging_dir)
+                              new_job_id, result_path, staging_dir, video_dir)
 from service.settings import Settings
 from service.store import STATUSES, Job, QuotaExceeded, Store, User
 from service.uploads import UploadReader
@@ -37,6 +37,7 @@ from service.uploads import UploadReader
 KEYPOINT_SUFFIXES = (".csv", ".h5", ".hdf5")
 CURSOR = re.compile(r"^[0-9]{1,18}$")
 CALIBRATION_SUFFIXES = (".json", ".toml")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
 HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 
@@ -192,24 +193,52 @@ class JobService:
             shutil.copyfileobj(upload.file, f, 1 << 20)
         return path
 
+    def video_path(self, given: str) -> Path:
+        """A video on shared storage, named by the path ``given`` (absolute, or relative to the
+        admin's ``video_root``): the real file after symlinks and ``..`` are resolved, which must lie
+        under the root. :class:`Forbidden` when the server has no root or the file is outside it."""
+        root = self.settings.video_root
+        if root is None:
+            raise Forbidden("video_paths: this server takes no paths on its storage (its admin has not set "
+                            "ACINOSET_VIDEO_ROOT); upload the videos as 'videos' instead")
+        if not given or "\x00" in given:
+            raise Unprocessable("video_paths: an empty path")
+        real = (root / given).resolve()  # an absolute ``given`` replaces the root
+        if not real.is_relative_to(root):
+            raise Forbidden(f"video_paths: {given!r} is outside the folder this server's videos may come from")
+        if not real.is_file():
+            raise Unprocessable(f"video_paths: {given!r}: no such file")
+        return real
+
     def submit(self, user: User, keypoints: list[Upload], calibration: Upload, options_text: str | None,
-               skeleton: Upload | None = None) -> Job:
-        """Validate the upload with the core's readers, store it, queue the job."""
+               skeleton: Upload | None = None, videos: list[Upload] | None = None,
+               video_paths: list[str] | None = None) -> Job:
+        """Validate the upload with the core's readers, store it, queue the job. ``videos`` (uploads)
+        or ``video_paths`` (on shared storage, :meth:`video_path`): each camera's footage, one per
+        keypoint file, for the labelled videos."""
         s = self.settings
         if not keypoints:
             raise Unprocessable("keypoints: upload one keypoint file per camera")
         if len(keypoints) > s.max_cameras:
             raise TooLarge(f"{len(keypoints)} keypoint files; this server takes at most "
                            f"{s.max_cameras} cameras per job (ACINOSET_MAX_CAMERAS)")
+        if videos and video_paths:
+            raise Unprocessable("give the videos either as uploads ('videos') or as paths ('video_paths'), not both")
+        given = len(videos or video_paths or [])
+        if given and given != len(keypoints):
+            raise Unprocessable(f"{given} videos for {len(keypoints)} keypoint files: give one video per camera, "
+                                "in the keypoint files' order")
+        shared = [self.video_path(p) for p in video_paths] if video_paths else None
         self.check_quota(user)
         skeleton_name = safe_name(skeleton.filename, "skeleton.toml") if skeleton is not None else None
         options, label = self.parse_options(options_text, skeleton_name)
-        upload_bytes = sum(_size(u.file) for u in [*keypoints, calibration, *([skeleton] if skeleton else [])])
+        upload_bytes = sum(_size(u.file) for u in [*keypoints, calibration, *([skeleton] if skeleton else []),
+                                                   *(videos or [])])
         self.check_storage(user, upload_bytes)
 
         try:
             with self._validating:
-                job_id, inputs = self._store_upload(keypoints, calibration, skeleton, options)
+                job_id, inputs = self._store_upload(keypoints, calibration, skeleton, options, videos or None, shared)
             try:
                 job = self.store.insert_job(job_id, user.id, self.backend.name, options, inputs, s.max_attempts,
                                             max_active=s.max_active_jobs_per_user, label=label)
@@ -227,7 +256,8 @@ class JobService:
         return job
 
     def _store_upload(self, keypoints: list[Upload], calibration: Upload, skeleton: Upload | None,
-                      options: dict) -> tuple[str, dict]:
+                      options: dict, videos: list[Upload] | None = None,
+                      video_paths: list[Path] | None = None) -> tuple[str, dict]:
         """Write the files into a new job directory and read them with the core's readers.
         Returns the job id and the description of the inputs; refusals remove everything."""
         s = self.settings
@@ -241,14 +271,21 @@ class JobService:
                                   CALIBRATION_SUFFIXES, _calibration_suffix)
             sk_path = (self._save(skeleton, input_dir / SKELETON_DIR, "skeleton.toml", (".toml",), lambda h: ".toml")
                        if skeleton is not None else None)
+            video_files = ([self._save(u, video_dir(input_dir, i), f"camera{i + 1}.mp4", VIDEO_SUFFIXES,
+                                       lambda h: ".mp4") for i, u in enumerate(videos)] if videos else None)
             rel = lambda p: p.relative_to(input_dir).as_posix()  # noqa: E731
             manifest = {"keypoints": [rel(p) for p in kp_paths], "calibration": rel(cal_path),
                         "skeleton": rel(sk_path) if sk_path is not None else None, "options": options}
+            if video_files:
+                manifest["videos"] = [rel(p) for p in video_files]
+            if video_paths:
+                manifest["video_paths"] = [str(p) for p in video_paths]
             inputs = self.reader.inspect(
                 input_dir=str(input_dir), keypoints=manifest["keypoints"], calibration=manifest["calibration"],
                 skeleton_file=manifest["skeleton"], skeleton=options["skeleton"],
                 individual=options.get("individual"), max_frames=s.max_frames,
-                max_bodyparts=s.max_bodyparts)
+                max_bodyparts=s.max_bodyparts,
+                videos=[str(p) for p in (video_files or video_paths or [])] or None)
             jobfiles.write_manifest(input_dir, manifest)
             staging.replace(jobfiles.job_dir(s.jobs_dir, job_id))
         except BaseException:
@@ -340,6 +377,57 @@ class JobService:
         if not path.is_file():
             raise NotFound(f"job {job_id} has no {jobfiles.DOWNLOADS[fmt][0]} (its result files were removed)")
         return path
+
+    # -- videos ------------------------------------------------------------------------------
+
+    def _succeeded(self, job: Job) -> Path:
+        if job.status != "succeeded":
+            why = f": {job.error}" if job.status == "failed" and job.error else ""
+            raise NotReady(f"job {job.id} is {job.status}{why}; its videos are ready when it succeeded")
+        return jobfiles.job_dir(self.settings.jobs_dir, job.id)
+
+    @staticmethod
+    def video_views(job: Job) -> list[str]:
+        """The labelled videos a succeeded job with videos has: its cameras' numbers, 3d, combined."""
+        if job.status != "succeeded" or not (job.inputs or {}).get("videos"):
+            return []
+        return [str(c + 1) for c in range(len(job.inputs["videos"]))] + list(jobfiles.VIDEO_VIEWS)
+
+    def video_file(self, job: Job, view: str) -> Path:
+        """The labelled video ``view`` (a camera's number, ``3d`` or ``combined``) of ``job``."""
+        folder = self._succeeded(job)
+        if view not in self.video_views(job):
+            raise NotFound(f"job {job.id} has no video {view!r}" + (
+                f": it has {', '.join(self.video_views(job))}" if self.video_views(job) else
+                " (it was submitted without videos)"))
+        path = folder / jobfiles.RESULT / jobfiles.video_result_name(view)
+        if not path.is_file():
+            raise NotFound(f"job {job.id} has no video {view!r} (its result files were removed)")
+        return path
+
+    def frame_png(self, user: User, job_id: str, camera: int, frame: int) -> bytes:
+        """Camera ``camera``'s (from 1) frame ``frame`` of the job's own video with the estimate
+        drawn on it (:func:`graph.video.camera_frame_png`), as PNG bytes."""
+        import tempfile
+
+        from graph.errors import InputError
+        from graph.io import read_result
+        from graph.video import camera_frame_png
+
+        job = self.visible(user, job_id)
+        folder = self._succeeded(job)
+        videos = jobfiles.input_videos(folder / INPUT)
+        if not videos:
+            raise NotFound(f"job {job.id} was submitted without videos: it has no frames to draw on")
+        if not 1 <= camera <= len(videos):
+            raise Unprocessable(f"camera: the job has cameras 1 to {len(videos)}, not {camera}")
+        try:
+            result = read_result(result_path(folder, "h5"))
+            with tempfile.TemporaryDirectory(prefix=".frame-", dir=folder) as tmp:
+                png = camera_frame_png(result, camera - 1, videos[camera - 1], frame, Path(tmp) / "frame.png")
+                return png.read_bytes()
+        except InputError as e:
+            raise Unprocessable(str(e)) from None
 
     # -- cancel, delete ----------------------------------------------------------------------
 

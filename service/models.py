@@ -14,7 +14,7 @@ from pydantic import BaseModel, Field
 
 from graph.types import STAGES as SOLVER_STAGES
 from service.jobfiles import DOWNLOADS, RESULT_FILES
-from service.store import COMPILING, DONE, READING, STARTING, WRITING, ErrorKind, Job, JobStatus
+from service.store import COMPILING, DONE, READING, RENDERING, STARTING, WRITING, ErrorKind, Job, JobStatus
 
 ResultFormat = Literal[tuple(DOWNLOADS)]  # type: ignore[valid-type]  # the download formats
 
@@ -29,7 +29,8 @@ def offered_formats() -> list[str]:
 
 # What a job's progress can say it is doing, in order: the service's own stages around the solver's
 # (each method reports only some of those); the solver's "done" comes before the results are written.
-STAGES: tuple[str, ...] = (COMPILING, STARTING, READING, *(s for s in SOLVER_STAGES if s != DONE), WRITING, DONE)
+STAGES: tuple[str, ...] = (COMPILING, STARTING, READING, *(s for s in SOLVER_STAGES if s != DONE), WRITING, RENDERING,
+                           DONE)
 
 
 class ErrorBody(BaseModel):
@@ -67,6 +68,7 @@ class Inputs(BaseModel):
     keypoints: list[InputFile] = Field(description="one per camera, in the calibration's order")
     calibration: InputFile
     skeleton: InputFile | None = None
+    videos: list[InputFile] | None = Field(None, description="each camera's video, when the job was given them")
 
 
 class ResultSummary(BaseModel):
@@ -91,6 +93,7 @@ class Links(BaseModel):
     self: str
     result: dict[str, str] | None = Field(None, description="download link per format, once succeeded")
     cancel: str | None = Field(None, description="DELETE this to cancel (active) or delete (finished) the job")
+    videos: str | None = Field(None, description="the labelled videos, once succeeded, when the job had videos")
 
 
 class JobOut(BaseModel):
@@ -115,6 +118,17 @@ class JobOut(BaseModel):
     worker: str | None = Field(None, description="host:pid (embedded) or worker name (rq) of the latest run")
     result: ResultSummary | None = None
     links: Links
+
+
+class VideoOut(BaseModel):
+    view: str = Field(description="a camera's number (from 1), 3d (the skeleton in 3D) or combined (all in a grid)")
+    href: str = Field(description="the MP4 (H.264), with an access key a <video> element can use; it takes "
+                                  "HTTP Range requests, so players can seek")
+
+
+class VideoList(BaseModel):
+    videos: list[VideoOut]
+    expires_at: datetime = Field(description="when the links' access keys expire (or the server restarts)")
 
 
 class JobList(BaseModel):
@@ -216,7 +230,8 @@ def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
         worker=job.worker, result=result,
         links=Links(self=href,
                     result={f: f"{href}/result?format={f}" for f in offered_formats()} if job.status == "succeeded" else None,
-                    cancel=href))
+                    cancel=href,
+                    videos=f"{href}/videos" if job.status == "succeeded" and (job.inputs or {}).get("videos") else None))
 
 
 # -- batches ---------------------------------------------------------------------------------------

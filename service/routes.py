@@ -17,13 +17,14 @@ import graph
 from graph.errors import InputError
 from graph.types import Method
 from graph.skeleton import available_skeletons, load_skeleton
-from service import metrics
+from service import media, metrics
 from service.auth import current_user
 from service.batches import BatchService
 from service.jobs import JobService, Upload
-from service.jobfiles import DOWNLOADS, download_name
+from service.errors import NotFound
+from service.jobfiles import DOWNLOADS, JOB_ID, download_name
 from service.models import (BatchOut, Disk, ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
-                            SkeletonOut, batch_out, job_out)
+                            SkeletonOut, VideoList, VideoOut, batch_out, job_out)
 from service.backends.base import Backend
 from service.settings import Settings
 from service.store import Store, User
@@ -91,7 +92,9 @@ JobBackend = Annotated[Backend, Depends(_backend)]
                413: _err("Upload, frame count, bodyparts, camera count or the caller's storage over this "
                          "server's limits"),
                507: _err("The server's disk or its storage for jobs is full"),
-               422: _err("A file the readers refuse (the detail names it), or bad options"),
+               403: _err("video_paths on a server without a video root, or outside it"),
+               422: _err("A file the readers refuse (the detail names it), bad options, or videos that do not "
+                         "match the keypoint files"),
                429: _err("The caller already has the most queued and running jobs allowed")})
 def submit_job(
     user: CurrentUser, jobs: Jobs, response: Response,
@@ -108,11 +111,19 @@ def submit_job(
     # a file or nothing: declared as a file only (a form field "null" is no file, and is refused)
     skeleton: Annotated[UploadFile, File(
         description="optional skeleton spec (.toml) to use instead of a named skeleton")] = None,
+    videos: Annotated[list[UploadFile] | None, File(
+        description="optional: each camera's video, repeated, in the keypoint files' order (the footage the "
+                    "keypoints came from, one frame per row); the job then also renders the labelled videos")] = None,
+    video_paths: Annotated[list[str] | None, Form(
+        description="optional, instead of videos: each camera's video as a path on the server's shared storage, "
+                    "repeated, under the folder its admin allows (ACINOSET_VIDEO_ROOT; absolute or relative to it)")
+    ] = None,
 ) -> JobOut:
     """Validate the files with the library's readers, store them and queue the solve. Answers 202 with
     the job; poll its ``links.self`` until ``status`` is ``succeeded`` or ``failed``."""
     job = jobs.submit(user, [Upload(f.filename, f.file) for f in keypoints], Upload(calibration.filename, calibration.file),
-                      options, Upload(skeleton.filename, skeleton.file) if skeleton is not None else None)
+                      options, Upload(skeleton.filename, skeleton.file) if skeleton is not None else None,
+                      videos=[Upload(f.filename, f.file) for f in videos or []] or None, video_paths=video_paths or None)
     out = job_out(job)
     response.headers["Location"] = out.links.self
     return out
@@ -184,6 +195,61 @@ def get_result(job_id: str, user: CurrentUser, jobs: Jobs,
                ] = "csv") -> FileResponse:
     path = jobs.result_file(user, job_id, format)
     return FileResponse(path, media_type=DOWNLOADS[format][1], filename=download_name(job_id, format))
+
+
+@router.get("/v1/jobs/{job_id}/videos", response_model=VideoList, tags=["videos"], summary="A job's labelled videos",
+            responses={**NOT_FOUND, 409: _err("The job has not succeeded (yet)")})
+def list_videos(job_id: str, user: CurrentUser, jobs: Jobs) -> VideoList:
+    """Links to the job's labelled videos (none when it was submitted without videos): each camera's
+    footage with the estimate drawn on it, the 3D view and the grid of all, at the footage's rate."""
+    job = jobs.visible(user, job_id)
+    if job.status != "succeeded":
+        jobs.video_file(job, "1")  # says why (409)
+    access = media.sign(job.id)
+    expires = datetime.fromtimestamp(int(access.split(".")[0]), timezone.utc)
+    return VideoList(videos=[VideoOut(view=v, href=f"/v1/jobs/{job.id}/videos/{v}?access={access}")
+                             for v in jobs.video_views(job)], expires_at=expires)
+
+
+@router.get(
+    "/v1/jobs/{job_id}/videos/{view}", tags=["videos"], summary="Download or stream a labelled video",
+    response_class=FileResponse,
+    responses={200: {"description": "H.264 in MP4", "content": {"video/mp4": {"schema": {"type": "string",
+                                                                                           "format": "binary"}}}},
+               206: {"description": "The byte range asked for (Range: bytes=A-B)",
+                     "content": {"video/mp4": {"schema": {"type": "string", "format": "binary"}}}},
+               416: {"description": "A range outside the file"},
+               **NOT_FOUND, 409: _err("The job has not succeeded (yet)")})
+def get_video(job_id: str, view: str, request: Request, jobs: Jobs,
+              access: Annotated[str | None, Query(max_length=200, description="the access key of a link of GET "
+                                                  "/v1/jobs/{id}/videos (instead of the Authorization header)")] = None
+              ) -> FileResponse:
+    """A camera's number (from 1), ``3d`` or ``combined``. Answers Range requests (206), so a
+    player can seek without downloading the whole file."""
+    if access is not None and JOB_ID.match(job_id) and media.valid(job_id, access):
+        job = jobs.store.job(job_id)
+        if job is None:
+            raise NotFound(f"no job {job_id}")
+    else:
+        job = jobs.visible(current_user(request), job_id)
+    path = jobs.video_file(job, view)
+    return FileResponse(path, media_type="video/mp4", filename=f"{job.id}.{path.stem}.mp4",
+                        content_disposition_type="inline", headers={"Cache-Control": "private, max-age=3600"})
+
+
+@router.get(
+    "/v1/jobs/{job_id}/frame", tags=["videos"], summary="One camera's frame with the estimate drawn on it",
+    response_class=Response,
+    responses={200: {"description": "PNG", "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}},
+               **NOT_FOUND, 409: _err("The job has not succeeded (yet)"),
+               422: _err("No such camera or frame")})
+def get_frame(job_id: str, user: CurrentUser, jobs: Jobs,
+              camera: Annotated[int, Query(ge=1, le=999, description="the camera, from 1, in the job's order")] = 1,
+              n: Annotated[int, Query(ge=0, description="the frame, from 0")] = 0) -> Response:
+    """Frame ``n`` of camera ``camera``'s own video with the detections and the reprojected
+    skeleton drawn on it (the frame picker); for jobs submitted with videos."""
+    return Response(jobs.frame_png(user, job_id, camera, n), media_type="image/png",
+                    headers={"Cache-Control": "private, max-age=3600"})
 
 
 @router.delete(

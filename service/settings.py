@@ -54,6 +54,8 @@ class Settings(BaseSettings):
     max_storage_bytes: int = Field(0, ge=0)  # everyone's job files together (0: no limit but the disk)
     min_free_bytes: int = Field(1024 * MiB, ge=0)  # submissions are refused (507) below this much free disk
     page_size_max: int = Field(500, ge=1)
+    # jobs may name videos on shared storage under this folder (POST /v1/jobs video_paths); unset: none
+    video_root: Path | None = None
     upload_idle_timeout_seconds: float = Field(30.0, gt=0)  # an upload that sends nothing this long: 408
     upload_timeout_seconds: float = Field(1800.0, gt=0)  # a whole upload's body at most (408)
     max_receiving_uploads: int = Field(16, ge=1)  # upload bodies received at once (503 beyond)
@@ -87,6 +89,11 @@ class Settings(BaseSettings):
         for path, mode in ((self.data_dir, 0o700), (self.jobs_dir, 0o700), (self.db_path, 0o600)):
             if path.exists():
                 path.chmod(mode)
+
+    @field_validator("video_root")
+    @classmethod
+    def _real_root(cls, v: Path | None) -> Path | None:
+        return None if v is None or not str(v).strip() else Path(v).expanduser().resolve()
 
     @property
     def db_path(self) -> Path:

@@ -46,6 +46,7 @@ COMPILING = "compiling"  # queued while the server compiles its solver, once aft
 STARTING = "starting"  # claimed, its process starting (set here)
 READING = "reading"  # reading the input files (service.worker)
 WRITING = "writing"  # writing the result files (service.worker)
+RENDERING = "rendering videos"  # drawing the result over the job's videos, when it has some (service.worker)
 DONE = "done"  # the result is stored (set here)
 
 

@@ -23,10 +23,12 @@ from service.jobfiles import inside
 
 
 def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skeleton_file: str | None,
-                   skeleton: str, individual: str | None, max_frames: int, max_bodyparts: int) -> dict:
+                   skeleton: str, individual: str | None, max_frames: int, max_bodyparts: int,
+                   videos: list[str] | None = None) -> dict:
     """Read the stored files (paths relative to ``input_dir``) and describe them for the job table.
     Each keypoint file's frames and columns are checked before its data are read
-    (:class:`graph.keypoints.ReadLimits`). Raises :class:`~service.errors.TooLarge` or
+    (:class:`graph.keypoints.ReadLimits`). ``videos`` (absolute paths, one per camera) are probed:
+    each must hold a video with one frame per keypoint row. Raises :class:`~service.errors.TooLarge` or
     :class:`~service.errors.Unprocessable`."""
     from graph.calibration import load_calibration
     from graph.errors import NESTED_TOO_DEEPLY, InputError, TooLargeInput
@@ -48,6 +50,7 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
         sk = load_skeleton(sk_path if sk_path is not None else skeleton, bodyparts=kps[0].bodyparts)
         if sk.kind != "points":
             require_a_marker(kps, sk.name, list(sk.markers))
+        infos = check_videos(videos, max(k.frames for k in kps)) if videos else None
     except TooLargeInput as e:
         raise TooLarge(f"{e} on this server (ACINOSET_MAX_{e.limit.upper()})") from None
     except InputError as e:
@@ -64,7 +67,22 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
                       for p, k in zip(kp_paths, kps)],
         "calibration": {"name": cal_path.name, "bytes": cal_path.stat().st_size},
         "skeleton": {"name": sk_path.name, "bytes": sk_path.stat().st_size} if sk_path is not None else None,
+        "videos": None if infos is None else [{"name": Path(i.path).name, "bytes": Path(i.path).stat().st_size,
+                                               "frames": i.frames} for i in infos],
     }
+
+
+def check_videos(videos: list[str], frames: int) -> list:
+    """Probe each video (:func:`graph.video.probe`): a video with ``frames`` frames, one per keypoint row."""
+    from graph.errors import InputError
+    from graph.video import probe
+
+    infos = [probe(v) for v in videos]
+    for i in infos:
+        if i.frames != frames:
+            raise InputError(f"has {i.frames} frames but the keypoint files have {frames} rows (one video per "
+                             "camera, the footage the keypoints came from)", i.path)
+    return infos
 
 
 def _helper_init(niceness: int) -> None:

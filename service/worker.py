@@ -34,9 +34,10 @@ from typing import Callable
 import numpy as np
 
 from service import jobfiles
-from service.jobfiles import (ERROR_LOG, INPUT, RESULT, RESULT_FILES, RESULT_NAMES, input_key, inside, install_result,
-                              pack_files, read_manifest, result_key, result_tmp, unpack_files)
-from service.store import READING, WRITING
+from service.jobfiles import (ERROR_LOG, INPUT, RESULT, RESULT_FILES, VIDEOS_DIR, input_key, input_videos, inside,
+                              install_result, pack_files, read_manifest, result_key, result_names, result_tmp,
+                              unpack_files, video_result_name)
+from service.store import READING, RENDERING, WRITING
 
 SOLVER_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
@@ -141,6 +142,11 @@ class ThrottledProgress:
             return
         self.report(p.stage, p.fraction, p.iteration, p.cost)
 
+    def throttled(self, stage: str, fraction: float) -> None:
+        """:meth:`report`, at most every ``interval`` seconds."""
+        if stage != self._stage or time.monotonic() - self._last >= self.interval:
+            self.report(stage, fraction)
+
     def report(self, stage: str, fraction: float, iteration: int = 0, cost: float | None = None) -> None:
         self._last, self._stage = time.monotonic(), stage
         fraction = float(min(1.0, max(0.0, fraction))) if np.isfinite(fraction) else 0.0
@@ -157,7 +163,26 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
     keypoints, calibration, options = load_inputs(input_dir)
     result = solve(keypoints, calibration, options, progress=progress)
     progress.report(WRITING, 1.0, result.report.iterations, result.report.cost)
-    return write_results(result, out_dir, calibration)
+    report = write_results(result, out_dir, calibration)
+    videos = input_videos(input_dir)
+    if videos:
+        render_labelled_videos(result, videos, out_dir, progress)
+    return report
+
+
+def render_labelled_videos(result, videos: list[Path], out_dir: Path, progress: "ThrottledProgress") -> None:
+    """Each camera's video with the result drawn on it, the 3D view and the grid of all
+    (:func:`graph.video.render_videos`), as ``videos/camera01.mp4``, ..., ``3d.mp4`` and
+    ``combined.mp4`` in ``out_dir`` (:func:`service.jobfiles.video_result_name`)."""
+    from graph.video import render_videos
+
+    folder = out_dir / VIDEOS_DIR
+    progress.report(RENDERING, 0.0)
+    done = render_videos(result, videos, folder, combined=True,
+                         progress=lambda n, total: progress.throttled(RENDERING, n / max(total, 1)))
+    for c, path in enumerate(done.cameras):
+        os.replace(path, out_dir / video_result_name(str(c + 1)))
+    progress.report(RENDERING, 1.0)
 
 
 def one_line(e: BaseException) -> str:
@@ -299,5 +324,5 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -
         except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
             traceback.print_exc()
             return {"status": "failed", "error": one_line(e), "error_kind": error_kind(e), "worker": worker}
-        rq_job.connection.set(result_key(token), pack_files(out_dir, list(RESULT_NAMES)))
+        rq_job.connection.set(result_key(token), pack_files(out_dir, result_names(out_dir)))
         return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker}

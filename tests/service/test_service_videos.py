@@ -1,0 +1,187 @@
+"""A job given its cameras' videos (``POST /v1/jobs`` with ``videos`` uploads or ``video_paths`` on
+shared storage) renders the labelled videos; they stream with HTTP Range and decode with OpenCV, and
+the frame picker draws one camera's frame. Against a real embedded server, with tiny simulated
+footage (three cameras of the AcinoSet rig at a tenth of its resolution, 24 frames)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from servers import Run, Server, add_user, submit, wait_finished
+
+pytest.importorskip("imageio_ffmpeg", reason="videos need the video extra")
+
+FRAMES = 24
+FPS = 30.0
+OPTIONS = {"method": "tri", "fps": FPS}
+
+
+def make_filmed_run(out: Path, frames: int = FRAMES, cameras: int = 3) -> tuple[Run, list[Path]]:
+    """A simulated run on the first ``cameras`` cameras of the AcinoSet rig, scaled down, with each
+    camera's footage (``acinoset simulate --videos``' renderer)."""
+    from graph.calibration import default_rig_path, load_calibration
+    from graph.camera import Calibration
+    from graph.simulate import simulate_run, write_run
+    from graph.video import scaled_rig, write_simulated_videos
+
+    rig = scaled_rig(load_calibration(default_rig_path()), 0.1)
+    rig = Calibration(cameras=rig.cameras[:cameras])
+    run = simulate_run(rig, frames=frames, fps=FPS, seed=4)
+    write_run(run, out)
+    videos = write_simulated_videos(run, out)
+    cams = [out / f"{n}.csv" for n in rig.names]
+    return Run(out, cams, out / "calibration.toml", out / "scene.json", FPS, frames), videos
+
+
+def submit_with(client, run: Run, videos: list[Path] | None = None, paths: list[str] | None = None):
+    files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in run.cams]
+    files.append(("calibration", (run.calibration.name, run.calibration.read_bytes(), "application/octet-stream")))
+    files += [("videos", (v.name, v.read_bytes(), "video/mp4")) for v in videos or []]
+    data = {"options": json.dumps(OPTIONS)}
+    if paths:
+        data["video_paths"] = paths
+    return client.post("/v1/jobs", files=files, data=data)
+
+
+def decoded_frames(data: bytes, tmp: Path) -> list[np.ndarray]:
+    path = tmp / "v.mp4"
+    path.write_bytes(data)
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        frames.append(img)
+    cap.release()
+    return frames
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    base = tmp_path_factory.mktemp("videos")
+    run, videos = make_filmed_run(base / "run")
+    root = base / "shared"
+    (root / "trial1").mkdir(parents=True)
+    for v in videos:
+        os.link(v, root / "trial1" / v.name)
+    data = base / "data"
+    data.mkdir()
+    token = add_user(data, "alice")
+    srv = Server(data, base / "server.log", workers=1, env=dict(os.environ, ACINOSET_VIDEO_ROOT=str(root))).start()
+    with srv.client(token) as c:
+        yield c, run, videos, root
+    srv.stop()
+
+
+@pytest.fixture(scope="module")
+def job(served):
+    client, run, videos, _ = served
+    r = submit_with(client, run, videos=videos)
+    assert r.status_code == 202, r.text
+    done = wait_finished(client, r.json()["id"], timeout=300)
+    assert done["status"] == "succeeded", done
+    return done
+
+
+def test_uploaded_videos_yield_playable_labelled_videos(served, job, tmp_path):
+    client, run, videos, _ = served
+    assert [v["frames"] for v in job["inputs"]["videos"]] == [FRAMES] * 3
+    listing = client.get(job["links"]["videos"])
+    assert listing.status_code == 200, listing.text
+    views = {v["view"]: v["href"] for v in listing.json()["videos"]}
+    assert sorted(views) == ["1", "2", "3", "3d", "combined"]
+    for view, href in views.items():
+        r = client.get(href, headers={"Authorization": ""})  # the access key alone opens it
+        assert r.status_code == 200 and r.headers["content-type"] == "video/mp4", (view, r.status_code)
+        frames = decoded_frames(r.content, tmp_path)
+        assert len(frames) == FRAMES, view
+    one = decoded_frames(client.get(views["1"]).content, tmp_path)
+    assert one[0].shape[:2] == (152, 270)  # the footage's own size (2704x1520 at a tenth, made even)
+
+
+def test_videos_answer_range_requests(served, job):
+    client, *_ = served
+    href = f"/v1/jobs/{job['id']}/videos/1"
+    whole = client.get(href).content
+    part = client.get(href, headers={"Range": "bytes=100-199"})
+    assert part.status_code == 206, part.text
+    assert part.content == whole[100:200]
+    assert part.headers["content-range"] == f"bytes 100-199/{len(whole)}"
+
+
+def test_access_keys_open_one_job_only_and_are_checked(served, job):
+    client, *_ = served
+    href = client.get(job["links"]["videos"]).json()["videos"][0]["href"]
+    anon = client.get(href.replace("?access=", "?access=1"), headers={"Authorization": ""})
+    assert anon.status_code == 401
+    other = href.replace(job["id"], "0" * 32)
+    assert client.get(other, headers={"Authorization": ""}).status_code in (401, 404)
+    assert client.get(f"/v1/jobs/{job['id']}/videos/7").status_code == 404
+
+
+def test_frame_picker_draws_on_the_cameras_frame(served, job):
+    client, run, videos, _ = served
+    r = client.get(f"/v1/jobs/{job['id']}/frame", params={"camera": 2, "n": 5})
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png", r.text
+    png = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR)
+    cap = cv2.VideoCapture(str(videos[1]))
+    cap.set(cv2.CAP_PROP_POS_FRAMES, 5)
+    ok, plain = cap.read()
+    cap.release()
+    assert ok and png.shape == plain.shape
+    assert np.mean(np.any(np.abs(png.astype(int) - plain.astype(int)) > 40, axis=2)) > 0.001  # something drawn
+    bad = client.get(f"/v1/jobs/{job['id']}/frame", params={"camera": 4, "n": 0})
+    assert bad.status_code == 422 and "\n" not in bad.json()["detail"]
+    assert client.get(f"/v1/jobs/{job['id']}/frame", params={"camera": 1, "n": FRAMES}).status_code == 422
+
+
+def test_video_paths_under_the_root_are_used(served, tmp_path):
+    client, run, videos, root = served
+    r = submit_with(client, run, paths=[f"trial1/{v.name}" for v in videos[:2]] + [str(root / "trial1" / videos[2].name)])
+    assert r.status_code == 202, r.text
+    done = wait_finished(client, r.json()["id"], timeout=300)
+    assert done["status"] == "succeeded", done
+    listing = client.get(done["links"]["videos"]).json()["videos"]
+    assert len(decoded_frames(client.get(listing[0]["href"]).content, tmp_path)) == FRAMES
+
+
+def test_paths_outside_the_root_are_refused(served, tmp_path):
+    client, run, videos, root = served
+    outside = str(videos[0])  # a real video, but not under the root
+    link = root / "escape.mp4"
+    link.symlink_to(videos[0])  # a link inside the root that leads out of it
+    for bad in (outside, "../run/" + videos[0].name, "escape.mp4", "/etc/passwd"):
+        r = submit_with(client, run, paths=[bad, f"trial1/{videos[1].name}", f"trial1/{videos[2].name}"])
+        assert r.status_code == 403, (bad, r.text)
+        assert "\n" not in r.json()["detail"] and str(root) not in r.json()["detail"]
+
+
+def test_a_count_mismatch_and_a_non_video_are_refused(served):
+    client, run, videos, _ = served
+    r = submit_with(client, run, videos=videos[:2])
+    assert r.status_code == 422 and "2 videos for 3 keypoint files" in r.json()["detail"], r.text
+    r = submit_with(client, run, videos=[videos[0], videos[1], run.cams[0]])
+    assert r.status_code == 422 and "\n" not in r.json()["detail"], r.text
+    both = submit_with(client, run, videos=videos, paths=[f"trial1/{v.name}" for v in videos])
+    assert both.status_code == 422
+
+
+def test_a_server_without_a_root_refuses_any_path(tmp_path, served):
+    _, run, videos, _ = served
+    data = tmp_path / "data"
+    data.mkdir()
+    token = add_user(data, "bob")
+    srv = Server(data, tmp_path / "server.log", workers=1).start()
+    try:
+        with srv.client(token) as c:
+            r = submit_with(c, run, paths=[str(v) for v in videos])
+            assert r.status_code == 403 and "ACINOSET_VIDEO_ROOT" in r.json()["detail"], r.text
+    finally:
+        srv.stop()
