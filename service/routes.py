@@ -218,7 +218,6 @@ def list_videos(job_id: str, user: CurrentUser, jobs: Jobs) -> VideoList:
                                                                                            "format": "binary"}}}},
                206: {"description": "The byte range asked for (Range: bytes=A-B)",
                      "content": {"video/mp4": {"schema": {"type": "string", "format": "binary"}}}},
-               416: {"description": "A range outside the file"},
                **NOT_FOUND, 409: _err("The job has not succeeded (yet)")})
 def get_video(job_id: str, view: str, request: Request, jobs: Jobs,
               access: Annotated[str | None, Query(max_length=200, description="the access key of a link of GET "
