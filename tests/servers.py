@@ -61,6 +61,37 @@ def make_run(out: Path, frames: int, cameras: int = 6, seed: int = 0) -> Run:
     return Run(out, cams, out / "calibration.toml", scene, run.fps, frames)
 
 
+def make_filmed_run(out: Path, frames: int, cameras: int = 3, fps: float = 30.0) -> tuple[Run, list[Path]]:
+    """A simulated run on the first ``cameras`` cameras of the AcinoSet rig, scaled down, with each
+    camera's footage (``acinoset simulate --videos``' renderer)."""
+    from graph.calibration import default_rig_path, load_calibration
+    from graph.camera import Calibration
+    from graph.simulate import simulate_run, write_run
+    from graph.video import scaled_rig, write_simulated_videos
+
+    rig = scaled_rig(load_calibration(default_rig_path()), 0.1)
+    rig = Calibration(cameras=rig.cameras[:cameras])
+    run = simulate_run(rig, frames=frames, fps=fps, seed=4)
+    write_run(run, out)
+    videos = write_simulated_videos(run, out)
+    cams = [out / f"{n}.csv" for n in rig.names]
+    return Run(out, cams, out / "calibration.toml", out / "scene.json", fps, frames), videos
+
+
+def submit_with_videos(client: httpx.Client, run: Run, videos: list[Path] | None = None,
+                       paths: list[str] | None = None) -> httpx.Response:
+    """A job of ``run`` (``tri``) with its videos as uploads or as ``video_paths``."""
+    import json
+
+    files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in run.cams]
+    files.append(("calibration", (run.calibration.name, run.calibration.read_bytes(), "application/octet-stream")))
+    files += [("videos", (v.name, v.read_bytes(), "video/mp4")) for v in videos or []]
+    data = {"options": json.dumps({"method": "tri", "fps": run.fps})}
+    if paths:
+        data["video_paths"] = paths
+    return client.post("/v1/jobs", files=files, data=data)
+
+
 # -- users ---------------------------------------------------------------------------------------
 
 def add_user(data_dir: Path, name: str, admin: bool = False) -> str:

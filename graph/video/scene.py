@@ -17,6 +17,7 @@ thicker when nearer, so the near legs cover the far ones.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -31,6 +32,7 @@ CAMERA = (200, 200, 200)
 PATH = (120, 200, 120)
 TRAIL_SECONDS = 1.0
 INSET = 0.4  # the close-up's share of the view's width and height
+MAX_GRID_LINES = 200  # a ground grid's lines each way, at most
 
 
 @dataclass
@@ -134,7 +136,11 @@ class SceneView:
         # the close-up takes the lower right: the scene is framed above it, so no camera hides under it
         self.scene = VirtualCamera(fit_intrinsics(R, t, framed, size, bottom=INSET), R, t)
         # the close-up: framed on the animal's extent, a third of the view
-        extent = np.nanmax(np.ptp(self.positions, axis=1)) if np.isfinite(self.positions).any() else 1.0
+        # (the median frame's: one frame with a wild marker must not zoom every frame out)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            per_frame = np.nanmax(np.ptp(self.positions, axis=1), axis=-1) if len(self.positions) else np.array([])
+            extent = float(np.nanmedian(per_frame)) if np.isfinite(per_frame).any() else 1.0
         self.animal = float(max(extent, 0.2)) if np.isfinite(extent) else 1.0
         self.inset = (int(w * INSET) // 2 * 2, int(h * INSET) // 2 * 2)
         self._inset_background = np.full((self.inset[1], self.inset[0], 3), BACKGROUND, np.uint8)
@@ -149,6 +155,7 @@ class SceneView:
         c = centre - (centre @ self.up - self.ground) * self.up
         o1, o2 = np.floor((c @ self.e1) / step) * step, np.floor((c @ self.e2) / step) * step
         base = c - (c @ self.e1) * self.e1 - (c @ self.e2) * self.e2
+        step = max(step, 2 * half / MAX_GRID_LINES)  # a far-flung estimate must not ask for millions of lines
         ticks = np.arange(-half, half + step / 2, step)
         sub = np.linspace(-half, half, int(round(2 * half / step)) * pieces + 1 if pieces else 2)
         segs = []

@@ -4,7 +4,7 @@
  * Draws from the payload of graph.plot.result_payload (the service's result?format=json). Used by
  * the job page and inlined into the HTML file `acinoset plot` writes; needs Plotly and dom.js.
  *
- *   const view = AcinoResultView.render(containerElement, payload, {});
+ *   const view = AcinoResultView.render(containerElement, payload, { onFrame(n, fromPlayback) {}, onPlaying(on, speed) {} });
  *   view.setFrame(42);
  *
  * render() builds one panel after another (summary, 3D playback, error heat map, over time,
@@ -713,8 +713,9 @@
 
   // ------------------------------------------------------------------ frame control
 
-  /** Playback, stepping and the keyboard: every panel follows the current frame. */
-  function frameControl(ctx, play, scene, heat, series, flags) {
+  /** Playback, stepping and the keyboard: every panel follows the current frame. The page's
+   * hooks (render's opts) hear of it too: onFrame(n, fromPlayback) and onPlaying(on, speed). */
+  function frameControl(ctx, play, scene, heat, series, flags, hooks) {
     const { N, fps, state } = ctx;
     const { slider, number, playBtn, status } = play;
 
@@ -739,6 +740,7 @@
       if (document.activeElement !== number) number.value = String(n);
       play.plot3d.dataset.frame = String(n);
       scene.draw(n);
+      if (hooks.onFrame) hooks.onFrame(n, !!fromPlayback);
       if (!fromPlayback) { play.describe(n); scheduleSync(); }
       else {
         play.showTime(n);
@@ -765,6 +767,7 @@
       playBtn.textContent = state.playing ? "❚❚ Pause" : "▶ Play";
       playBtn.setAttribute("aria-pressed", String(state.playing));
       status.setAttribute("aria-live", state.playing ? "off" : "polite");
+      if (hooks.onPlaying) hooks.onPlaying(state.playing, state.speed);
       if (state.playing) { state.last = performance.now(); state.acc = 0; requestAnimationFrame(tick); }
       else play.describe(state.frame);
     }
@@ -774,7 +777,10 @@
     play.nextBtn.addEventListener("click", () => { setPlaying(false); setFrame(state.frame + 1); });
     slider.addEventListener("input", () => { setPlaying(false); setFrame(slider.value); });
     number.addEventListener("change", () => { setPlaying(false); setFrame(number.value); });
-    play.speed.addEventListener("change", () => { state.speed = Number(play.speed.value); });
+    play.speed.addEventListener("change", () => {
+      state.speed = Number(play.speed.value);
+      if (hooks.onPlaying && state.playing) hooks.onPlaying(true, state.speed);
+    });
     play.view.addEventListener("change", () => {
       state.view = play.view.value;
       scene.reframe();
@@ -821,7 +827,8 @@
     container.append(series.section);
     const flags = flagsPanel(ctx, setFrame, (n) => { setFrame(n); play.plot3d.scrollIntoView({ block: "center" }); });
     container.append(flags.section);
-    control = frameControl(ctx, play, scene, heat, series, flags);
+    control = frameControl(ctx, play, scene, heat, series, flags,
+      { onFrame: opts.onFrame || null, onPlaying: opts.onPlaying || null });
 
     let firstFrame = 0;
     for (let n = 0; n < ctx.N; n++) if (P.positions[n].some(seen)) { firstFrame = n; break; }
@@ -831,7 +838,7 @@
     scene.ready.then(() => { control.setFrame(firstFrame); container.dataset.ready = "true"; });
 
     return { setFrame: control.setFrame, play: () => control.setPlaying(true), pause: () => control.setPlaying(false),
-      state: ctx.state };
+      state: ctx.state, playbackSection: play.section };
   }
 
   window.AcinoResultView = { render };

@@ -154,7 +154,12 @@
       const href = (job.links.result && job.links.result.json) || `/v1/jobs/${encodeURIComponent(id)}/result?format=json`;
       const payload = await A.api(href);
       if (typeof window.Plotly === "undefined" || !window.AcinoResultView) throw new Error("the plotting scripts did not load");
-      window.AcinoResultView.render(resultBox, payload, {});
+      let view = null;
+      const videos = job.links.videos ? window.AcinoJobVideos.panel(job, payload, () => view) : null;
+      view = window.AcinoResultView.render(resultBox, payload, videos ? { onFrame: videos.onFrame, onPlaying: videos.onPlaying } : {});
+      if (videos && view) {  // under the 3D playback, so both are in sight together
+        view.playbackSection.after(videos.section, window.AcinoJobVideos.framePicker(job, payload, () => view));
+      }
     } catch (e) {
       resultShown = false;
       resultBox.replaceChildren(el("p", { class: "alert", role: "alert", text: `The result could not be drawn: ${e.message}` }));

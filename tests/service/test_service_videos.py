@@ -5,7 +5,6 @@ footage (three cameras of the AcinoSet rig at a tenth of its resolution, 24 fram
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -13,40 +12,11 @@ import cv2
 import numpy as np
 import pytest
 
-from servers import Run, Server, add_user, submit, wait_finished
+from servers import Server, add_user, make_filmed_run, submit_with_videos, wait_finished
 
 pytest.importorskip("imageio_ffmpeg", reason="videos need the video extra")
 
 FRAMES = 24
-FPS = 30.0
-OPTIONS = {"method": "tri", "fps": FPS}
-
-
-def make_filmed_run(out: Path, frames: int = FRAMES, cameras: int = 3) -> tuple[Run, list[Path]]:
-    """A simulated run on the first ``cameras`` cameras of the AcinoSet rig, scaled down, with each
-    camera's footage (``acinoset simulate --videos``' renderer)."""
-    from graph.calibration import default_rig_path, load_calibration
-    from graph.camera import Calibration
-    from graph.simulate import simulate_run, write_run
-    from graph.video import scaled_rig, write_simulated_videos
-
-    rig = scaled_rig(load_calibration(default_rig_path()), 0.1)
-    rig = Calibration(cameras=rig.cameras[:cameras])
-    run = simulate_run(rig, frames=frames, fps=FPS, seed=4)
-    write_run(run, out)
-    videos = write_simulated_videos(run, out)
-    cams = [out / f"{n}.csv" for n in rig.names]
-    return Run(out, cams, out / "calibration.toml", out / "scene.json", FPS, frames), videos
-
-
-def submit_with(client, run: Run, videos: list[Path] | None = None, paths: list[str] | None = None):
-    files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in run.cams]
-    files.append(("calibration", (run.calibration.name, run.calibration.read_bytes(), "application/octet-stream")))
-    files += [("videos", (v.name, v.read_bytes(), "video/mp4")) for v in videos or []]
-    data = {"options": json.dumps(OPTIONS)}
-    if paths:
-        data["video_paths"] = paths
-    return client.post("/v1/jobs", files=files, data=data)
 
 
 def decoded_frames(data: bytes, tmp: Path) -> list[np.ndarray]:
@@ -66,7 +36,7 @@ def decoded_frames(data: bytes, tmp: Path) -> list[np.ndarray]:
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
     base = tmp_path_factory.mktemp("videos")
-    run, videos = make_filmed_run(base / "run")
+    run, videos = make_filmed_run(base / "run", FRAMES)
     root = base / "shared"
     (root / "trial1").mkdir(parents=True)
     for v in videos:
@@ -83,7 +53,7 @@ def served(tmp_path_factory):
 @pytest.fixture(scope="module")
 def job(served):
     client, run, videos, _ = served
-    r = submit_with(client, run, videos=videos)
+    r = submit_with_videos(client, run, videos=videos)
     assert r.status_code == 202, r.text
     done = wait_finished(client, r.json()["id"], timeout=300)
     assert done["status"] == "succeeded", done
@@ -144,7 +114,7 @@ def test_frame_picker_draws_on_the_cameras_frame(served, job):
 
 def test_video_paths_under_the_root_are_used(served, tmp_path):
     client, run, videos, root = served
-    r = submit_with(client, run, paths=[f"trial1/{v.name}" for v in videos[:2]] + [str(root / "trial1" / videos[2].name)])
+    r = submit_with_videos(client, run, paths=[f"trial1/{v.name}" for v in videos[:2]] + [str(root / "trial1" / videos[2].name)])
     assert r.status_code == 202, r.text
     done = wait_finished(client, r.json()["id"], timeout=300)
     assert done["status"] == "succeeded", done
@@ -158,18 +128,18 @@ def test_paths_outside_the_root_are_refused(served, tmp_path):
     link = root / "escape.mp4"
     link.symlink_to(videos[0])  # a link inside the root that leads out of it
     for bad in (outside, "../run/" + videos[0].name, "escape.mp4", "/etc/passwd"):
-        r = submit_with(client, run, paths=[bad, f"trial1/{videos[1].name}", f"trial1/{videos[2].name}"])
+        r = submit_with_videos(client, run, paths=[bad, f"trial1/{videos[1].name}", f"trial1/{videos[2].name}"])
         assert r.status_code == 403, (bad, r.text)
         assert "\n" not in r.json()["detail"] and str(root) not in r.json()["detail"]
 
 
 def test_a_count_mismatch_and_a_non_video_are_refused(served):
     client, run, videos, _ = served
-    r = submit_with(client, run, videos=videos[:2])
+    r = submit_with_videos(client, run, videos=videos[:2])
     assert r.status_code == 422 and "2 videos for 3 keypoint files" in r.json()["detail"], r.text
-    r = submit_with(client, run, videos=[videos[0], videos[1], run.cams[0]])
+    r = submit_with_videos(client, run, videos=[videos[0], videos[1], run.cams[0]])
     assert r.status_code == 422 and "\n" not in r.json()["detail"], r.text
-    both = submit_with(client, run, videos=videos, paths=[f"trial1/{v.name}" for v in videos])
+    both = submit_with_videos(client, run, videos=videos, paths=[f"trial1/{v.name}" for v in videos])
     assert both.status_code == 422
 
 
@@ -181,7 +151,7 @@ def test_a_server_without_a_root_refuses_any_path(tmp_path, served):
     srv = Server(data, tmp_path / "server.log", workers=1).start()
     try:
         with srv.client(token) as c:
-            r = submit_with(c, run, paths=[str(v) for v in videos])
+            r = submit_with_videos(c, run, paths=[str(v) for v in videos])
             assert r.status_code == 403 and "ACINOSET_VIDEO_ROOT" in r.json()["detail"], r.text
     finally:
         srv.stop()
