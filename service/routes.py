@@ -111,10 +111,10 @@ def submit_job(
     # a file or nothing: declared as a file only (a form field "null" is no file, and is refused)
     skeleton: Annotated[UploadFile, File(
         description="optional skeleton spec (.toml) to use instead of a named skeleton")] = None,
-    videos: Annotated[list[UploadFile] | None, File(
+    videos: Annotated[list[UploadFile], File(
         description="optional: each camera's video, repeated, in the keypoint files' order (the footage the "
                     "keypoints came from, one frame per row); the job then also renders the labelled videos")] = None,
-    video_paths: Annotated[list[str] | None, Form(
+    video_paths: Annotated[list[str], Form(
         description="optional, instead of videos: each camera's video as a path on the server's shared storage, "
                     "repeated, under the folder its admin allows (ACINOSET_VIDEO_ROOT; absolute or relative to it)")
     ] = None,

@@ -111,7 +111,7 @@
     section.append(el("h2", { text: "One camera's frame" }),
       el("p", { class: "muted", text: "The camera's own frame with the detections and the reprojected skeleton drawn on it." }),
       el("div", { class: "controls" }, el("label", { for: "picker-camera", text: "Camera " }), camera,
-        el("label", { for: "picker-frame", text: "Frame " }), frame, useSlider, show), img, error);
+        el("label", { for: "picker-frame", text: "Frame to draw " }), frame, useSlider, show), img, error);
     useSlider.addEventListener("click", () => { const v = getView(); if (v) frame.value = String(v.state.frame); });
     show.addEventListener("click", async () => {
       error.hidden = true;
