@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from servers import Server, add_user, make_filmed_run, submit_with_videos, wait_finished
+from servers import Redis, Server, add_user, have_redis, make_filmed_run, submit_with_videos, wait_finished, worker
 
 pytest.importorskip("imageio_ffmpeg", reason="videos need the video extra")
 
@@ -155,3 +155,31 @@ def test_a_server_without_a_root_refuses_any_path(tmp_path, served):
             assert r.status_code == 403 and "ACINOSET_VIDEO_ROOT" in r.json()["detail"], r.text
     finally:
         srv.stop()
+
+
+@pytest.mark.skipif(not have_redis(), reason="needs Debian's redis-server (.ci/run installs it)")
+def test_rq_workers_render_the_videos_and_send_them_back(tmp_path, served):
+    """With RQ the uploaded videos travel to the worker in the job's input archive and the labelled
+    videos come back in its result archive."""
+    _, run, videos, _ = served
+    data = tmp_path / "data"
+    data.mkdir()
+    token = add_user(data, "carol")
+    redis = Redis(tmp_path / "redis", tmp_path / "redis.log").start()
+    srv = w = None
+    try:
+        srv = Server(data, tmp_path / "server.log", backend="rq", redis_url=redis.url).start()
+        w = worker(redis.url, tmp_path / "worker.log", "w1").start()
+        with srv.client(token) as c:
+            r = submit_with_videos(c, run, videos=videos)
+            assert r.status_code == 202, r.text
+            done = wait_finished(c, r.json()["id"], timeout=300)
+            assert done["status"] == "succeeded", done
+            listing = c.get(done["links"]["videos"]).json()["videos"]
+            assert [v["view"] for v in listing] == ["1", "2", "3", "3d", "combined"]
+            for v in listing:
+                assert len(decoded_frames(c.get(v["href"]).content, tmp_path)) == FRAMES, v["view"]
+    finally:
+        for p in (w, srv, redis):
+            if p is not None:
+                p.stop()
