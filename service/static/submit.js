@@ -100,6 +100,13 @@
     data.append("calibration", calib.files[0], calib.files[0].name);
     const spec = document.getElementById("skeleton-file");
     if (spec.files.length) data.append("skeleton", spec.files[0], spec.files[0].name);
+    const videos = Array.from(document.getElementById("videos").files)
+      .sort((a, b) => a.name.localeCompare(b.name, undefined, { numeric: true }));
+    if (videos.length && videos.length !== files.length) {
+      return showError(`Choose one video per camera: ${videos.length} videos for ${files.length} keypoint files.`,
+        document.getElementById("videos"));
+    }
+    for (const v of videos) data.append("videos", v, v.name);
     data.append("options", JSON.stringify(options));
     const button = form.querySelector("button[type=submit]");
     button.disabled = true;

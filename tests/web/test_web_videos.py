@@ -104,3 +104,28 @@ def test_the_job_video_plays_and_follows_the_slider(page, server, video_job):
     _until(page, "() => { const i = document.querySelector('[data-testid=picker-image]');"
                  " return !i.hidden && i.complete && i.naturalWidth > 0; }", 20)
     assert page.get_by_test_id("picker-image").evaluate("i => [i.naturalWidth, i.naturalHeight]") == [270, 152]
+
+
+def test_the_form_sends_the_videos_in_camera_order(page, server, video_job, tmp_path):
+    """The submit form takes one video per camera (matched by name order, whatever order they were
+    chosen in) and refuses a count that does not match the keypoint files."""
+    _, token = server
+    _, run = video_job
+    videos = sorted(run.dir.glob("cam*.mp4"))
+    _sign_in(page, token)
+    page.goto("/jobs/new")
+    page.get_by_label("Keypoint files, one per camera").set_input_files([str(p) for p in run.cams])
+    page.get_by_label("Calibration").set_input_files(str(run.calibration))
+    page.get_by_role("radio", name=re.compile("^tri:")).check()
+    page.get_by_label("Frame rate (frames per second)").fill(str(run.fps))
+    page.get_by_label("Videos (optional)").set_input_files([str(videos[1]), str(videos[0])])
+    page.get_by_role("button", name="Submit job").click()
+    assert "2 videos for 3 keypoint files" in page.get_by_role("alert").first.inner_text()
+    page.get_by_label("Videos (optional)").set_input_files([str(videos[2]), str(videos[0]), str(videos[1])])
+    page.get_by_role("button", name="Submit job").click()
+    page.wait_for_url(re.compile(r"/jobs/[0-9a-f]{32}$"))
+    job_id = page.url.rsplit("/", 1)[1]
+    base, _ = server
+    with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=60) as c:
+        job = c.get(f"/v1/jobs/{job_id}").json()
+    assert [v["name"] for v in job["inputs"]["videos"]] == ["cam1.mp4", "cam2.mp4", "cam3.mp4"]
