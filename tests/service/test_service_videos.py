@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from servers import Redis, Server, add_user, have_redis, make_filmed_run, submit_with_videos, wait_finished, worker
+from test_video import decode_cv2
 
 pytest.importorskip("imageio_ffmpeg", reason="videos need the video extra")
 
@@ -20,17 +21,10 @@ FRAMES = 24
 
 
 def decoded_frames(data: bytes, tmp: Path) -> list[np.ndarray]:
+    """The frames OpenCV decodes from a video's bytes."""
     path = tmp / "v.mp4"
     path.write_bytes(data)
-    cap = cv2.VideoCapture(str(path))
-    frames = []
-    while True:
-        ok, img = cap.read()
-        if not ok:
-            break
-        frames.append(img)
-    cap.release()
-    return frames
+    return decode_cv2(path)
 
 
 @pytest.fixture(scope="module")
