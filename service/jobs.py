@@ -386,20 +386,23 @@ class JobService:
             raise NotReady(f"job {job.id} is {job.status}{why}; its videos are ready when it succeeded")
         return jobfiles.job_dir(self.settings.jobs_dir, job.id)
 
-    @staticmethod
-    def video_views(job: Job) -> list[str]:
-        """The labelled videos a succeeded job with videos has: its cameras' numbers, 3d, combined."""
+    def video_views(self, job: Job) -> list[str]:
+        """The labelled videos a succeeded job with videos has: its cameras' numbers, 3d, combined
+        (none when they could not be rendered: its report's warnings say why)."""
         if job.status != "succeeded" or not (job.inputs or {}).get("videos"):
             return []
-        return [str(c + 1) for c in range(len(job.inputs["videos"]))] + list(jobfiles.VIDEO_VIEWS)
+        views = [str(c + 1) for c in range(len(job.inputs["videos"]))] + list(jobfiles.VIDEO_VIEWS)
+        result = jobfiles.job_dir(self.settings.jobs_dir, job.id) / jobfiles.RESULT
+        return [v for v in views if (result / jobfiles.video_result_name(v)).is_file()]
 
     def video_file(self, job: Job, view: str) -> Path:
         """The labelled video ``view`` (a camera's number, ``3d`` or ``combined``) of ``job``."""
         folder = self._succeeded(job)
-        if view not in self.video_views(job):
-            raise NotFound(f"job {job.id} has no video {view!r}" + (
-                f": it has {', '.join(self.video_views(job))}" if self.video_views(job) else
-                " (it was submitted without videos)"))
+        views = self.video_views(job)
+        if view not in views:
+            why = (f": it has {', '.join(views)}" if views else " (its videos could not be rendered: see its "
+                   "report's warnings)" if (job.inputs or {}).get("videos") else " (it was submitted without videos)")
+            raise NotFound(f"job {job.id} has no video {view!r}{why}")
         path = folder / jobfiles.RESULT / jobfiles.video_result_name(view)
         if not path.is_file():
             raise NotFound(f"job {job.id} has no video {view!r} (its result files were removed)")
@@ -421,6 +424,9 @@ class JobService:
             raise NotFound(f"job {job.id} was submitted without videos: it has no frames to draw on")
         if not 1 <= camera <= len(videos):
             raise Unprocessable(f"camera: the job has cameras 1 to {len(videos)}, not {camera}")
+        frames = int(job.inputs.get("frames") or 0)
+        if not 0 <= frame < frames:
+            raise Unprocessable(f"n: the job has frames 0 to {frames - 1}, not {frame}")
         try:
             result = read_result(result_path(folder, "h5"))
             with tempfile.TemporaryDirectory(prefix=".frame-", dir=folder) as tmp:

@@ -166,7 +166,14 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
     report = write_results(result, out_dir, calibration)
     videos = input_videos(input_dir)
     if videos:
-        render_labelled_videos(result, videos, out_dir, progress)
+        from graph.errors import InputError
+
+        try:
+            render_labelled_videos(result, videos, out_dir, progress)
+        except InputError as e:  # the solve stands: the job succeeds, with the reason it has no videos
+            shutil.rmtree(out_dir / VIDEOS_DIR, ignore_errors=True)
+            report["warnings"] = [*report.get("warnings", []), f"the labelled videos could not be rendered: {e}"]
+            (out_dir / RESULT_FILES["report"][0]).write_text(json.dumps(report, indent=2))
     return report
 
 

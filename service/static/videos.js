@@ -98,8 +98,10 @@
     };
   }
 
-  /** The frame picker: camera, frame (the slider's by default) and the PNG the server draws. */
+  /** The frame picker: camera, the camera's frame (the slider's, on its clock, at a click) and the
+   * PNG the server draws. */
   function framePicker(job, P, getView) {
+    const tau = ((P.report || {}).time_offsets_frames || []).map((t) => (t == null ? 0 : Math.round(t)));
     const section = el("section", { class: "card", "data-testid": "frame-picker" });
     const camera = el("select", { id: "picker-camera" },
       P.cameras.map((name, c) => el("option", { value: String(c + 1), text: `Camera ${c + 1} (${name})` })));
@@ -112,7 +114,10 @@
       el("p", { class: "muted", text: "The camera's own frame with the detections and the reprojected skeleton drawn on it." }),
       el("div", { class: "controls" }, el("label", { for: "picker-camera", text: "Camera " }), camera,
         el("label", { for: "picker-frame", text: "Frame to draw " }), frame, useSlider, show), img, error);
-    useSlider.addEventListener("click", () => { const v = getView(); if (v) frame.value = String(v.state.frame); });
+    useSlider.addEventListener("click", () => {  // the camera's own frame nearest the slider's time
+      const v = getView();
+      if (v) frame.value = String(Math.max(0, Math.min(P.frames - 1, v.state.frame - (tau[Number(camera.value) - 1] || 0))));
+    });
     show.addEventListener("click", async () => {
       error.hidden = true;
       show.disabled = true;

@@ -5,6 +5,7 @@ footage (three cameras of the AcinoSet rig at a tenth of its resolution, 24 fram
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -137,16 +138,21 @@ def test_a_count_mismatch_and_a_non_video_are_refused(served):
     assert both.status_code == 422
 
 
-def test_a_server_without_a_root_refuses_any_path(tmp_path, served):
+def test_a_server_without_a_root_refuses_any_path_and_videos_count_in_the_upload_limit(tmp_path, served):
     _, run, videos, _ = served
     data = tmp_path / "data"
     data.mkdir()
     token = add_user(data, "bob")
-    srv = Server(data, tmp_path / "server.log", workers=1).start()
+    no_videos = sum(p.stat().st_size for p in [*run.cams, run.calibration])
+    limit = no_videos + 10_000  # room for the keypoints and calibration, not for the videos as well
+    assert sum(v.stat().st_size for v in videos) > 10_000
+    srv = Server(data, tmp_path / "server.log", workers=1, env={"ACINOSET_MAX_UPLOAD_BYTES": str(limit)}).start()
     try:
         with srv.client(token) as c:
             r = submit_with_videos(c, run, paths=[str(v) for v in videos])
             assert r.status_code == 403 and "ACINOSET_VIDEO_ROOT" in r.json()["detail"], r.text
+            r = submit_with_videos(c, run, videos=videos)
+            assert r.status_code == 413 and "\n" not in r.json()["detail"], r.text
     finally:
         srv.stop()
 
@@ -177,3 +183,36 @@ def test_rq_workers_render_the_videos_and_send_them_back(tmp_path, served):
         for p in (w, srv, redis):
             if p is not None:
                 p.stop()
+
+
+def test_videos_that_cannot_be_rendered_leave_the_solve_standing_with_a_warning(served, tmp_path):
+    """The worker's render step: a video the renderer refuses (here one of 5 frames for a 24-frame
+    run, past the checks at submission) costs the job its videos, not its solve."""
+    from graph.video import FrameWriter, YuvFrame
+    from service import jobfiles
+    from service.worker import ThrottledProgress, solve_job
+
+    _, run, videos, _ = served
+    short = tmp_path / "short.mp4"
+    with FrameWriter(short, 64, 48, 30.0) as w:
+        for _ in range(5):
+            w.write(YuvFrame(64, 48))
+    inp = tmp_path / "input"
+    (inp / "keypoints").mkdir(parents=True)
+    for c, p in enumerate(run.cams):
+        d = jobfiles.keypoints_dir(inp, c)
+        d.mkdir(parents=True)
+        (d / p.name).write_bytes(p.read_bytes())
+    (inp / "calibration").mkdir()
+    (inp / "calibration" / "calibration.toml").write_bytes(run.calibration.read_bytes())
+    jobfiles.write_manifest(inp, {
+        "keypoints": [f"keypoints/{c + 1:02d}/{p.name}" for c, p in enumerate(run.cams)],
+        "calibration": "calibration/calibration.toml", "skeleton": None,
+        "options": {"method": "tri", "fps": run.fps}, "video_paths": [str(videos[0]), str(short), str(videos[2])]})
+    stages = []
+    report = solve_job(inp, tmp_path / "out", ThrottledProgress(lambda s, *a: stages.append(s) or True, 0.0))
+    said = [w for w in report["warnings"] if "labelled videos could not be rendered" in w]
+    assert len(said) == 1 and "short.mp4" in said[0] and "5 frames" in said[0], report["warnings"]
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["warnings"] == report["warnings"]
+    assert not (tmp_path / "out" / "videos").exists()
+    assert "rendering videos" in stages and (tmp_path / "out" / "result.h5").is_file()
