@@ -231,7 +231,8 @@ def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
         links=Links(self=href,
                     result={f: f"{href}/result?format={f}" for f in offered_formats()} if job.status == "succeeded" else None,
                     cancel=href,
-                    videos=f"{href}/videos" if job.status == "succeeded" and (job.inputs or {}).get("videos") else None))
+                    videos=f"{href}/videos" if job.status == "succeeded" and (job.inputs or {}).get("videos")
+                    else None))
 
 
 # -- batches ---------------------------------------------------------------------------------------

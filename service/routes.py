@@ -123,7 +123,8 @@ def submit_job(
     the job; poll its ``links.self`` until ``status`` is ``succeeded`` or ``failed``."""
     job = jobs.submit(user, [Upload(f.filename, f.file) for f in keypoints], Upload(calibration.filename, calibration.file),
                       options, Upload(skeleton.filename, skeleton.file) if skeleton is not None else None,
-                      videos=[Upload(f.filename, f.file) for f in videos or []] or None, video_paths=video_paths or None)
+                      videos=[Upload(f.filename, f.file) for f in videos or []] or None,
+                      video_paths=video_paths or None)
     out = job_out(job)
     response.headers["Location"] = out.links.self
     return out
@@ -239,7 +240,8 @@ def get_video(job_id: str, view: str, request: Request, jobs: Jobs,
 @router.get(
     "/v1/jobs/{job_id}/frame", tags=["videos"], summary="One camera's frame with the estimate drawn on it",
     response_class=Response,
-    responses={200: {"description": "PNG", "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}},
+    responses={200: {"description": "PNG",
+                     "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}},
                **NOT_FOUND, 409: _err("The job has not succeeded (yet)"),
                422: _err("No such camera or frame")})
 def get_frame(job_id: str, user: CurrentUser, jobs: Jobs,

@@ -109,7 +109,8 @@ def test_frame_picker_draws_on_the_cameras_frame(served, job):
 
 def test_video_paths_under_the_root_are_used(served, tmp_path):
     client, run, videos, root = served
-    r = submit_with_videos(client, run, paths=[f"trial1/{v.name}" for v in videos[:2]] + [str(root / "trial1" / videos[2].name)])
+    paths = [f"trial1/{v.name}" for v in videos[:2]] + [str(root / "trial1" / videos[2].name)]  # relative, absolute
+    r = submit_with_videos(client, run, paths=paths)
     assert r.status_code == 202, r.text
     done = wait_finished(client, r.json()["id"], timeout=300)
     assert done["status"] == "succeeded", done
