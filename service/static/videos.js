@@ -89,7 +89,8 @@
       onFrame(n, fromPlayback) {
         if (driving || !video.src) return;
         if (!fromPlayback) { if (!video.paused) video.pause(); seek(n); return; }
-        if (Math.abs(video.currentTime - timeOf(n)) > 3 / fps) seek(n);
+        if (Math.abs(video.currentTime - timeOf(n)) > 3 / fps) seek(n);  // drifted, or the 3D view looped
+        if (video.paused) video.play().catch(() => {});  // (a video that reached its end stops by itself)
       },
       onPlaying(on, speed) {
         if (!video.src) return;
