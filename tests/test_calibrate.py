@@ -491,3 +491,18 @@ def test_refine_improves_a_perturbed_rig_and_leaves_a_good_one(rig, tmp_path):
     rep = json.loads((tmp_path / "r.json").read_text())
     assert rep["accepted"] and rep["leave_one_out_px"]["new_mean"] < rep["leave_one_out_px"]["old_mean"]
     assert len(load_calibration(tmp_path / "new.toml")) == 6
+
+
+def test_refined_intrinsics_stay_anchored_by_their_prior():
+    """Ex1's ten views cannot hold a focal length on their own; refined under the prior their
+    intrinsic calibration (AcinoSet's 2021 views of the same cameras) gives them, focal lengths move
+    by a few pixels at most, and the fit improves."""
+    board = parse_board(BOARD_2021)
+    intr = [calibrate_intrinsics(read_detections(INTRINSIC / f"points_{n}.json", board), board) for n in (3, 4)]
+    views = [read_detections(EX1 / f"points_cam{n}.json", board) for n in (3, 4)]
+    fixed = calibrate_extrinsics(views, board, intrinsic_results=intr)
+    refined = calibrate_extrinsics(views, board, intrinsic_results=intr, refine_intrinsics=True)
+    assert refined.rms_px < fixed.rms_px
+    for c in refined.cameras:
+        assert abs(c.intrinsics_change["fx"]) < 10 and abs(c.intrinsics_change["fy"]) < 10
+    assert abs(refined.baselines_m["points_cam3-points_cam4"] - 0.392) < 0.01 * 0.392
