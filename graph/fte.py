@@ -33,6 +33,7 @@ per-marker ``Sigma_p = J_p Sigma_n J_p^T``.
 
 from __future__ import annotations
 
+import re
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
@@ -124,7 +125,7 @@ class TrajectoryProblem:
         else:
             self.groups = [np.arange(P)]
         self.motion_scales = np.full(len(self.groups), 1.0 if scale == "auto" else float(scale))
-        self.loosened = 0  # times the fitted scales were loosened for the solver (:func:`loosening`)
+        self.loosened: list[int] = []  # groups whose fitted scales were loosened for the solver (-1: all)
         self._motion = self._motion_factors()
         self._ordering = gtsam.Ordering()
         for k in range(len(self.groups) * N):
@@ -355,22 +356,30 @@ def refit_motion(tp: TrajectoryProblem, X, cost: float, max_iterations: int):
 
 
 LOOSEN_FACTOR = 10.0
-LOOSEN_TRIES = 3
+LOOSEN_TRIES = 12
 
 
 def loosening(tp: TrajectoryProblem, run):
     """``run()`` (a solve of ``tp`` with fitted motion scales); when GTSAM finds the system
     indeterminate (a chain smoothed so stiffly that its elimination loses the digits that pin it
-    down, as where a marker goes unseen), the scales are loosened ``LOOSEN_FACTOR`` times and it runs
-    again (at most ``LOOSEN_TRIES`` times; the report says so)."""
+    down, as where a marker goes unseen), the scale of the group of the variable GTSAM names (every
+    group's, if it names none) is loosened ``LOOSEN_FACTOR`` times and it runs again (at most
+    ``LOOSEN_TRIES`` times; the report says so)."""
     for attempt in range(LOOSEN_TRIES + 1):
         try:
             return run()
         except RuntimeError as e:
             if "ndeterminate" not in str(e) or attempt == LOOSEN_TRIES:
                 raise
-            tp.set_motion_scales(tp.motion_scales * LOOSEN_FACTOR)
-            tp.loosened += 1
+            found = re.search(r"near variable\s+(\d+)", str(e))
+            factor = np.ones(len(tp.groups))
+            group = int(found.group(1)) // tp.N if found else -1
+            if 0 <= group < len(tp.groups):
+                factor[group] = LOOSEN_FACTOR
+            else:
+                factor[:] = LOOSEN_FACTOR
+            tp.set_motion_scales(tp.motion_scales * factor)
+            tp.loosened.append(group)
 
 
 def marker_std(dpos: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
@@ -461,10 +470,12 @@ def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[st
     report = dict(est.report or {})
     if prob.options.motion_scale == "auto":
         report["motion_scales"] = {name: float(v) for name, v in zip(tp.group_names(), tp.motion_scales)}
-        if getattr(tp, "loosened", 0):
+        if getattr(tp, "loosened", None):
+            names = tp.group_names()
+            which = sorted({"all" if g < 0 else names[g] for g in tp.loosened})
             report.setdefault("warnings", []).append(
-                f"the fitted motion scales were {LOOSEN_FACTOR ** tp.loosened:g}x too stiff for the solver "
-                "and were loosened by that much")
+                f"the fitted motion scales of {', '.join(which)} were too stiff for the solver and were loosened "
+                f"({len(tp.loosened)} x {LOOSEN_FACTOR:g})")
     report["warnings"] = list(notes or []) + report.get("warnings", [])
     causal_pos = prob.skeleton.positions(causal) if causal is not None else None
     if prob.skeleton.kind == "points":
