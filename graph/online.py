@@ -111,7 +111,7 @@ class OnlineSmoother:
         tp = self.tp
         C, M = valid.shape
         Hf, gf = np.zeros((self.P, self.P)), np.zeros(self.P)
-        kernels.frame_normal(q, meas, valid, tp.intr, tp.Rc, tp.tc, tp.sigma_px, tp.prob.options.robust,
+        kernels.frame_normal(q, meas, valid, tp.intr, tp.Rc, tp.tc, tp.sigma_cm, tp.prob.options.robust,
                              RA, RB, RC, *tp.sk_args, tp.bones, tp.bone_len, tp.bone_sigma, Hf, gf,
                              np.zeros((C, M, 2)), np.zeros((C, M)), np.zeros((C, M)))
         return Hf, gf

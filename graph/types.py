@@ -140,6 +140,8 @@ class SolveReport:
     noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.noise)
     # motion_scale "auto": the scale fitted per group ({marker: scale} for free points, {"all": scale})
     motion_scales: dict[str, float] | None = None
+    # ensembles: each camera's detection noise relative to sigma_px (the median over its markers)
+    relative_noise: dict[str, float] | None = None
     # the body's lengths, where estimated: {group or bone: {length_m, std_m, model_m}}
     body_lengths: dict[str, dict[str, float]] | None = None
     # the cameras' offsets (frames, camera 1 = 0), where estimated or given, and their sd

@@ -104,3 +104,27 @@ def test_auto_on_a_kinematic_skeleton_and_its_limits():
     for bad in ("fast", 0.0, -1.0):
         with pytest.raises(ValueError, match="motion_scale"):
             SolveOptions(motion_scale=bad)
+
+
+def test_a_chain_too_stiff_for_the_solver_is_loosened_alone():
+    """A marker unseen for 40 frames, smoothed far too stiffly, makes GTSAM's elimination
+    indeterminate; :func:`graph.fte.loosening` loosens that marker's scale alone until it solves."""
+    from graph import problem
+    from graph.fte import TrajectoryProblem, loosening, optimise
+    from graph.initial import initial_poses
+    from graph.triangulate import robust_points
+
+    cal = load_calibration(default_rig_path())
+    run = random_jerk_run(cal, frames=80, markers=3, seed=1)
+    for k in run.keypoints:
+        k.xy[20:60, 1] = np.nan  # p2 unseen by every camera
+    prob = problem.build(run.keypoints, cal, SolveOptions(skeleton="points", fps=run.fps, motion_scale="auto"))
+    X, _, _ = robust_points(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
+    tp = TrajectoryProblem(prob, np.zeros((prob.frames, prob.skeleton.n_params)), None)
+    tp.Q0 = initial_poses(prob, X)
+    tp.set_motion_scales(np.array([1.0, 1e-8, 1.0]))
+    with pytest.raises(RuntimeError, match="ndeterminate"):
+        optimise(tp, tp.Q0.copy(), 20, stretches=(1.0,))
+    Q, _, _ = loosening(tp, lambda: optimise(tp, tp.Q0.copy(), 20, stretches=(1.0,)))
+    assert set(tp.loosened) == {1} and np.isfinite(Q).all()
+    assert tp.motion_scales[0] == 1.0 and tp.motion_scales[2] == 1.0 and 1e-8 < tp.motion_scales[1] <= 1e-2
