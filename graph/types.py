@@ -83,8 +83,6 @@ class SolveOptions:
                                                  and 0 < self.motion_scale <= MAX_MOTION_SCALE):
             raise ValueError(f"motion_scale must be positive and at most {MAX_MOTION_SCALE:g}, or 'auto', "
                              f"not {self.motion_scale!r}")
-        if self.motion_scale == "auto" and self.method == "ekf":
-            raise ValueError("motion_scale 'auto' is fitted by the fte smoother; ekf takes a number")
         if not (0 < self.lag_seconds <= MAX_LAG_SECONDS):
             raise ValueError(f"lag_seconds must be positive and at most {MAX_LAG_SECONDS:g}, not {self.lag_seconds}")
         if self.body not in BODIES:
