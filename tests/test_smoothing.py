@@ -147,3 +147,18 @@ def test_a_chain_too_stiff_for_the_solver_is_loosened_alone():
     Q, _, _ = loosening(tp, lambda: optimise(tp, tp.Q0.copy(), 20, stretches=(1.0,)))
     assert set(tp.loosened) == {1} and np.isfinite(Q).all()
     assert tp.motion_scales[0] == 1.0 and tp.motion_scales[2] == 1.0 and 1e-8 < tp.motion_scales[1] <= 1e-2
+
+
+def test_a_motion_model_far_looser_than_the_motion_is_named():
+    """A process noise far above what the detections resolve (as a cheetah's on a fly's legs, or
+    here a scale of 10^4 on a cheetah run) smooths nothing, and the report says so; at the default,
+    or fitted, it says nothing."""
+    cal = load_calibration(default_rig_path())
+    run = simulate_run(cal, frames=120, seed=6)
+    for skeleton in ("cheetah", "points"):
+        kw = dict(skeleton=skeleton, fps=run.fps, uncertainty=False)
+        loose = solve(run.keypoints, cal, SolveOptions(motion_scale=1e4, **kw))
+        assert any("looser than the motion" in w for w in loose.report.warnings)
+        for scale in (1.0, "auto"):
+            r = solve(run.keypoints, cal, SolveOptions(motion_scale=scale, **kw))
+            assert not any("looser than the motion" in w for w in r.report.warnings)
