@@ -20,6 +20,7 @@ from graph.skeleton import available_skeletons, load_skeleton
 from service import metrics
 from service.auth import current_user
 from service.batches import BatchService
+from service.calibrations import calibration_upload
 from service.jobs import JobService, Upload
 from service.jobfiles import DOWNLOADS, download_name
 from service.models import (BatchOut, Disk, ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
@@ -98,7 +99,11 @@ def submit_job(
     keypoints: Annotated[list[UploadFile], File(
         description="DeepLabCut keypoints (.csv or .h5), one file per camera, repeated, in the calibration's order",
         json_schema_extra={"minItems": 1})],
-    calibration: Annotated[UploadFile, File(description="AcinoSet scene JSON or Anipose calibration TOML")],
+    calibration: Annotated[UploadFile, File(
+        description="AcinoSet scene JSON or Anipose calibration TOML (or give calibration_id)")] = None,
+    calibration_id: Annotated[str, Form(
+        description="instead of a calibration file: the id of one of the caller's succeeded calibrations "
+                    "(POST /v1/calibrations)")] = None,
     options: Annotated[str, Form(
         description='JSON object of solve options, e.g. {"method": "fte", "fps": 120, "skeleton": "cheetah", '
                     '"likelihood_threshold": 0.5, "measurement_std_px": 5}; measurement_std_px "auto" measures '
@@ -111,8 +116,10 @@ def submit_job(
 ) -> JobOut:
     """Validate the files with the library's readers, store them and queue the solve. Answers 202 with
     the job; poll its ``links.self`` until ``status`` is ``succeeded`` or ``failed``."""
-    job = jobs.submit(user, [Upload(f.filename, f.file) for f in keypoints], Upload(calibration.filename, calibration.file),
-                      options, Upload(skeleton.filename, skeleton.file) if skeleton is not None else None)
+    given = Upload(calibration.filename, calibration.file) if calibration is not None else None
+    with calibration_upload(jobs, user, given, calibration_id) as cal:
+        job = jobs.submit(user, [Upload(f.filename, f.file) for f in keypoints], cal,
+                          options, Upload(skeleton.filename, skeleton.file) if skeleton is not None else None)
     out = job_out(job)
     response.headers["Location"] = out.links.self
     return out
