@@ -93,7 +93,9 @@ JobBackend = Annotated[Backend, Depends(_backend)]
                          "server's limits"),
                507: _err("The server's disk or its storage for jobs is full"),
                422: _err("A file the readers refuse (the detail names it), or bad options"),
-               429: _err("The caller already has the most queued and running jobs allowed")})
+               429: _err("The caller already has the most queued and running jobs allowed"),
+               404: _err("calibration_id names no succeeded calibration of the caller"),
+               409: _err("calibration_id names a calibration that has not succeeded (yet)")})
 def submit_job(
     user: CurrentUser, jobs: Jobs, response: Response,
     keypoints: Annotated[list[UploadFile], File(
@@ -215,7 +217,11 @@ Batches = Annotated[BatchService, Depends(_batches)]
 @router.post(
     "/v1/batches", status_code=202, response_model=BatchOut, tags=["batches"],
     summary="Submit an Anipose project: a job per trial",
-    responses={413: _err("The archive is over this server's upload limit"),
+    responses={400: _err("The body is not valid multipart/form-data"),
+               408: _err("The upload stalled or took too long"),
+               503: _err("Too many uploads arriving at once; try again after Retry-After seconds"),
+               507: _err("The server's disk or its storage for jobs is full"),
+               413: _err("The archive is over this server's upload limit"),
                422: _err("Not a zip, no config.toml, no trials, or bad options"),
                429: _err("More trials than the caller may still queue")})
 def submit_batch(

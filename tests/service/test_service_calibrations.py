@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from servers import Server, add_user, wait_finished
+from servers import Redis, Server, add_user, have_redis, wait_finished, worker
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "acinoset_calib"
 EX1 = [DATA / "Ex1_static" / f"points_cam{n}.json" for n in (3, 4)]
@@ -201,3 +201,26 @@ def test_cameras_with_no_shared_view_fail_with_the_reason(alice, tmp_path):
     assert alice.get(f"/v1/calibrations/{cal['id']}/calibration.toml").status_code == 409
     assert alice.delete(f"/v1/calibrations/{cal['id']}").status_code == 204
     assert alice.get(f"/v1/calibrations/{cal['id']}").status_code == 404
+
+
+@pytest.mark.skipif(not have_redis(), reason="needs Debian's redis-server (.ci/run installs it)")
+def test_a_calibration_runs_on_an_rq_worker(tmp_path, ex1, alice):
+    """The inputs travel to an RQ worker and the rig's files back: the same files as the embedded run."""
+    redis = Redis(tmp_path / "redis", tmp_path / "redis.log").start()
+    procs = [redis]
+    try:
+        token = add_user(tmp_path / "data", "rita")
+        procs.append(Server(tmp_path / "data", tmp_path / "server.log", backend="rq", redis_url=redis.url).start())
+        procs.append(worker(redis.url, tmp_path / "w1.log", "w1").start())
+        with procs[1].client(token) as c:
+            r = post_calibration(c)
+            assert r.status_code == 202, r.text
+            cal = wait_calibration(c, r.json()["id"])
+            assert cal["status"] == "succeeded" and cal["worker"] == "w1", cal
+            assert sorted(cal["links"]) == sorted(ex1["links"])
+            assert cal["report"]["baselines_m"] == pytest.approx(ex1["report"]["baselines_m"], rel=1e-6)
+            for name in ("calibration.toml", "scene.json"):
+                assert c.get(cal["links"][name]).content == alice.get(ex1["links"][name]).content
+    finally:
+        for p in reversed(procs):
+            p.stop(10)
