@@ -7,13 +7,14 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Depends, File, Form, Response, Security, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Query, Response, Security, UploadFile
 from fastapi.responses import FileResponse
 
 from service.calibrations import CalibrationService
 from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
 from service.jobs import Upload
-from service.models import CalibrationOut, calibration_out
+from service.models import CalibrationList, CalibrationOut, calibration_out
+from service.store import JobStatus
 from service.routes import AUTH_ERRORS, BAD_REQUEST, BEARER, SERVER_ERROR, CurrentUser, Jobs, _err
 
 router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR}, dependencies=[Security(BEARER)],
@@ -62,6 +63,19 @@ def submit_calibration(
     out = calibration_out(job)
     response.headers["Location"] = out.links["self"]
     return out
+
+
+@router.get("/v1/calibrations", response_model=CalibrationList, summary="List calibrations")
+def list_calibrations(
+    user: CurrentUser, calibrations: Calibrations,
+    status: Annotated[list[JobStatus] | None, Query(description="only calibrations in these states")] = None,
+    limit: Annotated[int, Query(ge=1, description="calibrations per page (at most 500)")] = 50,
+    cursor: Annotated[str | None, Query(pattern=r"^[0-9]{1,18}$", description="next_cursor of the previous page")] = None,
+) -> CalibrationList:
+    """The caller's calibrations, newest first (an admin's call lists everyone's)."""
+    rows, total, nxt = calibrations.jobs.list(user, list(status) if status else None, limit, cursor, None,
+                                              kind=CALIBRATION_KIND)
+    return CalibrationList(calibrations=[calibration_out(j) for j in rows], total=total, next_cursor=nxt)
 
 
 @router.get("/v1/calibrations/{calibration_id}", response_model=CalibrationOut, summary="A calibration's status",

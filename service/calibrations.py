@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import shutil
 import sqlite3
 from pathlib import Path
@@ -206,6 +205,7 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
     from graph.calibrate.cli import load_camera_json
     from graph.calibrate.report import write_figures
     from graph.calibration import write_acinoset_json, write_anipose_toml
+    from graph.types import jsonable
 
     progress.report(READING, 0.0)
     m = read_manifest(input_dir)
@@ -223,24 +223,8 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
             write_acinoset_json(out_dir / "scene.json", result.calibration)
         except ValueError:  # cameras of several resolutions: AcinoSet's scene holds one
             pass
-    report = _plain(result.to_dict())
+    report = jsonable(result.to_dict())
     (out_dir / "report.json").write_text(json.dumps(report, indent=2))
     write_figures(result, out_dir, board)
     return {**report, "files": jobfiles.written_outputs(out_dir)}
 
-
-def _plain(x):
-    """``x`` as JSON's types (numpy scalars and arrays to Python; NaN and infinities to None)."""
-    import numpy as np
-
-    if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _plain(x.tolist())
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x

@@ -302,7 +302,7 @@ class JobService:
 
     def list(self, user: User, statuses: list[str] | None, limit: int, cursor: str | None,
              owner: str | None, label: str | None = None, method: str | None = None, since: float | None = None,
-             warnings: bool | None = None) -> tuple[list[Job], int, str | None]:
+             warnings: bool | None = None, kind: str | None = None) -> tuple[list[Job], int, str | None]:
         if statuses:
             bad = [st for st in statuses if st not in STATUSES]
             if bad:
@@ -324,7 +324,7 @@ class JobService:
             raise Forbidden("only admins can list other users' jobs")
         limit = max(1, min(limit, self.settings.page_size_max))
         jobs, total = self.store.jobs(owner_id, statuses, limit + 1, before, label=label, method=method, since=since,
-                                      warnings=warnings)
+                                      warnings=warnings, kind=kind)
         more = len(jobs) > limit
         jobs = jobs[:limit]
         return jobs, total, (str(jobs[-1].seq) if more and jobs else None)

@@ -310,3 +310,9 @@ def calibration_out(job: Job, base: str = "/v1/calibrations") -> CalibrationOut:
         options={k: v for k, v in job.options.items() if k != "kind"}, inputs=CalibrationInputs(**job.inputs),
         error=without_paths(job.error), error_kind=job.error_kind if job.status == "failed" else None,
         worker=job.worker, report=job.summary if job.status == "succeeded" else None, links=links)
+
+
+class CalibrationList(BaseModel):
+    calibrations: list[CalibrationOut]
+    total: int = Field(description="calibrations matching the filter, on all pages")
+    next_cursor: str | None = Field(None, description="pass as ?cursor= for the next page")

@@ -155,6 +155,11 @@ def test_other_users_get_404(ex1, bob, alice):
     assert alice.get(f"/v1/jobs/{cal_id}").status_code == 404
     assert cal_id not in [j["id"] for j in alice.get("/v1/jobs").json()["jobs"]]
     assert alice.get(f"/v1/calibrations/{cal_id}").status_code == 200
+    # the list: alice's own calibrations, none of them for bob
+    mine = alice.get("/v1/calibrations", params={"status": "succeeded"}).json()
+    assert cal_id in [c["id"] for c in mine["calibrations"]] and mine["total"] >= 1
+    assert all(c["owner"] == "alice" for c in mine["calibrations"])
+    assert bob.get("/v1/calibrations").json() == {"calibrations": [], "total": 0, "next_cursor": None}
 
 
 @pytest.mark.parametrize("case, status, fragment", [
