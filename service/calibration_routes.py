@@ -43,23 +43,29 @@ Calibrations = Annotated[CalibrationService, Depends(_calibrations)]
                507: _err("The server's disk or its storage for jobs is full")})
 def submit_calibration(
     user: CurrentUser, calibrations: Calibrations, response: Response,
+    board: Annotated[str, Form(description="checkerboard:COLSxROWS:SQUARE_M (inner corners, square side in metres) "
+                                           "or charuco:SQUARESXxSQUARESY:SQUARE_M:MARKER_M:DICT")],
     detections: Annotated[list[UploadFile], File(
         description="board detections, AcinoSet's detections JSON (board_shape, board_square_len, "
                     "camera_resolution, points: {frame: corners}), one per camera, repeated, in camera order; views "
-                    "are matched across cameras by frame name", json_schema_extra={"minItems": 2})],
-    board: Annotated[str, Form(description="checkerboard:COLSxROWS:SQUARE_M (inner corners, square side in metres) "
-                                           "or charuco:SQUARESXxSQUARESY:SQUARE_M:MARKER_M:DICT")],
+                    "are matched across cameras by frame name (or give videos)")] = None,
+    videos: Annotated[list[UploadFile], File(
+        description="instead of detections: a short video of the board per camera, in camera order, filmed at the "
+                    "same instants (frames are matched by index); the board is found on the server in every "
+                    "options.every-th frame")] = None,
     intrinsics: Annotated[list[UploadFile], File(
         description="optional: each camera's intrinsics (AcinoSet camera JSON: camera_resolution, k, d), in camera "
                     "order; calibrated from the views if not given")] = None,
     options: Annotated[str, Form(description='JSON object: {"model": "fisheye" (default) or "pinhole", "origin": '
-                                             '"camera1" (default) or "board:FRAME", "label": "..."}')] = "{}",
+                                             '"camera1" (default) or "board:FRAME", "every": N (videos: every N-th '
+                                             'frame, default 1), "label": "..."}')] = "{}",
 ) -> CalibrationOut:
     """Check the files (each detections file is read against the board), store them and queue the
     calibration: one bundle adjustment of camera and board poses. Answers 202; poll ``links.self``
     until ``status`` is ``succeeded`` (then ``report`` and a link per output file) or ``failed``."""
-    job = calibrations.submit(user, [Upload(f.filename, f.file) for f in detections],
-                              [Upload(f.filename, f.file) for f in intrinsics or []], board, options)
+    job = calibrations.submit(user, [Upload(f.filename, f.file) for f in detections or []],
+                              [Upload(f.filename, f.file) for f in intrinsics or []], board, options,
+                              [Upload(f.filename, f.file) for f in videos or []])
     out = calibration_out(job)
     response.headers["Location"] = out.links["self"]
     return out

@@ -36,14 +36,16 @@ from service.jobs import JobService, Upload, _label, _size, safe_name
 from service.store import READING, WRITING, Job, QuotaExceeded, User
 
 DETECTIONS_DIR = "detections"
+VIDEOS_DIR = "videos"
 INTRINSICS_DIR = "intrinsics"
 MODELS = ("fisheye", "pinhole")
-OPTION_NAMES = ("model", "origin", "label")
+OPTION_NAMES = ("model", "origin", "every", "label")
 
 
 def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
     """The board spec and the ``options`` JSON object (``model``: fisheye|pinhole, ``origin``:
-    camera1|board:FRAME, ``label``) as the job's options, and its label. Refusals are one line."""
+    camera1|board:FRAME, ``every``: use every N-th frame of videos, ``label``) as the job's options,
+    and its label. Refusals are one line."""
     from graph.calibrate import parse_board
 
     try:
@@ -66,7 +68,10 @@ def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
     origin = data.get("origin", "camera1")
     if not isinstance(origin, str) or not (origin == "camera1" or (origin.startswith("board:") and origin[6:])):
         raise Unprocessable(f"options: origin must be camera1 or board:FRAME, not {origin!r}")
-    return {"kind": CALIBRATION_KIND, "board": board.spec, "model": model, "origin": origin}, label
+    every = data.get("every", 1)
+    if not isinstance(every, int) or isinstance(every, bool) or every < 1:
+        raise Unprocessable(f"options: every must be a whole number of frames, at least 1, not {every!r}")
+    return {"kind": CALIBRATION_KIND, "board": board.spec, "model": model, "origin": origin, "every": every}, label
 
 
 class CalibrationService:
@@ -76,14 +81,20 @@ class CalibrationService:
         self.jobs = jobs
 
     def submit(self, user: User, detections: list[Upload], intrinsics: list[Upload], board_spec: str,
-               options_text: str | None) -> Job:
-        """Check the uploads (every detections file read against the board), store them, queue the job."""
+               options_text: str | None, videos: list[Upload] | None = None) -> Job:
+        """Check the uploads (every detections file read against the board, every video opened),
+        store them, queue the job. ``detections`` or ``videos``, one per camera, not both."""
         s = self.jobs.settings
+        videos = videos or []
+        if detections and videos:
+            raise Unprocessable("upload detections or videos (one per camera), not both")
+        kind = "videos" if videos else "detections"
+        detections = detections or videos
         if len(detections) < 2:
-            raise Unprocessable(f"detections: {len(detections)} file(s); a rig needs at least two cameras, one "
-                                "detections JSON each, in camera order")
+            raise Unprocessable(f"{kind}: {len(detections)} file(s); a rig needs at least two cameras, one "
+                                "detections JSON or video each, in camera order")
         if len(detections) > s.max_cameras:
-            raise TooLarge(f"{len(detections)} detections files; this server takes at most {s.max_cameras} "
+            raise TooLarge(f"{len(detections)} {kind} files; this server takes at most {s.max_cameras} "
                            "cameras per job (ACINOSET_MAX_CAMERAS)")
         if intrinsics and len(intrinsics) != len(detections):
             raise Unprocessable(f"intrinsics: {len(intrinsics)} files for {len(detections)} cameras; upload one "
@@ -92,7 +103,7 @@ class CalibrationService:
         self.jobs.check_quota(user)
         self.jobs.check_storage(user, sum(_size(u.file) for u in [*detections, *intrinsics]))
         try:
-            job_id, inputs = self._store_upload(detections, intrinsics, options)
+            job_id, inputs = self._store_upload(detections, intrinsics, options, videos=bool(videos))
             try:
                 job = self.jobs.store.insert_job(job_id, user.id, self.jobs.backend.name, options, inputs,
                                                  s.max_attempts, max_active=s.max_active_jobs_per_user, label=label)
@@ -109,7 +120,8 @@ class CalibrationService:
         self.jobs.backend.submit(job.id)
         return job
 
-    def _store_upload(self, detections: list[Upload], intrinsics: list[Upload], options: dict) -> tuple[str, dict]:
+    def _store_upload(self, detections: list[Upload], intrinsics: list[Upload], options: dict,
+                      videos: bool = False) -> tuple[str, dict]:
         from graph.calibrate import parse_board, read_detections
         from graph.calibrate.cli import load_camera_json
 
@@ -119,13 +131,16 @@ class CalibrationService:
         staging = staging_dir(s.jobs_dir, job_id)
         input_dir = staging / INPUT
         try:
-            det_paths = [_save(u, input_dir / DETECTIONS_DIR / f"{i + 1:02d}", f"camera{i + 1}.json")
+            det_paths = [_save(u, input_dir / (VIDEOS_DIR if videos else DETECTIONS_DIR) / f"{i + 1:02d}",
+                               f"camera{i + 1}.mp4" if videos else f"camera{i + 1}.json", videos)
                          for i, u in enumerate(detections)]
             cam_paths = [_save(u, input_dir / INTRINSICS_DIR / f"{i + 1:02d}", f"camera{i + 1}.json")
                          for i, u in enumerate(intrinsics)]
             described = []
             try:
-                for p in det_paths:
+                for p in det_paths if videos else []:
+                    described.append({"name": p.name, "bytes": p.stat().st_size, **_video_facts(p)})
+                for p in [] if videos else det_paths:
                     views = read_detections(p, board)
                     described.append({"name": p.name, "bytes": p.stat().st_size, "views": len(views.frames),
                                       "resolution": list(views.image_size)})
@@ -133,10 +148,10 @@ class CalibrationService:
                     load_camera_json(str(p))
             except InputError as e:
                 raise Unprocessable(str(e)) from None
-            inputs = {"cameras": len(det_paths), "detections": described,
+            inputs = {"cameras": len(det_paths), "videos" if videos else "detections": described,
                       "intrinsics": [{"name": p.name, "bytes": p.stat().st_size} for p in cam_paths]}
             rel = lambda p: p.relative_to(input_dir).as_posix()  # noqa: E731
-            manifest = {"kind": CALIBRATION_KIND, "detections": [rel(p) for p in det_paths],
+            manifest = {"kind": CALIBRATION_KIND, "videos" if videos else "detections": [rel(p) for p in det_paths],
                         "intrinsics": [rel(p) for p in cam_paths], "options": options}
             jobfiles.write_manifest(input_dir, manifest)
             staging.replace(jobfiles.job_dir(s.jobs_dir, job_id))
@@ -184,15 +199,34 @@ def calibration_upload(jobs: JobService, user: User, upload: Upload | None,
         yield Upload("calibration.toml", f)
 
 
-def _save(upload: Upload, dest_dir: Path, default: str) -> Path:
+def _save(upload: Upload, dest_dir: Path, default: str, video: bool = False) -> Path:
+    from graph.calibrate.detect import VIDEO_SUFFIXES
+
     name = safe_name(upload.filename, default)
-    if not name.lower().endswith(".json"):
+    if video and Path(name).suffix.lower() not in VIDEO_SUFFIXES:
+        raise Unprocessable(f"{name}: not a video file name (one of {', '.join(VIDEO_SUFFIXES)})")
+    if not video and not name.lower().endswith(".json"):
         name += ".json"
     dest_dir.mkdir(parents=True, exist_ok=True)
     path = dest_dir / name
     with open(path, "wb") as f:
         shutil.copyfileobj(upload.file, f, 1 << 20)
     return path
+
+
+def _video_facts(path: Path) -> dict:
+    """Frames and size of a video, from its first frame; :class:`Unprocessable` if OpenCV cannot read it."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    try:
+        ok, frame = cap.read() if cap.isOpened() else (False, None)
+        if not ok:
+            raise Unprocessable(f"{path.name}: not a video OpenCV can read")
+        return {"frames": int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None,
+                "resolution": [int(frame.shape[1]), int(frame.shape[0])]}
+    finally:
+        cap.release()
 
 
 # -- the run (in the worker's process) -----------------------------------------------------------
@@ -203,18 +237,26 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
     report (:meth:`graph.calibrate.RigResult.to_dict`) as plain JSON, the job's summary."""
     from graph.calibrate import calibrate_extrinsics, parse_board, read_detections
     from graph.calibrate.cli import load_camera_json
+    from graph.calibrate.detect import detect_views
     from graph.calibrate.report import write_figures
     from graph.calibration import write_acinoset_json, write_anipose_toml
-    from graph.types import jsonable
+    from graph.types import Progress, jsonable
 
     progress.report(READING, 0.0)
     m = read_manifest(input_dir)
     opts = m["options"]
     board = parse_board(opts["board"])
-    views = [read_detections(inside(input_dir, rel), board, name=f"cam{i + 1}") for i, rel in enumerate(m["detections"])]
+    if m.get("videos"):  # the board found in every ``every``-th frame, the progress per video
+        n = len(m["videos"])
+        views = [detect_views(inside(input_dir, rel), board, every=opts.get("every", 1), cache=False, name=f"cam{i + 1}",
+                              progress=lambda done, total, i=i: progress(Progress("detect", (i + done / max(total, 1)) / n)))
+                 for i, rel in enumerate(m["videos"])]
+    else:
+        views = [read_detections(inside(input_dir, rel), board, name=f"cam{i + 1}")
+                 for i, rel in enumerate(m["detections"])]
     intrinsics = [load_camera_json(str(inside(input_dir, rel))) for rel in m.get("intrinsics", [])] or None
     result = calibrate_extrinsics(views, board, intrinsics, model=opts["model"], origin=opts["origin"],
-                                  progress=lambda stage, fraction: progress.report(stage, fraction))
+                                  progress=lambda stage, fraction: progress(Progress(stage, fraction)))
     progress.report(WRITING, 1.0, result.iterations)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_anipose_toml(out_dir / "calibration.toml", result.calibration)

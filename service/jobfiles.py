@@ -203,5 +203,6 @@ def input_archive(input_dir: Path) -> bytes:
     """What an RQ worker needs to run a job: the manifest and the input files, zipped."""
     m = read_manifest(input_dir)
     rels = [MANIFEST, *m.get("keypoints", []), *([m["calibration"]] if m.get("calibration") else []),
-            *([m["skeleton"]] if m.get("skeleton") else []), *m.get("detections", []), *m.get("intrinsics", [])]
+            *([m["skeleton"]] if m.get("skeleton") else []), *m.get("detections", []), *m.get("videos", []),
+            *m.get("intrinsics", [])]
     return pack_files(input_dir, rels)

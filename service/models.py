@@ -269,12 +269,14 @@ class CalibrationInput(BaseModel):
     name: str = Field(description="the file name as stored (the uploaded name, made safe)")
     bytes: int
     views: int | None = Field(None, description="board views in a detections file")
+    frames: int | None = Field(None, description="frames of a video")
     resolution: list[int] | None = Field(None, description="[width, height] of the camera's images")
 
 
 class CalibrationInputs(BaseModel):
     cameras: int
-    detections: list[CalibrationInput] = Field(description="one per camera, in camera order")
+    detections: list[CalibrationInput] = Field(default_factory=list, description="one per camera, in camera order")
+    videos: list[CalibrationInput] = Field(default_factory=list, description="one per camera, if videos were given")
     intrinsics: list[CalibrationInput] = Field(default_factory=list, description="camera JSON per camera, if given")
 
 

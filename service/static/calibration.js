@@ -38,8 +38,9 @@
     fact("Board", o.board);
     fact("Camera model", o.model);
     fact("World frame", o.origin === "camera1" ? "camera 1 at the origin" : `the board of view ${String(o.origin).slice(6)}`);
-    fact("Detections", el("ul", { class: "plain" }, (i.detections || []).map((d, k) =>
-      el("li", { text: `camera ${k + 1}: ${d.name} (${d.views} views)` }))));
+    const sources = (i.videos || []).length ? i.videos : (i.detections || []);
+    fact((i.videos || []).length ? "Videos" : "Detections", el("ul", { class: "plain" }, sources.map((d, k) =>
+      el("li", { text: `camera ${k + 1}: ${d.name}` + (d.views != null ? ` (${d.views} views)` : d.frames != null ? ` (${d.frames} frames)` : "") }))));
     if ((i.intrinsics || []).length) fact("Intrinsics", (i.intrinsics || []).map((d) => d.name).join(", "));
     fact("Submitted", A.fmtDate(t.created_at));
     fact("Ran", t.run_seconds != null ? A.fmtSeconds(t.run_seconds) : null);

@@ -226,6 +226,70 @@ def test_a_calibration_runs_on_an_rq_worker(tmp_path, ex1, alice):
             assert cal["report"]["baselines_m"] == pytest.approx(ex1["report"]["baselines_m"], rel=1e-6)
             for name in ("calibration.toml", "scene.json"):
                 assert c.get(cal["links"][name]).content == alice.get(ex1["links"][name]).content
+            # videos travel too, and the board is found on the worker
+            videos, baseline = _film_board(tmp_path, 20)
+            r = c.post("/v1/calibrations", files=[("videos", (p.name, p.read_bytes(), "video/x-msvideo")) for p in videos],
+                       data={"board": "checkerboard:9x6:0.05", "options": json.dumps({"model": "pinhole"})})
+            assert r.status_code == 202, r.text
+            cal = wait_calibration(c, r.json()["id"])
+            assert cal["status"] == "succeeded" and cal["worker"] == "w1", cal
+            assert abs(cal["report"]["baselines_m"]["cam1-cam2"] - baseline) < 0.03 * baseline
     finally:
         for p in reversed(procs):
             p.stop(10)
+
+
+def _film_board(out: Path, views: int) -> tuple[list[Path], float]:
+    """Two pinhole cameras 0.3 m apart, toed in, filming a 9x6 board moved through the space they share
+    (rendered frames, MJPG AVI): the videos and the true baseline."""
+    import cv2
+
+    from graph.calibrate import parse_board
+    from graph.calibrate.simulate import render_board, rig_views
+    from graph.camera import PINHOLE, Calibration, Camera
+
+    def camera(x: float, yaw_deg: float) -> Camera:
+        c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+        R = np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]])
+        return Camera(K=[[600, 0, 320], [0, 600, 240], [0, 0, 1]], dist=np.zeros(5), R=R, t=-R @ [x, 0, 0],
+                      model=PINHOLE, size=(640, 480))
+
+    board = parse_board("checkerboard:9x6:0.05")
+    rig = Calibration(cameras=[camera(0.0, 4), camera(0.3, -4)])
+    _, poses = rig_views(rig, board, n_views=views, noise_px=0.0, seed=1)
+    paths = []
+    for i, cam in enumerate(rig.cameras):
+        paths.append(out / f"cam{i + 1}.avi")
+        writer = cv2.VideoWriter(str(paths[-1]), cv2.VideoWriter_fourcc(*"MJPG"), 30, (640, 480), isColor=False)
+        for k, (Rw, tw) in enumerate(poses.values()):
+            writer.write(render_board(cam, board, cam.R @ Rw, cam.R @ tw + cam.t, seed=k)[0])
+        writer.release()
+    return paths, float(np.linalg.norm(rig.cameras[0].center - rig.cameras[1].center))
+
+
+def test_a_calibration_from_videos(alice, tmp_path):
+    """Short videos instead of detections: the server finds the board in every frame and calibrates
+    the pinhole pair (intrinsics too) to its true baseline within 2 %."""
+    videos, baseline = _film_board(tmp_path, 30)
+    files = [("videos", (p.name, p.read_bytes(), "video/x-msvideo")) for p in videos]
+    r = alice.post("/v1/calibrations", files=files,
+                   data={"board": "checkerboard:9x6:0.05", "options": json.dumps({"model": "pinhole"})})
+    assert r.status_code == 202, r.text
+    assert [v["frames"] for v in r.json()["inputs"]["videos"]] == [30, 30]
+    cal = wait_calibration(alice, r.json()["id"])
+    assert cal["status"] == "succeeded", cal["error"]
+    rep = cal["report"]
+    assert abs(rep["baselines_m"]["cam1-cam2"] - baseline) < 0.02 * baseline, rep["baselines_m"]
+    assert rep["rms_px"] < 1.0 and rep["frames_used"] >= 10
+    assert "scene.json" not in cal["links"]  # AcinoSet's scene holds fisheye cameras only
+    assert alice.get(cal["links"]["calibration.toml"]).status_code == 200
+    # a file that is not a video, and videos with detections: one-line 422s
+    bad = tmp_path / "cam2.avi"
+    bad.write_bytes(b"not a video at all")
+    files = [("videos", (p.name, p.read_bytes(), "video/x-msvideo")) for p in (videos[0], bad)]
+    r = alice.post("/v1/calibrations", files=files, data={"board": "checkerboard:9x6:0.05"})
+    assert r.status_code == 422 and r.json()["detail"] == "cam2.avi: not a video OpenCV can read", r.text
+    files = [("videos", (p.name, p.read_bytes(), "video/x-msvideo")) for p in videos]
+    files += [("detections", (p.name, p.read_bytes(), "application/json")) for p in EX1]
+    r = alice.post("/v1/calibrations", files=files, data={"board": board_spec()})
+    assert r.status_code == 422 and "not both" in r.json()["detail"], r.text
