@@ -297,13 +297,14 @@ class CalibrationOut(BaseModel):
     report: dict[str, Any] | None = Field(
         None, description="once succeeded: rms_px, per camera (name, rms_px, views_used, views_dropped, position "
                           "and rotation uncertainty), the overlap graph, baselines_m, warnings")
-    links: dict[str, str] = Field(description="self, cancel, and once succeeded one link per output file")
+    links: dict[str, str] = Field(description="self, cancel, page (the web page), and once succeeded one link per "
+                                              "output file")
 
 
 def calibration_out(job: Job, base: str = "/v1/calibrations") -> CalibrationOut:
     """A calibration job as the API shows it (the same row as a solve, other inputs and outputs)."""
     href = f"{base}/{job.id}"
-    links = {"self": href, "cancel": href}
+    links = {"self": href, "cancel": href, "page": f"/calibrations/{job.id}"}
     if job.status == "succeeded":
         links.update({name: f"{href}/{name}" for name in job.summary.get("files", [])} if job.summary else {})
     return CalibrationOut(

@@ -84,7 +84,7 @@ def test_ex1_detections_give_acinoset_baseline(ex1, alice, tmp_path):
     rep = ex1["report"]
     assert abs(rep["baselines_m"]["cam1-cam2"] - SBA_BASELINE_M) <= 0.01 * SBA_BASELINE_M, rep["baselines_m"]
     assert rep["rms_px"] <= 1.5 and [c["views_used"] for c in rep["cameras"]] == [10, 10]
-    assert sorted(ex1["links"]) == sorted(["self", "cancel", "calibration.toml", "scene.json", "report.json",
+    assert sorted(ex1["links"]) == sorted(["self", "cancel", "page", "calibration.toml", "scene.json", "report.json",
                                            "rig.png", "residuals.png", "coverage.png"])
     for name in ("calibration.toml", "scene.json"):  # read back with the library's own readers
         r = alice.get(ex1["links"][name])
