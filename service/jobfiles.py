@@ -38,6 +38,7 @@ _STAGING = ".upload-"
 MANIFEST = "manifest.json"
 CALIBRATION_DIR = "calibration"
 SKELETON_DIR = "skeleton"
+CALIBRATION_KIND = "calibration"  # a manifest's and a job's options' "kind" for a calibration job (else a solve)
 RESULT_FILES: dict[str, tuple[str, str]] = {  # download format: (file in the job's result dir, media type)
     "csv": ("result.csv", "text/csv"),
     "h5": ("result.h5", "application/x-hdf5"),
@@ -53,6 +54,12 @@ EXPORT_FILES: dict[str, tuple[str, str]] = {
     "csv-var": ("result.var.csv", "text/csv"),
 }
 DOWNLOADS: dict[str, tuple[str, str]] = {**RESULT_FILES, **EXPORT_FILES}
+# what a calibration job writes in its result dir (service.calibrations): file name -> media type
+CALIBRATION_FILES: dict[str, str] = {
+    "calibration.toml": "application/toml", "scene.json": "application/json", "report.json": "application/json",
+    "rig.png": "image/png", "residuals.png": "image/png", "coverage.png": "image/png"}
+# every file a run may hand back (a worker packs those it wrote; the server unpacks only these)
+OUTPUT_NAMES: tuple[str, ...] = tuple(dict.fromkeys([*RESULT_NAMES, *CALIBRATION_FILES]))
 
 
 def new_job_id() -> str:
@@ -156,6 +163,11 @@ def result_key(token: str) -> str:
     return f"acinoset:result:{token}"
 
 
+def written_outputs(out_dir: Path) -> list[str]:
+    """The files of :data:`OUTPUT_NAMES` that a run wrote into ``out_dir``."""
+    return [name for name in OUTPUT_NAMES if (Path(out_dir) / name).is_file()]
+
+
 def pack_files(base: Path, rels: list[str]) -> bytes:
     """Files under ``base`` as one zip archive (deflate, fast level), names relative to ``base``."""
     import io
@@ -190,5 +202,7 @@ def unpack_files(archive: bytes, base: Path, allowed: tuple[str, ...] | None = N
 def input_archive(input_dir: Path) -> bytes:
     """What an RQ worker needs to run a job: the manifest and the input files, zipped."""
     m = read_manifest(input_dir)
-    rels = [MANIFEST, *m["keypoints"], m["calibration"], *([m["skeleton"]] if m.get("skeleton") else [])]
+    rels = [MANIFEST, *m.get("keypoints", []), *([m["calibration"]] if m.get("calibration") else []),
+            *([m["skeleton"]] if m.get("skeleton") else []), *m.get("detections", []), *m.get("videos", []),
+            *m.get("intrinsics", [])]
     return pack_files(input_dir, rels)

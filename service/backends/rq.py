@@ -324,7 +324,7 @@ class RQBackend(Backend):
             self._enqueue(fresh)
 
     def _finished(self, row: Job, rj, attempt: int) -> None:
-        from service.jobfiles import RESULT_NAMES, install_result, job_dir, result_key, result_tmp, unpack_files
+        from service.jobfiles import OUTPUT_NAMES, install_result, job_dir, result_key, result_tmp, unpack_files
 
         rv = rj.return_value()
         archive = self.redis.get(result_key(rj.id))
@@ -340,7 +340,7 @@ class RQBackend(Backend):
             dest = job_dir(self.settings.jobs_dir, row.id)
             tmp = result_tmp(dest, rj.id)
             shutil.rmtree(tmp, ignore_errors=True)
-            unpack_files(archive, tmp, allowed=RESULT_NAMES)
+            unpack_files(archive, tmp, allowed=OUTPUT_NAMES)
             self.store.mirror_finished(row.id, rj.id, "succeeded", attempt, summary=rv.get("report"),
                                        solve_seconds=rv.get("seconds"), worker=rv.get("worker"),
                                        commit=lambda: install_result(dest, tmp))
