@@ -54,6 +54,7 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--timing-repeats", type=int, default=5, help="0: accuracy only")
     ap.add_argument("--no-aniposelib", action="store_true")
+    ap.add_argument("--timing-only", action="store_true", help="only the 500-frame speed table")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
     info = h.machine()
@@ -61,7 +62,7 @@ def main() -> int:
           f"{info['cores']} cores, load {info['load_average'][0]:.1f}", flush=True)
     h.warm_up_ours(h.rig())
     out: dict = {"machine": info, "args": vars(args), "rigs": {}}
-    for rig_name, (make, fps) in RIGS.items():
+    for rig_name, (make, fps) in () if args.timing_only else RIGS.items():
         cal = make()
         cg = None if args.no_aniposelib else h.anipose_group(cal)
         cells: dict[str, dict[str, list]] = {}
@@ -125,7 +126,7 @@ def main() -> int:
         timing[name] = t.to_dict()
         print(f"  500 frames {name:28s} median {t.median:.3f} s (best {t.best:.3f}, cpu {t.cpu_median:.3f})", flush=True)
     out["timing_500"] = timing
-    path = h.save("body_sync", out)
+    path = h.save("body_sync_timing" if args.timing_only else "body_sync", out)
     print(f"\nwrote {path}")
     return 0
 

@@ -14,8 +14,11 @@ over the three held-out cameras, and the coverage (share of those detections tha
 What runs, on the same data in one run:
 
 * acinoset ``fte --skeleton points`` (free points, no bones), 300 frames per second assumed (SOURCE.md),
-  every other option at its default, on member 1; the three reconstructions timed in process
-  (wall clock around :func:`graph.api.solve`, compiled kernels loaded by an untimed warm-up);
+  every other option at its default, on member 1; then with ``motion_scale="auto"`` (and with
+  ``measurement_std_px="auto"`` too); then given both members as one ensemble per camera
+  (:func:`graph.ensemble.combine`: their median, their spread weighing cameras and markers), with
+  the same three settings. The three reconstructions timed in process (wall clock around
+  :func:`graph.api.solve`, compiled kernels loaded by an untimed warm-up);
 * aniposelib ``CameraGroup.triangulate_optim`` on member 1 with every option at its default
   (smoothing ``scale_smooth=4``, ``n_deriv_smooth=1``, ``reproj_loss='soft_l1'``,
   ``reproj_error_threshold=15``) and detections below Anipose's score threshold (0.8) set to NaN, as
@@ -40,6 +43,7 @@ import subprocess
 import tempfile
 import time
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import harness as h
@@ -47,6 +51,7 @@ import numpy as np
 
 from graph.api import SolveOptions
 from graph.calibration import load_calibration
+from graph.ensemble import combine
 from graph.keypoints import read_keypoints
 from graph.metrics import leave_one_camera_out
 
@@ -118,8 +123,20 @@ def main() -> int:
     print(f"# fly LOCO: {kps[0].frames} frames, {len(cal)} cameras, {len(kps[0].bodyparts)} keypoints; "
           f"{info['cpu']}, {info['cores']} cores, load {info['load_average'][0]:.1f}", flush=True)
 
-    ours = {"acinoset fte points": SolveOptions(method="fte", skeleton="points", fps=FPS)}
-    methods = {name: (lambda o=o: leave_one_camera_out(kps, cal, o, method=name)) for name, o in ours.items()}
+    ens = [combine([read_keypoints(p) for p in files]) for files in zip(*(member_files(data, m) for m in (1, 2)))]
+    base = SolveOptions(method="fte", skeleton="points", fps=FPS)
+    ours = {  # name: (inputs, options); every one judged against member 1's confident detections
+        "acinoset fte points": (kps, base),
+        "acinoset fte points, motion auto": (kps, replace(base, motion_scale="auto")),
+        "acinoset fte points, motion and noise auto": (kps, replace(base, motion_scale="auto",
+                                                                    measurement_std_px="auto")),
+        "acinoset fte points, ensemble": (ens, base),
+        "acinoset fte points, ensemble, motion auto": (ens, replace(base, motion_scale="auto")),
+        "acinoset fte points, ensemble, motion and noise auto": (ens, replace(base, motion_scale="auto",
+                                                                              measurement_std_px="auto")),
+    }
+    methods = {name: (lambda i=i, o=o, name=name: leave_one_camera_out(i, cal, o, method=name, judge=kps))
+               for name, (i, o) in ours.items()}
     eks_log: list = []
     if not args.skip_aniposelib:
         rec = aniposelib_reconstruct(data, h.ANIPOSE_DEFAULTS["score_threshold"])
@@ -132,7 +149,7 @@ def main() -> int:
 
     # warm-up: acinoset's kernels, aniposelib's numba compile (a short slice)
     short = [type(k)(bodyparts=k.bodyparts, xy=k.xy[:40], likelihood=k.likelihood[:40], source=k.source) for k in kps]
-    for name, o in ours.items():
+    for name, (_, o) in ours.items():
         leave_one_camera_out(short, cal, o)
     if not args.skip_aniposelib:
         leave_one_camera_out(short, cal, reconstruct=aniposelib_reconstruct(data, 0.8))

@@ -161,7 +161,7 @@ def register(sub) -> None:
     """``acinoset solve``."""
     p = sub.add_parser("solve", description="Estimate 3D trajectories from one DeepLabCut CSV/H5 file per camera, "
                        "given in the calibration's camera order.")
-    p.add_argument("keypoints", nargs="+", metavar="CAM.csv", help="DeepLabCut CSV or H5, one per camera")
+    p.add_argument("keypoints", nargs="+", metavar="CAM.csv", help=KEYPOINTS_HELP)
     p.add_argument("--calibration", required=True, metavar="FILE",
                    help="Anipose calibration.toml or AcinoSet scene JSON")
     add_solve_options(p)
@@ -171,6 +171,27 @@ def register(sub) -> None:
     p.add_argument("--reprojections", default=None, metavar="DIR",
                    help="also write the estimate reprojected into each camera as DeepLabCut CSVs")
     p.set_defaults(func=run_solve)
+
+
+KEYPOINTS_HELP = ("DeepLabCut CSV or H5, one per camera in the calibration's order; an ensemble of pose models "
+                  "as CAM_a.csv+CAM_b.csv (one observation, its members' spread weighing the cameras)")
+
+
+def read_cameras(paths: list[str], individual: str | None = None) -> list:
+    """One :class:`~graph.keypoints.Keypoints` per camera argument: a file, or an ensemble's files
+    joined by ``+`` (combined by :func:`graph.ensemble.combine`; a file whose own name has a ``+``
+    is read as one file)."""
+    from graph.keypoints import read_keypoints
+
+    out = []
+    for arg in paths:
+        if "+" in arg and not Path(arg).exists():
+            from graph.ensemble import combine
+
+            out.append(combine([read_keypoints(p, individual=individual) for p in arg.split("+") if p]))
+        else:
+            out.append(read_keypoints(arg, individual=individual))
+    return out
 
 
 def add_solve_options(p) -> None:
@@ -269,7 +290,7 @@ def solve_options(args: argparse.Namespace):
 def run_solve(args: argparse.Namespace) -> int:
     from graph import api
     from graph.calibration import load_calibration
-    from graph.keypoints import check_same_frames, read_keypoints
+    from graph.keypoints import check_same_frames
 
     options = solve_options(args)
     for out in (args.out, args.h5, args.report):
@@ -280,7 +301,7 @@ def run_solve(args: argparse.Namespace) -> int:
     if len(args.keypoints) != len(calibration):
         raise InputError(f"has {len(calibration)} cameras but {len(args.keypoints)} keypoint files "
                          "were given (one per camera, in the calibration's order)", args.calibration)
-    keypoints = [read_keypoints(path, individual=args.individual) for path in args.keypoints]
+    keypoints = read_cameras(args.keypoints, args.individual)
     check_same_frames(keypoints)
 
     from graph.kernels import compile_notice
@@ -304,7 +325,7 @@ def run_solve(args: argparse.Namespace) -> int:
         Path(args.report).write_text(json.dumps(result.report.to_dict(), indent=2) + "\n", encoding="utf-8")
         written.append(args.report)
     if args.reprojections:
-        stems = [f"{Path(p).stem}_reprojected" for p in args.keypoints]
+        stems = [f"{Path(p.split('+')[0] if not Path(p).exists() else p).stem}_reprojected" for p in args.keypoints]
         io.write_reprojections_dlc(args.reprojections, result, stems=stems)
         written.append(args.reprojections)
     rep = result.report

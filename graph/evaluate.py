@@ -18,7 +18,7 @@ from graph.errors import InputError
 
 def register(sub) -> None:
     """``acinoset evaluate`` and its subcommands."""
-    from graph.cli import add_solve_options
+    from graph.cli import KEYPOINTS_HELP, add_solve_options
     from graph.metrics import LOCO_CONFIDENCE
 
     p = sub.add_parser("evaluate", description="Score a 3D method on a recording without 3D truth.")
@@ -27,7 +27,7 @@ def register(sub) -> None:
                             "from the others", description="For each camera: reconstruct from the other cameras "
                             "with the solve options given, project into it and compare with its detections of "
                             "likelihood at least --confidence. Needs three or more cameras.")
-    loco.add_argument("keypoints", nargs="+", metavar="CAM.csv", help="DeepLabCut CSV or H5, one per camera")
+    loco.add_argument("keypoints", nargs="+", metavar="CAM.csv", help=KEYPOINTS_HELP)
     loco.add_argument("--calibration", required=True, metavar="FILE",
                       help="Anipose calibration.toml or AcinoSet scene JSON")
     add_solve_options(loco)
@@ -39,8 +39,7 @@ def register(sub) -> None:
 
 def run_loco(args: argparse.Namespace) -> int:
     from graph.calibration import load_calibration
-    from graph.cli import UsageError, solve_options
-    from graph.keypoints import read_keypoints
+    from graph.cli import UsageError, read_cameras, solve_options
     from graph.metrics import leave_one_camera_out
     from graph.types import jsonable
 
@@ -53,7 +52,7 @@ def run_loco(args: argparse.Namespace) -> int:
     if len(args.keypoints) != len(calibration):
         raise InputError(f"has {len(calibration)} cameras but {len(args.keypoints)} keypoint files "
                          "were given (one per camera, in the calibration's order)", args.calibration)
-    keypoints = [read_keypoints(path, individual=args.individual) for path in args.keypoints]
+    keypoints = read_cameras(args.keypoints, args.individual)
     say = (lambda text: print(f"  {text}", file=sys.stderr, flush=True)) if sys.stderr.isatty() else None
     score = leave_one_camera_out(keypoints, calibration, options, confidence=args.confidence, progress=say)
     for note in score.notes:

@@ -33,6 +33,7 @@ per-marker ``Sigma_p = J_p Sigma_n J_p^T``.
 
 from __future__ import annotations
 
+import re
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
@@ -124,6 +125,7 @@ class TrajectoryProblem:
         else:
             self.groups = [np.arange(P)]
         self.motion_scales = np.full(len(self.groups), 1.0 if scale == "auto" else float(scale))
+        self.loosened: list[int] = []  # groups whose fitted scales were loosened for the solver (-1: all)
         self._motion = self._motion_factors()
         self._ordering = gtsam.Ordering()
         for k in range(len(self.groups) * N):
@@ -131,6 +133,11 @@ class TrajectoryProblem:
 
     def key(self, n: int, group: int) -> int:
         return group * self.N + n
+
+    @property
+    def sigma_cm(self) -> np.ndarray:
+        """The detection noise of each camera and marker (C, M) at the current ``sigma_px``."""
+        return self.prob.sigma_cm(self.sigma_px)
 
     def set_motion_scales(self, scales: np.ndarray) -> None:
         """Each group's process noise scaled by its entry of ``scales``; the motion factors anew."""
@@ -166,7 +173,7 @@ class TrajectoryProblem:
 
     def normals(self, Q, stretch=1.0) -> Normals:
         """The robust measurement cost of every frame at ``Q``, with the loss's knots stretched by ``stretch``."""
-        return Normals(*kernels.all_normals(Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_px,
+        return Normals(*kernels.all_normals(Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_cm,
                                             self.prob.options.robust, RA * stretch, RB * stretch, RC * stretch,
                                             *self.sk_args, self.bones, self.bone_len, self.bone_sigma))
 
@@ -343,9 +350,36 @@ def refit_motion(tp: TrajectoryProblem, X, cost: float, max_iterations: int):
     for _ in range(MOTION_ROUNDS):
         if fit_motion(tp, X) <= np.log1p(MOTION_TOLERANCE):
             break
-        X, more, cost = optimise(tp, X, max_iterations, stretches=(1.0,))
+        X, more, cost = loosening(tp, lambda: optimise(tp, X, max_iterations, stretches=(1.0,)))
         iterations += more
     return X, iterations, cost
+
+
+LOOSEN_FACTOR = 10.0
+LOOSEN_TRIES = 12
+
+
+def loosening(tp: TrajectoryProblem, run):
+    """``run()`` (a solve of ``tp`` with fitted motion scales); when GTSAM finds the system
+    indeterminate (a chain smoothed so stiffly that its elimination loses the digits that pin it
+    down, as where a marker goes unseen), the scale of the group of the variable GTSAM names (every
+    group's, if it names none) is loosened ``LOOSEN_FACTOR`` times and it runs again (at most
+    ``LOOSEN_TRIES`` times; the report says so)."""
+    for attempt in range(LOOSEN_TRIES + 1):
+        try:
+            return run()
+        except RuntimeError as e:
+            if "ndeterminate" not in str(e) or attempt == LOOSEN_TRIES:
+                raise
+            found = re.search(r"near variable\s+(\d+)", str(e))
+            factor = np.ones(len(tp.groups))
+            group = int(found.group(1)) // tp.N if found else -1
+            if 0 <= group < len(tp.groups):
+                factor[group] = LOOSEN_FACTOR
+            else:
+                factor[:] = LOOSEN_FACTOR
+            tp.set_motion_scales(tp.motion_scales * factor)
+            tp.loosened.append(group)
 
 
 def marker_std(dpos: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
@@ -393,7 +427,8 @@ def solve_from(tp: TrajectoryProblem, X0, t0: float, progress: ProgressCallback 
         progress(Progress(stage="optimise", fraction=0.1))
     if o.motion_scale == "auto":
         fit_motion(tp, X0)  # a first fit at the start, so that the solve begins with a fair motion model
-    X, iterations, cost = optimise(tp, X0, o.max_iterations, progress, stretches=(4.0, 1.0) if o.robust else (1.0,))
+    X, iterations, cost = loosening(tp, lambda: optimise(tp, X0, o.max_iterations, progress,
+                                                         stretches=(4.0, 1.0) if o.robust else (1.0,)))
     if o.measurement_std_px == "auto":
         X, more, cost = remeasure_noise(tp, X, cost, o.max_iterations)
         iterations += more
@@ -411,6 +446,30 @@ def solve_from(tp: TrajectoryProblem, X0, t0: float, progress: ProgressCallback 
     if progress:
         progress(Progress(stage="done", fraction=1.0, iteration=iterations, cost=cost))
     return result
+
+
+LOOSE_MOTION = 0.01  # the smoothed motion's third differences under this share of the process noise
+
+
+def loose_motion(Q: np.ndarray, sigma3: np.ndarray) -> str | None:
+    """A one-line warning when the motion model is far looser than the motion it smoothed: the
+    median of ``|q_{n+3} - 3 q_{n+2} + 3 q_{n+1} - q_n| / sigma_3`` under :data:`LOOSE_MOTION`. A
+    model that fits has these near its own scale (0.12-0.14 on simulated cheetah runs, with the
+    model's or free points); the cheetah's default process noise on a fly's legs gave 0.0014: the
+    motion prior then carries no weight, every frame is its own triangulation, and ``ekf`` and
+    ``fte`` return the same numbers."""
+    if Q.shape[0] < 4:
+        return None
+    d3 = np.abs(np.diff(Q, 3, axis=0)) / np.maximum(sigma3, 1e-300)
+    d3 = d3[np.isfinite(d3)]
+    if d3.size < 10:
+        return None
+    ratio = float(np.median(d3))
+    if ratio >= LOOSE_MOTION:
+        return None
+    return (f"the motion model is about {1 / max(ratio, 1e-12):.0f}x looser than the motion it smoothed, so it "
+            f"smooths next to nothing (each frame is close to its own triangulation); fit it to the data with "
+            f"motion_scale 'auto' (--motion-scale auto), or give a smaller motion scale")
 
 
 BOUND_TOLERANCE = 1e-3  # a parameter this close to a joint limit counts as held by it
@@ -435,7 +494,14 @@ def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[st
     report = dict(est.report or {})
     if prob.options.motion_scale == "auto":
         report["motion_scales"] = {name: float(v) for name, v in zip(tp.group_names(), tp.motion_scales)}
-    report["warnings"] = list(notes or []) + report.get("warnings", [])
+        if getattr(tp, "loosened", None):
+            names = tp.group_names()
+            which = sorted({"all" if g < 0 else names[g] for g in tp.loosened})
+            report.setdefault("warnings", []).append(
+                f"the fitted motion scales of {', '.join(which)} were too stiff for the solver and were loosened "
+                f"({len(tp.loosened)} x {LOOSEN_FACTOR:g})")
+    loose = loose_motion(Q, tp.sigma3) if prob.options.motion_scale != "auto" else None
+    report["warnings"] = list(notes or []) + report.get("warnings", []) + ([loose] if loose else [])
     causal_pos = prob.skeleton.positions(causal) if causal is not None else None
     if prob.skeleton.kind == "points":
         # a free point in a frame fewer than two cameras see has no 3D estimate: its depth is only

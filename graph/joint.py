@@ -165,7 +165,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
         bl = self.bone_len.copy()
         bl[self.bone_col >= 0] = bone_len
         Ha, Hb, Hab, ga, gb, HaW, HbW, HWW, gW, uv, s, w, cost = kernels.window_normals(
-            X.Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_px, self.prob.options.robust,
+            X.Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_cm, self.prob.options.robust,
             RA * stretch, RB * stretch, RC * stretch, shift, frac, self.tau_col, self.pt_col, self.G, self.marker_wdep,
             *self._kernel_skeleton(scales), self.bones, bl, self.bone_sigma, self.bone_col)
         H, g, HW = Ha.copy(), ga.copy(), HaW.copy()

@@ -308,10 +308,11 @@ def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
                  bones, bone_len, bone_sigma, H, g, uv_out, s_out, w_out):
     """One frame's Gauss-Newton normal equations of the robust reprojection cost.
 
-    For each valid detection (c, m) with whitened residual ``e = (uv_cm(q) - z_cm) / sigma``,
-    ``s = |e|`` and IRLS weight ``w(s)`` (:func:`redescending`)::
+    For each valid detection (c, m) with whitened residual ``e = (uv_cm(q) - z_cm) / sigma_cm``
+    (``sigma`` (C, M): the detection noise of each camera and marker), ``s = |e|`` and IRLS weight
+    ``w(s)`` (:func:`redescending`)::
 
-        H += w J^T J,   g += w J^T e,   cost += rho(s),   J = d e / d q = (1/sigma) d uv/dX dp_m/dq
+        H += w J^T J,   g += w J^T e,   cost += rho(s),   J = d e / d q = (1/sigma_cm) d uv/dX dp_m/dq
 
     only over the parameters that move marker m (``marker_dep``). Bone rows (points skeleton):
     ``e = (|p_a - p_b| - L) / sigma_L`` with weight 1. ``H`` (P, P) and ``g`` (P,) are overwritten.
@@ -338,7 +339,8 @@ def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
             w_out[c, m] = 0.0
             if not valid[c, m]:
                 continue
-            ex, ey, s, rho, w = _detection_cost(uv, meas[c, m], ok, sigma, robust, ra, rb, rc)
+            sg = sigma[c, m]
+            ex, ey, s, rho, w = _detection_cost(uv, meas[c, m], ok, sg, robust, ra, rb, rc)
             cost += rho
             s_out[c, m] = s
             w_out[c, m] = w
@@ -351,8 +353,8 @@ def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
                     break
                 g0 = Jx[0, 0] * dpos[m, 0, p] + Jx[0, 1] * dpos[m, 1, p] + Jx[0, 2] * dpos[m, 2, p]
                 g1 = Jx[1, 0] * dpos[m, 0, p] + Jx[1, 1] * dpos[m, 1, p] + Jx[1, 2] * dpos[m, 2, p]
-                Jr[0, d] = g0 / sigma
-                Jr[1, d] = g1 / sigma
+                Jr[0, d] = g0 / sg
+                Jr[1, d] = g1 / sg
                 nd += 1
             for i in range(nd):
                 pi = marker_dep[m, i]
@@ -663,7 +665,7 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
 
     (linear between the frames' own forward kinematics: the chord of a leg turning 0.07 rad a
     frame, a gallop at 120 fps, is within 0.3 mm of its arc; at ``f = 0`` it is frame n's pose).
-    With ``Jx = d uv / d p`` / sigma the detection's whitened residual e has ``J_n = (1-f) Jx dp_n/dq``
+    With ``Jx = d uv / d p`` / sigma_cm (``sigma`` (C, M) per camera and marker) the detection's whitened residual e has ``J_n = (1-f) Jx dp_n/dq``
     and ``J_{n+1} = f Jx dp_{n+1}/dq``; it adds ``w J_n^T J_n`` to frame n's information,
     ``w J_{n+1}^T J_{n+1}`` to frame n+1's and ``w J_n^T J_{n+1}`` between them, and with
     ``J_W = [Jx ((1-f) dp_n/dl + f dp_{n+1}/dl), Jx (p_{n+1} - p_n)]`` (the length groups on the
@@ -721,7 +723,8 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
                 uv_out[m_frame, c, mk, 1] = uv[1]
                 if not valid[m_frame, c, mk]:
                     continue
-                ex, ey, s, rho, w = _detection_cost(uv, meas[m_frame, c, mk], ok, sigma, robust, ra, rb, rc)
+                sg = sigma[c, mk]
+                ex, ey, s, rho, w = _detection_cost(uv, meas[m_frame, c, mk], ok, sg, robust, ra, rb, rc)
                 cost[n] += rho
                 s_out[m_frame, c, mk] = s
                 w_out[m_frame, c, mk] = w
@@ -734,11 +737,11 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
                         break
                     for r in range(2):
                         ja = Jx[r, 0] * dpos_all[n, mk, 0, p] + Jx[r, 1] * dpos_all[n, mk, 1, p] + Jx[r, 2] * dpos_all[n, mk, 2, p]
-                        Ja[r, d] = a * ja / sigma
+                        Ja[r, d] = a * ja / sg
                         if f > 0.0:
                             jn = (Jx[r, 0] * dpos_all[n1, mk, 0, p] + Jx[r, 1] * dpos_all[n1, mk, 1, p]
                                   + Jx[r, 2] * dpos_all[n1, mk, 2, p])
-                            Jb[r, d] = f * jn / sigma
+                            Jb[r, d] = f * jn / sg
                     nd += 1
                 nw = 0
                 for d in range(DW):
@@ -750,7 +753,7 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
                         acc = 0.0
                         for i in range(3):
                             acc += Jx[r, i] * (a * dlen_all[n, mk, i, col] + f * dlen_all[n1, mk, i, col])
-                        JW[r, nw] = acc / sigma
+                        JW[r, nw] = acc / sg
                     nw += 1
                 if tcol >= 0:
                     wcols[nw] = tcol
@@ -758,13 +761,13 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
                         acc = 0.0
                         for i in range(3):
                             acc += Jx[r, i] * (pos_all[n1, mk, i] - pos_all[n, mk, i])
-                        JW[r, nw] = acc / sigma
+                        JW[r, nw] = acc / sg
                     if n1 == n and n > 0:  # the last frame: the velocity from the frame before
                         for r in range(2):
                             acc = 0.0
                             for i in range(3):
                                 acc += Jx[r, i] * (pos_all[n, mk, i] - pos_all[n - 1, mk, i])
-                            JW[r, nw] = acc / sigma
+                            JW[r, nw] = acc / sg
                     nw += 1
                 for i in range(nd):
                     pi = marker_dep[mk, i]

@@ -99,10 +99,13 @@ class Keypoints:
     likelihood: np.ndarray
     scorer: str = "acinoset"
     source: str = ""
+    spread_px: np.ndarray | None = None  # (N, M) an ensemble's disagreement (graph.ensemble), else None
 
     def __post_init__(self) -> None:
         self.xy = np.asarray(self.xy, dtype=np.float64)
         self.likelihood = np.asarray(self.likelihood, dtype=np.float64)
+        if self.spread_px is not None:
+            self.spread_px = np.asarray(self.spread_px, dtype=np.float64)
 
     @property
     def frames(self) -> int:
@@ -658,8 +661,12 @@ def select_markers(keypoints: Keypoints, marker_names: list[str]) -> Keypoints:
     have = match.index >= 0
     xy[:, have] = keypoints.xy[:, match.index[have]]
     lik[:, have] = keypoints.likelihood[:, match.index[have]]
+    spread = None
+    if keypoints.spread_px is not None:
+        spread = np.full((n, len(marker_names)), np.nan)
+        spread[:, have] = keypoints.spread_px[:, match.index[have]]
     return Keypoints(bodyparts=list(marker_names), xy=xy, likelihood=lik,
-                     scorer=keypoints.scorer, source=keypoints.source)
+                     scorer=keypoints.scorer, source=keypoints.source, spread_px=spread)
 
 
 def check_same_frames(keypoints: list[Keypoints]) -> int:

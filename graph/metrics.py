@@ -404,7 +404,8 @@ def held_out_errors(camera, positions: np.ndarray, markers: list[str], detection
 
 def leave_one_camera_out(keypoints: list, calibration, options=None, *, confidence: float = LOCO_CONFIDENCE,
                          reconstruct: Reconstructor | None = None, method: str | None = None,
-                         progress: Callable[[str], None] | None = None) -> LeaveOneCameraOut:
+                         judge: list | None = None, progress: Callable[[str], None] | None = None
+                         ) -> LeaveOneCameraOut:
     """Judge a 3D method on a recording without 3D truth: for each camera c, reconstruct from the
     other cameras, project into c and compare with c's confident detections (likelihood at least
     ``confidence``). Needs three or more cameras (two left after one is held out).
@@ -422,7 +423,9 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
     metres when the whole one is in millimetres) and every reconstruction is given them. Another
     method is scored the same way by passing ``reconstruct(keypoints, calibration) -> (markers,
     positions)``, which gets the kept cameras in the calibration's own units and returns positions
-    in those units.
+    in those units. ``judge`` (one :class:`~graph.keypoints.Keypoints` per camera, default
+    ``keypoints``) are the detections each held-out camera is scored against: for instance one
+    ensemble member's, to compare a method given the ensemble with methods given that member.
     """
     from graph.calibration import CALIBRATION_UNITS, resolve_units
     from graph.camera import Calibration
@@ -439,6 +442,9 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
     if not 0.0 <= confidence <= 1.0:
         raise ValueError(f"confidence must be in [0, 1], not {confidence}")
     check_same_frames(keypoints)
+    judge = keypoints if judge is None else judge
+    if len(judge) != C:
+        raise InputError(f"{len(judge)} sets of detections to judge by for {C} cameras", calibration.source or None)
     notes: list[str] = []
     if reconstruct is None:
         from dataclasses import replace
@@ -469,7 +475,7 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
         seconds = time.perf_counter() - t0
         markers = list(names) if markers is None else markers
         positions = align_markers(list(names), np.asarray(positions, dtype=np.float64), markers)
-        e, confident = held_out_errors(calibration.cameras[c], positions, markers, keypoints[c], confidence)
+        e, confident = held_out_errors(calibration.cameras[c], positions, markers, judge[c], confidence)
         n_conf = int(confident.sum())
         held.append(HeldOutCamera(
             camera=name, median_px=_stat(e, np.median), p90_px=_stat(e, lambda v: np.percentile(v, 90)),

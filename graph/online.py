@@ -23,7 +23,11 @@ Per frame n:
    per cent of ``fte`` (bench/RESULTS.md).
 
 The first few frames are solved as a small batch (:mod:`graph.fte`) to start from a good pose: a
-per-frame start from nothing diverges.
+per-frame start from nothing diverges. With ``motion_scale="auto"`` the batch is the first
+``SHARED_START_SECONDS`` (or a quarter of a shorter run) and fits the motion model's scales
+(:func:`graph.fte.fit_motion`, the marginal likelihood), which the stream then keeps. The default
+process noise is a cheetah's, some 10^4 times too loose for a fly's legs: with it every frame is
+its own triangulation, and the lag-smoothed and causal trajectories equal fte's to 1e-11 m.
 """
 
 from __future__ import annotations
@@ -35,7 +39,8 @@ import gtsam
 import numpy as np
 
 from graph import kernels
-from graph.fte import PRIOR_SIGMA, TrajectoryProblem, bone_lengths, optimise, trajectory_result
+from graph.fte import (PRIOR_SIGMA, TrajectoryProblem, bone_lengths, fit_motion, loosening, optimise, refit_motion,
+                       trajectory_result)
 from graph.initial import initial_poses
 from graph.joint import shares_unknowns, solve_fte_joint
 from graph.problem import Problem
@@ -76,7 +81,10 @@ class OnlineSmoother:
         params.setRelinearizeThreshold(1e-3)
         self.smoother = gtsam.IncrementalFixedLagSmoother(float(self.lag), params)
         self.eye = np.eye(self.P)
-        self.motion_model = gtsam.noiseModel.Diagonal.Sigmas(tp.sigma3)
+        # the motion factor whitened by hand, as fte's: GTSAM takes a sigma below 1e-9 for a hard
+        # constraint, which a small animal in metres, smoothed hard, reaches
+        self.motion_w = np.diag(1.0 / tp.sigma3)
+        self.motion_model = gtsam.noiseModel.Unit.Create(self.P)
         self.sigma_pred = np.maximum(tp.sigma3 * 20.0, 1e-3)
         self.history: list[np.ndarray] = []  # the latest estimate of every frame so far
         self.window: dict[int, _Frame] = {}  # frames whose measurement factor can still be relinearised
@@ -111,7 +119,7 @@ class OnlineSmoother:
         tp = self.tp
         C, M = valid.shape
         Hf, gf = np.zeros((self.P, self.P)), np.zeros(self.P)
-        kernels.frame_normal(q, meas, valid, tp.intr, tp.Rc, tp.tc, tp.sigma_px, tp.prob.options.robust,
+        kernels.frame_normal(q, meas, valid, tp.intr, tp.Rc, tp.tc, tp.sigma_cm, tp.prob.options.robust,
                              RA, RB, RC, *tp.sk_args, tp.bones, tp.bone_len, tp.bone_sigma, Hf, gf,
                              np.zeros((C, M, 2)), np.zeros((C, M)), np.zeros((C, M)))
         return Hf, gf
@@ -157,8 +165,9 @@ class OnlineSmoother:
         measurement factor's position in ``graph``."""
         pos = self._measurement_factor(graph, n, H, g, q, anchor)
         if n >= 3:
-            cond = gtsam.GaussianConditional([(n, self.eye), (n - 3, -self.eye), (n - 2, 3 * self.eye),
-                                              (n - 1, -3 * self.eye)], 1, np.zeros(self.P), self.motion_model)
+            w = self.motion_w
+            cond = gtsam.GaussianConditional([(n, w), (n - 3, -w), (n - 2, 3 * w), (n - 1, -3 * w)], 1,
+                                             np.zeros(self.P), self.motion_model)
             graph.push_back(gtsam.LinearContainerFactor(gtsam.JacobianFactor(cond),
                                                         self._zero_values([n - 3, n - 2, n - 1, n])))
         return pos
@@ -207,7 +216,18 @@ class OnlineSmoother:
         return np.stack(self.history)
 
 
-SHARED_START_SECONDS = 2.0  # the batch that estimates the body and the clocks for the ekf
+SHARED_START_SECONDS = 2.0  # the batch that estimates the body and the clocks for the ekf (a 1 s one
+# timed the cameras wrongly in a test run)
+MOTION_START_SHARE = 0.25  # the motion model's scales: at most this share of a run shorter than that
+
+
+def motion_start_frames(frames: int, fps: float) -> int:
+    """The frames of the ekf's start batch that fits the motion model (``motion_scale="auto"``):
+    the first :data:`SHARED_START_SECONDS`, or the first :data:`MOTION_START_SHARE` of a run too
+    short for that (a 500-frame recording at 300 fps would otherwise be one batch: fte, not a
+    filter), and at least :data:`START_FRAMES`."""
+    return min(frames, max(START_FRAMES, min(int(round(SHARED_START_SECONDS * fps)),
+                                             int(MOTION_START_SHARE * frames))))
 
 
 def solve_ekf(prob: Problem, progress: ProgressCallback | None = None) -> Result:
@@ -256,13 +276,20 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     if progress:
         progress(Progress(stage="initialise", fraction=0.0))
     N = prob.frames
-    S = min(N, START_FRAMES)
-    # the batch start sees the first frames only, as a stream would
+    auto = prob.options.motion_scale == "auto"
+    # the batch start sees the first frames only, as a stream would; to fit the motion model
+    # ("auto") it takes motion_start_frames
+    S = motion_start_frames(N, prob.options.fps) if auto else min(N, START_FRAMES)
     sub = replace(prob, meas=prob.meas[:S], likelihood=prob.likelihood[:S], valid=prob.valid[:S])
     X, _, _ = robust_points(sub.calibration, sub.meas, sub.valid, sub.sigma_px)
     Q0 = initial_poses(sub, X)
     tp = TrajectoryProblem(sub, Q0, bone_lengths(sub, X) if sub.skeleton.kind == "points" else None)
-    Q_start, iters, _ = optimise(tp, Q0.copy(), 30)
+    if auto:
+        fit_motion(tp, Q0)
+    Q_start, iters, cost = loosening(tp, lambda: optimise(tp, Q0.copy(), 30))
+    if auto:  # the scales of largest marginal likelihood over the start, kept for the stream
+        Q_start, more, _ = refit_motion(tp, Q_start, cost, 30)
+        iters += more
     t_init = time.perf_counter() - t0
     causal = np.zeros((N, prob.skeleton.n_params))
     causal[:S] = Q_start
@@ -285,7 +312,11 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     # per-marker std from the marginals of the whole run's information at the smoothed trajectory
     # (the chain of graph.marginals, as fte); a per-frame inverse with the motion prior as a stiff
     # local term had claimed 4-9x too little spread
-    result = trajectory_result(TrajectoryProblem(prob, Q, tp.bone_len), Q, "ekf",
+    whole = TrajectoryProblem(prob, Q, tp.bone_len)
+    if auto:
+        whole.set_motion_scales(tp.motion_scales)
+        whole.loosened = tp.loosened
+    result = trajectory_result(whole, Q, "ekf",
                                seconds={"init": t_init, "solve": t_solve}, iterations=N - S + iters,
                                causal=causal, per_frame_ms=per_frame_ms)
     if progress:

@@ -15,6 +15,7 @@ import numpy as np
 
 from graph.calibration import in_metres
 from graph.camera import Calibration
+from graph.ensemble import relative_noise
 from graph.errors import InputError
 from graph.keypoints import Keypoints, check_same_frames, match_bodyparts, no_marker_matched
 from graph.noise import scatter_px, triangulation_dof
@@ -35,6 +36,16 @@ class Problem:
     valid: np.ndarray  # (N, C, M) finite and at or above the likelihood threshold
     sigma_px: float = 5.0  # detection noise (px per coordinate): the option, or measured when "auto"
     warnings: list[str] = field(default_factory=list)
+    # (C, M) each camera's and marker's noise relative to sigma_px, from an ensemble's spread
+    # (graph.ensemble.relative_noise); None: all alike
+    noise_scale: np.ndarray | None = None
+
+    def sigma_cm(self, sigma_px: float | None = None) -> np.ndarray:
+        """The detection noise of each camera and marker (C, M), px: ``sigma_px`` (default the
+        problem's) times the relative noise."""
+        sigma = self.sigma_px if sigma_px is None else sigma_px
+        scale = np.ones((self.cameras, len(self.markers))) if self.noise_scale is None else self.noise_scale
+        return np.ascontiguousarray(sigma * scale, dtype=np.float64)
 
     @property
     def frames(self) -> int:
@@ -95,6 +106,7 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
     M = len(skeleton.markers)
     meas = np.full((N, C, M, 2), np.nan)
     lik = np.zeros((N, C, M))
+    spread = np.full((N, C, M), np.nan)
     seen_any = np.zeros(M, dtype=bool)
     for c, kp in enumerate(keypoints):
         match = match_bodyparts(kp, skeleton.markers)
@@ -106,6 +118,8 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
         have = match.index >= 0
         meas[:, c, have] = kp.xy[:, match.index[have]]
         lik[:, c, have] = np.nan_to_num(kp.likelihood[:, match.index[have]], nan=0.0)
+        if kp.spread_px is not None:
+            spread[:, c, have] = kp.spread_px[:, match.index[have]]
         seen_any |= have
     if not seen_any.any():
         raise no_marker_matched(keypoints[0].bodyparts, skeleton.name, list(skeleton.markers))
@@ -115,12 +129,15 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
     valid = np.isfinite(meas).all(axis=-1) & (lik >= options.likelihood_threshold)
     if not valid.any():
         raise InputError(f"no detection reaches the likelihood threshold {options.likelihood_threshold}")
+    noise_scale = relative_noise(spread, valid)
+    if noise_scale is not None and options.method == "tri":
+        noise_scale = None  # triangulation weighs every view alike
     if options.measurement_std_px == "auto":
-        sigma = measured_noise(calibration, meas, valid)  # the report says it (sigma_px)
+        sigma = measured_noise(calibration, meas, valid, noise_scale)  # the report says it (sigma_px)
     else:
         sigma = float(options.measurement_std_px)
     return Problem(skeleton=skeleton, calibration=calibration, options=options, meas=meas, likelihood=lik,
-                   valid=valid, sigma_px=sigma, warnings=notes)
+                   valid=valid, sigma_px=sigma, warnings=notes, noise_scale=noise_scale)
 
 
 def _folded(text: str) -> str:
@@ -168,19 +185,23 @@ AUTO_ROUNDS = 2
 AUTO_CAUCHY_SCALE = 3.0  # later rounds triangulate with a Cauchy scale of this many sigmas
 
 
-def measured_noise(calibration: Calibration, meas: np.ndarray, valid: np.ndarray) -> float:
+def measured_noise(calibration: Calibration, meas: np.ndarray, valid: np.ndarray,
+                   noise_scale: np.ndarray | None = None) -> float:
     """The detection noise (px) for ``measurement_std_px="auto"``: :func:`graph.noise.scatter_px` of
     the robust triangulation's residuals, each scaled for the three coordinates the point took
     (:func:`graph.noise.triangulation_dof`). A Cauchy refinement whose scale is the noise itself
     pulls the points towards the views that agree and leaves residuals 10-25 % short, so after a
     first round at 5 px the points are triangulated again with a scale of 3 sigma (within 10 % of
-    the simulated noise at 1-20 px with 20 % outliers). Raises :class:`InputError` when no marker is
+    the simulated noise at 1-20 px with 20 % outliers). With ``noise_scale`` (C, M; an ensemble's
+    relative noise) each residual is divided by its camera's and marker's, so that sigma is the
+    level they are relative to. Raises :class:`InputError` when no marker is
     seen twice (nothing to measure)."""
     scale, sigma = AUTO_START_PX, float("nan")
     for _ in range(AUTO_ROUNDS):
         _, _, _, s = triangulate(calibration, meas, valid, scale)
         views = np.isfinite(s).sum(axis=1, keepdims=True)  # (N, 1, M)
-        sigma = scatter_px(s * scale, triangulation_dof(views))
+        rel = 1.0 if noise_scale is None else noise_scale[None]
+        sigma = scatter_px(s * scale / rel, triangulation_dof(views))
         if not np.isfinite(sigma):
             break
         scale = AUTO_CAUCHY_SCALE * float(np.clip(sigma, *AUTO_RANGE_PX))

@@ -26,15 +26,15 @@ def build_result(prob: Problem, method: str, *, positions, std, reprojections, s
     sk = prob.skeleton
     valid = prob.valid
     sigma_px = prob.sigma_px if sigma_px is None else sigma_px
-    res_px = (s * sigma_px).transpose(1, 0, 2)  # (C, N, M)
-    res_px = np.where(valid.transpose(1, 0, 2), res_px, np.nan)
+    rel_px = np.where(valid, s * sigma_px, np.nan).transpose(1, 0, 2)  # (C, N, M) in units of sigma_px
+    res_px = rel_px if prob.noise_scale is None else rel_px * prob.noise_scale[:, None, :]  # pixels
     out = (outlier & valid).transpose(1, 0, 2)
     used = np.isfinite(res_px) & ~out
     rmse = float(np.sqrt(np.mean(res_px[used] ** 2))) if used.any() else float("nan")
     ncams = valid.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         score = np.where(ncams > 0, (prob.likelihood * valid).sum(axis=1) / np.maximum(ncams, 1), 0.0)
-    noise = measured_scatter(method, res_px, ncams)
+    noise = measured_scatter(method, rel_px, ncams)
     notes = list(prob.warnings)
     misfit = inputs_misfit(out, valid.transpose(1, 0, 2), prob.calibration.names)
     # when the inputs do not fit, the scatter is the misfit's, and more noise would only hide it
@@ -45,6 +45,9 @@ def build_result(prob: Problem, method: str, *, positions, std, reprojections, s
             notes.append(note)
             warnings.warn(note, stacklevel=3)
     extra = dict(report or {})
+    if prob.noise_scale is not None:
+        extra["relative_noise"] = {name: float(np.median(prob.noise_scale[c]))
+                                   for c, name in enumerate(prob.calibration.names)}
     for note in extra.pop("warnings", []):
         notes.append(note)
         warnings.warn(note, stacklevel=3)

@@ -55,97 +55,113 @@ def third_difference_gram(N: int) -> np.ndarray:
     return T
 
 
-class GroupEvidence:
-    """The log evidence of one group of d parameters over N frames as a function of its scale s.
+class ChainEvidence:
+    """The log evidence of G independent chains of d parameters over N frames, each as a function of
+    its own scale, all in one banded factorisation (the chains one after another: K is then block
+    diagonal, and so is its Cholesky factor, whose log-determinant splits by chain).
 
-    ``H`` (N, d, d) and ``g`` (N, d): the data's Gauss-Newton information and gradient at ``x``
-    (N, d), a trajectory near the data; ``x0`` (N, d) the anchor's target, ``w`` its precision;
-    ``sigma`` (d,) the third-difference std of each parameter at scale 1."""
+    ``H`` (G, N, d, d) and ``g`` (G, N, d): the data's Gauss-Newton information and gradient at
+    ``x`` (G, N, d), a trajectory near the data; ``x0`` (G, N, d) the anchor's target, ``w`` its
+    precision; ``sigma`` (G, d) the third-difference sd of each parameter at scale 1."""
 
     def __init__(self, H: np.ndarray, g: np.ndarray, x: np.ndarray, x0: np.ndarray, w: float, sigma: np.ndarray):
-        N, d = x.shape
-        self.N, self.d, self.w = N, d, w
+        G, N, d = x.shape
+        self.G, self.N, self.d, self.w = G, N, d, w
         self.H, self.g, self.x, self.x0 = H, g, x, x0
-        self.sigma = np.asarray(sigma, dtype=np.float64)
+        self.sigma = np.asarray(sigma, dtype=np.float64).reshape(G, d)
         self.T = third_difference_gram(N)
-        # the data's block diagonal in LAPACK lower band form over the frame-major variables n*d + i
-        bw = 4 * d
-        self.base = np.zeros((bw, N * d))
+        # the data's block diagonal in LAPACK lower band form over the variables (g N + n) d + i
+        self.base = np.zeros((4 * d, G * N * d))
         for k in range(d):
             for b in range(d - k):
-                self.base[k, b::d] = H[:, b + k, b]
+                self.base[k, b::d] = H[:, :, b + k, b].ravel()
         self.base[0] += w
-        self.rhs = (np.einsum("nij,nj->ni", H, x) - g + w * x0).ravel()
+        self.rhs = (np.einsum("gnij,gnj->gni", H, x) - g + w * x0).ravel()
 
-    def _prior(self, c: np.ndarray) -> float:
-        """``log pdet A(s)`` but for its constant ``d log pdet(D3^T D3)``."""
-        return float(max(self.N - 3, 0) * np.log(c).sum())
-
-    def __call__(self, s: float) -> float:
-        """``log p(z | s)`` up to a constant (module docstring)."""
-        N, d = self.N, self.d
-        c = 1.0 / (s * self.sigma) ** 2  # (d,) third-difference precisions
+    def __call__(self, s: np.ndarray) -> np.ndarray:
+        """``log p(z | s_g)`` of every chain g (G,) up to a constant (module docstring)."""
+        G, N, d = self.G, self.N, self.d
+        c = 1.0 / (np.asarray(s, dtype=np.float64).reshape(G, 1) * self.sigma) ** 2  # (G, d)
         ab = self.base.copy()
         for L in range(4):
+            row = ab[L * d].reshape(G, N * d)  # a view: chain g's columns
             for i in range(d):
-                ab[L * d, i::d][: N - L] += c[i] * self.T[L, : N - L]
+                row[:, i::d][:, : N - L] += c[:, i, None] * self.T[L, : N - L]
         try:
             chol = cholesky_banded(ab, lower=True)
         except np.linalg.LinAlgError:
-            return -math.inf
-        xs = cho_solve_banded((chol, True), self.rhs).reshape(N, d)
+            return np.full(G, -math.inf)
+        xs = cho_solve_banded((chol, True), self.rhs).reshape(G, N, d)
         dx = xs - self.x
-        d3 = xs[3:] - 3 * xs[2:-1] + 3 * xs[1:-2] - xs[:-3]
-        phi = (float(np.sum(self.g * dx)) + 0.5 * float(np.einsum("ni,nij,nj->", dx, self.H, dx))
-               + 0.5 * float(np.sum(c * np.sum(d3 * d3, axis=0))) + 0.5 * self.w * float(np.sum((xs - self.x0) ** 2)))
-        logdet_K = 2.0 * float(np.log(chol[0]).sum())
-        return -phi - 0.5 * logdet_K + 0.5 * self._prior(c)
+        d3 = xs[:, 3:] - 3 * xs[:, 2:-1] + 3 * xs[:, 1:-2] - xs[:, :-3]
+        phi = (np.einsum("gni,gni->g", self.g, dx) + 0.5 * np.einsum("gni,gnij,gnj->g", dx, self.H, dx)
+               + 0.5 * np.einsum("gi,gni->g", c, d3 * d3) + 0.5 * self.w * np.sum((xs - self.x0) ** 2, axis=(1, 2)))
+        logdet_K = 2.0 * np.log(chol[0]).reshape(G, N * d).sum(axis=1)
+        log_pdet = max(N - 3, 0) * np.log(c).sum(axis=1)  # log pdet A(s) but for a constant
+        return -phi - 0.5 * logdet_K + 0.5 * log_pdet
+
+
+class GroupEvidence(ChainEvidence):
+    """:class:`ChainEvidence` of one chain: ``H`` (N, d, d), ``g``, ``x``, ``x0`` (N, d),
+    ``sigma`` (d,); called with a scalar scale."""
+
+    def __init__(self, H, g, x, x0, w, sigma):
+        super().__init__(H[None], g[None], x[None], x0[None], w, np.asarray(sigma)[None])
+
+    def __call__(self, s: float) -> float:
+        return float(super().__call__(np.array([s]))[0])
+
+
+def best_scales(evidence, lo: np.ndarray, hi: float = SCALE_RANGE[1]) -> np.ndarray:
+    """For G chains, the scale s_g in [lo_g, hi] maximising ``evidence(s)[g]`` (``evidence`` takes
+    and gives (G,)): the best of a grid of factor 10, refined by golden-section search on log s
+    between its neighbours, for every chain at once."""
+    lo = np.asarray(lo, dtype=np.float64)
+    grid = np.exp(np.arange(math.log(lo.min()), math.log(hi) + 1e-9, math.log(_GRID_STEP)))
+    if len(grid) < 2:
+        return lo.copy()
+    values = np.stack([np.where(s >= lo * (1 - 1e-9), evidence(np.full(lo.shape, s)), -np.inf) for s in grid])
+    k = np.argmax(values, axis=0)  # (G,)
+    logs = np.log(grid)
+    a = np.maximum(logs[np.maximum(k - 1, 0)], np.log(lo))
+    b = logs[np.minimum(k + 1, len(grid) - 1)]
+    r = (math.sqrt(5.0) - 1.0) / 2.0
+    x1, x2 = b - r * (b - a), a + r * (b - a)
+    f1, f2 = evidence(np.exp(x1)), evidence(np.exp(x2))
+    for _ in range(_GOLDEN_STEPS):
+        left = f1 >= f2  # the maximum is in [a, x2]
+        a, b = np.where(left, a, x1), np.where(left, x2, b)
+        nx1, nx2 = np.where(left, b - r * (b - a), x2), np.where(left, x1, a + r * (b - a))
+        fnew = evidence(np.exp(np.where(left, nx1, nx2)))
+        f1, f2 = np.where(left, fnew, f2), np.where(left, f1, fnew)
+        x1, x2 = nx1, nx2
+    cand_x = np.stack([logs[k], x1, x2])
+    cand_f = np.stack([values[k, np.arange(len(k))], f1, f2])
+    return np.exp(cand_x[np.argmax(cand_f, axis=0), np.arange(len(k))])
 
 
 def best_scale(evidence, lo: float = SCALE_RANGE[0], hi: float = SCALE_RANGE[1]) -> float:
-    """The s in [lo, hi] maximising ``evidence(s)``: the best of a grid of factor 10, refined by
-    golden-section search on log s between its neighbours."""
-    grid = np.exp(np.arange(math.log(lo), math.log(hi) + 1e-9, math.log(_GRID_STEP)))
-    if len(grid) < 2:
-        return float(lo)
-    values = [evidence(float(s)) for s in grid]
-    k = int(np.argmax(values))
-    a = math.log(grid[max(k - 1, 0)])
-    b = math.log(grid[min(k + 1, len(grid) - 1)])
-    r = (math.sqrt(5.0) - 1.0) / 2.0
-    x1, x2 = b - r * (b - a), a + r * (b - a)
-    f1, f2 = evidence(math.exp(x1)), evidence(math.exp(x2))
-    for _ in range(_GOLDEN_STEPS):
-        if f1 >= f2:
-            b, x2, f2 = x2, x1, f1
-            x1 = b - r * (b - a)
-            f1 = evidence(math.exp(x1))
-        else:
-            a, x1, f1 = x1, x2, f2
-            x2 = a + r * (b - a)
-            f2 = evidence(math.exp(x2))
-    best = max([(values[k], math.log(grid[k])), (f1, x1), (f2, x2)])
-    return float(math.exp(best[1]))
+    """:func:`best_scales` of one chain whose ``evidence(s)`` takes and gives scalars."""
+    return float(best_scales(lambda s: np.array([evidence(float(s[0]))]), np.array([lo]), hi)[0])
 
 
 def fit_motion_scales(H: np.ndarray, g: np.ndarray, Q: np.ndarray, Q0: np.ndarray, prior_sigma: float,
                       sigma3: np.ndarray, groups: list[np.ndarray]) -> np.ndarray:
-    """The scale of each group in ``groups`` (index arrays into the P parameters) maximising its
-    evidence, given the data's ``H`` (N, P, P), ``g`` (N, P) at the trajectory ``Q`` (N, P), the
-    anchor ``Q0`` (N, P) of sd ``prior_sigma`` and the third-difference sds ``sigma3`` (P,) at scale 1.
-    Cross-group blocks of H are left out (groups are independent chains)."""
+    """The scale of each group in ``groups`` (index arrays into the P parameters, all of one size)
+    maximising its evidence, given the data's ``H`` (N, P, P), ``g`` (N, P) at the trajectory ``Q``
+    (N, P), the anchor ``Q0`` (N, P) of sd ``prior_sigma`` and the third-difference sds ``sigma3``
+    (P,) at scale 1. Cross-group blocks of H are left out (groups are independent chains)."""
     from threadpoolctl import threadpool_limits
 
-    w = 1.0 / prior_sigma**2
-    out = np.empty(len(groups))
+    idx = np.stack(groups)  # (G, d)
+    Hg = np.ascontiguousarray(np.stack([H[:, i][:, :, i] for i in idx]))  # (G, N, d, d)
+    ev = ChainEvidence(Hg, np.stack([g[:, i] for i in idx]), np.stack([Q[:, i] for i in idx]),
+                       np.stack([Q0[:, i] for i in idx]), 1.0 / prior_sigma**2, sigma3[idx])
+    lo = np.array([stiffest_scale(Hg[k], sigma3[i]) for k, i in enumerate(idx)])
     # one BLAS thread: the banded factorisations are small, and OpenBLAS's threads on a busy machine
     # made one of 1500 x 100 take 1.5 s instead of 5 ms
     with threadpool_limits(limits=1, user_api="blas"):
-        for k, idx in enumerate(groups):
-            Hg = np.ascontiguousarray(H[:, idx][:, :, idx])
-            ev = GroupEvidence(Hg, g[:, idx], Q[:, idx], Q0[:, idx], w, sigma3[idx])
-            out[k] = best_scale(ev, lo=stiffest_scale(Hg, sigma3[idx]))
-    return out
+        return best_scales(ev, lo)
 
 
 MAX_STIFFNESS = 1e7  # the motion's precision at most this many times the data's (per frame and parameter)

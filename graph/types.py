@@ -83,8 +83,6 @@ class SolveOptions:
                                                  and 0 < self.motion_scale <= MAX_MOTION_SCALE):
             raise ValueError(f"motion_scale must be positive and at most {MAX_MOTION_SCALE:g}, or 'auto', "
                              f"not {self.motion_scale!r}")
-        if self.motion_scale == "auto" and self.method == "ekf":
-            raise ValueError("motion_scale 'auto' is fitted by the fte smoother; ekf takes a number")
         if not (0 < self.lag_seconds <= MAX_LAG_SECONDS):
             raise ValueError(f"lag_seconds must be positive and at most {MAX_LAG_SECONDS:g}, not {self.lag_seconds}")
         if self.body not in BODIES:
@@ -140,6 +138,8 @@ class SolveReport:
     noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.noise)
     # motion_scale "auto": the scale fitted per group ({marker: scale} for free points, {"all": scale})
     motion_scales: dict[str, float] | None = None
+    # ensembles: each camera's detection noise relative to sigma_px (the median over its markers)
+    relative_noise: dict[str, float] | None = None
     # the body's lengths, where estimated: {group or bone: {length_m, std_m, model_m}}
     body_lengths: dict[str, dict[str, float]] | None = None
     # the cameras' offsets (frames, camera 1 = 0), where estimated or given, and their sd

@@ -128,6 +128,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.add_middleware(UploadGuard, settings=settings, error_status=JOB_ERROR_STATUS)
     app.add_middleware(UploadGuard, settings=settings, error_status=JOB_ERROR_STATUS, path="/v1/batches")
+    app.add_middleware(UploadGuard, settings=settings, error_status=JOB_ERROR_STATUS, path="/v1/calibrations")
     app.add_middleware(SecurityHeaders)  # outermost: on every answer, the guard's refusals included
 
     @app.exception_handler(StarletteHTTPException)
@@ -159,9 +160,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse({"detail": f"internal error ({type(exc).__name__}); the server log has the details"},
                             status_code=500)
 
-    from service import routes
+    from service import calibration_routes, routes
 
     app.include_router(routes.router)
+    app.include_router(calibration_routes.router)
     app.include_router(routes.public)
     _include_web(app)
     return app

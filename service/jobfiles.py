@@ -42,6 +42,7 @@ _STAGING = ".upload-"
 MANIFEST = "manifest.json"
 CALIBRATION_DIR = "calibration"
 SKELETON_DIR = "skeleton"
+CALIBRATION_KIND = "calibration"  # a manifest's and a job's options' "kind" for a calibration job (else a solve)
 RESULT_FILES: dict[str, tuple[str, str]] = {  # download format: (file in the job's result dir, media type)
     "csv": ("result.csv", "text/csv"),
     "h5": ("result.h5", "application/x-hdf5"),
@@ -57,6 +58,13 @@ EXPORT_FILES: dict[str, tuple[str, str]] = {
     "csv-var": ("result.var.csv", "text/csv"),
 }
 DOWNLOADS: dict[str, tuple[str, str]] = {**RESULT_FILES, **EXPORT_FILES}
+# what a calibration job writes in its result dir (service.calibrations): file name -> media type
+CALIBRATION_FILES: dict[str, str] = {
+    "calibration.toml": "application/toml", "scene.json": "application/json", "report.json": "application/json",
+    "rig.png": "image/png", "residuals.png": "image/png", "coverage.png": "image/png"}
+# every file a run may hand back (a worker packs those it wrote; the server unpacks only these)
+OUTPUT_NAMES: tuple[str, ...] = tuple(dict.fromkeys([*RESULT_NAMES, *CALIBRATION_FILES]))
+
 VIDEOS_DIR = "videos"  # input: each camera's footage; result: the labelled videos
 VIDEO_VIEWS = ("3d", "combined")  # the labelled videos beside the cameras' (named by camera number, from 1)
 _VIDEO_RESULT = re.compile(r"^videos/(camera[0-9]{2}|3d|combined)\.mp4$")
@@ -78,14 +86,8 @@ def video_result_name(view: str) -> str:
 
 
 def is_result_name(rel: str) -> bool:
-    """Whether ``rel`` is a file a run may put in a job's result dir (:data:`RESULT_NAMES`, the videos)."""
-    return rel in RESULT_NAMES or bool(_VIDEO_RESULT.match(rel))
-
-
-def result_names(out_dir: Path) -> list[str]:
-    """The result files a run wrote into ``out_dir``, relative to it (what travels back from RQ)."""
-    videos = sorted(f"{VIDEOS_DIR}/{p.name}" for p in (out_dir / VIDEOS_DIR).glob("*.mp4"))
-    return [*RESULT_NAMES, *(v for v in videos if is_result_name(v))]
+    """Whether ``rel`` is a file a run may put in a job's result dir (:data:`OUTPUT_NAMES`, the videos)."""
+    return rel in OUTPUT_NAMES or bool(_VIDEO_RESULT.match(rel))
 
 
 def new_job_id() -> str:
@@ -198,6 +200,14 @@ def result_key(token: str) -> str:
     return f"acinoset:result:{token}"
 
 
+def written_outputs(out_dir: Path) -> list[str]:
+    """The files of :data:`OUTPUT_NAMES` and the labelled videos that a run wrote into ``out_dir``,
+    relative to it (what travels back from an RQ worker)."""
+    out_dir = Path(out_dir)
+    videos = sorted(f"{VIDEOS_DIR}/{p.name}" for p in (out_dir / VIDEOS_DIR).glob("*.mp4"))
+    return [*(name for name in OUTPUT_NAMES if (out_dir / name).is_file()), *(v for v in videos if is_result_name(v))]
+
+
 def pack_files(base: Path, rels: list[str]) -> bytes:
     """Files under ``base`` as one zip archive (deflate, fast level), names relative to ``base``."""
     import io
@@ -234,6 +244,7 @@ def unpack_files(archive: bytes, base: Path, allowed=None) -> list[str]:
 def input_archive(input_dir: Path) -> bytes:
     """What an RQ worker needs to run a job: the manifest and the input files, zipped."""
     m = read_manifest(input_dir)
-    rels = [MANIFEST, *m["keypoints"], m["calibration"], *([m["skeleton"]] if m.get("skeleton") else []),
-            *(m.get("videos") or [])]
+    rels = [MANIFEST, *m.get("keypoints", []), *([m["calibration"]] if m.get("calibration") else []),
+            *([m["skeleton"]] if m.get("skeleton") else []), *m.get("detections", []), *m.get("videos", []),
+            *m.get("intrinsics", [])]
     return pack_files(input_dir, rels)

@@ -329,16 +329,17 @@ class JobService:
 
     # -- read --------------------------------------------------------------------------------
 
-    def visible(self, user: User, job_id: str) -> Job:
-        """The job if the caller may see it (its owner, or an admin); 404 otherwise, whether or not it exists."""
+    def visible(self, user: User, job_id: str, kind: str | None = None) -> Job:
+        """The job of ``kind`` (None: a solve; see :mod:`service.calibrations`) if the caller may see it
+        (its owner, or an admin); 404 otherwise, whether or not it exists."""
         job = self.store.job(job_id) if JOB_ID.match(job_id) else None
-        if job is None or (job.owner_id != user.id and not user.is_admin):
-            raise NotFound(f"no job {job_id}")
+        if job is None or job.options.get("kind") != kind or (job.owner_id != user.id and not user.is_admin):
+            raise NotFound(f"no {kind or 'job'} {job_id}")
         return job
 
     def list(self, user: User, statuses: list[str] | None, limit: int, cursor: str | None,
              owner: str | None, label: str | None = None, method: str | None = None, since: float | None = None,
-             warnings: bool | None = None) -> tuple[list[Job], int, str | None]:
+             warnings: bool | None = None, kind: str | None = None) -> tuple[list[Job], int, str | None]:
         if statuses:
             bad = [st for st in statuses if st not in STATUSES]
             if bad:
@@ -360,7 +361,7 @@ class JobService:
             raise Forbidden("only admins can list other users' jobs")
         limit = max(1, min(limit, self.settings.page_size_max))
         jobs, total = self.store.jobs(owner_id, statuses, limit + 1, before, label=label, method=method, since=since,
-                                      warnings=warnings)
+                                      warnings=warnings, kind=kind)
         more = len(jobs) > limit
         jobs = jobs[:limit]
         return jobs, total, (str(jobs[-1].seq) if more and jobs else None)
@@ -437,9 +438,9 @@ class JobService:
 
     # -- cancel, delete ----------------------------------------------------------------------
 
-    def cancel_or_delete(self, user: User, job_id: str) -> Job | None:
+    def cancel_or_delete(self, user: User, job_id: str, kind: str | None = None) -> Job | None:
         """Cancel an active job (its run stops) and return it; delete a finished one and its files (None)."""
-        job = self.visible(user, job_id)
+        job = self.visible(user, job_id, kind)
         if job.active:
             before = self.store.cancel(job.id)
             if before is not None:

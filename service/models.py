@@ -207,24 +207,32 @@ def summary_of(report: dict | None) -> ResultSummary | None:
     return summary
 
 
-def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
-    href = f"{base}/{job.id}"
+def _timings(job: Job) -> Timings:
     now = time.time()
     queued = (job.started_at - job.created_at) if job.started_at else (
         (now - job.created_at) if job.status == "queued" else None)
     run = None
     if job.started_at:
         run = (job.finished_at or now) - job.started_at if job.status != "queued" else None
-    progress = None
-    if job.stage is not None or job.fraction is not None:
-        progress = Progress(stage=job.stage, fraction=job.fraction, iteration=job.iteration, cost=job.cost)
+    return Timings(created_at=_ts(job.created_at), started_at=_ts(job.started_at), finished_at=_ts(job.finished_at),
+                   queued_seconds=queued, run_seconds=run)
+
+
+def _progress(job: Job) -> Progress | None:
+    if job.stage is None and job.fraction is None:
+        return None
+    return Progress(stage=job.stage, fraction=job.fraction, iteration=job.iteration, cost=job.cost)
+
+
+def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
+    href = f"{base}/{job.id}"
+    progress = _progress(job)
     result = summary_of(job.summary) if job.status == "succeeded" else None
     return JobOut(
         id=job.id, owner=job.owner, label=job.label, status=job.status,
         has_warnings=bool(result is not None and result.warnings), attempts=job.attempts, max_attempts=job.max_attempts,
         progress=progress,
-        timings=Timings(created_at=_ts(job.created_at), started_at=_ts(job.started_at),
-                        finished_at=_ts(job.finished_at), queued_seconds=queued, run_seconds=run),
+        timings=_timings(job),
         options=job.options, inputs=Inputs(**job.inputs), error=without_paths(job.error),
         error_kind=job.error_kind if job.status == "failed" else None, interruption=without_paths(job.interruption),
         worker=job.worker, result=result,
@@ -269,3 +277,61 @@ def batch_out(view: dict, base: str = "/v1") -> BatchOut:
     return BatchOut(id=view["id"], owner=view["owner"], created_at=_ts(view["created_at"]), project=view["project"],
                     status=view["status"], counts=view["counts"], trials=trials, ignored=view["ignored"],
                     notes=view["notes"], links={"self": f"{base}/batches/{view['id']}"})
+
+
+# -- calibrations ----------------------------------------------------------------------------------
+
+class CalibrationInput(BaseModel):
+    name: str = Field(description="the file name as stored (the uploaded name, made safe)")
+    bytes: int
+    views: int | None = Field(None, description="board views in a detections file")
+    frames: int | None = Field(None, description="frames of a video")
+    resolution: list[int] | None = Field(None, description="[width, height] of the camera's images")
+
+
+class CalibrationInputs(BaseModel):
+    cameras: int
+    detections: list[CalibrationInput] = Field(default_factory=list, description="one per camera, in camera order")
+    videos: list[CalibrationInput] = Field(default_factory=list, description="one per camera, if videos were given")
+    intrinsics: list[CalibrationInput] = Field(default_factory=list, description="camera JSON per camera, if given")
+
+
+class CalibrationOut(BaseModel):
+    id: str = Field(description="the calibration's id; a solve job may name it as calibration_id")
+    owner: str
+    label: str | None = None
+    status: JobStatus
+    attempts: int
+    max_attempts: int
+    progress: Progress | None = None
+    timings: Timings
+    options: dict[str, Any] = Field(description="board (its spec), model, origin")
+    inputs: CalibrationInputs
+    error: str | None = Field(None, description="why it failed (e.g. the cameras share no board view)")
+    error_kind: ErrorKind | None = None
+    worker: str | None = None
+    report: dict[str, Any] | None = Field(
+        None, description="once succeeded: rms_px, per camera (name, rms_px, views_used, views_dropped, position "
+                          "and rotation uncertainty), the overlap graph, baselines_m, warnings")
+    links: dict[str, str] = Field(description="self, cancel, page (the web page), and once succeeded one link per "
+                                              "output file")
+
+
+def calibration_out(job: Job, base: str = "/v1/calibrations") -> CalibrationOut:
+    """A calibration job as the API shows it (the same row as a solve, other inputs and outputs)."""
+    href = f"{base}/{job.id}"
+    links = {"self": href, "cancel": href, "page": f"/calibrations/{job.id}"}
+    if job.status == "succeeded":
+        links.update({name: f"{href}/{name}" for name in job.summary.get("files", [])} if job.summary else {})
+    return CalibrationOut(
+        id=job.id, owner=job.owner, label=job.label, status=job.status, attempts=job.attempts,
+        max_attempts=job.max_attempts, progress=_progress(job), timings=_timings(job),
+        options={k: v for k, v in job.options.items() if k != "kind"}, inputs=CalibrationInputs(**job.inputs),
+        error=without_paths(job.error), error_kind=job.error_kind if job.status == "failed" else None,
+        worker=job.worker, report=job.summary if job.status == "succeeded" else None, links=links)
+
+
+class CalibrationList(BaseModel):
+    calibrations: list[CalibrationOut]
+    total: int = Field(description="calibrations matching the filter, on all pages")
+    next_cursor: str | None = Field(None, description="pass as ?cursor= for the next page")

@@ -20,6 +20,7 @@ from graph.skeleton import available_skeletons, load_skeleton
 from service import media, metrics
 from service.auth import current_user
 from service.batches import BatchService
+from service.calibrations import calibration_upload
 from service.jobs import JobService, Upload
 from service.errors import NotFound
 from service.jobfiles import DOWNLOADS, JOB_ID, download_name
@@ -95,13 +96,19 @@ JobBackend = Annotated[Backend, Depends(_backend)]
                403: _err("video_paths on a server without a video root, or outside it"),
                422: _err("A file the readers refuse (the detail names it), bad options, or videos that do not "
                          "match the keypoint files"),
-               429: _err("The caller already has the most queued and running jobs allowed")})
+               429: _err("The caller already has the most queued and running jobs allowed"),
+               404: _err("calibration_id names no succeeded calibration of the caller"),
+               409: _err("calibration_id names a calibration that has not succeeded (yet)")})
 def submit_job(
     user: CurrentUser, jobs: Jobs, response: Response,
     keypoints: Annotated[list[UploadFile], File(
         description="DeepLabCut keypoints (.csv or .h5), one file per camera, repeated, in the calibration's order",
         json_schema_extra={"minItems": 1})],
-    calibration: Annotated[UploadFile, File(description="AcinoSet scene JSON or Anipose calibration TOML")],
+    calibration: Annotated[UploadFile, File(
+        description="AcinoSet scene JSON or Anipose calibration TOML (or give calibration_id)")] = None,
+    calibration_id: Annotated[str, Form(
+        description="instead of a calibration file: the id of one of the caller's succeeded calibrations "
+                    "(POST /v1/calibrations)")] = None,
     options: Annotated[str, Form(
         description='JSON object of solve options, e.g. {"method": "fte", "fps": 120, "skeleton": "cheetah", '
                     '"likelihood_threshold": 0.5, "measurement_std_px": 5}; measurement_std_px "auto" measures '
@@ -121,10 +128,12 @@ def submit_job(
 ) -> JobOut:
     """Validate the files with the library's readers, store them and queue the solve. Answers 202 with
     the job; poll its ``links.self`` until ``status`` is ``succeeded`` or ``failed``."""
-    job = jobs.submit(user, [Upload(f.filename, f.file) for f in keypoints], Upload(calibration.filename, calibration.file),
-                      options, Upload(skeleton.filename, skeleton.file) if skeleton is not None else None,
-                      videos=[Upload(f.filename, f.file) for f in videos or []] or None,
-                      video_paths=video_paths or None)
+    given = Upload(calibration.filename, calibration.file) if calibration is not None else None
+    with calibration_upload(jobs, user, given, calibration_id) as cal:
+        job = jobs.submit(user, [Upload(f.filename, f.file) for f in keypoints], cal,
+                          options, Upload(skeleton.filename, skeleton.file) if skeleton is not None else None,
+                          videos=[Upload(f.filename, f.file) for f in videos or []] or None,
+                          video_paths=video_paths or None)
     out = job_out(job)
     response.headers["Location"] = out.links.self
     return out
@@ -275,7 +284,11 @@ Batches = Annotated[BatchService, Depends(_batches)]
 @router.post(
     "/v1/batches", status_code=202, response_model=BatchOut, tags=["batches"],
     summary="Submit an Anipose project: a job per trial",
-    responses={413: _err("The archive is over this server's upload limit"),
+    responses={400: _err("The body is not valid multipart/form-data"),
+               408: _err("The upload stalled or took too long"),
+               503: _err("Too many uploads arriving at once; try again after Retry-After seconds"),
+               507: _err("The server's disk or its storage for jobs is full"),
+               413: _err("The archive is over this server's upload limit"),
                422: _err("Not a zip, no config.toml, no trials, or bad options"),
                429: _err("More trials than the caller may still queue")})
 def submit_batch(

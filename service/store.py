@@ -360,11 +360,13 @@ class Store:
 
     def jobs(self, owner_id: int | None = None, statuses: list[str] | None = None, limit: int = 50,
              before_seq: int | None = None, label: str | None = None, method: str | None = None,
-             since: float | None = None, warnings: bool | None = None) -> tuple[list[Job], int]:
-        """Jobs newest first, and how many match in all. ``owner_id=None``: everyone's. ``label``:
+             since: float | None = None, warnings: bool | None = None,
+             kind: str | None = None) -> tuple[list[Job], int]:
+        """Jobs newest first, and how many match in all, of one ``kind`` (options' ``kind``: None for
+        solves, ``calibration``). ``owner_id=None``: everyone's. ``label``:
         those whose label contains it (any case); ``since``: submitted then or later (epoch s);
         ``warnings``: succeeded with (True) or without (False) warnings in their report."""
-        where, args = [], []
+        where, args = ["json_extract(j.options, '$.kind') IS ?"], [kind]
         if owner_id is not None:
             where.append("j.owner_id = ?")
             args.append(owner_id)

@@ -111,6 +111,14 @@ def job_page(job_id: str) -> HTMLResponse:
     return _page("job.html")
 
 
+@router.get("/calibrations/{calibration_id}", response_class=HTMLResponse)
+def calibration_page(calibration_id: str) -> HTMLResponse:
+    """One calibration: status, quality per camera, downloads and figures (its script asks the API)."""
+    if not _JOB_ID.match(calibration_id):
+        raise HTTPException(404, "no such page")
+    return _page("calibration.html")
+
+
 @router.get("/docs", response_class=HTMLResponse)
 def api_docs(request: Request) -> HTMLResponse:
     """The REST contract as a page of this server: every operation, its parameters and answers, from

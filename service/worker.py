@@ -35,7 +35,7 @@ import numpy as np
 
 from service import jobfiles
 from service.jobfiles import (ERROR_LOG, INPUT, RESULT, RESULT_FILES, VIDEOS_DIR, input_key, input_videos, inside,
-                              install_result, pack_files, read_manifest, result_key, result_names, result_tmp,
+                              install_result, pack_files, read_manifest, result_key, result_tmp,
                               unpack_files, video_result_name)
 from service.store import READING, RENDERING, WRITING
 
@@ -156,8 +156,14 @@ class ThrottledProgress:
 
 
 def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> dict:
-    """Read the inputs, solve, write the results; return the solve report."""
+    """Read the inputs, solve, write the results; return the solve report. A calibration job
+    (its manifest's ``kind``) is run by :func:`service.calibrations.run_calibration` instead."""
     from graph.api import solve
+
+    if read_manifest(input_dir).get("kind") == jobfiles.CALIBRATION_KIND:
+        from service.calibrations import run_calibration
+
+        return run_calibration(input_dir, out_dir, progress)
 
     progress.report(READING, 0.0)
     keypoints, calibration, options = load_inputs(input_dir)
@@ -331,5 +337,5 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -
         except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
             traceback.print_exc()
             return {"status": "failed", "error": one_line(e), "error_kind": error_kind(e), "worker": worker}
-        rq_job.connection.set(result_key(token), pack_files(out_dir, result_names(out_dir)))
+        rq_job.connection.set(result_key(token), pack_files(out_dir, jobfiles.written_outputs(out_dir)))
         return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker}

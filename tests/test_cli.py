@@ -328,3 +328,25 @@ def test_solve_motion_scale_auto(run_dir, tmp_path):
     assert set(scales) == set(MARKERS) and all(v > 0 for v in scales.values())
     bad = run_cli(*solve_args(run_dir, tmp_path), "--motion-scale", "smooth")
     assert bad.returncode == 2 and "--motion-scale" in bad.stderr and len(bad.stderr.splitlines()) == 1
+
+
+def test_solve_an_ensemble_per_camera(run_dir, tmp_path):
+    """``CAM_a.csv+CAM_b.csv``: an ensemble of two models per camera, combined; the report gives each
+    camera's relative noise, and a missing member is named."""
+    groups = []
+    for i, path in enumerate(cams(run_dir), start=1):
+        k = read_keypoints(path)
+        second = tmp_path / f"cam{i}_b.csv"
+        shaken = k.xy + np.random.default_rng(i).normal(0.0, 0.5 * i, k.xy.shape)
+        write_dlc_csv(second, Keypoints(bodyparts=k.bodyparts, xy=shaken, likelihood=k.likelihood, scorer=k.scorer))
+        groups.append(f"{path}+{second}")
+    report = tmp_path / "report.json"
+    proc = run_cli("solve", *groups, "--calibration", run_dir / "calibration.toml", "--skeleton", "points",
+                   "--fps", FPS, "--out", tmp_path / "out.csv", "--report", report, "--reprojections", tmp_path / "rep")
+    assert proc.returncode == 0, proc.stderr
+    rel = json.loads(report.read_text())["relative_noise"]
+    assert list(rel.values()) == sorted(rel.values())  # camera 3's second member was shaken most
+    assert (tmp_path / "rep" / "cam1_reprojected.csv").exists()
+    proc = run_cli("solve", f"{cams(run_dir)[0]}+{tmp_path / 'nope.csv'}", *cams(run_dir)[1:], "--calibration",
+                   run_dir / "calibration.toml", "--out", tmp_path / "out.csv")
+    assert_user_error(proc, "nope.csv")

@@ -43,6 +43,7 @@ import numpy as np
 
 from graph.calibrate.model import N_INTRINSICS, project
 
+FIXED_DISTANCE_SD = 1e-6  # per px of residual: holds a distance to a micrometre
 HUBER_SIGMAS = 3.03  # a 2D Gaussian residual is longer than 3.03 sigma with probability 1 %
 
 
@@ -86,6 +87,13 @@ class Observations:
     def n_views(self) -> int:
         return len(self.cam)
 
+    def grouping(self) -> tuple[np.ndarray, np.ndarray]:
+        """Corners sorted by view (``order``) and where each view's run starts (``bounds``, V+1)."""
+        if getattr(self, "_grouping", None) is None:
+            order = np.argsort(self.view, kind="stable")
+            self._grouping = order, np.searchsorted(self.view[order], np.arange(self.n_views + 1))
+        return self._grouping
+
     def keep_views(self, keep: np.ndarray) -> "Observations":
         """The views where ``keep`` (V,) is true, renumbered."""
         new = np.full(len(keep), -1)
@@ -114,13 +122,18 @@ class Rig:
 class Settings:
     """What is estimated. ``fixed_cams``: cameras whose pose is held; ``free_intrinsics``: cameras whose
     intrinsics are refined, each with a prior ``(theta0, L)`` or ``None`` (the board alone anchors
-    them: intrinsic calibration); ``huber_px``: the Huber threshold (None: least squares)."""
+    them: intrinsic calibration); ``huber_px``: the Huber threshold (None: least squares).
+    ``board_dof=3``: the "boards" are free 3D points (``R_b = I``, ``p = 0``; only ``v_b`` moves).
+    ``fixed_distance=(i, j, d)``: the distance between cameras i (fixed) and j held at ``d`` by a stiff
+    term ``((|C_j - C_i| - d) / FIXED_DISTANCE_SD)^2`` (the scale, when no board sets it)."""
 
     fixed_cams: frozenset = frozenset({0})
     free_intrinsics: dict = field(default_factory=dict)
     huber_px: float | None = None
+    board_dof: int = 6
+    fixed_distance: tuple | None = None
     max_iterations: int = 100
-    tolerance: float = 1e-10
+    tolerance: float = 1e-9
 
 
 @dataclass
@@ -150,18 +163,20 @@ def residuals(rig: Rig, obs: Observations, jacobians: bool = True):
     """``e`` (M, 2) and, with ``jacobians``, ``d e / d xi_cam`` (M, 2, 6), ``d e / d xi_board``
     (M, 2, 6) and ``d e / d theta`` (a list per corner-camera model, (M, 2, P) zero-padded to 9)."""
     c = obs.cam[obs.view]
-    b = obs.board[obs.view]
-    Rc, tc = rig.R_cam[c], rig.t_cam[c]
-    Rb, tb = rig.R_board[b], rig.t_board[b]
+    # per view: A = R_c^T R_b and a = R_c^T (t_b - t_c), so that X_c = A p + a
+    Rc_v, tc_v = rig.R_cam[obs.cam], rig.t_cam[obs.cam]
+    Rb_v, tb_v = rig.R_board[obs.board], rig.t_board[obs.board]
+    A_v = np.matmul(Rc_v.transpose(0, 2, 1), Rb_v)
+    a_v = np.matmul(Rc_v.transpose(0, 2, 1), (tb_v - tc_v)[:, :, None])[:, :, 0]
+    A = A_v[obs.view]
     p = obs.points
-    Xw = np.einsum("mij,mj->mi", Rb, p) + tb
-    Xc = np.einsum("mji,mj->mi", Rc, Xw - tc)
+    Xc = np.matmul(A, p[:, :, None])[:, :, 0] + a_v[obs.view]
     M = len(p)
     e = np.empty((M, 2))
     if jacobians:
         J_X = np.empty((M, 2, 3))
         J_k = np.zeros((M, 2, 9))
-    for i in np.unique(c):
+    for i in np.unique(obs.cam):
         m = c == i
         model = rig.models[i]
         if jacobians:
@@ -173,10 +188,11 @@ def residuals(rig: Rig, obs: Observations, jacobians: bool = True):
         e[m] = uv - obs.uv[m]
     if not jacobians:
         return e
-    RcRb = np.einsum("mji,mjk->mik", Rc, Rb)
-    dX_cam = np.concatenate([skew(Xc), np.broadcast_to(-np.eye(3), (M, 3, 3))], axis=2)
-    dX_board = np.concatenate([-RcRb @ skew(p), RcRb], axis=2)
-    return e, J_X @ dX_cam, J_X @ dX_board, J_k
+    # rows j of J_X: j^T [X]_x = (j x X)^T;  j^T (-A [p]_x) = (p x (A^T j))^T
+    J_cam = np.concatenate([np.cross(J_X, Xc[:, None, :]), -J_X], axis=2)
+    B = np.matmul(J_X, A)
+    J_board = np.concatenate([np.cross(p[:, None, :], B), B], axis=2)
+    return e, J_cam, J_board, J_k
 
 
 def _robust(e: np.ndarray, k: float | None) -> tuple[np.ndarray, np.ndarray]:
@@ -189,8 +205,20 @@ def _robust(e: np.ndarray, k: float | None) -> tuple[np.ndarray, np.ndarray]:
     return w, rho
 
 
+def _distance_term(rig: Rig, settings: Settings) -> tuple[float, np.ndarray]:
+    """The fixed distance's whitened residual and its derivative by camera j's ``(w, v)`` (6,)."""
+    i, j, d = settings.fixed_distance
+    u = rig.t_cam[j] - rig.t_cam[i]
+    L = float(np.linalg.norm(u))
+    J = np.zeros(6)
+    J[3:] = (u / L) @ rig.R_cam[j] / FIXED_DISTANCE_SD  # t_j <- t_j + R_j v
+    return (L - d) / FIXED_DISTANCE_SD, J
+
+
 def _prior_cost(rig: Rig, settings: Settings) -> float:
     total = 0.0
+    if settings.fixed_distance is not None:
+        total += 0.5 * _distance_term(rig, settings)[0] ** 2
     for i, prior in settings.free_intrinsics.items():
         if prior is not None:
             theta0, L = prior
@@ -212,33 +240,53 @@ def linearize(rig: Rig, obs: Observations, settings: Settings):
     intrinsics' priors), the diagonal of ``J^T W J`` per key, the residuals and the weights."""
     e, Jc, Jb, Jk = residuals(rig, obs)
     w, _ = _robust(e, settings.huber_px)
-    sw = np.sqrt(w)[:, None]
-    e_w = e * sw
-    Jc = Jc * sw[..., None]
-    Jb = Jb * sw[..., None]
-    Jk = Jk * sw[..., None]
-    order = np.argsort(obs.view, kind="stable")
-    bounds = np.searchsorted(obs.view[order], np.arange(obs.n_views + 1))
+    order, bounds = obs.grouping()
+    sw = np.sqrt(w)[order, None]
+    nb = settings.board_dof
+    e_w = (e[order] * sw).reshape(-1)  # corners of view v are rows 2 bounds[v] .. 2 bounds[v+1]
+    Jc = (Jc[order] * sw[..., None]).reshape(-1, 6)
+    Jb = (Jb[order][:, :, 6 - nb:] * sw[..., None]).reshape(-1, nb)
+    Jk = (Jk[order] * sw[..., None]).reshape(-1, 9)
     factors, diag = [], {}
+    cam_free = np.array([i not in settings.fixed_cams for i in range(len(rig.models))])
+    k_free = np.array([i in settings.free_intrinsics for i in range(len(rig.models))])
+    nonempty = bounds[1:] > bounds[:-1]
+    starts = 2 * bounds[:-1][nonempty]
+
+    def per_key(J2, key_of_view, n_keys):  # sums of squares of each view's rows, then of each key's views
+        sums = np.add.reduceat(J2, starts, axis=0)
+        out = np.zeros((n_keys, J2.shape[1]))
+        np.add.at(out, key_of_view[nonempty], sums)
+        return out
+
+    sq_b = per_key(Jb * Jb, obs.board, len(rig.R_board))
+    sq_c = per_key(Jc * Jc, obs.cam, len(rig.models))
+    sq_k = per_key(Jk * Jk, obs.cam, len(rig.models))
+    diag.update({board_key(j): sq_b[j] for j in np.unique(obs.board)})
+    diag.update({cam_key(i): sq_c[i] for i in np.flatnonzero(cam_free) if i in set(obs.cam.tolist())})
+    diag.update({intrinsics_key(i): sq_k[i, :N_INTRINSICS[rig.models[i]]] for i in np.flatnonzero(k_free)})
     unit = {}
+    bkeys = [board_key(int(j)) for j in obs.board]
+    ckeys = [cam_key(int(i)) for i in range(len(rig.models))]
+    kkeys = [intrinsics_key(int(i)) for i in range(len(rig.models))]
     for v in range(obs.n_views):
-        idx = order[bounds[v]: bounds[v + 1]]
-        if len(idx) == 0:
+        a, z = 2 * bounds[v], 2 * bounds[v + 1]
+        if z == a:
             continue
-        i, j = int(obs.cam[v]), int(obs.board[v])
-        rows = 2 * len(idx)
-        blocks = [(board_key(j), Jb[idx].reshape(rows, 6))]
-        if i not in settings.fixed_cams:
-            blocks.append((cam_key(i), Jc[idx].reshape(rows, 6)))
-        if i in settings.free_intrinsics:
-            P = N_INTRINSICS[rig.models[i]]
-            blocks.append((intrinsics_key(i), Jk[idx, :, :P].reshape(rows, P)))
-        b = -e_w[idx].reshape(rows)
+        i = int(obs.cam[v])
+        args = [bkeys[v], Jb[a:z]]
+        if cam_free[i]:
+            args += [ckeys[i], Jc[a:z]]
+        if k_free[i]:
+            args += [kkeys[i], Jk[a:z, :N_INTRINSICS[rig.models[i]]]]
+        rows = z - a
         noise = unit.get(rows) or unit.setdefault(rows, gtsam.noiseModel.Unit.Create(rows))
-        args = [x for kb in blocks for x in kb]
-        factors.append(gtsam.JacobianFactor(*args, b, noise))
-        for key, A in blocks:
-            diag[key] = diag.get(key, 0.0) + (A * A).sum(axis=0)
+        factors.append(gtsam.JacobianFactor(*args, -e_w[a:z], noise))
+    if settings.fixed_distance is not None:
+        r, J = _distance_term(rig, settings)
+        key = cam_key(settings.fixed_distance[1])
+        factors.append(gtsam.JacobianFactor(key, J[None, :], np.array([-r]), gtsam.noiseModel.Unit.Create(1)))
+        diag[key] = diag.get(key, 0.0) + J * J
     for i, prior in settings.free_intrinsics.items():
         if prior is not None:
             theta0, L = prior
@@ -252,7 +300,11 @@ def linearize(rig: Rig, obs: Observations, settings: Settings):
 def _apply(rig: Rig, delta: gtsam.VectorValues, settings: Settings) -> Rig:
     new = rig.copy()
     nb = len(rig.R_board)
-    xb = np.stack([delta.at(board_key(j)) if delta.exists(board_key(j)) else np.zeros(6) for j in range(nb)])
+    dof = settings.board_dof
+    xb = np.zeros((nb, 6))
+    for j in range(nb):
+        if delta.exists(board_key(j)):
+            xb[j, 6 - dof:] = delta.at(board_key(j))
     new.R_board, new.t_board = retract(rig.R_board, rig.t_board, xb)
     for i in range(len(rig.R_cam)):
         if delta.exists(cam_key(i)):
@@ -277,7 +329,8 @@ def solve(rig: Rig, obs: Observations, settings: Settings) -> Solution:
                 g.push_back(f)
             for key, d in diag.items():
                 n = len(d)
-                g.push_back(gtsam.JacobianFactor(key, np.diag(np.sqrt(lam * np.maximum(d, 1e-12))), np.zeros(n),
+                floor = 1e-9 * max(float(d.max()), 1e-12)  # a variable its (down-weighted) data barely see
+                g.push_back(gtsam.JacobianFactor(key, np.diag(np.sqrt(lam * np.maximum(d, floor))), np.zeros(n),
                                                  gtsam.noiseModel.Unit.Create(n)))
             delta = g.optimize()
             trial = _apply(rig, delta, settings)

@@ -21,13 +21,13 @@ import numpy as np
 
 from graph.calibrate import bundle
 from graph.calibrate.board import CHARUCO, Board
-from graph.calibrate.model import camera_with, intrinsics_of
+from graph.calibrate.model import camera_with
 from graph.calibrate.poses import board_in_camera
 from graph.calibrate.views import BoardViews
 from graph.camera import FISHEYE, PINHOLE, Camera
 from graph.errors import InputError
 
-MIN_VIEWS = 3  # views needed for intrinsics (each gives 6 equations more than its pose's unknowns... at best)
+MIN_VIEWS = 3  # views needed for intrinsics: OpenCV's minimum for a planar board
 MIN_CORNERS = 6  # corners a view needs to count (a ChArUco board partly hidden)
 VIEW_OUTLIER_Z = 5.0  # a view whose error is this many robust sd above the median view's ...
 VIEW_OUTLIER_FACTOR = 2.0  # ... and more than this many times the median view's is dropped
@@ -234,7 +234,3 @@ def calibrate_intrinsics(views: BoardViews, board: Board, model: str = FISHEYE) 
         views_dropped=dropped, view_rms_px={views.frames[i]: float(r) for i, r in zip(keep, rms)},
         coverage=cover, covariance=cov, sigma_px=sigma, iterations=sol.iterations, seconds=sol.seconds,
         coverage_map=grid)
-
-
-def intrinsics_theta(camera: Camera) -> np.ndarray:
-    return intrinsics_of(camera)

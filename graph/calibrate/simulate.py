@@ -36,10 +36,31 @@ def rig_centre(calibration: Calibration) -> np.ndarray:
     return np.linalg.solve(A, b)
 
 
+def dome_rig(cameras: int = 6, radius: float = 3.0, height: float = 2.5, size: tuple[int, int] = (1920, 1080),
+             focal_px: float = 1000.0, model: str = "fisheye") -> Calibration:
+    """A lab's rig: ``cameras`` cameras (fisheye, or pinhole with a little radial distortion) evenly on
+    a ring of ``radius`` m, ``height`` m up, all looking at the floor's centre (a board lying face up
+    there is seen by every camera)."""
+
+    cams = []
+    for k in range(cameras):
+        a = 2 * math.pi * k / cameras
+        C = np.array([radius * math.cos(a), radius * math.sin(a), height])
+        fwd = _unit(-C)
+        right = _unit(np.cross(fwd, [0.0, 0.0, 1.0]))
+        R = np.stack([right, np.cross(fwd, right), fwd])
+        K = np.array([[focal_px, 0, size[0] / 2 + 3.0 * k], [0, focal_px, size[1] / 2 - 2.0 * k], [0, 0, 1]])
+        dist = [0.05, -0.01, 0.002, 0.0] if model == "fisheye" else [-0.05, 0.01, 0.0, 0.0, 0.0]
+        cams.append(Camera(K=K, dist=dist, R=R, t=-R @ C, model=model, size=size, name=f"cam{k + 1}"))
+    return Calibration(cams, source=f"dome of {cameras}")
+
+
 def rig_views(calibration: Calibration, board: Board, n_views: int = 40, noise_px: float = 0.3,
-              missing: float = 0.0, bad_views: int = 0, spread: float = 1.5, seed: int = 0):
+              missing: float = 0.0, bad_views: int = 0, spread: float = 1.5, seed: int = 0,
+              face_up: bool = False):
     """Board views of every camera of ``calibration`` (see the module) and the true board poses
-    ``{frame: (R, t)}`` (board to world)."""
+    ``{frame: (R, t)}`` (board to world). ``face_up``: the board lies face up (tilted up to 30
+    degrees) instead of standing, for rigs that look down (:func:`dome_rig`)."""
     rng = np.random.default_rng(seed)
     centre = rig_centre(calibration)
     obj = board.object_points()
@@ -54,6 +75,8 @@ def rig_views(calibration: Calibration, board: Board, n_views: int = 40, noise_p
         tries += 1
         facing = _unit(np.cross(up, rng.normal(size=3)))  # a horizontal direction
         normal = _tilt(facing, up, rng.uniform(-30, 30), rng.uniform(-30, 30))
+        if face_up:
+            normal = _unit(up + math.tan(math.radians(rng.uniform(0, 30))) * facing)
         # board frame: z into the board (away from the cameras it faces), y down the rows
         z = -normal
         y = _unit(-up - np.dot(-up, z) * z)

@@ -33,12 +33,17 @@ def test_the_api_names_the_clients_depend_on():
     assert {"post", "get"} <= set(paths["/v1/jobs"])
     assert {"get", "delete"} <= set(paths["/v1/jobs/{job_id}"])
     form = doc["components"]["schemas"]["Body_submit_job_v1_jobs_post"]
-    assert {"keypoints", "calibration"} <= set(form["required"]) and "options" in form["properties"]
+    assert "keypoints" in form["required"] and {"calibration", "calibration_id", "options"} <= set(form["properties"])
     fmt = next(p for p in paths["/v1/jobs/{job_id}/result"]["get"]["parameters"] if p["name"] == "format")
     assert {"csv", "h5", "json"} <= set(fmt["schema"]["enum"])
     status = doc["components"]["schemas"]["JobOut"]["properties"]["status"]
     assert status["enum"] == ["queued", "running", "succeeded", "failed", "cancelled"]
     assert {"stage", "iteration", "cost", "fraction"} <= set(doc["components"]["schemas"]["Progress"]["properties"])
+    cal_form = doc["components"]["schemas"]["Body_submit_calibration_v1_calibrations_post"]
+    assert "board" in cal_form["required"] and {"detections", "videos", "intrinsics", "options"} <= set(cal_form["properties"])
+    assert {"get", "delete"} <= set(paths["/v1/calibrations/{calibration_id}"])
+    files = next(p for p in paths["/v1/calibrations/{calibration_id}/{file}"]["get"]["parameters"] if p["name"] == "file")
+    assert {"calibration.toml", "scene.json", "report.json", "rig.png"} <= set(files["schema"]["enum"])
     for p in ("/v1/skeletons", "/healthz", "/metrics"):
         assert "get" in paths[p]
 

@@ -26,7 +26,8 @@ def client(server) -> httpx.Client:
 
 def test_pages_are_html_and_load_only_local_scripts(client):
     c = client
-    for path in ("/", "/login", "/jobs/new", "/jobs/0123456789abcdef0123456789abcdef", "/docs"):
+    for path in ("/", "/login", "/jobs/new", "/jobs/0123456789abcdef0123456789abcdef", "/docs",
+                 "/calibrations/0123456789abcdef0123456789abcdef"):
         r = c.get(path)
         assert r.status_code == 200, path
         assert r.headers["content-type"].startswith("text/html")
@@ -39,7 +40,7 @@ def test_pages_are_html_and_load_only_local_scripts(client):
 
 def test_every_page_has_one_h1_a_title_and_a_language(client):
     c = client
-    for path in ("/", "/login", "/jobs/new", "/jobs/abc", "/docs"):
+    for path in ("/", "/login", "/jobs/new", "/jobs/abc", "/docs", "/calibrations/abc"):
         text = c.get(path).text
         assert '<html lang="en">' in text and "<title>" in text
         assert text.count("<h1") == 1, path
@@ -61,6 +62,7 @@ def test_static_files_are_confined_to_the_folder(client):
                 "/static/%2e%2e%2f%2e%2e%2fpyproject.toml"):
         assert c.get(bad).status_code == 404, bad
     assert c.get("/jobs/..%2F..%2Fetc").status_code == 404
+    assert c.get("/calibrations/..%2F..%2Fetc").status_code == 404
 
 
 def test_every_answer_carries_a_content_security_policy_and_docs_load_nothing_from_elsewhere(client):

@@ -1,0 +1,115 @@
+"""What a user waits for: the whole ``acinoset solve`` process from a shell, against aniposelib.
+
+    python bench/bench_cold_start.py [--frames 150] [--repeats 5] [--compile]
+
+A simulated 150-frame run on the AcinoSet rig (6 cameras, 120 fps, 5 px noise, 10 % outliers;
+bench/harness.py), written as a user brings it (``cam1.csv`` ... and ``calibration.toml``). Timed:
+
+* ``acinoset --version`` and ``acinoset solve --help`` (the parser alone);
+* ``acinoset solve ... --out run.csv --h5 run.h5`` as a new process, after one earlier run has
+  filled numba's cache (every default: ``fte``, the cheetah, the body estimated), the median of
+  ``--repeats``; the solve's own ``seconds.total`` from its report beside it;
+* aniposelib's ``triangulate_optim`` call alone on the same detections, in this process (its
+  import, the camera group and the threshold not counted), with every bone a limb constraint;
+* with ``--compile``, the first ``acinoset solve`` after an install: a new ``NUMBA_CACHE_DIR`` so
+  that every kernel compiles, as on a fresh machine.
+
+Writes bench/results/cold_start.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import harness as h
+
+from graph.calibration import write_anipose_toml
+from graph.keypoints import write_dlc_csv
+
+ACINOSET = str(Path(sys.executable).with_name("acinoset"))
+
+
+def wall(cmd: list[str], env: dict | None = None) -> tuple[float, subprocess.CompletedProcess]:
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    t = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd[:3])}...: exit {proc.returncode}: {proc.stderr.strip()[-400:]}")
+    return t, proc
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--compile", action="store_true", help="also time a first run with an empty kernel cache")
+    args = ap.parse_args()
+    warnings.filterwarnings("ignore")
+    info = h.machine()
+    print(f"# whole process: {args.frames} frames; {info['cpu']}, {info['cores']} cores, "
+          f"load {info['load_average'][0]:.1f}", flush=True)
+    cal = h.rig()
+    run = h.simulate(cal, frames=args.frames, seed=0)
+    out: dict = {"machine": info, "args": vars(args)}
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        cams = []
+        for name, kp in zip(cal.names, run.keypoints):
+            write_dlc_csv(d / f"{name}.csv", kp)
+            cams.append(str(d / f"{name}.csv"))
+        write_anipose_toml(d / "calibration.toml", cal)
+        solve = [ACINOSET, "solve", *cams, "--calibration", str(d / "calibration.toml"), "--fps", str(run.fps),
+                 "--out", str(d / "run.csv"), "--h5", str(d / "run.h5"), "--report", str(d / "report.json")]
+
+        if args.compile:
+            cache = d / "numba-cache"
+            env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+            t, proc = wall(solve, env)
+            said = [line for line in proc.stderr.splitlines() if "compiling" in line]
+            out["first_run_s"] = t
+            out["first_run_said"] = said
+            print(f"  first run after install (empty kernel cache): {t:.1f} s; said: {said[:1]}", flush=True)
+            shutil.rmtree(cache, ignore_errors=True)
+
+        version = [wall([ACINOSET, "--version"])[0] for _ in range(args.repeats)]
+        helps = [wall([ACINOSET, "solve", "--help"])[0] for _ in range(args.repeats)]
+        wall(solve)  # fills the cache if it was empty
+        runs, inner = [], []
+        for _ in range(args.repeats):
+            t, _ = wall(solve)
+            runs.append(t)
+            inner.append(json.loads((d / "report.json").read_text())["seconds"]["total"])
+        cg = h.anipose_group(cal)
+        pts = h.anipose_points(run)
+        cons = h.bone_constraints(run)
+        anipose = []
+        for _ in range(max(1, min(args.repeats, 3))):
+            t0 = time.perf_counter()
+            h.anipose_triangulate_optim(cg, pts, cons)
+            anipose.append(time.perf_counter() - t0)
+    med = statistics.median
+    out.update({"version_s": version, "solve_help_s": helps, "solve_process_s": runs, "solve_in_process_s": inner,
+                "aniposelib_triangulate_optim_s": anipose,
+                "ratio_process": med(anipose) / med(runs), "ratio_in_process": med(anipose) / med(inner)})
+    print(f"  acinoset --version       median {med(version):.3f} s (best {min(version):.3f})")
+    print(f"  acinoset solve --help    median {med(helps):.3f} s (best {min(helps):.3f})")
+    print(f"  acinoset solve (process) median {med(runs):.2f} s (best {min(runs):.2f}); its solve() {med(inner):.2f} s")
+    print(f"  aniposelib triangulate_optim alone: median {med(anipose):.2f} s")
+    print(f"  ratio: {out['ratio_process']:.1f}x the whole process, {out['ratio_in_process']:.1f}x in process")
+    path = h.save("cold_start", out)
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

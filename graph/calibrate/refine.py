@@ -1,0 +1,184 @@
+"""Refining a rig's extrinsics from an animal's keypoints (``acinoset calibrate refine``).
+
+1. Confident keypoints (likelihood at least ``min_likelihood``) seen by three or more cameras are
+   triangulated robustly with the old rig (:func:`graph.triangulate.robust_points`); at most
+   :data:`MAX_POINTS` of them, spread evenly over the run, become unknowns.
+2. A bundle adjustment (:mod:`graph.calibrate.bundle`, the points as 3-dof "boards") over the camera
+   poses and the 3D points, under Huber's loss: camera 1 is held, and so is its distance to camera 2
+   (keypoints carry no scale); the intrinsics are held. Before each of :data:`ROUNDS` solves, the
+   detections further than 3.03 noise sd from their prediction are left out (the noise measured as
+   ``median |e| / 1.1774``), so DeepLabCut's confident mistakes neither pull the rig nor slow the
+   solve to a crawl (Huber's loss alone converges linearly when many terms sit on its linear part).
+3. The check: leave each camera out in turn, triangulate every point from the others, reproject it
+   into the camera left out and take the median error of its confident detections. The new rig
+   replaces the old only when the mean of these medians falls by at least :data:`MIN_GAIN`;
+   otherwise the old rig is kept and the report says why.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from graph.calibrate import bundle
+from graph.calibrate.model import intrinsics_of
+from graph.calibrate.poses import rotation_angle
+from graph.camera import Calibration, Camera
+from graph.errors import InputError
+
+MAX_POINTS = 1500  # 3D points in the adjustment (the rig has 6 unknowns a camera; more points add little)
+ROUNDS = 3  # trim the detections that do not fit, solve; three times, as the rig (and the noise) settles
+RAYLEIGH_MEDIAN = 1.1774  # the median length of a 2D Gaussian residual, in sd: sqrt(2 ln 2)
+MIN_GAIN = 0.01  # the new rig must predict left-out cameras at least 1 % better to replace the old one
+MIN_VIEWS = 2  # cameras a point needs to be triangulated for the leave-one-out check
+POINT_VIEWS = 3  # cameras a point needs to enter the adjustment: with two, one confident mistake
+# is indistinguishable from a good view, and the point slides along the other camera's ray
+
+
+@dataclass
+class RefineResult:
+    calibration: Calibration  # the rig to use: the refined one, or the old one when it was not better
+    refined: Calibration
+    accepted: bool
+    loo_old_px: list[float]
+    loo_new_px: list[float]
+    changes: list[dict]
+    rms_before_px: float  # over the detections the last solve kept, with the old rig
+    rms_after_px: float  # ... and with the refined one
+    points: int
+    observations: int
+    seconds: float
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {"accepted": self.accepted, "rms_px": self.rms_after_px, "rms_before_px": self.rms_before_px,
+                "leave_one_out_px": {"old": self.loo_old_px, "new": self.loo_new_px,
+                                     "old_mean": float(np.nanmean(self.loo_old_px)),
+                                     "new_mean": float(np.nanmean(self.loo_new_px))},
+                "cameras": self.changes, "points": self.points, "observations": self.observations,
+                "seconds": self.seconds, "notes": self.notes}
+
+
+def _measurements(calibration: Calibration, keypoints, min_likelihood: float):
+    """(N, C, M, 2) pixels and (N, C, M) confident, for bodyparts every file has."""
+    names = [set(k.bodyparts) for k in keypoints]
+    common = [b for b in keypoints[0].bodyparts if all(b in s for s in names)]
+    if not common:
+        raise InputError("the keypoint files share no bodypart")
+    n = min(k.frames for k in keypoints)
+    meas = np.stack([k.xy[:n, [k.bodyparts.index(b) for b in common]] for k in keypoints], axis=1)
+    like = np.stack([k.likelihood[:n, [k.bodyparts.index(b) for b in common]] for k in keypoints], axis=1)
+    valid = (like >= min_likelihood) & np.isfinite(meas).all(axis=-1)
+    return meas, valid
+
+
+def leave_one_out(calibration: Calibration, meas: np.ndarray, valid: np.ndarray) -> list[float]:
+    """For each camera: the median error (px) of its confident detections predicted by the points the
+    other cameras triangulate (two or more of them)."""
+    from graph.triangulate import robust_points
+
+    out = []
+    for c, cam in enumerate(calibration.cameras):
+        others = valid.copy()
+        others[:, c] = False
+        enough = others.sum(axis=1) >= MIN_VIEWS  # (N, M)
+        X, _, _ = robust_points(calibration, meas, others)
+        use = enough & valid[:, c] & np.isfinite(X).all(axis=-1)
+        if not use.any():
+            out.append(float("nan"))
+            continue
+        uv = cam.project(X[use])
+        out.append(float(np.nanmedian(np.linalg.norm(uv - meas[:, c][use], axis=-1))))
+    return out
+
+
+def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float = 0.9, seed: int = 0) -> RefineResult:
+    """See the module."""
+    from graph.triangulate import robust_points
+
+    start = time.perf_counter()
+    C = len(calibration)
+    if len(keypoints) != C:
+        raise InputError(f"{len(keypoints)} keypoint files for a calibration of {C} cameras")
+    meas, valid = _measurements(calibration, keypoints, min_likelihood)
+    X, _, ok = robust_points(calibration, meas, valid)
+    N, _, M, _ = meas.shape
+    ok = ok.reshape(N, M, C) & valid.transpose(0, 2, 1)
+    good = np.isfinite(X).all(axis=-1) & (ok.sum(axis=-1) >= POINT_VIEWS)
+    idx = np.argwhere(good)
+    if len(idx) < 10:
+        raise InputError(f"only {len(idx)} confident keypoints are seen by three or more cameras; "
+                         "lower --likelihood or give more frames")
+    if len(idx) > MAX_POINTS:
+        idx = idx[np.round(np.linspace(0, len(idx) - 1, MAX_POINTS)).astype(int)]
+    P = len(idx)
+    pts = X[idx[:, 0], idx[:, 1]]
+    seen = ok[idx[:, 0], idx[:, 1]]  # (P, C)
+    pj, cj = np.nonzero(seen)
+    uv = meas[idx[pj, 0], cj, idx[pj, 1]]
+    all_obs = bundle.Observations(np.arange(len(pj)), cj, pj, uv, np.zeros((len(pj), 3)))
+    rig = bundle.Rig([c.model for c in calibration.cameras], [intrinsics_of(c) for c in calibration.cameras],
+                     np.stack([c.R.T for c in calibration.cameras]), np.stack([c.center for c in calibration.cameras]),
+                     np.broadcast_to(np.eye(3), (P, 3, 3)).copy(), pts.copy())
+    old_rig = rig.copy()
+    d01 = float(np.linalg.norm(rig.t_cam[1] - rig.t_cam[0]))
+    for _ in range(ROUNDS):
+        e = bundle.residuals(rig, all_obs, jacobians=False)
+        s = np.linalg.norm(e, axis=1)
+        sigma = float(np.median(s)) / RAYLEIGH_MEDIAN
+        keep = s <= bundle.HUBER_SIGMAS * sigma  # confident mistakes out before the solve, not after
+        keep &= (np.bincount(pj, weights=keep, minlength=P) >= MIN_VIEWS)[pj]  # a point needs two views
+        obs = all_obs.keep_views(keep)
+        settings = bundle.Settings(fixed_cams=frozenset({0}), huber_px=bundle.HUBER_SIGMAS * sigma, board_dof=3,
+                                   fixed_distance=(0, 1, d01))
+        sol = bundle.solve(rig, obs, settings)
+        rig = sol.rig
+    rms_before = float(np.sqrt((bundle.residuals(old_rig, obs, jacobians=False) ** 2).sum(axis=1).mean()))
+    rms_after = float(np.sqrt((sol.residuals ** 2).sum(axis=1).mean()))
+    cams = []
+    for i, c in enumerate(calibration.cameras):
+        R = rig.R_cam[i].T
+        cams.append(Camera(K=c.K, dist=c.dist, R=R, t=-R @ rig.t_cam[i], model=c.model, size=c.size, name=c.name))
+    refined = Calibration(cams, source=calibration.source, metadata=dict(calibration.metadata))
+    loo_old = leave_one_out(calibration, meas, valid)
+    loo_new = leave_one_out(refined, meas, valid)
+    accepted = bool(np.nanmean(loo_new) <= (1 - MIN_GAIN) * np.nanmean(loo_old))
+    changes = [{"name": name, "position_change_mm": float(np.linalg.norm(a.center - b.center) * 1000),
+                "rotation_change_deg": float(np.degrees(rotation_angle(a.R @ b.R.T))),
+                "leave_one_out_old_px": lo, "leave_one_out_new_px": ln}
+               for name, a, b, lo, ln in zip(calibration.names, calibration.cameras, cams, loo_old, loo_new)]
+    notes = []
+    if not accepted:
+        notes.append(f"kept the old rig: leave-one-camera-out error {np.nanmean(loo_new):.3f} px refined vs "
+                     f"{np.nanmean(loo_old):.3f} px before (needs {MIN_GAIN * 100:.0f} % better)")
+    kept = refined if accepted else calibration
+    kept = Calibration(kept.cameras, source=kept.source, metadata={**calibration.metadata,
+                                                                     "refined_from_keypoints": accepted})
+    return RefineResult(kept, refined, accepted, loo_old, loo_new, changes, rms_before, rms_after, P, obs.n_views,
+                        time.perf_counter() - start, notes)
+
+
+def run(args: argparse.Namespace) -> int:
+    from graph.calibration import load_calibration, write_anipose_toml
+    from graph.keypoints import read_keypoints
+
+    calibration = load_calibration(args.calibration)
+    keypoints = [read_keypoints(p, individual=args.individual) for p in args.keypoints]
+    if not 0 < args.likelihood <= 1:
+        raise InputError(f"--likelihood must be in (0, 1], got {args.likelihood}")
+    result = refine_rig(calibration, keypoints, args.likelihood)
+    write_anipose_toml(args.out, result.calibration)
+    if args.report:
+        Path(args.report).write_text(json.dumps(result.to_dict(), indent=2) + "\n", encoding="utf-8")
+    verdict = "refined" if result.accepted else "kept the old rig"
+    print(f"refine: {verdict}; {result.points} points, {result.observations} detections, RMS "
+          f"{result.rms_before_px:.2f} -> {result.rms_after_px:.2f} px; leave-one-camera-out "
+          f"{np.nanmean(result.loo_old_px):.2f} -> {np.nanmean(result.loo_new_px):.2f} px -> {args.out}")
+    for ch in result.changes:
+        print(f"  {ch['name']}: moved {ch['position_change_mm']:.1f} mm, turned {ch['rotation_change_deg']:.3f} deg")
+    return 0

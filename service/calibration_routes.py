@@ -1,0 +1,118 @@
+"""The REST API of calibrations, version 1: submit board detections, poll, download the rig.
+
+Thin like :mod:`service.routes` (whose router settings, caller and job service it shares); the work
+is :mod:`service.calibrations`'."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Depends, File, Form, Query, Response, Security, UploadFile
+from fastapi.responses import FileResponse
+
+from service.calibrations import CalibrationService
+from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
+from service.jobs import Upload
+from service.models import CalibrationList, CalibrationOut, calibration_out
+from service.store import JobStatus
+from service.routes import AUTH_ERRORS, BAD_REQUEST, BEARER, SERVER_ERROR, CurrentUser, Jobs, _err
+
+router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR}, dependencies=[Security(BEARER)],
+                   tags=["calibrations"])
+NOT_FOUND = {404: _err("No such calibration, or it belongs to another user")}
+CalibrationFile = Literal[tuple(CALIBRATION_FILES)]  # type: ignore[valid-type]
+
+
+async def _calibrations(jobs: Jobs) -> CalibrationService:
+    return CalibrationService(jobs)
+
+
+Calibrations = Annotated[CalibrationService, Depends(_calibrations)]
+
+
+@router.post(
+    "/v1/calibrations", status_code=202, response_model=CalibrationOut, summary="Calibrate a rig",
+    responses={400: _err("The body is not valid multipart/form-data"),
+               408: _err("The upload stalled or took too long (ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS, "
+                         "ACINOSET_UPLOAD_TIMEOUT_SECONDS)"),
+               503: _err("Too many uploads arriving at once; try again after Retry-After seconds"),
+               413: _err("Upload or camera count over this server's limits, or the caller's storage full"),
+               422: _err("A bad board spec, a detections or camera file the readers refuse, fewer than two "
+                         "cameras, or bad options"),
+               429: _err("The caller already has the most queued and running jobs allowed"),
+               507: _err("The server's disk or its storage for jobs is full")})
+def submit_calibration(
+    user: CurrentUser, calibrations: Calibrations, response: Response,
+    board: Annotated[str, Form(description="checkerboard:COLSxROWS:SQUARE_M (inner corners, square side in metres) "
+                                           "or charuco:SQUARESXxSQUARESY:SQUARE_M:MARKER_M:DICT")],
+    detections: Annotated[list[UploadFile], File(
+        description="board detections, AcinoSet's detections JSON (board_shape, board_square_len, "
+                    "camera_resolution, points: {frame: corners}), one per camera, repeated, in camera order; views "
+                    "are matched across cameras by frame name (or give videos)")] = None,
+    videos: Annotated[list[UploadFile], File(
+        description="instead of detections: a short video of the board per camera, in camera order, filmed at the "
+                    "same instants (frames are matched by index); the board is found on the server in every "
+                    "options.every-th frame")] = None,
+    intrinsics: Annotated[list[UploadFile], File(
+        description="optional: each camera's intrinsics (AcinoSet camera JSON: camera_resolution, k, d), in camera "
+                    "order; calibrated from the views if not given")] = None,
+    options: Annotated[str, Form(description='JSON object: {"model": "fisheye" (default) or "pinhole", "origin": '
+                                             '"camera1" (default) or "board:FRAME", "every": N (videos: every N-th '
+                                             'frame, default 1), "label": "..."}')] = "{}",
+) -> CalibrationOut:
+    """Check the files (each detections file is read against the board), store them and queue the
+    calibration: one bundle adjustment of camera and board poses. Answers 202; poll ``links.self``
+    until ``status`` is ``succeeded`` (then ``report`` and a link per output file) or ``failed``."""
+    job = calibrations.submit(user, [Upload(f.filename, f.file) for f in detections or []],
+                              [Upload(f.filename, f.file) for f in intrinsics or []], board, options,
+                              [Upload(f.filename, f.file) for f in videos or []])
+    out = calibration_out(job)
+    response.headers["Location"] = out.links["self"]
+    return out
+
+
+@router.get("/v1/calibrations", response_model=CalibrationList, summary="List calibrations")
+def list_calibrations(
+    user: CurrentUser, calibrations: Calibrations,
+    status: Annotated[list[JobStatus] | None, Query(description="only calibrations in these states")] = None,
+    limit: Annotated[int, Query(ge=1, description="calibrations per page (at most 500)")] = 50,
+    cursor: Annotated[str | None, Query(pattern=r"^[0-9]{1,18}$", description="next_cursor of the previous page")] = None,
+) -> CalibrationList:
+    """The caller's calibrations, newest first (an admin's call lists everyone's)."""
+    rows, total, nxt = calibrations.jobs.list(user, list(status) if status else None, limit, cursor, None,
+                                              kind=CALIBRATION_KIND)
+    return CalibrationList(calibrations=[calibration_out(j) for j in rows], total=total, next_cursor=nxt)
+
+
+@router.get("/v1/calibrations/{calibration_id}", response_model=CalibrationOut, summary="A calibration's status",
+            responses=NOT_FOUND)
+async def get_calibration(calibration_id: str, user: CurrentUser, calibrations: Calibrations) -> CalibrationOut:
+    """Status and progress; once succeeded, the quality report (RMS, per camera views and
+    uncertainty, baselines) and the links to its files."""
+    return calibration_out(calibrations.visible(user, calibration_id))
+
+
+@router.get(
+    "/v1/calibrations/{calibration_id}/{file}", response_class=FileResponse, summary="Download a calibration file",
+    responses={200: {"description": "The file", "content": {
+                   "application/toml": {"schema": {"type": "string"}},
+                   "application/json": {"schema": {"type": "object"}},
+                   "image/png": {"schema": {"type": "string", "format": "binary"}}}},
+               **NOT_FOUND, 409: _err("The calibration has not succeeded (yet)")})
+def get_calibration_file(calibration_id: str, file: CalibrationFile, user: CurrentUser,
+                         calibrations: Calibrations) -> FileResponse:
+    """calibration.toml (Anipose), scene.json (AcinoSet's scene; fisheye rigs of one resolution only),
+    report.json, and the figures rig.png, residuals.png and coverage.png."""
+    path = calibrations.file(user, calibration_id, file)
+    return FileResponse(path, media_type=CALIBRATION_FILES[file], filename=f"{calibration_id}.{file}")
+
+
+@router.delete(
+    "/v1/calibrations/{calibration_id}", response_model=CalibrationOut, summary="Cancel or delete a calibration",
+    responses={200: {"description": "It was queued or running: it is cancelled"},
+               204: {"description": "It had finished: it is deleted with its files"}, **NOT_FOUND})
+def delete_calibration(calibration_id: str, user: CurrentUser, calibrations: Calibrations):
+    job = calibrations.jobs.cancel_or_delete(user, calibration_id, CALIBRATION_KIND)
+    if job is None:
+        return Response(status_code=204)
+    return calibration_out(job)

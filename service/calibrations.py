@@ -1,0 +1,272 @@
+"""Calibration jobs: a rig from board detections, solved on the server by :mod:`graph.calibrate`.
+
+A calibration is a job of its own kind: its row in the job table has ``options.kind`` set to
+:data:`service.jobfiles.CALIBRATION_KIND`, so it is queued, run, cancelled, counted against the
+owner's quota and recovered after a crash by the same backends as a solve. Its manifest names the
+kind too, and :func:`service.worker.solve_job` hands such a job to :func:`run_calibration`.
+
+Input layout (under the job's ``input/``)::
+
+    manifest.json        {"kind": "calibration", "detections": [...], "intrinsics": [...], "options": {...}}
+    detections/01/<uploaded name>.json    AcinoSet detections JSON, one directory per camera, in order
+    intrinsics/01/<uploaded name>.json    optional: AcinoSet camera JSON per camera
+
+Outputs (its ``result/``): :data:`service.jobfiles.CALIBRATION_FILES`, the files ``acinoset
+calibrate extrinsics`` writes with ``--out --scene --report --figures``.
+
+A solve job may name a succeeded calibration of its owner by id instead of uploading a calibration
+file (:func:`calibration_upload`): the calibration's ``calibration.toml`` is stored with the job as
+if it had been uploaded, so the job keeps its inputs even if the calibration is deleted later.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import shutil
+import sqlite3
+from pathlib import Path
+from typing import Iterator
+
+from graph.errors import InputError
+from service import jobfiles
+from service.errors import DISK_FULL, NoSpace, NotFound, NotReady, TooLarge, Unprocessable, storage_full
+from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND, INPUT, inside, new_job_id, read_manifest, staging_dir
+from service.jobs import JobService, Upload, _label, _size, safe_name
+from service.store import READING, WRITING, Job, QuotaExceeded, User
+
+DETECTIONS_DIR = "detections"
+VIDEOS_DIR = "videos"
+INTRINSICS_DIR = "intrinsics"
+MODELS = ("fisheye", "pinhole")
+OPTION_NAMES = ("model", "origin", "every", "label")
+
+
+def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
+    """The board spec and the ``options`` JSON object (``model``: fisheye|pinhole, ``origin``:
+    camera1|board:FRAME, ``every``: use every N-th frame of videos, ``label``) as the job's options,
+    and its label. Refusals are one line."""
+    from graph.calibrate import parse_board
+
+    try:
+        board = parse_board(board_spec)
+    except InputError as e:
+        raise Unprocessable(f"board: {e}") from None
+    try:
+        data = json.loads(text) if text and text.strip() else {}
+    except (json.JSONDecodeError, RecursionError):
+        raise Unprocessable("options: not a valid JSON object") from None
+    if not isinstance(data, dict):
+        raise Unprocessable('options: must be a JSON object such as {"model": "fisheye", "origin": "camera1"}')
+    unknown = sorted(set(data) - set(OPTION_NAMES))
+    if unknown:
+        raise Unprocessable(f"options: unknown option {unknown[0]!r}; known: {', '.join(OPTION_NAMES)}")
+    label = _label(data.get("label"))
+    model = data.get("model", "fisheye")
+    if model not in MODELS:
+        raise Unprocessable(f"options: model must be one of {', '.join(MODELS)}, not {model!r}")
+    origin = data.get("origin", "camera1")
+    if not isinstance(origin, str) or not (origin == "camera1" or (origin.startswith("board:") and origin[6:])):
+        raise Unprocessable(f"options: origin must be camera1 or board:FRAME, not {origin!r}")
+    every = data.get("every", 1)
+    if not isinstance(every, int) or isinstance(every, bool) or every < 1:
+        raise Unprocessable(f"options: every must be a whole number of frames, at least 1, not {every!r}")
+    return {"kind": CALIBRATION_KIND, "board": board.spec, "model": model, "origin": origin, "every": every}, label
+
+
+class CalibrationService:
+    """Submit, find and serve calibration jobs, through the :class:`service.jobs.JobService` of solves."""
+
+    def __init__(self, jobs: JobService):
+        self.jobs = jobs
+
+    def submit(self, user: User, detections: list[Upload], intrinsics: list[Upload], board_spec: str,
+               options_text: str | None, videos: list[Upload] | None = None) -> Job:
+        """Check the uploads (every detections file read against the board, every video opened),
+        store them, queue the job. ``detections`` or ``videos``, one per camera, not both."""
+        s = self.jobs.settings
+        videos = videos or []
+        if detections and videos:
+            raise Unprocessable("upload detections or videos (one per camera), not both")
+        kind = "videos" if videos else "detections"
+        detections = detections or videos
+        if len(detections) < 2:
+            raise Unprocessable(f"{kind}: {len(detections)} file(s); a rig needs at least two cameras, one "
+                                "detections JSON or video each, in camera order")
+        if len(detections) > s.max_cameras:
+            raise TooLarge(f"{len(detections)} {kind} files; this server takes at most {s.max_cameras} "
+                           "cameras per job (ACINOSET_MAX_CAMERAS)")
+        if intrinsics and len(intrinsics) != len(detections):
+            raise Unprocessable(f"intrinsics: {len(intrinsics)} files for {len(detections)} cameras; upload one "
+                                "per camera, in the same order, or none")
+        options, label = parse_options(board_spec, options_text)
+        self.jobs.check_quota(user)
+        self.jobs.check_storage(user, sum(_size(u.file) for u in [*detections, *intrinsics]))
+        try:
+            job_id, inputs = self._store_upload(detections, intrinsics, options, videos=bool(videos))
+            try:
+                job = self.jobs.store.insert_job(job_id, user.id, self.jobs.backend.name, options, inputs,
+                                                 s.max_attempts, max_active=s.max_active_jobs_per_user, label=label)
+            except BaseException:
+                jobfiles.remove(s.jobs_dir, job_id)
+                raise
+        except QuotaExceeded:
+            self.jobs.check_quota(user)
+            raise
+        except (OSError, sqlite3.OperationalError) as e:
+            if storage_full(e):
+                raise NoSpace(DISK_FULL) from None
+            raise
+        self.jobs.backend.submit(job.id)
+        return job
+
+    def _store_upload(self, detections: list[Upload], intrinsics: list[Upload], options: dict,
+                      videos: bool = False) -> tuple[str, dict]:
+        from graph.calibrate import parse_board, read_detections
+        from graph.calibrate.cli import load_camera_json
+
+        s = self.jobs.settings
+        board = parse_board(options["board"])
+        job_id = new_job_id()
+        staging = staging_dir(s.jobs_dir, job_id)
+        input_dir = staging / INPUT
+        try:
+            det_paths = [_save(u, input_dir / (VIDEOS_DIR if videos else DETECTIONS_DIR) / f"{i + 1:02d}",
+                               f"camera{i + 1}.mp4" if videos else f"camera{i + 1}.json", videos)
+                         for i, u in enumerate(detections)]
+            cam_paths = [_save(u, input_dir / INTRINSICS_DIR / f"{i + 1:02d}", f"camera{i + 1}.json")
+                         for i, u in enumerate(intrinsics)]
+            described = []
+            try:
+                for p in det_paths if videos else []:
+                    described.append({"name": p.name, "bytes": p.stat().st_size, **_video_facts(p)})
+                for p in [] if videos else det_paths:
+                    views = read_detections(p, board)
+                    described.append({"name": p.name, "bytes": p.stat().st_size, "views": len(views.frames),
+                                      "resolution": list(views.image_size)})
+                for p in cam_paths:
+                    load_camera_json(str(p))
+            except InputError as e:
+                raise Unprocessable(str(e)) from None
+            inputs = {"cameras": len(det_paths), "videos" if videos else "detections": described,
+                      "intrinsics": [{"name": p.name, "bytes": p.stat().st_size} for p in cam_paths]}
+            rel = lambda p: p.relative_to(input_dir).as_posix()  # noqa: E731
+            manifest = {"kind": CALIBRATION_KIND, "videos" if videos else "detections": [rel(p) for p in det_paths],
+                        "intrinsics": [rel(p) for p in cam_paths], "options": options}
+            jobfiles.write_manifest(input_dir, manifest)
+            staging.replace(jobfiles.job_dir(s.jobs_dir, job_id))
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        return job_id, inputs
+
+    def visible(self, user: User, calibration_id: str) -> Job:
+        """The calibration if the caller may see it (its owner, or an admin); 404 otherwise."""
+        return self.jobs.visible(user, calibration_id, CALIBRATION_KIND)
+
+    def file(self, user: User, calibration_id: str, name: str) -> Path:
+        """One output file (a name of :data:`CALIBRATION_FILES`) of a succeeded calibration."""
+        job = self.visible(user, calibration_id)
+        if job.status != "succeeded":
+            why = f": {job.error}" if job.status == "failed" and job.error else ""
+            raise NotReady(f"calibration {calibration_id} is {job.status}{why}; its files are ready when it succeeded")
+        path = jobfiles.job_dir(self.jobs.settings.jobs_dir, job.id) / jobfiles.RESULT / name
+        if name not in CALIBRATION_FILES or not path.is_file():
+            raise NotFound(f"calibration {calibration_id} has no {name}")
+        return path
+
+    def owned_calibration_file(self, user: User, calibration_id: str) -> Path:
+        """The ``calibration.toml`` of the caller's own succeeded calibration, for a solve job (admins
+        too may use only their own)."""
+        job = self.visible(user, calibration_id)
+        if job.owner_id != user.id:
+            raise NotFound(f"no calibration {calibration_id}")
+        return self.file(user, calibration_id, "calibration.toml")
+
+
+@contextlib.contextmanager
+def calibration_upload(jobs: JobService, user: User, upload: Upload | None,
+                       calibration_id: str | None) -> Iterator[Upload]:
+    """A solve job's calibration: the uploaded file, or the ``calibration.toml`` of the caller's
+    calibration ``calibration_id``; exactly one of them."""
+    if (upload is None) == (calibration_id is None):
+        raise Unprocessable("calibration: upload a calibration file or give calibration_id (one of them)")
+    if upload is not None:
+        yield upload
+        return
+    path = CalibrationService(jobs).owned_calibration_file(user, calibration_id)
+    with open(path, "rb") as f:
+        yield Upload("calibration.toml", f)
+
+
+def _save(upload: Upload, dest_dir: Path, default: str, video: bool = False) -> Path:
+    from graph.calibrate.detect import VIDEO_SUFFIXES
+
+    name = safe_name(upload.filename, default)
+    if video and Path(name).suffix.lower() not in VIDEO_SUFFIXES:
+        raise Unprocessable(f"{name}: not a video file name (one of {', '.join(VIDEO_SUFFIXES)})")
+    if not video and not name.lower().endswith(".json"):
+        name += ".json"
+    dest_dir.mkdir(parents=True, exist_ok=True)
+    path = dest_dir / name
+    with open(path, "wb") as f:
+        shutil.copyfileobj(upload.file, f, 1 << 20)
+    return path
+
+
+def _video_facts(path: Path) -> dict:
+    """Frames and size of a video, from its first frame; :class:`Unprocessable` if OpenCV cannot read it."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    try:
+        ok, frame = cap.read() if cap.isOpened() else (False, None)
+        if not ok:
+            raise Unprocessable(f"{path.name}: not a video OpenCV can read")
+        return {"frames": int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None,
+                "resolution": [int(frame.shape[1]), int(frame.shape[0])]}
+    finally:
+        cap.release()
+
+
+# -- the run (in the worker's process) -----------------------------------------------------------
+
+def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
+    """Calibrate the rig from the job's detections and write :data:`CALIBRATION_FILES` into
+    ``out_dir`` (the scene JSON only for fisheye cameras: the format holds no other); returns the
+    report (:meth:`graph.calibrate.RigResult.to_dict`) as plain JSON, the job's summary."""
+    from graph.calibrate import calibrate_extrinsics, parse_board, read_detections
+    from graph.calibrate.cli import load_camera_json
+    from graph.calibrate.detect import detect_views
+    from graph.calibrate.report import write_figures
+    from graph.calibration import write_acinoset_json, write_anipose_toml
+    from graph.types import Progress, jsonable
+
+    progress.report(READING, 0.0)
+    m = read_manifest(input_dir)
+    opts = m["options"]
+    board = parse_board(opts["board"])
+    if m.get("videos"):  # the board found in every ``every``-th frame, the progress per video
+        n = len(m["videos"])
+        views = [detect_views(inside(input_dir, rel), board, every=opts.get("every", 1), cache=False, name=f"cam{i + 1}",
+                              progress=lambda done, total, i=i: progress(Progress("detect", (i + done / max(total, 1)) / n)))
+                 for i, rel in enumerate(m["videos"])]
+    else:
+        views = [read_detections(inside(input_dir, rel), board, name=f"cam{i + 1}")
+                 for i, rel in enumerate(m["detections"])]
+    intrinsics = [load_camera_json(str(inside(input_dir, rel))) for rel in m.get("intrinsics", [])] or None
+    result = calibrate_extrinsics(views, board, intrinsics, model=opts["model"], origin=opts["origin"],
+                                  progress=lambda stage, fraction: progress(Progress(stage, fraction)))
+    progress.report(WRITING, 1.0, result.iterations)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_anipose_toml(out_dir / "calibration.toml", result.calibration)
+    if opts["model"] == "fisheye":
+        try:
+            write_acinoset_json(out_dir / "scene.json", result.calibration)
+        except ValueError:  # cameras of several resolutions: AcinoSet's scene holds one
+            pass
+    report = jsonable(result.to_dict())
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
+    write_figures(result, out_dir, board)
+    return {**report, "files": jobfiles.written_outputs(out_dir)}
+
