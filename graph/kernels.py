@@ -417,6 +417,7 @@ def all_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
 
 RESTART_COST = 2.0  # in huber^2: a few markers beyond the Huber corner
 RESTART_GAIN = 0.5
+RESTART_EVERY = 5  # frames between restart checks: a wrong branch is left within 5 frames, at a fifth of the cost
 
 
 @njit(cache=True, inline="always")
@@ -500,7 +501,9 @@ def inverse_kinematics(Q0, X, anchor_w, smooth_w, lower, upper, huber, iteration
     more). So when a frame's data cost (the sum without the pull) stays above
     ``RESTART_COST huber^2``, the frame is solved again from ``Q0[n]`` without the pull, and that
     pose is kept when its data cost is under ``RESTART_GAIN`` times the first one's: clearly
-    better, never a swap between equivalent branches.
+    better, never a swap between equivalent branches. Every ``RESTART_EVERY``-th frame is checked:
+    frames with a few outliers are common and their restarts futile (checked every frame, the
+    restarts tripled the time of the whole start), while a wrong branch lasts far longer.
     """
     N, P = Q0.shape
     Q = Q0.copy()
@@ -516,7 +519,7 @@ def inverse_kinematics(Q0, X, anchor_w, smooth_w, lower, upper, huber, iteration
         cost = _ik_frame(q, X[n], Q0[n], Q[n - 1] if n > 0 else none, anchor_w, smooth_w, lower, upper, huber,
                          iterations, H, g, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
                          marker_point, marker_dep)
-        if n > 0 and cost > RESTART_COST * huber * huber:
+        if n > 0 and n % RESTART_EVERY == 0 and cost > RESTART_COST * huber * huber:
             q2 = Q0[n].copy()
             cost2 = _ik_frame(q2, X[n], Q0[n], none, anchor_w, smooth_w, lower, upper, huber, iterations, H, g,
                               seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
