@@ -31,9 +31,9 @@ from typing import Iterator
 from graph.errors import InputError
 from service import jobfiles
 from service.errors import DISK_FULL, NoSpace, NotFound, NotReady, TooLarge, Unprocessable, storage_full
-from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND, INPUT, inside, new_job_id, read_manifest, staging_dir
+from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND, INPUT, new_job_id, staging_dir
 from service.jobs import JobService, Upload, _label, _size, safe_name
-from service.store import READING, WRITING, Job, QuotaExceeded, User
+from service.store import Job, QuotaExceeded, User
 
 DETECTIONS_DIR = "detections"
 VIDEOS_DIR = "videos"
@@ -227,46 +227,3 @@ def _video_facts(path: Path) -> dict:
                 "resolution": [int(frame.shape[1]), int(frame.shape[0])]}
     finally:
         cap.release()
-
-
-# -- the run (in the worker's process) -----------------------------------------------------------
-
-def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
-    """Calibrate the rig from the job's detections and write :data:`CALIBRATION_FILES` into
-    ``out_dir`` (the scene JSON only for fisheye cameras: the format holds no other); returns the
-    report (:meth:`graph.calibrate.RigResult.to_dict`) as plain JSON, the job's summary."""
-    from graph.calibrate import calibrate_extrinsics, parse_board, read_detections
-    from graph.calibrate.cli import load_camera_json
-    from graph.calibrate.detect import detect_views
-    from graph.calibrate.report import write_figures
-    from graph.calibration import write_acinoset_json, write_anipose_toml
-    from graph.types import Progress, jsonable
-
-    progress.report(READING, 0.0)
-    m = read_manifest(input_dir)
-    opts = m["options"]
-    board = parse_board(opts["board"])
-    if m.get("videos"):  # the board found in every ``every``-th frame, the progress per video
-        n = len(m["videos"])
-        views = [detect_views(inside(input_dir, rel), board, every=opts.get("every", 1), cache=False, name=f"cam{i + 1}",
-                              progress=lambda done, total, i=i: progress(Progress("detect", (i + done / max(total, 1)) / n)))
-                 for i, rel in enumerate(m["videos"])]
-    else:
-        views = [read_detections(inside(input_dir, rel), board, name=f"cam{i + 1}")
-                 for i, rel in enumerate(m["detections"])]
-    intrinsics = [load_camera_json(str(inside(input_dir, rel))) for rel in m.get("intrinsics", [])] or None
-    result = calibrate_extrinsics(views, board, intrinsics, model=opts["model"], origin=opts["origin"],
-                                  progress=lambda stage, fraction: progress(Progress(stage, fraction)))
-    progress.report(WRITING, 1.0, result.iterations)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_anipose_toml(out_dir / "calibration.toml", result.calibration)
-    if opts["model"] == "fisheye":
-        try:
-            write_acinoset_json(out_dir / "scene.json", result.calibration)
-        except ValueError:  # cameras of several resolutions: AcinoSet's scene holds one
-            pass
-    report = jsonable(result.to_dict())
-    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
-    write_figures(result, out_dir, board)
-    return {**report, "files": jobfiles.written_outputs(out_dir)}
-

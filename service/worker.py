@@ -157,11 +157,11 @@ class ThrottledProgress:
 
 def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> dict:
     """Read the inputs, solve, write the results; return the solve report. A calibration job
-    (its manifest's ``kind``) is run by :func:`service.calibrations.run_calibration` instead."""
+    (its manifest's ``kind``) is run by :func:`service.calibration_run.run_calibration` instead."""
     from graph.api import solve
 
     if read_manifest(input_dir).get("kind") == jobfiles.CALIBRATION_KIND:
-        from service.calibrations import run_calibration
+        from service.calibration_run import run_calibration
 
         return run_calibration(input_dir, out_dir, progress)
 

@@ -1,0 +1,53 @@
+"""A calibration job's run, in the worker's process: :func:`run_calibration` (the API side, which
+takes the uploads and queues the job, is :mod:`service.calibrations`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from service import jobfiles
+from service.jobfiles import inside, read_manifest
+from service.store import READING, WRITING
+
+
+def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
+    """Calibrate the rig from the job's detections (or videos) and write its files into ``out_dir``
+    (:data:`service.jobfiles.CALIBRATION_FILES`; the scene JSON only for fisheye cameras: the format
+    holds no other); returns the report (:meth:`graph.calibrate.RigResult.to_dict`) as plain JSON,
+    the job's summary."""
+    from graph.calibrate import calibrate_extrinsics, parse_board, read_detections
+    from graph.calibrate.cli import load_camera_json
+    from graph.calibrate.detect import detect_views
+    from graph.calibrate.report import write_figures
+    from graph.calibration import write_acinoset_json, write_anipose_toml
+    from graph.types import Progress, jsonable
+
+    progress.report(READING, 0.0)
+    m = read_manifest(input_dir)
+    opts = m["options"]
+    board = parse_board(opts["board"])
+    if m.get("videos"):  # the board found in every ``every``-th frame, the progress per video
+        n = len(m["videos"])
+        views = [detect_views(inside(input_dir, rel), board, every=opts.get("every", 1), cache=False, name=f"cam{i + 1}",
+                              progress=lambda done, total, i=i: progress(Progress("detect", (i + done / max(total, 1)) / n)))
+                 for i, rel in enumerate(m["videos"])]
+    else:
+        views = [read_detections(inside(input_dir, rel), board, name=f"cam{i + 1}")
+                 for i, rel in enumerate(m["detections"])]
+    intrinsics = [load_camera_json(str(inside(input_dir, rel))) for rel in m.get("intrinsics", [])] or None
+    result = calibrate_extrinsics(views, board, intrinsics, model=opts["model"], origin=opts["origin"],
+                                  progress=lambda stage, fraction: progress(Progress(stage, fraction)))
+    progress.report(WRITING, 1.0, result.iterations)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_anipose_toml(out_dir / "calibration.toml", result.calibration)
+    if opts["model"] == "fisheye":
+        try:
+            write_acinoset_json(out_dir / "scene.json", result.calibration)
+        except ValueError:  # cameras of several resolutions: AcinoSet's scene holds one
+            pass
+    report = jsonable(result.to_dict())
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
+    write_figures(result, out_dir, board)
+    return {**report, "files": jobfiles.written_outputs(out_dir)}
+
