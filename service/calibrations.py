@@ -3,7 +3,7 @@
 A calibration is a job of its own kind: its row in the job table has ``options.kind`` set to
 :data:`service.jobfiles.CALIBRATION_KIND`, so it is queued, run, cancelled, counted against the
 owner's quota and recovered after a crash by the same backends as a solve. Its manifest names the
-kind too, and :func:`service.worker.solve_job` hands such a job to :func:`run_calibration`.
+kind too, and :func:`service.worker.solve_job` hands such a job to :func:`service.calibration_run.run_calibration`.
 
 Input layout (under the job's ``input/``)::
 
