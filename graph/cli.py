@@ -341,7 +341,8 @@ def run_solve(args: argparse.Namespace) -> int:
 
 
 class ProgressBar:
-    """A plain one-line progress bar on a terminal: ``[#####-----]  50% solve it 12 cost 3.1e+03``."""
+    """A plain one-line progress bar on a terminal: ``[#####-----]  50% solve it 12 cost 3.1e+03``.
+    Called with a :class:`graph.types.Progress`; :meth:`show` draws any fraction and text."""
 
     def __init__(self, stream, width: int = 30, min_interval: float = 0.1):
         self.stream = stream
@@ -350,21 +351,26 @@ class ProgressBar:
         self._last = 0.0
         self._shown = False
 
-    def __call__(self, p) -> None:
+    def show(self, fraction: float, text: str) -> None:
+        """``[###---] NN% text``, at most every ``min_interval`` seconds (the end always)."""
         now = time.monotonic()
-        if now - self._last < self.min_interval and p.fraction < 1.0:
+        if now - self._last < self.min_interval and fraction < 1.0:
             return
         self._last = now
-        frac = min(max(float(p.fraction), 0.0), 1.0)
+        frac = min(max(float(fraction), 0.0), 1.0)
         filled = int(round(frac * self.width))
-        text = f"\r[{'#' * filled}{'-' * (self.width - filled)}] {frac * 100:3.0f}% {p.stage}"
+        line = f"\r[{'#' * filled}{'-' * (self.width - filled)}] {frac * 100:3.0f}% {text}"
+        self.stream.write(line.ljust(self.width + 40))
+        self.stream.flush()
+        self._shown = True
+
+    def __call__(self, p) -> None:
+        text = p.stage
         if p.iteration:
             text += f" it {p.iteration}"
         if p.cost == p.cost:  # not NaN
             text += f" cost {p.cost:.3g}"
-        self.stream.write(text.ljust(self.width + 40))
-        self.stream.flush()
-        self._shown = True
+        self.show(p.fraction, text)
 
     def close(self) -> None:
         if self._shown:

@@ -7,38 +7,24 @@ import sys
 import time
 from pathlib import Path
 
+from graph.cli import ProgressBar
 from graph.errors import InputError
 
 AXES = {"x": (1, 0, 0), "-x": (-1, 0, 0), "y": (0, 1, 0), "-y": (0, -1, 0), "z": (0, 0, 1), "-z": (0, 0, -1)}
 
 
-class FrameProgress:
-    """``[#####-----]  50% 450/900 camera-frames, 52/s`` on one terminal line."""
+class FrameProgress(ProgressBar):
+    """``[#####-----]  50% 450/900 camera-frames, 52/s`` on one terminal line, called with
+    ``(done, total)``."""
 
     def __init__(self, stream, label: str = "camera-frames", width: int = 30, min_interval: float = 0.2):
-        self.stream, self.label, self.width = stream, label, width
-        self.min_interval = min_interval
+        super().__init__(stream, width, min_interval)
+        self.label = label
         self._t0 = time.monotonic()
-        self._last = 0.0
-        self._shown = False
 
     def __call__(self, done: int, total: int) -> None:
-        now = time.monotonic()
-        if now - self._last < self.min_interval and done < total:
-            return
-        self._last = now
-        frac = done / max(total, 1)
-        filled = int(round(frac * self.width))
-        rate = done / max(now - self._t0, 1e-9)
-        self.stream.write(f"\r[{'#' * filled}{'-' * (self.width - filled)}] {frac * 100:3.0f}% "
-                          f"{done}/{total} {self.label}, {rate:.0f}/s   ")
-        self.stream.flush()
-        self._shown = True
-
-    def close(self) -> None:
-        if self._shown:
-            self.stream.write("\n")
-            self.stream.flush()
+        rate = done / max(time.monotonic() - self._t0, 1e-9)
+        self.show(done / max(total, 1), f"{done}/{total} {self.label}, {rate:.0f}/s")
 
 
 def register(sub) -> None:
