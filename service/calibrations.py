@@ -31,7 +31,7 @@ from typing import Iterator
 from graph.errors import InputError
 from service import jobfiles
 from service.errors import DISK_FULL, NoSpace, NotFound, NotReady, TooLarge, Unprocessable, storage_full
-from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND, INPUT, new_job_id, staging_dir
+from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
 from service.jobs import JobService, Upload, _label, _size, safe_name
 from service.store import Job, QuotaExceeded, User
 
@@ -127,10 +127,7 @@ class CalibrationService:
 
         s = self.jobs.settings
         board = parse_board(options["board"])
-        job_id = new_job_id()
-        staging = staging_dir(s.jobs_dir, job_id)
-        input_dir = staging / INPUT
-        try:
+        with jobfiles.staged_input(s.jobs_dir) as (job_id, input_dir):
             det_paths = [_save(u, input_dir / (VIDEOS_DIR if videos else DETECTIONS_DIR) / f"{i + 1:02d}",
                                f"camera{i + 1}.mp4" if videos else f"camera{i + 1}.json", videos)
                          for i, u in enumerate(detections)]
@@ -154,10 +151,6 @@ class CalibrationService:
             manifest = {"kind": CALIBRATION_KIND, "videos" if videos else "detections": [rel(p) for p in det_paths],
                         "intrinsics": [rel(p) for p in cam_paths], "options": options}
             jobfiles.write_manifest(input_dir, manifest)
-            staging.replace(jobfiles.job_dir(s.jobs_dir, job_id))
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise
         return job_id, inputs
 
     def visible(self, user: User, calibration_id: str) -> Job:

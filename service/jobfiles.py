@@ -32,7 +32,9 @@ import os
 import re
 import shutil
 import uuid
+from contextlib import contextmanager
 from pathlib import Path, PurePosixPath
+from typing import Iterator
 
 JOB_ID = re.compile(r"^[0-9a-f]{32}$")  # what :func:`new_job_id` makes
 INPUT = "input"
@@ -101,6 +103,21 @@ def job_dir(jobs_dir: Path, job_id: str) -> Path:
 def staging_dir(jobs_dir: Path, job_id: str) -> Path:
     """Where an upload is stored and read before it becomes ``job_dir(jobs_dir, job_id)``."""
     return Path(jobs_dir) / f"{_STAGING}{job_id}"
+
+
+@contextmanager
+def staged_input(jobs_dir: Path) -> Iterator[tuple[str, Path]]:
+    """A new job id and its staging input dir (``<staging>/input``), for an upload to be written and
+    read into. On leaving the block the staging dir becomes the job's dir; on an error (a refusal
+    included) it is removed with everything in it, and the error goes on."""
+    job_id = new_job_id()
+    staging = staging_dir(jobs_dir, job_id)
+    try:
+        yield job_id, staging / INPUT
+        staging.replace(job_dir(jobs_dir, job_id))
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
 
 
 def keypoints_dir(input_dir: Path, camera: int) -> Path:

@@ -29,7 +29,7 @@ from service.backends.base import Backend
 from service.errors import (DISK_FULL, Forbidden, NoSpace, NotFound, NotReady, TooLarge, TooMany, Unprocessable,
                             storage_full)
 from service.jobfiles import (CALIBRATION_DIR, INPUT, JOB_ID, SKELETON_DIR, keypoints_dir,
-                              new_job_id, result_path, staging_dir, video_dir)
+                              result_path, video_dir)
 from service.settings import Settings
 from service.store import STATUSES, Job, QuotaExceeded, Store, User
 from service.uploads import UploadReader
@@ -261,10 +261,7 @@ class JobService:
         """Write the files into a new job directory and read them with the core's readers.
         Returns the job id and the description of the inputs; refusals remove everything."""
         s = self.settings
-        job_id = new_job_id()
-        staging = staging_dir(s.jobs_dir, job_id)
-        input_dir = staging / INPUT
-        try:
+        with jobfiles.staged_input(s.jobs_dir) as (job_id, input_dir):
             kp_paths = [self._save(u, keypoints_dir(input_dir, i), f"camera{i + 1}.csv",
                                    KEYPOINT_SUFFIXES, _keypoint_suffix) for i, u in enumerate(keypoints)]
             cal_path = self._save(calibration, input_dir / CALIBRATION_DIR, "calibration.toml",
@@ -287,10 +284,6 @@ class JobService:
                 max_bodyparts=s.max_bodyparts,
                 videos=[str(p) for p in (video_files or video_paths or [])] or None)
             jobfiles.write_manifest(input_dir, manifest)
-            staging.replace(jobfiles.job_dir(s.jobs_dir, job_id))
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise
         return job_id, inputs
 
     def storage_used(self, user: User | None = None) -> int:
