@@ -302,6 +302,28 @@ def _detection_cost(uv, z, front, sigma, robust, ra, rb, rc):
     return ex, ey, s, rho, w
 
 
+@njit(cache=True, inline="always")
+def _add_information(K, Jx, a):
+    """``K += a Jx^T Jx`` (upper triangle; :func:`_symmetrise` mirrors it) for ``Jx`` (2, 3)."""
+    for i in range(3):
+        for j in range(i, 3):
+            K[i, j] += a * (Jx[0, i] * Jx[0, j] + Jx[1, i] * Jx[1, j])
+
+
+@njit(cache=True, inline="always")
+def _add_gradient(k, Jx, ex, ey, b):
+    """``k += b Jx^T e`` for ``Jx`` (2, 3) and ``e = (ex, ey)``."""
+    for i in range(3):
+        k[i] += b * (Jx[0, i] * ex + Jx[1, i] * ey)
+
+
+@njit(cache=True, inline="always")
+def _symmetrise(K):
+    K[1, 0] = K[0, 1]
+    K[2, 0] = K[0, 2]
+    K[2, 1] = K[1, 2]
+
+
 @njit(cache=True)
 def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
                  seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point, marker_dep,
@@ -314,24 +336,33 @@ def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
 
         H += w J^T J,   g += w J^T e,   cost += rho(s),   J = d e / d q = (1/sigma_cm) d uv/dX dp_m/dq
 
-    only over the parameters that move marker m (``marker_dep``). Bone rows (points skeleton):
-    ``e = (|p_a - p_b| - L) / sigma_L`` with weight 1. ``H`` (P, P) and ``g`` (P,) are overwritten.
-    Returns the frame's cost.
+    only over the parameters that move marker m (``marker_dep``). The cameras' terms are summed in
+    3D first, per marker (``Jx = d uv / dX``)::
+
+        K_m = sum_c w Jx^T Jx / sigma_cm^2 (3, 3),   k_m = sum_c w Jx^T e / sigma_cm (3,)
+        H += (dp_m/dq)^T K_m (dp_m/dq),   g += (dp_m/dq)^T k_m
+
+    so the parameters' products are formed once per marker, not once per camera. Bone rows
+    (points skeleton): ``e = (|p_a - p_b| - L) / sigma_L`` with weight 1. ``H`` (P, P) and ``g``
+    (P,) are overwritten. Returns the frame's cost.
     """
     C = meas.shape[0]
     M = meas.shape[1]
     P = q.shape[0]
-    D = marker_dep.shape[1]
     pos, dpos = fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
                             marker_point, marker_dep)
     H[:, :] = 0.0
     g[:] = 0.0
-    Jr = np.zeros((2, D))
     uv = np.zeros(2)
     Jx = np.zeros((2, 3))
+    K = np.zeros((3, 3))
+    k = np.zeros(3)
     cost = 0.0
-    for c in range(C):
-        for m in range(M):
+    for m in range(M):
+        K[:, :] = 0.0
+        k[:] = 0.0
+        seen = False
+        for c in range(C):
             ok = project_point(intr[c], Rc[c], tc[c], pos[m], uv, Jx)
             uv_out[c, m, 0] = uv[0]
             uv_out[c, m, 1] = uv[1]
@@ -346,25 +377,59 @@ def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
             w_out[c, m] = w
             if w <= 0.0:
                 continue
-            nd = 0
-            for d in range(D):
-                p = marker_dep[m, d]
-                if p < 0:
-                    break
-                g0 = Jx[0, 0] * dpos[m, 0, p] + Jx[0, 1] * dpos[m, 1, p] + Jx[0, 2] * dpos[m, 2, p]
-                g1 = Jx[1, 0] * dpos[m, 0, p] + Jx[1, 1] * dpos[m, 1, p] + Jx[1, 2] * dpos[m, 2, p]
-                Jr[0, d] = g0 / sg
-                Jr[1, d] = g1 / sg
-                nd += 1
-            for i in range(nd):
-                pi = marker_dep[m, i]
-                g[pi] += w * (Jr[0, i] * ex + Jr[1, i] * ey)
-                for j in range(i, nd):
-                    pj = marker_dep[m, j]
-                    h = w * (Jr[0, i] * Jr[0, j] + Jr[1, i] * Jr[1, j])
-                    H[pi, pj] += h
-                    if j != i:
-                        H[pj, pi] += h
+            _add_information(K, Jx, w / (sg * sg))
+            _add_gradient(k, Jx, ex, ey, w / sg)
+            seen = True
+        if seen:
+            _symmetrise(K)
+            _project_gradient(k, dpos[m], marker_dep[m], g)
+            _project_information(K, dpos[m], dpos[m], marker_dep[m], marker_dep[m], True, H)
+    return cost + _bone_rows(pos, dpos, bones, bone_len, bone_sigma, H, g)
+
+
+@njit(cache=True, inline="always")
+def _project_gradient(k, J, dep, g):
+    """``g[dep] += J[:, dep]^T k`` for a marker's 3D gradient ``k`` (3,) and Jacobian ``J`` (3, P)
+    over its parameters ``dep`` (padded with -1)."""
+    for d in range(dep.shape[0]):
+        p = dep[d]
+        if p < 0:
+            break
+        g[p] += k[0] * J[0, p] + k[1] * J[1, p] + k[2] * J[2, p]
+
+
+@njit(cache=True, inline="always")
+def _project_information(K, Ja, Jb, dep_a, dep_b, same, H):
+    """``H[dep_a, dep_b] += Ja[:, dep_a]^T K Jb[:, dep_b]`` for a marker's 3D information ``K``
+    (3, 3) and Jacobians ``Ja``, ``Jb`` (3, P) over the parameters ``dep_a``, ``dep_b`` (padded with
+    -1). With ``same`` (``Ja`` is ``Jb`` and ``dep_a`` is ``dep_b``) only the upper triangle is
+    formed, and mirrored."""
+    t = np.empty((dep_b.shape[0], 3))
+    nb = 0
+    for d in range(dep_b.shape[0]):
+        p = dep_b[d]
+        if p < 0:
+            break
+        for i in range(3):
+            t[d, i] = K[i, 0] * Jb[0, p] + K[i, 1] * Jb[1, p] + K[i, 2] * Jb[2, p]
+        nb += 1
+    for i in range(dep_a.shape[0]):
+        pi = dep_a[i]
+        if pi < 0:
+            break
+        for j in range(i if same else 0, nb):
+            pj = dep_b[j]
+            h = Ja[0, pi] * t[j, 0] + Ja[1, pi] * t[j, 1] + Ja[2, pi] * t[j, 2]
+            H[pi, pj] += h
+            if same and j != i:
+                H[pj, pi] += h
+
+
+@njit(cache=True)
+def _bone_rows(pos, dpos, bones, bone_len, bone_sigma, H, g):
+    """The bone rows of a points skeleton added to one frame's ``H``, ``g``; returns their cost."""
+    P = dpos.shape[2]
+    cost = 0.0
     for i in range(bones.shape[0]):
         if not (bone_len[i] > 0):
             continue
@@ -705,20 +770,42 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
     for n in prange(N):
         uv = np.zeros(2)
         Jx = np.zeros((2, 3))
-        Ja = np.zeros((2, D))
-        Jb = np.zeros((2, D))
-        JW = np.zeros((2, DW + 1))
-        wcols = np.empty(DW + 1, dtype=np.int64)
         X = np.zeros(3)
+        vel = np.zeros(3)
+        v = np.zeros(3)
+        Kc = np.zeros((3, 3))
+        kc = np.zeros(3)
+        Aa = np.zeros((3, 3))
+        Ab = np.zeros((3, 3))
+        Aab = np.zeros((3, 3))
+        ka = np.zeros(3)
+        kb = np.zeros(3)
+        ua = np.zeros((G, 3))
+        ub = np.zeros((G, 3))
+        timed = np.empty(C, dtype=np.int64)
         n1 = min(n + 1, N - 1)
-        for c in range(C):
-            m_frame = n + shift[c]
-            f = frac[c]
-            if m_frame < 0 or m_frame >= N or (f > 0.0 and n + 1 >= N):
-                continue
-            tcol = tau_col[c]
-            a = 1.0 - f
-            for mk in range(M):
+        for mk in range(M):
+            Aa[:, :] = 0.0
+            Ab[:, :] = 0.0
+            Aab[:, :] = 0.0
+            ka[:] = 0.0
+            kb[:] = 0.0
+            nt = 0
+            seen = False
+            later = False
+            for i in range(3):  # d p / d tau: the chord to the next frame (the last frame: from the one before)
+                if n1 > n:
+                    vel[i] = pos_all[n1, mk, i] - pos_all[n, mk, i]
+                elif n > 0:
+                    vel[i] = pos_all[n, mk, i] - pos_all[n - 1, mk, i]
+                else:
+                    vel[i] = 0.0
+            for c in range(C):
+                m_frame = n + shift[c]
+                f = frac[c]
+                if m_frame < 0 or m_frame >= N or (f > 0.0 and n + 1 >= N):
+                    continue
+                a = 1.0 - f
                 for i in range(3):
                     X[i] = a * pos_all[n, mk, i] + f * pos_all[n1, mk, i]
                 ok = project_point(intr[c], Rc[c], tc[c], X, uv, Jx)
@@ -733,72 +820,74 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
                 w_out[m_frame, c, mk] = w
                 if w <= 0.0:
                     continue
-                nd = 0
-                for d in range(D):
-                    p = marker_dep[mk, d]
+                Kc[:, :] = 0.0
+                _add_information(Kc, Jx, w / (sg * sg))
+                _symmetrise(Kc)
+                kc[:] = 0.0
+                _add_gradient(kc, Jx, ex, ey, w / sg)
+                for i in range(3):
+                    ka[i] += a * kc[i]
+                    for j in range(3):
+                        Aa[i, j] += a * a * Kc[i, j]
+                if f > 0.0:
+                    later = True
+                    for i in range(3):
+                        kb[i] += f * kc[i]
+                        for j in range(3):
+                            Ab[i, j] += f * f * Kc[i, j]
+                            Aab[i, j] += a * f * Kc[i, j]
+                seen = True
+                tcol = tau_col[c]
+                if tcol >= 0:  # the camera's own offset column
+                    for i in range(3):
+                        v[i] = Kc[i, 0] * vel[0] + Kc[i, 1] * vel[1] + Kc[i, 2] * vel[2]
+                        ua[tcol, i] = a * v[i]
+                        ub[tcol, i] = f * v[i]
+                    HWW[n, tcol, tcol] += vel[0] * v[0] + vel[1] * v[1] + vel[2] * v[2]
+                    gW[n, tcol] += vel[0] * kc[0] + vel[1] * kc[1] + vel[2] * kc[2]
+                    timed[nt] = tcol
+                    nt += 1
+            if not seen:
+                continue
+            dep = marker_dep[mk]
+            wdep = marker_wdep[mk]
+            Jn = dpos_all[n, mk]
+            Jn1 = dpos_all[n1, mk]
+            Ln = dlen_all[n, mk]
+            Ln1 = dlen_all[n1, mk]
+            _project_gradient(ka, Jn, dep, ga[n])
+            _project_information(Aa, Jn, Jn, dep, dep, True, Ha[n])
+            _project_gradient(ka, Ln, wdep, gW[n])
+            _project_information(Aa, Jn, Ln, dep, wdep, False, HaW[n])
+            _project_information(Aa, Ln, Ln, wdep, wdep, True, HWW[n])
+            if later:
+                _project_gradient(kb, Jn1, dep, gb[n])
+                _project_information(Ab, Jn1, Jn1, dep, dep, True, Hb[n])
+                _project_information(Aab, Jn, Jn1, dep, dep, False, Hab[n])
+                _project_gradient(kb, Ln1, wdep, gW[n])
+                _project_information(Aab, Jn, Ln1, dep, wdep, False, HaW[n])
+                _project_information(Aab, Jn1, Ln, dep, wdep, False, HbW[n])
+                _project_information(Ab, Jn1, Ln1, dep, wdep, False, HbW[n])
+                _project_information(Aab, Ln, Ln1, wdep, wdep, False, HWW[n])
+                _project_information(Aab, Ln1, Ln, wdep, wdep, False, HWW[n])
+                _project_information(Ab, Ln1, Ln1, wdep, wdep, True, HWW[n])
+            for t in range(nt):  # the offsets' columns: with the poses and with the lengths
+                col = timed[t]
+                for d in range(dep.shape[0]):
+                    p = dep[d]
                     if p < 0:
                         break
-                    for r in range(2):
-                        ja = Jx[r, 0] * dpos_all[n, mk, 0, p] + Jx[r, 1] * dpos_all[n, mk, 1, p] + Jx[r, 2] * dpos_all[n, mk, 2, p]
-                        Ja[r, d] = a * ja / sg
-                        if f > 0.0:
-                            jn = (Jx[r, 0] * dpos_all[n1, mk, 0, p] + Jx[r, 1] * dpos_all[n1, mk, 1, p]
-                                  + Jx[r, 2] * dpos_all[n1, mk, 2, p])
-                            Jb[r, d] = f * jn / sg
-                    nd += 1
-                nw = 0
-                for d in range(DW):
-                    col = marker_wdep[mk, d]
-                    if col < 0:
+                    HaW[n, p, col] += Jn[0, p] * ua[col, 0] + Jn[1, p] * ua[col, 1] + Jn[2, p] * ua[col, 2]
+                    if later:
+                        HbW[n, p, col] += Jn1[0, p] * ub[col, 0] + Jn1[1, p] * ub[col, 1] + Jn1[2, p] * ub[col, 2]
+                for d in range(wdep.shape[0]):
+                    l = wdep[d]
+                    if l < 0:
                         break
-                    wcols[nw] = col
-                    for r in range(2):
-                        acc = 0.0
-                        for i in range(3):
-                            acc += Jx[r, i] * (a * dlen_all[n, mk, i, col] + f * dlen_all[n1, mk, i, col])
-                        JW[r, nw] = acc / sg
-                    nw += 1
-                if tcol >= 0:
-                    wcols[nw] = tcol
-                    for r in range(2):
-                        acc = 0.0
-                        for i in range(3):
-                            acc += Jx[r, i] * (pos_all[n1, mk, i] - pos_all[n, mk, i])
-                        JW[r, nw] = acc / sg
-                    if n1 == n and n > 0:  # the last frame: the velocity from the frame before
-                        for r in range(2):
-                            acc = 0.0
-                            for i in range(3):
-                                acc += Jx[r, i] * (pos_all[n, mk, i] - pos_all[n - 1, mk, i])
-                            JW[r, nw] = acc / sg
-                    nw += 1
-                for i in range(nd):
-                    pi = marker_dep[mk, i]
-                    ga[n, pi] += w * (Ja[0, i] * ex + Ja[1, i] * ey)
-                    for j in range(i, nd):
-                        pj = marker_dep[mk, j]
-                        h = w * (Ja[0, i] * Ja[0, j] + Ja[1, i] * Ja[1, j])
-                        Ha[n, pi, pj] += h
-                        if j != i:
-                            Ha[n, pj, pi] += h
-                    for k in range(nw):
-                        HaW[n, pi, wcols[k]] += w * (Ja[0, i] * JW[0, k] + Ja[1, i] * JW[1, k])
-                    if f > 0.0:
-                        gb[n, pi] += w * (Jb[0, i] * ex + Jb[1, i] * ey)
-                        for j in range(nd):
-                            pj = marker_dep[mk, j]
-                            Hab[n, pi, pj] += w * (Ja[0, i] * Jb[0, j] + Ja[1, i] * Jb[1, j])
-                            if j >= i:
-                                h = w * (Jb[0, i] * Jb[0, j] + Jb[1, i] * Jb[1, j])
-                                Hb[n, pi, pj] += h
-                                if j != i:
-                                    Hb[n, pj, pi] += h
-                        for k in range(nw):
-                            HbW[n, pi, wcols[k]] += w * (Jb[0, i] * JW[0, k] + Jb[1, i] * JW[1, k])
-                for k in range(nw):
-                    gW[n, wcols[k]] += w * (JW[0, k] * ex + JW[1, k] * ey)
-                    for l in range(nw):
-                        HWW[n, wcols[k], wcols[l]] += w * (JW[0, k] * JW[0, l] + JW[1, k] * JW[1, l])
+                    h = (Ln[0, l] * ua[col, 0] + Ln[1, l] * ua[col, 1] + Ln[2, l] * ua[col, 2]
+                         + Ln1[0, l] * ub[col, 0] + Ln1[1, l] * ub[col, 1] + Ln1[2, l] * ub[col, 2])
+                    HWW[n, l, col] += h
+                    HWW[n, col, l] += h
         # bone-length rows at frame n's own pose
         if bones.shape[0] > 0:
             jb = np.zeros(P)
@@ -853,6 +942,41 @@ def fk_body_jacobian_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, 
         dlen[n] = dl
     return pos, dpos, dlen
 
+
+
+@njit(cache=True)
+def lag_sampson(xa, xc, E, lags, stride, min_pairs):
+    """For each lag d of ``lags``, the median over camera a's frames n (every ``stride``-th) and
+    markers of the Sampson distance of ``xa[n]`` (normalised points, (N, M, 2), NaN where unseen)
+    paired with camera c's ``xc[n + d]`` under the essential matrix ``E`` (:mod:`graph.sync`)::
+
+        sqrt(e),  e = (x_c^T E x_a)^2 / ((E x_a)_1^2 + (E x_a)_2^2 + (E^T x_c)_1^2 + (E^T x_c)_2^2)
+
+    NaN for a lag with fewer than ``min_pairs`` pairs."""
+    N, M = xa.shape[0], xa.shape[1]
+    out = np.full(lags.shape[0], np.nan)
+    buf = np.empty(((N + stride - 1) // stride + 1) * M)
+    for i in range(lags.shape[0]):
+        d = lags[i]
+        k = 0
+        for n in range(max(0, -d), min(N, N - d), stride):
+            for m in range(M):
+                ax, ay = xa[n, m, 0], xa[n, m, 1]
+                cx, cy = xc[n + d, m, 0], xc[n + d, m, 1]
+                if not (np.isfinite(ax) and np.isfinite(ay) and np.isfinite(cx) and np.isfinite(cy)):
+                    continue
+                e0 = E[0, 0] * ax + E[0, 1] * ay + E[0, 2]
+                e1 = E[1, 0] * ax + E[1, 1] * ay + E[1, 2]
+                e2 = E[2, 0] * ax + E[2, 1] * ay + E[2, 2]
+                f0 = E[0, 0] * cx + E[1, 0] * cy + E[2, 0]
+                f1 = E[0, 1] * cx + E[1, 1] * cy + E[2, 1]
+                num = cx * e0 + cy * e1 + e2
+                den = e0 * e0 + e1 * e1 + f0 * f0 + f1 * f1
+                buf[k] = np.sqrt(num * num / max(den, 1e-300))
+                k += 1
+        if k >= min_pairs:
+            out[i] = np.median(buf[:k])
+    return out
 
 
 @contextmanager

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from graph import kernels
 from graph.camera import Calibration, undistort_points
 
 DECISIVE = 0.6  # a lag counts when its cost is below this fraction of the median lag's
@@ -58,27 +59,12 @@ def _essential(calibration: Calibration, a: int, c: int) -> np.ndarray:
 
 def lag_costs(xa: np.ndarray, xc: np.ndarray, E: np.ndarray, lags: np.ndarray) -> np.ndarray:
     """Median Sampson distance (normalised units) of camera a's points ``xa`` (N, M, 2) paired with
-    camera c's ``xc`` (N, M, 2) ``d`` frames later, for each lag d; NaN where too few pairs."""
+    camera c's ``xc`` (N, M, 2) ``d`` frames later, for each lag d; NaN where too few pairs
+    (:func:`graph.kernels.lag_sampson`, every ``max(1, N M / PAIRS_PER_LAG)``-th frame)."""
     N, M = xa.shape[:2]
-    out = np.full(len(lags), np.nan)
-    stride = max(1, N * M // PAIRS_PER_LAG)
-    ha = np.concatenate([xa, np.ones(xa.shape[:-1] + (1,))], axis=-1)
-    hc = np.concatenate([xc, np.ones(xc.shape[:-1] + (1,))], axis=-1)
-    Ea = ha @ E.T  # E x_a, (N, M, 3)
-    Ec = hc @ E  # E^T x_c
-    ok_a, ok_c = np.isfinite(xa).all(-1), np.isfinite(xc).all(-1)
-    for i, d in enumerate(lags):
-        lo, hi = max(0, -d), min(N, N - d)
-        if hi - lo <= 0:
-            continue
-        ok = ok_a[lo:hi:stride] & ok_c[lo + d:hi + d:stride]
-        if ok.sum() < MIN_PAIRS:
-            continue
-        ea, pc, ec = Ea[lo:hi:stride][ok], hc[lo + d:hi + d:stride][ok], Ec[lo + d:hi + d:stride][ok]
-        num = np.einsum("ij,ij->i", pc, ea) ** 2
-        den = ea[:, 0] ** 2 + ea[:, 1] ** 2 + ec[:, 0] ** 2 + ec[:, 1] ** 2
-        out[i] = float(np.median(np.sqrt(num / np.maximum(den, 1e-300))))
-    return out
+    return kernels.lag_sampson(np.ascontiguousarray(xa, dtype=np.float64), np.ascontiguousarray(xc, dtype=np.float64),
+                               np.ascontiguousarray(E, dtype=np.float64), np.asarray(lags, dtype=np.int64),
+                               max(1, N * M // PAIRS_PER_LAG), MIN_PAIRS)
 
 
 def _best_lag(costs: np.ndarray, lags: np.ndarray) -> tuple[float, bool]:
