@@ -357,6 +357,7 @@ def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
     Jx = np.zeros((2, 3))
     K = np.zeros((3, 3))
     k = np.zeros(3)
+    scratch = np.empty((marker_dep.shape[1], 3))
     cost = 0.0
     for m in range(M):
         K[:, :] = 0.0
@@ -383,7 +384,7 @@ def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
         if seen:
             _symmetrise(K)
             _project_gradient(k, dpos[m], marker_dep[m], g)
-            _project_information(K, dpos[m], dpos[m], marker_dep[m], marker_dep[m], True, H)
+            _project_information(K, dpos[m], dpos[m], marker_dep[m], marker_dep[m], True, H, scratch)
     return cost + _bone_rows(pos, dpos, bones, bone_len, bone_sigma, H, g)
 
 
@@ -399,12 +400,11 @@ def _project_gradient(k, J, dep, g):
 
 
 @njit(cache=True, inline="always")
-def _project_information(K, Ja, Jb, dep_a, dep_b, same, H):
+def _project_information(K, Ja, Jb, dep_a, dep_b, same, H, t):
     """``H[dep_a, dep_b] += Ja[:, dep_a]^T K Jb[:, dep_b]`` for a marker's 3D information ``K``
     (3, 3) and Jacobians ``Ja``, ``Jb`` (3, P) over the parameters ``dep_a``, ``dep_b`` (padded with
-    -1). With ``same`` (``Ja`` is ``Jb`` and ``dep_a`` is ``dep_b``) only the upper triangle is
-    formed, and mirrored."""
-    t = np.empty((dep_b.shape[0], 3))
+    -1); ``t`` is scratch of at least (len(dep_b), 3). With ``same`` (``Ja`` is ``Jb`` and ``dep_a``
+    is ``dep_b``) only the upper triangle is formed, and mirrored."""
     nb = 0
     for d in range(dep_b.shape[0]):
         p = dep_b[d]
@@ -783,6 +783,7 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
         ua = np.zeros((G, 3))
         ub = np.zeros((G, 3))
         timed = np.empty(C, dtype=np.int64)
+        scratch = np.empty((max(D, DW), 3))
         n1 = min(n + 1, N - 1)
         for mk in range(M):
             Aa[:, :] = 0.0
@@ -856,21 +857,21 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
             Ln = dlen_all[n, mk]
             Ln1 = dlen_all[n1, mk]
             _project_gradient(ka, Jn, dep, ga[n])
-            _project_information(Aa, Jn, Jn, dep, dep, True, Ha[n])
+            _project_information(Aa, Jn, Jn, dep, dep, True, Ha[n], scratch)
             _project_gradient(ka, Ln, wdep, gW[n])
-            _project_information(Aa, Jn, Ln, dep, wdep, False, HaW[n])
-            _project_information(Aa, Ln, Ln, wdep, wdep, True, HWW[n])
+            _project_information(Aa, Jn, Ln, dep, wdep, False, HaW[n], scratch)
+            _project_information(Aa, Ln, Ln, wdep, wdep, True, HWW[n], scratch)
             if later:
                 _project_gradient(kb, Jn1, dep, gb[n])
-                _project_information(Ab, Jn1, Jn1, dep, dep, True, Hb[n])
-                _project_information(Aab, Jn, Jn1, dep, dep, False, Hab[n])
+                _project_information(Ab, Jn1, Jn1, dep, dep, True, Hb[n], scratch)
+                _project_information(Aab, Jn, Jn1, dep, dep, False, Hab[n], scratch)
                 _project_gradient(kb, Ln1, wdep, gW[n])
-                _project_information(Aab, Jn, Ln1, dep, wdep, False, HaW[n])
-                _project_information(Aab, Jn1, Ln, dep, wdep, False, HbW[n])
-                _project_information(Ab, Jn1, Ln1, dep, wdep, False, HbW[n])
-                _project_information(Aab, Ln, Ln1, wdep, wdep, False, HWW[n])
-                _project_information(Aab, Ln1, Ln, wdep, wdep, False, HWW[n])
-                _project_information(Ab, Ln1, Ln1, wdep, wdep, True, HWW[n])
+                _project_information(Aab, Jn, Ln1, dep, wdep, False, HaW[n], scratch)
+                _project_information(Aab, Jn1, Ln, dep, wdep, False, HbW[n], scratch)
+                _project_information(Ab, Jn1, Ln1, dep, wdep, False, HbW[n], scratch)
+                _project_information(Aab, Ln, Ln1, wdep, wdep, False, HWW[n], scratch)
+                _project_information(Aab, Ln1, Ln, wdep, wdep, False, HWW[n], scratch)
+                _project_information(Ab, Ln1, Ln1, wdep, wdep, True, HWW[n], scratch)
             for t in range(nt):  # the offsets' columns: with the poses and with the lengths
                 col = timed[t]
                 for d in range(dep.shape[0]):
