@@ -742,6 +742,18 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
     points skeleton are frame n's own, with the bone's log length ``bone_col[i] >= 0`` a column of
     ``W`` (``e = (|p_a - p_b| - bone_len_i) / sigma_i``).
 
+    As in :func:`frame_normal`, the cameras are summed in 3D first, per window and marker, with
+    ``K_c = w Jx^T Jx / sigma^2`` and ``k_c = w Jx^T e / sigma``::
+
+        A_a = sum_c (1-f_c)^2 K_c,  A_b = sum_c f_c^2 K_c,  A_ab = sum_c (1-f_c) f_c K_c
+        k_a = sum_c (1-f_c) k_c,    k_b = sum_c f_c k_c
+
+    so that with ``J_n = [dp_n/dq, dp_n/dl]``: frame n's block is ``J_n^T A_a J_n``, frame n+1's
+    ``J_{n+1}^T A_b J_{n+1}``, the cross ``J_n^T A_ab J_{n+1}`` (the length columns take their share
+    of each), the gradients ``J_n^T k_a`` and ``J_{n+1}^T k_b``; an offset's column, one camera's
+    own, is ``v_c = K_c (p_{n+1} - p_n)``: ``(1-f_c) J_n^T v_c``, ``f_c J_{n+1}^T v_c`` and
+    ``(p_{n+1} - p_n)^T v_c``.
+
     Returns, per window n: ``Ha, Hb, Hab`` (N, P, P): frame n's, frame n+1's and their cross
     information; ``ga, gb`` (N, P); ``HaW, HbW`` (N, P, G); ``HWW`` (N, G, G), ``gW`` (N, G); and per
     camera frame (the detections' own indexing) ``uv`` (N, C, M, 2), ``s`` and ``w`` (N, C, M); the
