@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -79,9 +80,9 @@ def write_anipose_csv(path: str | Path, result: Result,
     score = np.where(has, np.asarray(result.score, dtype=np.float64), np.nan)
     header = [spreadsheet_safe(f"{name}_{f}") for name in result.markers for f in _MARKER_FIELDS]
     header += [f"M_{i}{j}" for i in range(3) for j in range(3)] + [f"center_{i}" for i in range(3)] + ["fnum"]
-    frame_const = [_cell(v) for v in M.ravel()] + [_cell(v) for v in center]
+    frame_const = [_cell(v) for v in M.ravel().tolist()] + [_cell(v) for v in center.tolist()]
     per_marker = np.concatenate([pos, error[..., None], ncams[..., None], score[..., None]], axis=-1)
-    per_marker = per_marker.reshape(n, 6 * m)
+    per_marker = per_marker.reshape(n, 6 * m).tolist()  # Python floats: repr and isfinite without numpy's per-call cost
     with open(path, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(header)
@@ -139,7 +140,7 @@ def read_anipose_csv(path: str | Path) -> Points3D:
 
 
 def _cell(v: float) -> str:
-    return "" if not np.isfinite(v) else repr(float(v))
+    return repr(float(v)) if math.isfinite(v) else ""
 
 
 # ------------------------------------------------------------------------------------ HDF5 archive
