@@ -39,7 +39,7 @@ import gtsam
 import numpy as np
 
 from graph import kernels
-from graph.fte import (PRIOR_SIGMA, TrajectoryProblem, bone_lengths, fit_motion, loosening, optimise, refit_motion,
+from graph.fte import (PRIOR_SIGMA, TrajectoryProblem, bone_lengths, fit_motion, optimise, refit_motion,
                        trajectory_result)
 from graph.initial import initial_poses
 from graph.joint import shares_unknowns, solve_fte_joint
@@ -286,7 +286,7 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     tp = TrajectoryProblem(sub, Q0, bone_lengths(sub, X) if sub.skeleton.kind == "points" else None)
     if auto:
         fit_motion(tp, Q0)
-    Q_start, iters, cost = loosening(tp, lambda: optimise(tp, Q0.copy(), 30))
+    Q_start, iters, cost = optimise(tp, Q0.copy(), 30)
     if auto:  # the scales of largest marginal likelihood over the start, kept for the stream
         Q_start, more, _ = refit_motion(tp, Q_start, cost, 30)
         iters += more
@@ -315,7 +315,6 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     whole = TrajectoryProblem(prob, Q, tp.bone_len)
     if auto:
         whole.set_motion_scales(tp.motion_scales)
-        whole.loosened = tp.loosened
     result = trajectory_result(whole, Q, "ekf",
                                seconds={"init": t_init, "solve": t_solve}, iterations=N - S + iters,
                                causal=causal, per_frame_ms=per_frame_ms)
