@@ -368,8 +368,8 @@ def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, cost: float, max_itera
     return Q, iterations, cost
 
 
-MOTION_TOLERANCE = 0.1  # fit again while a scale moved by more than this fraction
-MOTION_ROUNDS = 2
+MOTION_TOLERANCE = 0.1  # solve again when a scale moved by more than this fraction
+MOTION_ROUNDS = 2  # fits at an optimum, each followed by a solve when it moved
 
 
 def fit_motion(tp: TrajectoryProblem, X) -> float:
@@ -389,8 +389,15 @@ def fit_motion(tp: TrajectoryProblem, X) -> float:
 
 def refit_motion(tp: TrajectoryProblem, X, cost: float, max_iterations: int):
     """``motion_scale="auto"`` at the smoother's optimum ``X``: fit the scales again
-    (:func:`fit_motion`) and, while one moves by more than ``MOTION_TOLERANCE``, solve again.
-    Returns (X, iterations, cost)."""
+    (:func:`fit_motion`) and, if one moved by more than ``MOTION_TOLERANCE``, solve again, up to
+    ``MOTION_ROUNDS`` times. The fit and the solve are a fixed-point iteration: a trajectory solved
+    with too loose a model follows the noise, and the evidence at it asks for a looser model still,
+    so from a loose start each round moves only part of the way. A fit at the start (the initial
+    poses, per-frame and noisy) was such a start: 20-40x looser than the answer on the simulated
+    cheetah at 10 px, still 2-10x off after two rounds. The first solve with the skeleton's own
+    process noise is a better one (there two rounds end within 2 %; bench/RESULTS.md, section 12),
+    and costs a fit less. Each fit warm-starts from the scales before. Returns (X, iterations,
+    cost)."""
     iterations = 0
     for _ in range(MOTION_ROUNDS):
         if fit_motion(tp, X) <= np.log1p(MOTION_TOLERANCE):
@@ -438,13 +445,13 @@ def solve_fte(prob: Problem, progress: ProgressCallback | None = None) -> Result
 
 def solve_from(tp: TrajectoryProblem, X0, t0: float, progress: ProgressCallback | None = None) -> Result:
     """The rest of an ``fte`` solve from the start ``X0`` of ``tp`` (begun at ``t0``): optimise
-    (graduated when robust), measure the noise again when asked, and the result with its uncertainty."""
+    (graduated when robust), measure the noise again when asked, fit the motion model at the
+    optimum when asked (:func:`refit_motion`; the first solve uses the skeleton's process noise),
+    and the result with its uncertainty."""
     o = tp.prob.options
     t_init = time.perf_counter() - t0
     if progress:
         progress(Progress(stage="optimise", fraction=0.1))
-    if o.motion_scale == "auto":
-        fit_motion(tp, X0)  # a first fit at the start, so that the solve begins with a fair motion model
     X, iterations, cost = optimise(tp, X0, o.max_iterations, progress, stretches=(4.0, 1.0) if o.robust else (1.0,))
     if o.measurement_std_px == "auto":
         X, more, cost = remeasure_noise(tp, X, cost, o.max_iterations)

@@ -39,7 +39,7 @@ import gtsam
 import numpy as np
 
 from graph import kernels
-from graph.fte import (PRIOR_SIGMA, TrajectoryProblem, bone_lengths, fit_motion, optimise, refit_motion,
+from graph.fte import (PRIOR_SIGMA, TrajectoryProblem, bone_lengths, optimise, refit_motion,
                        trajectory_result)
 from graph.initial import initial_poses
 from graph.joint import shares_unknowns, solve_fte_joint
@@ -284,10 +284,9 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     X, _, _ = robust_points(sub.calibration, sub.meas, sub.valid, sub.sigma_px)
     Q0 = initial_poses(sub, X)
     tp = TrajectoryProblem(sub, Q0, bone_lengths(sub, X) if sub.skeleton.kind == "points" else None)
-    if auto:
-        fit_motion(tp, Q0)
     Q_start, iters, cost = optimise(tp, Q0.copy(), 30)
-    if auto:  # the scales of largest marginal likelihood over the start, kept for the stream
+    if auto:  # the scales of largest marginal likelihood over the start (fitted at its optimum, as fte), kept
+        # for the stream
         Q_start, more, _ = refit_motion(tp, Q_start, cost, 30)
         iters += more
     t_init = time.perf_counter() - t0

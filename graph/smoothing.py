@@ -23,12 +23,14 @@ the evidence ``p(z | s) = int exp(-f(x) - |x - x0|^2 / (2 sigma_p^2)) p(x | s) d
 
 the quantity EKS maximises for its smoothing parameter, here in closed form. K is banded (bandwidth
 4 frames), so each evaluation is a banded Cholesky factorisation (LAPACK ``pbtrf``), linear in
-frames. The scale maximising it is found on a grid of decades and refined by golden-section search on
-log s. Groups whose chains are independent (free points without bones: one chain per marker) get
+frames. The scale maximising it is bracketed by a walk of decades from the current scale and refined
+by parabolic interpolation on log s (:func:`best_scales`). Groups whose chains are independent (free points without bones: one chain per marker) get
 one scale each; a kinematic skeleton (or free points joined by bones) one scale.
 
-The fit is local: the smoother is solved again with the scales found and the fit repeated
-(:func:`graph.fte.solve_from`), since H and the robust weights depend on the trajectory.
+The fit is local: it is made at the smoother's optimum, the smoother solved again with the scales
+found and the fit repeated (:func:`graph.fte.refit_motion`), since H and the robust weights depend
+on the trajectory. The same banded band form solves the smoother's own steps for free points
+without bones (:func:`solve_chains`).
 """
 
 from __future__ import annotations
