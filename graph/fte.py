@@ -453,14 +453,16 @@ def solve_from(tp: TrajectoryProblem, X0, t0: float, progress: ProgressCallback 
     if progress:
         progress(Progress(stage="optimise", fraction=0.1))
     X, iterations, cost = optimise(tp, X0, o.max_iterations, progress, stretches=(4.0, 1.0) if o.robust else (1.0,))
-    if o.measurement_std_px == "auto":
-        X, more, cost = remeasure_noise(tp, X, cost, o.max_iterations)
-        iterations += more
+    # the motion model first: the noise measured about a trajectory smoothed by the skeleton's own
+    # process noise (for a slow animal far too loose: every frame its own triangulation) comes out too small
     if o.motion_scale == "auto":
         X, more, cost = refit_motion(tp, X, cost, o.max_iterations)
         iterations += more
-        if o.measurement_std_px == "auto":
-            X, more, cost = remeasure_noise(tp, X, cost, o.max_iterations)
+    if o.measurement_std_px == "auto":
+        X, more, cost = remeasure_noise(tp, X, cost, o.max_iterations)
+        iterations += more
+        if o.motion_scale == "auto" and more:  # solved with a new noise: the evidence moved with it
+            X, more, cost = refit_motion(tp, X, cost, o.max_iterations)
             iterations += more
     t_solve = time.perf_counter() - t0 - t_init
     if progress:
