@@ -47,6 +47,7 @@ from graph.noise import scatter_px
 from graph.problem import AUTO_RANGE_PX, Problem
 from graph.result import build_result
 from graph.robust import A as RA, B as RB, C as RC, OUTLIER_S
+from graph.smoothing import MAX_STIFFNESS
 from graph.triangulate import robust_points
 from graph.types import Progress, ProgressCallback, Result
 
@@ -126,6 +127,9 @@ class TrajectoryProblem:
         self.motion_scales = np.full(len(self.groups), 1.0 if scale == "auto" else float(scale))
         # free points without bones: independent chains, solved by banded Cholesky (solve_linear)
         self.chains = len(self.groups) > 1
+        # the stiffest smoothing a fit may choose (graph.smoothing.stiffest_scale); ekf's stream, which
+        # GTSAM eliminates with all markers in one key, takes GTSAM_MAX_STIFFNESS
+        self.max_stiffness = MAX_STIFFNESS
         self._motion_graph: list | None = None
         self._motion_band: np.ndarray | None = None
         if not self.chains:
@@ -381,7 +385,7 @@ def fit_motion(tp: TrajectoryProblem, X) -> float:
 
     nrm = tp.normals(X)
     scales = fit_motion_scales(nrm.H, nrm.g, tp.poses(X), tp.Q0, PRIOR_SIGMA, tp.base_sigma3, tp.groups,
-                               start=tp.motion_scales)
+                               start=tp.motion_scales, max_stiffness=tp.max_stiffness)
     moved = float(np.max(np.abs(np.log(scales / tp.motion_scales))))
     tp.set_motion_scales(scales)
     return moved

@@ -45,6 +45,7 @@ from graph.initial import initial_poses
 from graph.joint import shares_unknowns, solve_fte_joint
 from graph.problem import Problem
 from graph.robust import A as RA, B as RB, C as RC
+from graph.smoothing import GTSAM_MAX_STIFFNESS
 from graph.sync import off_reference_clock, on_reference_clock
 from graph.triangulate import robust_points
 from graph.types import Progress, ProgressCallback, Result
@@ -284,6 +285,7 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     X, _, _ = robust_points(sub.calibration, sub.meas, sub.valid, sub.sigma_px)
     Q0 = initial_poses(sub, X)
     tp = TrajectoryProblem(sub, Q0, bone_lengths(sub, X) if sub.skeleton.kind == "points" else None)
+    tp.max_stiffness = GTSAM_MAX_STIFFNESS  # the stream (OnlineSmoother) eliminates on GTSAM, all markers together
     Q_start, iters, cost = optimise(tp, Q0.copy(), 30)
     if auto:  # the scales of largest marginal likelihood over the start (fitted at its optimum, as fte), kept
         # for the stream

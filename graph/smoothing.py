@@ -222,26 +222,36 @@ def best_scale(evidence, lo: float = SCALE_RANGE[0], hi: float = SCALE_RANGE[1])
 
 
 def fit_motion_scales(H: np.ndarray, g: np.ndarray, Q: np.ndarray, Q0: np.ndarray, prior_sigma: float,
-                      sigma3: np.ndarray, groups: list[np.ndarray], start: np.ndarray | None = None) -> np.ndarray:
+                      sigma3: np.ndarray, groups: list[np.ndarray], start: np.ndarray | None = None,
+                      max_stiffness: float | None = None) -> np.ndarray:
     """The scale of each group in ``groups`` (index arrays into the P parameters, all of one size)
     maximising its evidence, given the data's ``H`` (N, P, P), ``g`` (N, P) at the trajectory ``Q``
     (N, P), the anchor ``Q0`` (N, P) of sd ``prior_sigma`` and the third-difference sds ``sigma3``
-    (P,) at scale 1; the search starts from ``start`` (G,) (a previous fit's scales; default 1).
+    (P,) at scale 1; the search starts from ``start`` (G,) (a previous fit's scales; default 1) and
+    stops at ``max_stiffness`` (:func:`stiffest_scale`; default ``MAX_STIFFNESS``).
     Cross-group blocks of H are left out (groups are independent chains)."""
     idx = np.stack(groups)  # (G, d)
     Hg = np.ascontiguousarray(np.stack([H[:, i][:, :, i] for i in idx]))  # (G, N, d, d)
     w = 1.0 / prior_sigma**2
     ev = ChainEvidence(Hg, np.stack([g[:, i] for i in idx]), np.stack([Q[:, i] for i in idx]),
                        np.stack([Q0[:, i] for i in idx]), w, sigma3[idx])
-    lo = np.array([stiffest_scale(Hg[k], sigma3[i], w) for k, i in enumerate(idx)])
+    lo = np.array([stiffest_scale(Hg[k], sigma3[i], w, max_stiffness) for k, i in enumerate(idx)])
     with one_blas_thread():
         return best_scales(ev, lo, start=start)
 
 
 MAX_STIFFNESS = 1e7  # the motion's precision at most this many times the data's (per frame and parameter)
+# ... for ekf's stream, which GTSAM's iSAM2 eliminates with all markers of a frame in one key: its
+# Cholesky of a clique fails when two consecutive diagonal entries of the factor differ by 2^12
+# (information by 2^24, 1.7e7), and a stiff chain's pivots run from the motion's precision down to
+# the data's, spread further by the data's anisotropy (30x between a marker's axes on the fly).
+# Measured: the fly's stream failed at 1e7, not at 1e6. (fte's kinematic skeletons stay at
+# MAX_STIFFNESS: their fits on the simulated cheetah stop short of it, and a bound taken over
+# parameters of mixed units, angles and metres, is crude: 1e6 bound them at 10 px noise.)
+GTSAM_MAX_STIFFNESS = 1e6
 
 
-def stiffest_scale(H: np.ndarray, sigma: np.ndarray, w: float = 0.0) -> float:
+def stiffest_scale(H: np.ndarray, sigma: np.ndarray, w: float = 0.0, max_stiffness: float | None = None) -> float:
     """The smallest scale searched for a group with data information ``H`` (N, d, d), the anchor's
     precision ``w`` and third-difference sds ``sigma`` (d,) at scale 1: the one whose motion
     precision ``c = 1 / (s sigma)^2`` is ``MAX_STIFFNESS`` times the median per-frame information
@@ -251,9 +261,12 @@ def stiffest_scale(H: np.ndarray, sigma: np.ndarray, w: float = 0.0) -> float:
     near ``64 c`` and its smallest near the data's (the parabolas, which D3 does not see), a
     condition number of about ``64 MAX_STIFFNESS`` (1e9-1e10 measured, at 500 frames): about six of
     double precision's sixteen digits are left to the solve (:func:`solve_chains`). A marker no
-    camera pair sees has only the anchor's ``w`` and gets the same bound relative to it."""
+    camera pair sees has only the anchor's ``w`` and gets the same bound relative to it.
+    ``max_stiffness`` (default ``MAX_STIFFNESS``) replaces the 1e7: ``GTSAM_MAX_STIFFNESS`` for
+    ekf's stream, where GTSAM's dense Cholesky of a clique stops at a 2^24 spread of pivots."""
+    max_stiffness = MAX_STIFFNESS if max_stiffness is None else max_stiffness
     diag = np.diagonal(H, axis1=1, axis2=2)
     info = (float(np.median(diag[diag > 0])) if np.any(diag > 0) else 0.0) + w
     if not info > 0:
         return SCALE_RANGE[0]
-    return float(np.clip(1.0 / (float(np.min(sigma)) * np.sqrt(MAX_STIFFNESS * info)), *SCALE_RANGE))
+    return float(np.clip(1.0 / (float(np.min(sigma)) * np.sqrt(max_stiffness * info)), *SCALE_RANGE))

@@ -116,10 +116,13 @@ def test_ekf_fits_the_motion_over_its_start_and_stays_a_filter():
     fte = solve(run.keypoints, cal, SolveOptions(motion_scale="auto", **kw))
     ekf = solve(run.keypoints, cal, SolveOptions(method="ekf", motion_scale="auto", **kw))
     ratio = np.array(list(ekf.report.motion_scales.values())) / np.array(list(fte.report.motion_scales.values()))
-    assert np.all(np.abs(np.log(ratio)) < math.log(3.0)), ratio
+    # this run is smoother than either solver's stiffest smoothing: both fits end at their bounds,
+    # sqrt(MAX_STIFFNESS / GTSAM_MAX_STIFFNESS) = 3.16 apart (test_the_stiffest_smoothing_is_the_solvers_bound)
+    assert np.all(np.abs(np.log(ratio)) < math.log(3.5)), ratio
     gap = lambda a, b: float(np.nanmedian(np.linalg.norm(a - b, axis=-1)))  # noqa: E731
     causal = gap(ekf.causal_positions, ekf.positions)
-    assert causal > 3 * gap(ekf.positions, fte.positions)
+    # (2x, not 3x, since ekf's smoothing is its bound's, 3.16x looser than fte's: see above)
+    assert causal > 2 * gap(ekf.positions, fte.positions)
     err = lambda r: float(np.nanmean(np.linalg.norm(r.positions - run.positions, axis=-1)))  # noqa: E731
     loose = solve(run.keypoints, cal, SolveOptions(method="ekf", **kw))
     assert err(ekf) < 0.8 * err(loose)
@@ -180,3 +183,20 @@ def test_a_motion_model_far_looser_than_the_motion_is_named():
         for scale in (1.0, "auto"):
             r = solve(run.keypoints, cal, SolveOptions(motion_scale=scale, **kw))
             assert not any("looser than the motion" in w for w in r.report.warnings)
+
+
+def test_the_stiffest_smoothing_is_the_solvers_bound():
+    """A run smoother than the stiffest smoothing the fit may choose: fte's chains (LAPACK's banded
+    Cholesky) stop at MAX_STIFFNESS times the data's information, ekf's stream (GTSAM, whose clique
+    Cholesky gives up at a 2^24 spread of pivots) at GTSAM_MAX_STIFFNESS, so its scales are
+    sqrt(MAX_STIFFNESS / GTSAM_MAX_STIFFNESS) looser; both solve."""
+    from graph.smoothing import GTSAM_MAX_STIFFNESS, MAX_STIFFNESS
+
+    cal = load_calibration(default_rig_path())
+    run = random_jerk_run(cal, frames=240, process_noise=1e-4, noise=2.0, markers=4, seed=3)
+    kw = dict(skeleton="points", fps=run.fps, uncertainty=False, motion_scale="auto")
+    fte = solve(run.keypoints, cal, SolveOptions(**kw))
+    ekf = solve(run.keypoints, cal, SolveOptions(method="ekf", **kw))
+    ratio = np.array(list(ekf.report.motion_scales.values())) / np.array(list(fte.report.motion_scales.values()))
+    np.testing.assert_allclose(ratio, math.sqrt(MAX_STIFFNESS / GTSAM_MAX_STIFFNESS), rtol=0.1)
+    assert np.isfinite(fte.positions).all() and np.isfinite(ekf.positions).all()
