@@ -41,7 +41,7 @@ import numpy as np
 from scipy.linalg import cho_solve_banded, cholesky_banded
 
 SCALE_RANGE = (1e-6, 1e6)  # the motion scales searched (relative to the skeleton's process noise)
-_GRID_STEP = 10.0  # the bracketing walk's factor
+_FIRST_STEP = 2.0  # the bracketing walk's first factor either side of the start; each further step doubles
 _PARABOLA_STEPS = 8  # at most this many parabolic refinements
 _X_TOL = 0.02  # ... ending when the vertex moves less than this in log s (2 % in s)
 _D3 = np.array([-1.0, 3.0, -3.0, 1.0])  # the third difference's stencil on frames n .. n+3
@@ -159,9 +159,10 @@ def best_scales(evidence, lo: np.ndarray, hi: float = SCALE_RANGE[1], start: np.
     """For G chains, the scale s_g in [lo_g, hi] maximising ``evidence(s)[g]`` (``evidence`` takes
     and gives (G,)), every chain at once, on x = log s:
 
-    * **bracket**: from ``start`` (default 1; a previous fit's scales make this short), walk uphill
-      by factors of ``_GRID_STEP`` until the middle of three neighbouring points is the best,
-      ``f(a) <= f(b) >= f(c)`` (points clipped to the bounds);
+    * **bracket**: from ``start`` (default 1; a previous fit's scales make this short), walk uphill,
+      first by a factor ``_FIRST_STEP`` and each step twice as far (in log s) as the one before,
+      until the middle of three points is the best, ``f(a) <= f(b) >= f(c)`` (points clipped to
+      the bounds);
     * **refine**: successive parabolic interpolation: the vertex of the parabola through ``a < b < c``,
       ``x* = b - 1/2 [(b-a)^2 (f_b - f_c) - (b-c)^2 (f_b - f_a)] / [(b-a)(f_b - f_c) - (b-c)(f_b - f_a)]``,
       is evaluated and the three best points around the maximum kept, until the vertex moves less
@@ -171,7 +172,7 @@ def best_scales(evidence, lo: np.ndarray, hi: float = SCALE_RANGE[1], start: np.
     A chain whose best point is a bound keeps the bound."""
     lo = np.asarray(lo, dtype=np.float64)
     a_lo, a_hi = np.log(lo), math.log(hi)
-    h = math.log(_GRID_STEP)
+    h = math.log(_FIRST_STEP)
 
     def f(x):
         v = np.asarray(evidence(np.exp(x)), dtype=np.float64)
@@ -180,12 +181,12 @@ def best_scales(evidence, lo: np.ndarray, hi: float = SCALE_RANGE[1], start: np.
     xb = np.clip(np.zeros(len(lo)) if start is None else np.log(np.asarray(start, dtype=np.float64)), a_lo, a_hi)
     xa, xc = np.maximum(xb - h, a_lo), np.minimum(xb + h, a_hi)
     fb, fa, fc = f(xb), f(xa), f(xc)
-    for _ in range(int(math.ceil((a_hi - a_lo.min()) / h)) + 1):  # bracket: walk uphill
+    for _ in range(int(math.ceil(math.log2((a_hi - a_lo.min()) / h))) + 2):  # bracket: walk uphill
         up = (fc > fb) & (xc > xb)
         down = ~up & (fa > fb) & (xa < xb)
         if not (up | down).any():
             break
-        new_x = np.where(up, np.minimum(xc + h, a_hi), np.where(down, np.maximum(xa - h, a_lo), xb))
+        new_x = np.where(up, np.minimum(xc + 2 * (xc - xb), a_hi), np.where(down, np.maximum(xa - 2 * (xb - xa), a_lo), xb))
         fn = f(new_x)
         xa, xb, xc, fa, fb, fc = (np.where(up, xb, np.where(down, new_x, xa)), np.where(up, xc, np.where(down, xa, xb)),
                                   np.where(up, new_x, np.where(down, xb, xc)), np.where(up, fb, np.where(down, fn, fa)),
