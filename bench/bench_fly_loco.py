@@ -30,7 +30,8 @@ What runs, on the same data in one run:
   jax<=0.4.36; see bench/bench_eks.py for the install). Its time is the smoother call in that
   process (jax compiles in every call, as a user sees it), not the process start.
 
-Prints a Markdown table and writes bench/results/fly_loco.json. Times are medians over repeats;
+Prints a Markdown table and writes bench/results/fly_loco.json (``--out``; ``--eks-python ''``
+leaves EKS out). Times are medians over repeats;
 the machine is shared, so ratios matter more than seconds.
 """
 
@@ -114,6 +115,7 @@ def main() -> int:
     ap.add_argument("--eks-repeats", type=int, default=1, help="LOCO runs of EKS")
     ap.add_argument("--eks-python", default="/work/venv-eks/bin/python", help="python of EKS's virtualenv ('' skips)")
     ap.add_argument("--skip-aniposelib", action="store_true")
+    ap.add_argument("--out", default="fly_loco", help="bench/results/OUT.json")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
     data = args.data
@@ -180,7 +182,7 @@ def main() -> int:
     print()
     print(h.markdown_table(["method", "median px", "p90 px", "coverage", *[f"median {n}" for n in cal.names],
                             "s (3 solves)", "speed-up vs aniposelib"], rows))
-    path = h.save("fly_loco", {"machine": info, "args": {k: str(v) for k, v in vars(args).items()}, "fps": FPS,
+    path = h.save(args.out, {"machine": info, "args": {k: str(v) for k, v in vars(args).items()}, "fps": FPS,
                                "anipose_score_threshold": h.ANIPOSE_DEFAULTS["score_threshold"],
                                "results": summary})
     print(f"\nwrote {path}")

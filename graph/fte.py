@@ -33,7 +33,6 @@ per-marker ``Sigma_p = J_p Sigma_n J_p^T``.
 
 from __future__ import annotations
 
-import re
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
@@ -48,6 +47,7 @@ from graph.noise import scatter_px
 from graph.problem import AUTO_RANGE_PX, Problem
 from graph.result import build_result
 from graph.robust import A as RA, B as RB, C as RC, OUTLIER_S
+from graph.smoothing import MAX_STIFFNESS
 from graph.triangulate import robust_points
 from graph.types import Progress, ProgressCallback, Result
 
@@ -125,8 +125,15 @@ class TrajectoryProblem:
         else:
             self.groups = [np.arange(P)]
         self.motion_scales = np.full(len(self.groups), 1.0 if scale == "auto" else float(scale))
-        self.loosened: list[int] = []  # groups whose fitted scales were loosened for the solver (-1: all)
-        self._motion = self._motion_factors()
+        # free points without bones: independent chains, solved by banded Cholesky (solve_linear)
+        self.chains = len(self.groups) > 1
+        # the stiffest smoothing a fit may choose (graph.smoothing.stiffest_scale); ekf's stream, which
+        # GTSAM eliminates with all markers in one key, takes GTSAM_MAX_STIFFNESS
+        self.max_stiffness = MAX_STIFFNESS
+        self._motion_graph: list | None = None
+        self._motion_band: np.ndarray | None = None
+        if not self.chains:
+            self._motion_graph = self._motion_factors()  # built now: solve_fte builds us in a thread
         self._ordering = gtsam.Ordering()
         for k in range(len(self.groups) * N):
             self._ordering.push_back(k)
@@ -146,7 +153,14 @@ class TrajectoryProblem:
         for s, idx in zip(self.motion_scales, self.groups):
             sigma3[idx] = sigma3[idx] * s
         self.sigma3 = sigma3
-        self._motion = self._motion_factors()
+        self._motion_graph = self._motion_band = None
+
+    @property
+    def _motion(self) -> list:
+        """The motion factors of GTSAM's graph (:meth:`_motion_factors`), built when first asked for."""
+        if self._motion_graph is None:
+            self._motion_graph = self._motion_factors()
+        return self._motion_graph
 
     def group_names(self) -> list[str]:
         """A name per group: the marker's for free points without bones, else ``all``."""
@@ -218,7 +232,41 @@ class TrajectoryProblem:
         return Q
 
     def solve_linear(self, Q, H, g, lam: float) -> np.ndarray:
+        """The minimiser Q' of the damped system at Q: GTSAM's elimination of :meth:`linear_graph`,
+        or, for independent chains, :meth:`solve_chains`."""
+        if self.chains:
+            return self.solve_chains(Q, H, g, lam)
         return self._solution(self.linear_graph(Q, H, g, lam).optimize(self._ordering))
+
+    def solve_chains(self, Q, H, g, lam: float) -> np.ndarray:
+        """The same system as :meth:`linear_graph` for free points without bones, whose markers are
+        independent chains, by LAPACK's banded Cholesky on all chains at once
+        (:func:`graph.smoothing.solve_chains`): ``K Q'_g = gvec_g`` per chain g, with
+        ``K = blockdiag(H_n + (w + lambda) I) + D3^T D3 / sigma_3^2`` (bandwidth 4 frames).
+
+        Why not GTSAM's elimination here: with the smoothing fitted to a slow animal
+        (``motion_scale="auto"``, the fly's legs) the motion's precision is up to 1e7 times the
+        data's. GTSAM eliminates each chain's last four frames as one 12-dimensional clique, and its
+        dense Cholesky there declared the system indeterminate, though K's condition number was
+        about 2e10 and LAPACK factors the same matrix (measured: bench/RESULTS.md, section 12).
+        The elimination order is the same, frame by frame, so the numbers are GTSAM's otherwise
+        (tests), in a few milliseconds instead of a graph of N (M + 1) factors per iteration."""
+        from graph.smoothing import data_band, motion_band, solve_chains
+
+        idx = np.stack(self.groups)  # (G, d)
+        w = 1.0 / PRIOR_SIGMA**2
+        Hg = np.stack([H[:, i][:, :, i] for i in idx])  # (G, N, d, d)
+        if self._motion_band is None:
+            self._motion_band = motion_band(1.0 / self.sigma3[idx] ** 2, self.N)
+        rhs = np.einsum("npq,nq->np", H, Q) - g + w * self.Q0 + lam * Q  # (N, P); H couples no groups
+        rhs = np.stack([rhs[:, i] for i in idx]).ravel()
+        try:
+            x = solve_chains(data_band(Hg, w + lam) + self._motion_band, rhs)
+        except np.linalg.LinAlgError as e:
+            raise RuntimeError(f"the smoother's system is not positive definite: {e}") from None
+        Qn = np.empty_like(Q)
+        Qn[:, idx.ravel()] = x.reshape(len(idx), self.N, -1).transpose(1, 0, 2).reshape(self.N, -1)
+        return Qn
 
     # the state interface :func:`optimise` drives (a subclass with more unknowns has its own state)
 
@@ -324,8 +372,8 @@ def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, cost: float, max_itera
     return Q, iterations, cost
 
 
-MOTION_TOLERANCE = 0.1  # fit again while a scale moved by more than this fraction
-MOTION_ROUNDS = 2
+MOTION_TOLERANCE = 0.1  # solve again when a scale moved by more than this fraction
+MOTION_ROUNDS = 2  # fits at an optimum, each followed by a solve when it moved
 
 
 def fit_motion(tp: TrajectoryProblem, X) -> float:
@@ -336,7 +384,8 @@ def fit_motion(tp: TrajectoryProblem, X) -> float:
     from graph.smoothing import fit_motion_scales
 
     nrm = tp.normals(X)
-    scales = fit_motion_scales(nrm.H, nrm.g, tp.poses(X), tp.Q0, PRIOR_SIGMA, tp.base_sigma3, tp.groups)
+    scales = fit_motion_scales(nrm.H, nrm.g, tp.poses(X), tp.Q0, PRIOR_SIGMA, tp.base_sigma3, tp.groups,
+                               start=tp.motion_scales, max_stiffness=tp.max_stiffness)
     moved = float(np.max(np.abs(np.log(scales / tp.motion_scales))))
     tp.set_motion_scales(scales)
     return moved
@@ -344,42 +393,22 @@ def fit_motion(tp: TrajectoryProblem, X) -> float:
 
 def refit_motion(tp: TrajectoryProblem, X, cost: float, max_iterations: int):
     """``motion_scale="auto"`` at the smoother's optimum ``X``: fit the scales again
-    (:func:`fit_motion`) and, while one moves by more than ``MOTION_TOLERANCE``, solve again.
-    Returns (X, iterations, cost)."""
+    (:func:`fit_motion`) and, if one moved by more than ``MOTION_TOLERANCE``, solve again, up to
+    ``MOTION_ROUNDS`` times. The fit and the solve are a fixed-point iteration: a trajectory solved
+    with too loose a model follows the noise, and the evidence at it asks for a looser model still,
+    so from a loose start each round moves only part of the way. A fit at the start (the initial
+    poses, per-frame and noisy) was such a start: 20-40x looser than the answer on the simulated
+    cheetah at 10 px, still 2-10x off after two rounds. The first solve with the skeleton's own
+    process noise is a better one (there two rounds end within 2 %; bench/RESULTS.md, section 12),
+    and costs a fit less. Each fit warm-starts from the scales before. Returns (X, iterations,
+    cost)."""
     iterations = 0
     for _ in range(MOTION_ROUNDS):
         if fit_motion(tp, X) <= np.log1p(MOTION_TOLERANCE):
             break
-        X, more, cost = loosening(tp, lambda: optimise(tp, X, max_iterations, stretches=(1.0,)))
+        X, more, cost = optimise(tp, X, max_iterations, stretches=(1.0,))
         iterations += more
     return X, iterations, cost
-
-
-LOOSEN_FACTOR = 10.0
-LOOSEN_TRIES = 12
-
-
-def loosening(tp: TrajectoryProblem, run):
-    """``run()`` (a solve of ``tp`` with fitted motion scales); when GTSAM finds the system
-    indeterminate (a chain smoothed so stiffly that its elimination loses the digits that pin it
-    down, as where a marker goes unseen), the scale of the group of the variable GTSAM names (every
-    group's, if it names none) is loosened ``LOOSEN_FACTOR`` times and it runs again (at most
-    ``LOOSEN_TRIES`` times; the report says so)."""
-    for attempt in range(LOOSEN_TRIES + 1):
-        try:
-            return run()
-        except RuntimeError as e:
-            if "ndeterminate" not in str(e) or attempt == LOOSEN_TRIES:
-                raise
-            found = re.search(r"near variable\s+(\d+)", str(e))
-            factor = np.ones(len(tp.groups))
-            group = int(found.group(1)) // tp.N if found else -1
-            if 0 <= group < len(tp.groups):
-                factor[group] = LOOSEN_FACTOR
-            else:
-                factor[:] = LOOSEN_FACTOR
-            tp.set_motion_scales(tp.motion_scales * factor)
-            tp.loosened.append(group)
 
 
 def marker_std(dpos: np.ndarray, Sigma: np.ndarray) -> np.ndarray:
@@ -420,23 +449,24 @@ def solve_fte(prob: Problem, progress: ProgressCallback | None = None) -> Result
 
 def solve_from(tp: TrajectoryProblem, X0, t0: float, progress: ProgressCallback | None = None) -> Result:
     """The rest of an ``fte`` solve from the start ``X0`` of ``tp`` (begun at ``t0``): optimise
-    (graduated when robust), measure the noise again when asked, and the result with its uncertainty."""
+    (graduated when robust), measure the noise again when asked, fit the motion model at the
+    optimum when asked (:func:`refit_motion`; the first solve uses the skeleton's process noise),
+    and the result with its uncertainty."""
     o = tp.prob.options
     t_init = time.perf_counter() - t0
     if progress:
         progress(Progress(stage="optimise", fraction=0.1))
-    if o.motion_scale == "auto":
-        fit_motion(tp, X0)  # a first fit at the start, so that the solve begins with a fair motion model
-    X, iterations, cost = loosening(tp, lambda: optimise(tp, X0, o.max_iterations, progress,
-                                                         stretches=(4.0, 1.0) if o.robust else (1.0,)))
-    if o.measurement_std_px == "auto":
-        X, more, cost = remeasure_noise(tp, X, cost, o.max_iterations)
-        iterations += more
+    X, iterations, cost = optimise(tp, X0, o.max_iterations, progress, stretches=(4.0, 1.0) if o.robust else (1.0,))
+    # the motion model first: the noise measured about a trajectory smoothed by the skeleton's own
+    # process noise (for a slow animal far too loose: every frame its own triangulation) comes out too small
     if o.motion_scale == "auto":
         X, more, cost = refit_motion(tp, X, cost, o.max_iterations)
         iterations += more
-        if o.measurement_std_px == "auto":
-            X, more, cost = remeasure_noise(tp, X, cost, o.max_iterations)
+    if o.measurement_std_px == "auto":
+        X, more, cost = remeasure_noise(tp, X, cost, o.max_iterations)
+        iterations += more
+        if o.motion_scale == "auto" and more:  # solved with a new noise: the evidence moved with it
+            X, more, cost = refit_motion(tp, X, cost, o.max_iterations)
             iterations += more
     t_solve = time.perf_counter() - t0 - t_init
     if progress:
@@ -494,12 +524,6 @@ def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[st
     report = dict(est.report or {})
     if prob.options.motion_scale == "auto":
         report["motion_scales"] = {name: float(v) for name, v in zip(tp.group_names(), tp.motion_scales)}
-        if getattr(tp, "loosened", None):
-            names = tp.group_names()
-            which = sorted({"all" if g < 0 else names[g] for g in tp.loosened})
-            report.setdefault("warnings", []).append(
-                f"the fitted motion scales of {', '.join(which)} were too stiff for the solver and were loosened "
-                f"({len(tp.loosened)} x {LOOSEN_FACTOR:g})")
     loose = loose_motion(Q, tp.sigma3) if prob.options.motion_scale != "auto" else None
     report["warnings"] = list(notes or []) + report.get("warnings", []) + ([loose] if loose else [])
     causal_pos = prob.skeleton.positions(causal) if causal is not None else None

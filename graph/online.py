@@ -39,12 +39,13 @@ import gtsam
 import numpy as np
 
 from graph import kernels
-from graph.fte import (PRIOR_SIGMA, TrajectoryProblem, bone_lengths, fit_motion, loosening, optimise, refit_motion,
+from graph.fte import (PRIOR_SIGMA, TrajectoryProblem, bone_lengths, optimise, refit_motion,
                        trajectory_result)
 from graph.initial import initial_poses
 from graph.joint import shares_unknowns, solve_fte_joint
 from graph.problem import Problem
 from graph.robust import A as RA, B as RB, C as RC
+from graph.smoothing import GTSAM_MAX_STIFFNESS
 from graph.sync import off_reference_clock, on_reference_clock
 from graph.triangulate import robust_points
 from graph.types import Progress, ProgressCallback, Result
@@ -284,10 +285,10 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     X, _, _ = robust_points(sub.calibration, sub.meas, sub.valid, sub.sigma_px)
     Q0 = initial_poses(sub, X)
     tp = TrajectoryProblem(sub, Q0, bone_lengths(sub, X) if sub.skeleton.kind == "points" else None)
-    if auto:
-        fit_motion(tp, Q0)
-    Q_start, iters, cost = loosening(tp, lambda: optimise(tp, Q0.copy(), 30))
-    if auto:  # the scales of largest marginal likelihood over the start, kept for the stream
+    tp.max_stiffness = GTSAM_MAX_STIFFNESS  # the stream (OnlineSmoother) eliminates on GTSAM, all markers together
+    Q_start, iters, cost = optimise(tp, Q0.copy(), 30)
+    if auto:  # the scales of largest marginal likelihood over the start (fitted at its optimum, as fte), kept
+        # for the stream
         Q_start, more, _ = refit_motion(tp, Q_start, cost, 30)
         iters += more
     t_init = time.perf_counter() - t0
@@ -315,7 +316,6 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     whole = TrajectoryProblem(prob, Q, tp.bone_len)
     if auto:
         whole.set_motion_scales(tp.motion_scales)
-        whole.loosened = tp.loosened
     result = trajectory_result(whole, Q, "ekf",
                                seconds={"init": t_init, "solve": t_solve}, iterations=N - S + iters,
                                causal=causal, per_frame_ms=per_frame_ms)

@@ -23,12 +23,14 @@ the evidence ``p(z | s) = int exp(-f(x) - |x - x0|^2 / (2 sigma_p^2)) p(x | s) d
 
 the quantity EKS maximises for its smoothing parameter, here in closed form. K is banded (bandwidth
 4 frames), so each evaluation is a banded Cholesky factorisation (LAPACK ``pbtrf``), linear in
-frames. The scale maximising it is found on a grid of decades and refined by golden-section search on
-log s. Groups whose chains are independent (free points without bones: one chain per marker) get
+frames. The scale maximising it is bracketed by a walk of decades from the current scale and refined
+by parabolic interpolation on log s (:func:`best_scales`). Groups whose chains are independent (free points without bones: one chain per marker) get
 one scale each; a kinematic skeleton (or free points joined by bones) one scale.
 
-The fit is local: the smoother is solved again with the scales found and the fit repeated
-(:func:`graph.fte.solve_from`), since H and the robust weights depend on the trajectory.
+The fit is local: it is made at the smoother's optimum, the smoother solved again with the scales
+found and the fit repeated (:func:`graph.fte.refit_motion`), since H and the robust weights depend
+on the trajectory. The same banded band form solves the smoother's own steps for free points
+without bones (:func:`solve_chains`).
 """
 
 from __future__ import annotations
@@ -39,8 +41,9 @@ import numpy as np
 from scipy.linalg import cho_solve_banded, cholesky_banded
 
 SCALE_RANGE = (1e-6, 1e6)  # the motion scales searched (relative to the skeleton's process noise)
-_GRID_STEP = 10.0  # the coarse grid's factor
-_GOLDEN_STEPS = 10  # golden-section refinements within the best grid bracket (about 3 % in s)
+_FIRST_STEP = 2.0  # the bracketing walk's first factor either side of the start; each further step doubles
+_PARABOLA_STEPS = 8  # at most this many parabolic refinements
+_X_TOL = 0.02  # ... ending when the vertex moves less than this in log s (2 % in s)
 _D3 = np.array([-1.0, 3.0, -3.0, 1.0])  # the third difference's stencil on frames n .. n+3
 
 
@@ -53,6 +56,55 @@ def third_difference_gram(N: int) -> np.ndarray:
             n = np.arange(max(N - 3, 0)) + a  # n = j + a for windows j = 0 .. N-4
             np.add.at(T[L], n, _D3[a] * _D3[a + L])
     return T
+
+
+def data_band(H: np.ndarray, w: float) -> np.ndarray:
+    """``blockdiag(H) + w I`` of G independent chains, ``H`` (G, N, d, d), in LAPACK's lower band
+    form (4d, G N d) over the variables ``(g N + n) d + i`` (chain by chain, frame by frame): row k
+    holds the entries (j + k, j). The band is 4d deep so that :func:`motion_band` fits in it."""
+    G, N, d = H.shape[:3]
+    ab = np.zeros((4 * d, G * N * d))
+    for k in range(d):
+        for b in range(d - k):
+            ab[k, b::d] = H[:, :, b + k, b].ravel()
+    ab[0] += w
+    return ab
+
+
+def motion_band(c: np.ndarray, N: int, T: np.ndarray | None = None) -> np.ndarray:
+    """``sum_i c_gi D3^T D3`` (on parameter i of chain g) of G chains of N frames, ``c`` (G, d), in
+    the band form of :func:`data_band`: parameter i of frame n couples only with itself in frames
+    n + 1 .. n + 3, at band rows d, 2d, 3d. ``T`` is :func:`third_difference_gram` (N)."""
+    G, d = c.shape
+    T = third_difference_gram(N) if T is None else T
+    ab = np.zeros((4 * d, G * N * d))
+    for L in range(4):
+        row = ab[L * d].reshape(G, N * d)  # a view: chain g's columns
+        for i in range(d):
+            row[:, i::d][:, : N - L] = c[:, i, None] * T[L, : N - L]
+    return ab
+
+
+def solve_chains(ab: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``K^-1 rhs`` for K in the band form of :func:`data_band` (symmetric positive definite), by
+    LAPACK's banded Cholesky (``pbtrf``, ``pbtrs``): linear in frames. Raises
+    ``numpy.linalg.LinAlgError`` where K is not numerically positive definite."""
+    with one_blas_thread():
+        return cho_solve_banded((cholesky_banded(ab, lower=True), True), rhs)
+
+
+_BLAS = []  # the process's threadpoolctl controller, found once (finding the libraries takes ~6 ms)
+
+
+def one_blas_thread():
+    """A context in which BLAS and LAPACK run on one thread: the banded factorisations here are
+    small, and OpenBLAS's threads on a busy machine made one of 1500 x 100 take 1.5 s instead of
+    5 ms."""
+    if not _BLAS:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS.append(ThreadpoolController())
+    return _BLAS[0].limit(limits=1, user_api="blas")
 
 
 class ChainEvidence:
@@ -70,23 +122,14 @@ class ChainEvidence:
         self.H, self.g, self.x, self.x0 = H, g, x, x0
         self.sigma = np.asarray(sigma, dtype=np.float64).reshape(G, d)
         self.T = third_difference_gram(N)
-        # the data's block diagonal in LAPACK lower band form over the variables (g N + n) d + i
-        self.base = np.zeros((4 * d, G * N * d))
-        for k in range(d):
-            for b in range(d - k):
-                self.base[k, b::d] = H[:, :, b + k, b].ravel()
-        self.base[0] += w
+        self.base = data_band(H, w)
         self.rhs = (np.einsum("gnij,gnj->gni", H, x) - g + w * x0).ravel()
 
     def __call__(self, s: np.ndarray) -> np.ndarray:
         """``log p(z | s_g)`` of every chain g (G,) up to a constant (module docstring)."""
         G, N, d = self.G, self.N, self.d
         c = 1.0 / (np.asarray(s, dtype=np.float64).reshape(G, 1) * self.sigma) ** 2  # (G, d)
-        ab = self.base.copy()
-        for L in range(4):
-            row = ab[L * d].reshape(G, N * d)  # a view: chain g's columns
-            for i in range(d):
-                row[:, i::d][:, : N - L] += c[:, i, None] * self.T[L, : N - L]
+        ab = self.base + motion_band(c, N, self.T)
         try:
             chol = cholesky_banded(ab, lower=True)
         except np.linalg.LinAlgError:
@@ -112,32 +155,66 @@ class GroupEvidence(ChainEvidence):
         return float(super().__call__(np.array([s]))[0])
 
 
-def best_scales(evidence, lo: np.ndarray, hi: float = SCALE_RANGE[1]) -> np.ndarray:
+def best_scales(evidence, lo: np.ndarray, hi: float = SCALE_RANGE[1], start: np.ndarray | None = None) -> np.ndarray:
     """For G chains, the scale s_g in [lo_g, hi] maximising ``evidence(s)[g]`` (``evidence`` takes
-    and gives (G,)): the best of a grid of factor 10, refined by golden-section search on log s
-    between its neighbours, for every chain at once."""
+    and gives (G,)), every chain at once, on x = log s:
+
+    * **bracket**: from ``start`` (default 1; a previous fit's scales make this short), walk uphill,
+      first by a factor ``_FIRST_STEP`` and each step twice as far (in log s) as the one before,
+      until the middle of three points is the best, ``f(a) <= f(b) >= f(c)`` (points clipped to
+      the bounds);
+    * **refine**: successive parabolic interpolation: the vertex of the parabola through ``a < b < c``,
+      ``x* = b - 1/2 [(b-a)^2 (f_b - f_c) - (b-c)^2 (f_b - f_a)] / [(b-a)(f_b - f_c) - (b-c)(f_b - f_a)]``,
+      is evaluated and the three best points around the maximum kept, until the vertex moves less
+      than ``_X_TOL``. The log evidence is smooth in log s and near-quadratic about its maximum, so
+      this takes a few evaluations where golden-section search took ten.
+
+    A chain whose best point is a bound keeps the bound."""
     lo = np.asarray(lo, dtype=np.float64)
-    grid = np.exp(np.arange(math.log(lo.min()), math.log(hi) + 1e-9, math.log(_GRID_STEP)))
-    if len(grid) < 2:
-        return lo.copy()
-    values = np.stack([np.where(s >= lo * (1 - 1e-9), evidence(np.full(lo.shape, s)), -np.inf) for s in grid])
-    k = np.argmax(values, axis=0)  # (G,)
-    logs = np.log(grid)
-    a = np.maximum(logs[np.maximum(k - 1, 0)], np.log(lo))
-    b = logs[np.minimum(k + 1, len(grid) - 1)]
-    r = (math.sqrt(5.0) - 1.0) / 2.0
-    x1, x2 = b - r * (b - a), a + r * (b - a)
-    f1, f2 = evidence(np.exp(x1)), evidence(np.exp(x2))
-    for _ in range(_GOLDEN_STEPS):
-        left = f1 >= f2  # the maximum is in [a, x2]
-        a, b = np.where(left, a, x1), np.where(left, x2, b)
-        nx1, nx2 = np.where(left, b - r * (b - a), x2), np.where(left, x1, a + r * (b - a))
-        fnew = evidence(np.exp(np.where(left, nx1, nx2)))
-        f1, f2 = np.where(left, fnew, f2), np.where(left, f1, fnew)
-        x1, x2 = nx1, nx2
-    cand_x = np.stack([logs[k], x1, x2])
-    cand_f = np.stack([values[k, np.arange(len(k))], f1, f2])
-    return np.exp(cand_x[np.argmax(cand_f, axis=0), np.arange(len(k))])
+    a_lo, a_hi = np.log(lo), math.log(hi)
+    h = math.log(_FIRST_STEP)
+
+    def f(x):
+        v = np.asarray(evidence(np.exp(x)), dtype=np.float64)
+        return np.where(np.isfinite(v), v, -np.inf)
+
+    xb = np.clip(np.zeros(len(lo)) if start is None else np.log(np.asarray(start, dtype=np.float64)), a_lo, a_hi)
+    xa, xc = np.maximum(xb - h, a_lo), np.minimum(xb + h, a_hi)
+    fb, fa, fc = f(xb), f(xa), f(xc)
+    for _ in range(int(math.ceil(math.log2((a_hi - a_lo.min()) / h))) + 2):  # bracket: walk uphill
+        up = (fc > fb) & (xc > xb)
+        down = ~up & (fa > fb) & (xa < xb)
+        if not (up | down).any():
+            break
+        new_x = np.where(up, np.minimum(xc + 2 * (xc - xb), a_hi), np.where(down, np.maximum(xa - 2 * (xb - xa), a_lo), xb))
+        fn = f(new_x)
+        xa, xb, xc, fa, fb, fc = (np.where(up, xb, np.where(down, new_x, xa)), np.where(up, xc, np.where(down, xa, xb)),
+                                  np.where(up, new_x, np.where(down, xb, xc)), np.where(up, fb, np.where(down, fn, fa)),
+                                  np.where(up, fc, np.where(down, fa, fb)), np.where(up, fn, np.where(down, fb, fc)))
+    active = (xa < xb) & (xb < xc) & np.isfinite(fa) & np.isfinite(fb) & np.isfinite(fc)
+    for _ in range(_PARABOLA_STEPS):  # refine
+        if not active.any():
+            break
+        p, q = (xb - xa) * (fb - fc), (xb - xc) * (fb - fa)
+        den = p - q
+        x = xb - 0.5 * ((xb - xa) * p - (xb - xc) * q) / np.where(den != 0, den, 1.0)
+        # a vertex within _X_TOL of b: converged. Safeguard: a degenerate parabola, or a vertex outside
+        # the bracket, takes the middle of the larger side
+        bad = (den == 0) | ~(x > xa) | ~(x < xc)
+        active &= bad | (np.abs(x - xb) >= _X_TOL)
+        if not active.any():
+            break
+        mid = np.where(xb - xa > xc - xb, 0.5 * (xa + xb), 0.5 * (xb + xc))
+        x = np.where(active, np.where(bad, mid, x), xb)
+        fx = f(x)
+        better, left = active & (fx > fb), x < xb
+        worse = active & ~better
+        xa, xc, fa, fc = (np.where(better & ~left, xb, np.where(worse & left, x, xa)),
+                          np.where(better & left, xb, np.where(worse & ~left, x, xc)),
+                          np.where(better & ~left, fb, np.where(worse & left, fx, fa)),
+                          np.where(better & left, fb, np.where(worse & ~left, fx, fc)))
+        xb, fb = np.where(better, x, xb), np.where(better, fx, fb)
+    return np.exp(xb)
 
 
 def best_scale(evidence, lo: float = SCALE_RANGE[0], hi: float = SCALE_RANGE[1]) -> float:
@@ -146,35 +223,51 @@ def best_scale(evidence, lo: float = SCALE_RANGE[0], hi: float = SCALE_RANGE[1])
 
 
 def fit_motion_scales(H: np.ndarray, g: np.ndarray, Q: np.ndarray, Q0: np.ndarray, prior_sigma: float,
-                      sigma3: np.ndarray, groups: list[np.ndarray]) -> np.ndarray:
+                      sigma3: np.ndarray, groups: list[np.ndarray], start: np.ndarray | None = None,
+                      max_stiffness: float | None = None) -> np.ndarray:
     """The scale of each group in ``groups`` (index arrays into the P parameters, all of one size)
     maximising its evidence, given the data's ``H`` (N, P, P), ``g`` (N, P) at the trajectory ``Q``
     (N, P), the anchor ``Q0`` (N, P) of sd ``prior_sigma`` and the third-difference sds ``sigma3``
-    (P,) at scale 1. Cross-group blocks of H are left out (groups are independent chains)."""
-    from threadpoolctl import threadpool_limits
-
+    (P,) at scale 1; the search starts from ``start`` (G,) (a previous fit's scales; default 1) and
+    stops at ``max_stiffness`` (:func:`stiffest_scale`; default ``MAX_STIFFNESS``).
+    Cross-group blocks of H are left out (groups are independent chains)."""
     idx = np.stack(groups)  # (G, d)
     Hg = np.ascontiguousarray(np.stack([H[:, i][:, :, i] for i in idx]))  # (G, N, d, d)
+    w = 1.0 / prior_sigma**2
     ev = ChainEvidence(Hg, np.stack([g[:, i] for i in idx]), np.stack([Q[:, i] for i in idx]),
-                       np.stack([Q0[:, i] for i in idx]), 1.0 / prior_sigma**2, sigma3[idx])
-    lo = np.array([stiffest_scale(Hg[k], sigma3[i]) for k, i in enumerate(idx)])
-    # one BLAS thread: the banded factorisations are small, and OpenBLAS's threads on a busy machine
-    # made one of 1500 x 100 take 1.5 s instead of 5 ms
-    with threadpool_limits(limits=1, user_api="blas"):
-        return best_scales(ev, lo)
+                       np.stack([Q0[:, i] for i in idx]), w, sigma3[idx])
+    lo = np.array([stiffest_scale(Hg[k], sigma3[i], w, max_stiffness) for k, i in enumerate(idx)])
+    with one_blas_thread():
+        return best_scales(ev, lo, start=start)
 
 
 MAX_STIFFNESS = 1e7  # the motion's precision at most this many times the data's (per frame and parameter)
+# ... for ekf's stream, which GTSAM's iSAM2 eliminates with all markers of a frame in one key: its
+# Cholesky of a clique fails when two consecutive diagonal entries of the factor differ by 2^12
+# (information by 2^24, 1.7e7), and a stiff chain's pivots run from the motion's precision down to
+# the data's, spread further by the data's anisotropy (30x between a marker's axes on the fly).
+# Measured: the fly's stream failed at 1e7, not at 1e6. (fte's kinematic skeletons stay at
+# MAX_STIFFNESS: their fits on the simulated cheetah stop short of it, and a bound taken over
+# parameters of mixed units, angles and metres, is crude: 1e6 bound them at 10 px noise.)
+GTSAM_MAX_STIFFNESS = 1e6
 
 
-def stiffest_scale(H: np.ndarray, sigma: np.ndarray) -> float:
-    """The smallest scale searched for a group with data information ``H`` (N, d, d) and
-    third-difference sds ``sigma`` (d,) at scale 1: the one whose motion precision ``1 / (s sigma)^2``
-    is ``MAX_STIFFNESS`` times the median per-frame information of the parameters. Smoother than
-    that, the trajectory is a parabola for all the data can tell, and the smoother's banded
-    elimination loses the digits that tell the parabola from the motion."""
+def stiffest_scale(H: np.ndarray, sigma: np.ndarray, w: float = 0.0, max_stiffness: float | None = None) -> float:
+    """The smallest scale searched for a group with data information ``H`` (N, d, d), the anchor's
+    precision ``w`` and third-difference sds ``sigma`` (d,) at scale 1: the one whose motion
+    precision ``c = 1 / (s sigma)^2`` is ``MAX_STIFFNESS`` times the median per-frame information
+    ``h`` of the parameters (the diagonal of H, plus w). Smoother than that, the trajectory is a
+    parabola for all the data can tell, and solving for it loses the digits that tell the parabola
+    from the motion: the chain's information ``K = H + w I + c D3^T D3`` has its largest eigenvalue
+    near ``64 c`` and its smallest near the data's (the parabolas, which D3 does not see), a
+    condition number of about ``64 MAX_STIFFNESS`` (1e9-1e10 measured, at 500 frames): about six of
+    double precision's sixteen digits are left to the solve (:func:`solve_chains`). A marker no
+    camera pair sees has only the anchor's ``w`` and gets the same bound relative to it.
+    ``max_stiffness`` (default ``MAX_STIFFNESS``) replaces the 1e7: ``GTSAM_MAX_STIFFNESS`` for
+    ekf's stream, where GTSAM's dense Cholesky of a clique stops at a 2^24 spread of pivots."""
+    max_stiffness = MAX_STIFFNESS if max_stiffness is None else max_stiffness
     diag = np.diagonal(H, axis1=1, axis2=2)
-    info = float(np.median(diag[diag > 0])) if np.any(diag > 0) else 0.0
+    info = (float(np.median(diag[diag > 0])) if np.any(diag > 0) else 0.0) + w
     if not info > 0:
         return SCALE_RANGE[0]
-    return float(np.clip(1.0 / (float(np.min(sigma)) * np.sqrt(MAX_STIFFNESS * info)), *SCALE_RANGE))
+    return float(np.clip(1.0 / (float(np.min(sigma)) * np.sqrt(max_stiffness * info)), *SCALE_RANGE))

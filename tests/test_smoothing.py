@@ -116,21 +116,27 @@ def test_ekf_fits_the_motion_over_its_start_and_stays_a_filter():
     fte = solve(run.keypoints, cal, SolveOptions(motion_scale="auto", **kw))
     ekf = solve(run.keypoints, cal, SolveOptions(method="ekf", motion_scale="auto", **kw))
     ratio = np.array(list(ekf.report.motion_scales.values())) / np.array(list(fte.report.motion_scales.values()))
-    assert np.all(np.abs(np.log(ratio)) < math.log(3.0)), ratio
+    # this run is smoother than either solver's stiffest smoothing: both fits end at their bounds,
+    # sqrt(MAX_STIFFNESS / GTSAM_MAX_STIFFNESS) = 3.16 apart (test_the_stiffest_smoothing_is_the_solvers_bound)
+    assert np.all(np.abs(np.log(ratio)) < math.log(3.5)), ratio
     gap = lambda a, b: float(np.nanmedian(np.linalg.norm(a - b, axis=-1)))  # noqa: E731
     causal = gap(ekf.causal_positions, ekf.positions)
-    assert causal > 3 * gap(ekf.positions, fte.positions)
+    # (2x, not 3x, since ekf's smoothing is its bound's, 3.16x looser than fte's: see above)
+    assert causal > 2 * gap(ekf.positions, fte.positions)
     err = lambda r: float(np.nanmean(np.linalg.norm(r.positions - run.positions, axis=-1)))  # noqa: E731
     loose = solve(run.keypoints, cal, SolveOptions(method="ekf", **kw))
     assert err(ekf) < 0.8 * err(loose)
 
 
-def test_a_chain_too_stiff_for_the_solver_is_loosened_alone():
-    """A marker unseen for 40 frames, smoothed far too stiffly, makes GTSAM's elimination
-    indeterminate; :func:`graph.fte.loosening` loosens that marker's scale alone until it solves."""
+def test_independent_chains_solve_as_gtsam_and_at_the_stiffest_fitted_smoothing():
+    """Free points without bones are independent chains, solved by banded Cholesky: the same
+    solution as GTSAM's elimination of the same linear graph; and at the stiffest smoothing the fit
+    may choose (graph.smoothing.stiffest_scale), with a marker unseen for 40 frames, the solve
+    needs no retry and equals a dense solve of the same system."""
     from graph import problem
-    from graph.fte import TrajectoryProblem, loosening, optimise
+    from graph.fte import PRIOR_SIGMA, TrajectoryProblem, optimise
     from graph.initial import initial_poses
+    from graph.smoothing import stiffest_scale
     from graph.triangulate import robust_points
 
     cal = load_calibration(default_rig_path())
@@ -141,12 +147,27 @@ def test_a_chain_too_stiff_for_the_solver_is_loosened_alone():
     X, _, _ = robust_points(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
     tp = TrajectoryProblem(prob, np.zeros((prob.frames, prob.skeleton.n_params)), None)
     tp.Q0 = initial_poses(prob, X)
-    tp.set_motion_scales(np.array([1.0, 1e-8, 1.0]))
-    with pytest.raises(RuntimeError, match="ndeterminate"):
-        optimise(tp, tp.Q0.copy(), 20, stretches=(1.0,))
-    Q, _, _ = loosening(tp, lambda: optimise(tp, tp.Q0.copy(), 20, stretches=(1.0,)))
-    assert set(tp.loosened) == {1} and np.isfinite(Q).all()
-    assert tp.motion_scales[0] == 1.0 and tp.motion_scales[2] == 1.0 and 1e-8 < tp.motion_scales[1] <= 1e-2
+    assert tp.chains and tp._motion_graph is None  # no GTSAM factors built for the chains
+    nrm = tp.normals(tp.Q0)
+    ours = tp.solve_linear(tp.Q0, nrm.H, nrm.g, 1e-3)
+    theirs = tp._solution(tp.linear_graph(tp.Q0, nrm.H, nrm.g, 1e-3).optimize(tp._ordering))
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-9 * np.abs(theirs).max())
+
+    w = 1.0 / PRIOR_SIGMA**2
+    lo = np.array([stiffest_scale(nrm.H[:, i][:, :, i], tp.base_sigma3[i], w) for i in tp.groups])
+    tp.set_motion_scales(lo)
+    ours = tp.solve_linear(tp.Q0, nrm.H, nrm.g, 0.0)
+    N, P = tp.N, tp.P
+    K = np.zeros((N * P, N * P))
+    for n in range(N):
+        K[n * P:(n + 1) * P, n * P:(n + 1) * P] = nrm.H[n] + w * np.eye(P)
+    D = np.kron(_d3(N), np.eye(P)) / tp.sigma3[None].repeat(N - 3, 0).ravel()[:, None]
+    K += D.T @ D
+    rhs = (np.einsum("npq,nq->np", nrm.H, tp.Q0) - nrm.g + w * tp.Q0).ravel()
+    dense = np.linalg.solve(K, rhs).reshape(N, P)
+    assert np.abs(ours - dense).max() <= 1e-6 * np.abs(dense).max()
+    Q, _, _ = optimise(tp, tp.Q0.copy(), 20, stretches=(1.0,))
+    assert np.isfinite(Q).all()
 
 
 def test_a_motion_model_far_looser_than_the_motion_is_named():
@@ -162,3 +183,20 @@ def test_a_motion_model_far_looser_than_the_motion_is_named():
         for scale in (1.0, "auto"):
             r = solve(run.keypoints, cal, SolveOptions(motion_scale=scale, **kw))
             assert not any("looser than the motion" in w for w in r.report.warnings)
+
+
+def test_the_stiffest_smoothing_is_the_solvers_bound():
+    """A run smoother than the stiffest smoothing the fit may choose: fte's chains (LAPACK's banded
+    Cholesky) stop at MAX_STIFFNESS times the data's information, ekf's stream (GTSAM, whose clique
+    Cholesky gives up at a 2^24 spread of pivots) at GTSAM_MAX_STIFFNESS, so its scales are
+    sqrt(MAX_STIFFNESS / GTSAM_MAX_STIFFNESS) looser; both solve."""
+    from graph.smoothing import GTSAM_MAX_STIFFNESS, MAX_STIFFNESS
+
+    cal = load_calibration(default_rig_path())
+    run = random_jerk_run(cal, frames=240, process_noise=1e-4, noise=2.0, markers=4, seed=3)
+    kw = dict(skeleton="points", fps=run.fps, uncertainty=False, motion_scale="auto")
+    fte = solve(run.keypoints, cal, SolveOptions(**kw))
+    ekf = solve(run.keypoints, cal, SolveOptions(method="ekf", **kw))
+    ratio = np.array(list(ekf.report.motion_scales.values())) / np.array(list(fte.report.motion_scales.values()))
+    np.testing.assert_allclose(ratio, math.sqrt(MAX_STIFFNESS / GTSAM_MAX_STIFFNESS), rtol=0.1)
+    assert np.isfinite(fte.positions).all() and np.isfinite(ekf.positions).all()
