@@ -14,7 +14,8 @@ over the three held-out cameras, and the coverage (share of those detections tha
 What runs, on the same data in one run:
 
 * acinoset ``fte --skeleton points`` (free points, no bones), 300 frames per second assumed (SOURCE.md),
-  every other option at its default, on member 1; then with ``motion_scale="auto"`` (and with
+  with the fixed process noise (``motion_scale=1``) and every other option at its default, on
+  member 1; then with ``motion_scale="auto"`` (the default for free points since 12a; and with
   ``measurement_std_px="auto"`` too); then given both members as one ensemble per camera
   (:func:`graph.ensemble.combine`: their median, their spread weighing cameras and markers), with
   the same three settings. The three reconstructions timed in process (wall clock around
@@ -126,7 +127,7 @@ def main() -> int:
           f"{info['cpu']}, {info['cores']} cores, load {info['load_average'][0]:.1f}", flush=True)
 
     ens = [combine([read_keypoints(p) for p in files]) for files in zip(*(member_files(data, m) for m in (1, 2)))]
-    base = SolveOptions(method="fte", skeleton="points", fps=FPS)
+    base = SolveOptions(method="fte", skeleton="points", fps=FPS, motion_scale=1.0)  # the fixed process noise
     ours = {  # name: (inputs, options); every one judged against member 1's confident detections
         "acinoset fte points": (kps, base),
         "acinoset fte points, motion auto": (kps, replace(base, motion_scale="auto")),

@@ -64,7 +64,7 @@ def main() -> int:
     spent = instrument()
     out = {}
     for skeleton in args.skeleton:
-        settings = {"fixed": {}, "auto": {"motion_scale": "auto"}}
+        settings = {"fixed": {"motion_scale": 1.0}, "auto": {"motion_scale": "auto"}}
         for extra in settings.values():  # warm-up
             h.solve_ours(run, cal, "fte", skeleton=skeleton, **extra)
         runs = {name: [] for name in settings}

@@ -6,7 +6,8 @@
 For every noise level sigma_n (px) and outlier rate p_o (outlier sigma 100 px, every outlier with a
 high likelihood: the paper's protocol, bench/harness.py) and every seed, one run on the AcinoSet
 rig is simulated and solved with ``tri``, ``ekf`` and ``fte`` (cheetah skeleton; ``fte-auto`` is
-``fte`` with ``motion_scale="auto"``, ``fte-auto-noise`` with ``measurement_std_px="auto"`` too, and the
+``fte`` with ``motion_scale="auto"``, ``fte-auto-noise`` with ``measurement_std_px="auto"`` too;
+``fte-points`` and ``fte-points-auto`` the same run as free points (no bones); the
 seconds of every solve are kept). The cell is the
 mean over seeds of the mean 3D error (mm) against the truth; the median error is kept in the JSON.
 
@@ -23,7 +24,8 @@ import numpy as np
 
 METHODS = ("tri", "ekf", "fte")
 VARIANTS = {"tri": ("tri", {}), "ekf": ("ekf", {}), "fte": ("fte", {}), "fte-auto": ("fte", {"motion_scale": "auto"}),
-            "fte-auto-noise": ("fte", {"motion_scale": "auto", "measurement_std_px": "auto"})}
+            "fte-auto-noise": ("fte", {"motion_scale": "auto", "measurement_std_px": "auto"}),
+            "fte-points": ("fte", {"skeleton": "points"}), "fte-points-auto": ("fte", {"skeleton": "points", "motion_scale": "auto"})}
 
 
 def main() -> int:

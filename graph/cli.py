@@ -210,9 +210,10 @@ def add_solve_options(p) -> None:
     p.add_argument("--measurement-std", default=str(defaults.measurement_std_px), metavar="PX|auto",
                    help=f"detection noise in pixels per coordinate (default {defaults.measurement_std_px:g}, the "
                         "paper's), or 'auto' to measure it from the data; the 3D uncertainties scale with it")
-    p.add_argument("--motion-scale", default=str(defaults.motion_scale), metavar="S|auto",
-                   help=f"multiplies the motion model's process noise (default {defaults.motion_scale}; larger follows "
-                        "the data more), or 'auto' to fit it to the data (fte: per marker for free points)")
+    p.add_argument("--motion-scale", default=None, metavar="S|auto",
+                   help="multiplies the motion model's process noise (larger follows the data more), or 'auto' to "
+                        "fit it to the data (per marker for free points); default: auto for fte on free points, "
+                        "else 1")
     p.add_argument("--individual", default=None, metavar="NAME", help="multi-animal files: which individual")
     p.add_argument("--calibration-units", choices=list(CALIBRATION_UNITS), default="auto",
                    help="units of the calibration's translations (default: auto, which recognises millimetres)")
@@ -273,7 +274,8 @@ def solve_options(args: argparse.Namespace):
             if any(len(b) != 2 or not all(b) for b in bones):
                 raise ValueError("--bones takes pairs of bodyparts as A-B,C-D")
         std_px = _auto_option(args.measurement_std)
-        motion = _auto_option(args.motion_scale, "--motion-scale", "a positive number")
+        motion = None if args.motion_scale is None else _auto_option(args.motion_scale, "--motion-scale",
+                                                                       "a positive number")
         body, lengths = _body_option(args.body)
         offsets = _offsets_option(args.time_offsets)
         options = SolveOptions(body=body, body_lengths=lengths, sync=args.sync, time_offsets=offsets,

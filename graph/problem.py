@@ -8,7 +8,7 @@ likelihood threshold, and packs the cameras for the kernels.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +21,7 @@ from graph.keypoints import Keypoints, check_same_frames, match_bodyparts, no_ma
 from graph.noise import scatter_px, triangulation_dof
 from graph.skeleton import Skeleton, load_skeleton
 from graph.triangulate import triangulate
-from graph.types import SolveOptions
+from graph.types import SolveOptions, default_motion_scale
 
 
 @dataclass(frozen=True)
@@ -103,6 +103,8 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
         skeleton = load_skeleton("points", bodyparts=names, bone_pairs=options.bone_lengths)
     else:
         skeleton = load_skeleton(options.skeleton)
+    if options.motion_scale is None:
+        options = replace(options, motion_scale=default_motion_scale(options.method, skeleton.kind == "points" and not skeleton.bones))
     M = len(skeleton.markers)
     meas = np.full((N, C, M, 2), np.nan)
     lik = np.zeros((N, C, M))

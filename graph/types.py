@@ -36,6 +36,17 @@ MAX_MOTION_SCALE = 1e6
 MAX_LAG_SECONDS = 60.0
 
 
+def default_motion_scale(method: str, free_points: bool) -> float | Literal["auto"]:
+    """``motion_scale`` when none is given. ``fte`` on free points (no bones): ``"auto"``. Their process noise
+    is a cheetah's, which fits no other animal (a fly's legs: 10^4 times too loose); fitted, the 3D
+    error fell by 27-33 % in every cell of the simulated paper table solved as free points, the
+    held-out error on the real fly by 8 %, at 1.6x the time (bench/RESULTS.md, sections 12 and 12a).
+    Otherwise 1: a kinematic skeleton's process noise is its animal's (the cheetah's, the paper's),
+    and fitting it, though 12-23 % more accurate on the paper table, costs 1.7x the time (0.95 s for
+    500 frames against the 0.5 s a solve is to take); ``ekf`` fits only over its first seconds."""
+    return "auto" if method == "fte" and free_points else 1.0
+
+
 @dataclass
 class SolveOptions:
     """What to solve and how. Every field has a sensible default."""
@@ -48,8 +59,9 @@ class SolveOptions:
     robust: bool = True  # the redescending loss; False gives plain least squares
     max_iterations: int = 50
     # multiplies every process-noise std (larger: follows the data more); "auto": fitted to the data by
-    # the marginal likelihood (graph.smoothing), per marker for free points, one scale for a skeleton
-    motion_scale: float | Literal["auto"] = 1.0
+    # the marginal likelihood (graph.smoothing), per marker for free points, one scale for a skeleton;
+    # None: the default for the skeleton and method (default_motion_scale)
+    motion_scale: float | Literal["auto"] | None = None
     bone_lengths: list[tuple[str, str]] | None = None  # soft bone-length terms for "points"
     individual: str | None = None  # multi-animal DLC files: which individual
     lag_seconds: float = 0.25  # "ekf": the fixed-lag window
@@ -79,7 +91,7 @@ class SolveOptions:
             raise ValueError(f"calibration_units must be one of {', '.join(CALIBRATION_UNITS)}")
         if not (1 <= self.max_iterations <= MAX_ITERATIONS):
             raise ValueError(f"max_iterations must be from 1 to {MAX_ITERATIONS}, not {self.max_iterations}")
-        if self.motion_scale != "auto" and not (isinstance(self.motion_scale, (int, float))
+        if self.motion_scale not in ("auto", None) and not (isinstance(self.motion_scale, (int, float))
                                                  and 0 < self.motion_scale <= MAX_MOTION_SCALE):
             raise ValueError(f"motion_scale must be positive and at most {MAX_MOTION_SCALE:g}, or 'auto', "
                              f"not {self.motion_scale!r}")

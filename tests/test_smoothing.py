@@ -84,10 +84,26 @@ def test_auto_recovers_the_true_smoothness_and_noise(process_noise, noise_px):
     assert np.median(fitted) == pytest.approx(process_noise, rel=0.2)
     assert np.all(np.abs(np.log(fitted / process_noise)) < math.log(1.5))  # every marker within 1.5x
     assert auto.report.sigma_px == pytest.approx(noise_px, rel=0.2)
-    fixed = solve(run.keypoints, cal, SolveOptions(skeleton="points", fps=run.fps, measurement_std_px="auto"))
+    fixed = solve(run.keypoints, cal, SolveOptions(skeleton="points", fps=run.fps, measurement_std_px="auto",
+                                                   motion_scale=1.0))
     err = lambda r: float(np.nanmean(np.linalg.norm(r.positions - run.positions, axis=-1)))  # noqa: E731
     assert err(auto) < err(fixed)
     assert fixed.report.motion_scales is None
+
+
+def test_the_default_smoothing_is_fitted_for_free_points_only():
+    """No motion_scale given: fte on free points fits it (the scales are reported); with bones, on a
+    kinematic skeleton and in ekf it is the fixed 1."""
+    cal = load_calibration(default_rig_path())
+    run = random_jerk_run(cal, frames=60, process_noise=0.3, noise=2.0, seed=4)
+    free = solve(run.keypoints, cal, SolveOptions(skeleton="points", fps=run.fps, uncertainty=False))
+    assert set(free.report.motion_scales) == set(run.markers)
+    bones = solve(run.keypoints, cal, SolveOptions(skeleton="points", fps=run.fps, uncertainty=False,
+                                                   bone_lengths=[(run.markers[0], run.markers[1])]))
+    assert bones.report.motion_scales is None
+    ekf = solve(run.keypoints, cal, SolveOptions(method="ekf", skeleton="points", fps=run.fps, uncertainty=False))
+    assert ekf.report.motion_scales is None
+    assert SolveOptions().motion_scale is None
 
 
 def test_auto_on_a_kinematic_skeleton_and_its_limits():
