@@ -320,15 +320,27 @@ def serve(lock_fd: int, key: str) -> None:
         return
     log = open(place.log, "w", buffering=1, encoding="utf-8")
     idle = _idle_seconds(env)
-
-    def say(text: str) -> None:
-        log.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} {text}\n")
-
     info = {"pid": os.getpid(), "key": key, "version": __version__, "python": sys.executable,
             "started": time.time(), "idle_s": idle, "served": 0, "last": None, "ready": False}
     _write_info(lock_fd, info)
     _prune(place)
-    say(f"resident {os.getpid()} of acinoset {__version__} ({sys.executable}), key {key}: warming up")
+    _say(log, f"resident {os.getpid()} of acinoset {__version__} ({sys.executable}), key {key}: warming up")
+    try:
+        _serve(place, lock_fd, env, info, log)
+    except BaseException:  # noqa: BLE001 - said in the log; clients solve in their own processes meanwhile
+        import traceback
+
+        _say(log, "failed:\n" + traceback.format_exc())
+    log.close()
+
+
+def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> None:
+    """Warm up, listen, fork a child per connection and report its end, until told to stop."""
+    key, idle = place.key, info["idle_s"]
+
+    def say(text: str) -> None:
+        _say(log, text)
+
     os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")  # survives a fork (wanted() refused omp)
     t0 = time.perf_counter()
     import importlib
@@ -402,6 +414,8 @@ def serve(lock_fd: int, key: str) -> None:
             except BlockingIOError:
                 pass
         for pid, status in _reap():
+            if pid not in children:
+                continue
             conn, began = children.pop(pid)
             last = time.monotonic()
             code = os.waitstatus_to_exitcode(status)
@@ -426,7 +440,10 @@ def serve(lock_fd: int, key: str) -> None:
             children[pid] = (conn, time.monotonic())
             last = time.monotonic()
     say(f"exit: {stop[0]}; served {info['served']} solve(s)")
-    log.close()
+
+
+def _say(log, text: str) -> None:
+    log.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} {text}\n")
 
 
 def _reap():
@@ -461,8 +478,7 @@ def _child(conn: socket.socket, close: tuple[int, ...], log) -> None:
         conn.close()
     except BaseException as e:  # noqa: BLE001 - the client solves in its own process
         try:
-            log.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} child {os.getpid()} did not take its request: "
-                      f"{type(e).__name__}: {e}\n")
+            _say(log, f"child {os.getpid()} did not take its request: {type(e).__name__}: {e}")
             conn.sendall(b"fail\n")
         except BaseException:  # noqa: BLE001
             pass
