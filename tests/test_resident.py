@@ -22,7 +22,8 @@ import pytest
 from graph import resident
 from graph.calibration import default_rig_path, load_calibration, write_anipose_toml
 from graph.camera import Calibration
-from graph.keypoints import Keypoints, write_dlc_csv
+from graph.keypoints import write_dlc_csv
+from graph.simulate import simulate_run
 
 ROOT = Path(__file__).resolve().parents[1]
 MARKERS = ["nose", "l_eye", "r_eye", "neck_base", "spine"]
@@ -56,19 +57,13 @@ def served_lines(env: dict) -> list[str]:
 
 
 def write_run(out: Path, frames: int) -> Path:
-    """Three cameras of the AcinoSet rig watching five points, 1 px noise, as DeepLabCut CSVs."""
-    rig = load_calibration(default_rig_path())
-    cal = Calibration(rig.cameras[:3])
+    """Five markers of a simulated cheetah run seen by three cameras of the AcinoSet rig, written as
+    a user brings them: DeepLabCut CSVs and an Anipose calibration.toml."""
+    cal = Calibration(load_calibration(default_rig_path()).cameras[:3])
+    run = simulate_run(cal, frames=frames, fps=FPS, noise=1.0, outliers=0.0, bodyparts=MARKERS, seed=5)
     write_anipose_toml(out / "calibration.toml", cal)
-    t = np.arange(frames) / FPS
-    rng = np.random.default_rng(5)
-    base = np.array([0.0, 5.0, 0.5]) + rng.normal(0, 0.15, (len(MARKERS), 3))
-    truth = base[None] + np.stack([np.sin(2 * t), 0.5 * np.cos(3 * t), 0.1 * np.sin(5 * t)], -1)[:, None]
-    for c, cam in enumerate(cal.cameras):
-        uv = cam.project(truth) + rng.normal(0, 1.0, (frames, len(MARKERS), 2))
-        lik = rng.uniform(0.8, 1.0, (frames, len(MARKERS)))
-        write_dlc_csv(out / f"cam{c + 1}.csv", Keypoints(bodyparts=MARKERS, xy=uv, likelihood=lik,
-                                                        scorer="DLC_resnet50_testJan1shuffle1_1000"))
+    for c, kp in enumerate(run.keypoints):
+        write_dlc_csv(out / f"cam{c + 1}.csv", kp)
     return out
 
 
