@@ -112,6 +112,8 @@ def runtime_dir(env: dict[str, str]) -> Path:
         d = Path(base) / "acinoset"
     else:
         cache = env.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        if not os.path.isabs(cache):  # no home directory: no resident
+            raise OSError(errno.ENOENT, "no cache directory", cache)
         d = Path(cache) / "acinoset" / "resident"
     d.mkdir(mode=0o700, parents=True, exist_ok=True)
     st = d.stat()
