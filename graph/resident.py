@@ -76,6 +76,7 @@ CONNECT_TIMEOUT_S = 1.0
 ANSWER_TIMEOUT_S = 10.0  # from the request to the child's ``pid`` line
 KEY_CHECK_S = 60.0
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
+NOT_TAKEN = 75  # a child's exit status when it ran no solve (a solve's own 75 is reported as 1)
 SOCKET_PATH_MAX = 100  # sun_path is 108 bytes on Linux, 104 on macOS
 
 _serving = False  # True in a resident's forked child: its solve runs there, not handed over again
@@ -421,6 +422,10 @@ def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> 
             conn, began = children.pop(pid)
             last = time.monotonic()
             code = os.waitstatus_to_exitcode(status)
+            if code == NOT_TAKEN:  # the client solved in its own process
+                conn.close()
+                say(f"child {pid} ran no solve")
+                continue
             reply = f"exit {code}\n" if code >= 0 else f"signal {-code}\n"
             try:
                 conn.sendall(reply.encode())
@@ -436,7 +441,12 @@ def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> 
                 conn, _ = listener.accept()
             except OSError:
                 continue
-            pid = os.fork()
+            try:
+                pid = os.fork()
+            except OSError as e:  # the client solves in its own process
+                conn.close()
+                say(f"cannot fork: {e}")
+                continue
             if pid == 0:
                 _child(conn, (listener.fileno(), wake_r, wake_w, lock_fd), log)  # never returns
             children[pid] = (conn, time.monotonic())
@@ -475,7 +485,7 @@ def _child(conn: socket.socket, close: tuple[int, ...], log) -> None:
         request = _read_request(conn)
         conn.sendall(f"pid {os.getpid()}\n".encode())
         if _Lines(conn).next() != "go":
-            os._exit(0)
+            os._exit(NOT_TAKEN)
         conn.sendall(b"run\n")
         conn.close()
     except BaseException as e:  # noqa: BLE001 - the client solves in its own process
@@ -484,10 +494,10 @@ def _child(conn: socket.socket, close: tuple[int, ...], log) -> None:
             conn.sendall(b"fail\n")
         except BaseException:  # noqa: BLE001
             pass
-        os._exit(0)
+        os._exit(NOT_TAKEN)
     log.close()
     code = _run(request)
-    os._exit(code)
+    os._exit(code if code != NOT_TAKEN else 1)
 
 
 def _read_request(conn: socket.socket) -> dict:
