@@ -11,8 +11,9 @@ Lifecycle.
 * If there is none, it solves in its own process as before, then starts one: ``python -c`` this
   module's :func:`serve`, detached (a new session, stdin/stdout/stderr on /dev/null, every other
   inherited file closed), so that a shell pipeline or a CI job never waits for it.
-* The resident imports the solver, runs tiny solves (:func:`graph.warmup.warm_up`) so its kernels are
-  loaded, then listens. It exits after ``ACINOSET_RESIDENT_IDLE`` seconds without a solve (default
+* The resident imports the solver, runs tiny solves (:func:`graph.warmup.warm_up`, and one tiny
+  ``acinoset solve`` from files to files) so that its kernels and the command's readers and
+  writers are loaded, then listens. It exits after ``ACINOSET_RESIDENT_IDLE`` seconds without a solve (default
   600), on SIGTERM (``acinoset resident stop``; a solve being served finishes first), or when the
   installed code changes. ``ACINOSET_RESIDENT=0`` turns it off: every solve runs in its own process.
 
@@ -357,6 +358,7 @@ def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> 
     from graph.warmup import warm_up
 
     warm_up()
+    _warm_cli(place.dir)
     import gc
 
     gc.collect()
@@ -452,6 +454,36 @@ def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> 
             children[pid] = (conn, time.monotonic())
             last = time.monotonic()
     say(f"exit: {stop[0]}; served {info['served']} solve(s)")
+
+
+def _warm_cli(where: Path) -> None:
+    """One real ``acinoset solve`` of a tiny simulated run, files in and out (in a temporary folder
+    of ``where``), so that what the command does around the solve (its parser, the readers, the
+    writers, HDF5) is loaded before the first fork too. Never raises."""
+    global _serving
+    import tempfile
+
+    from graph.calibration import default_rig_path, load_calibration, write_anipose_toml
+    from graph.cli import main
+    from graph.keypoints import write_dlc_csv
+    from graph.simulate import simulate_run
+
+    _serving = True  # this process's own solve: not handed over
+    try:
+        with tempfile.TemporaryDirectory(dir=where) as tmp:
+            d = Path(tmp)
+            cal = load_calibration(default_rig_path())
+            run = simulate_run(cal, frames=12, seed=0)
+            write_anipose_toml(d / "calibration.toml", cal)
+            cams = [str(d / f"{name}.csv") for name in cal.names]
+            for path, kp in zip(cams, run.keypoints):
+                write_dlc_csv(path, kp)
+            main(["solve", *cams, "--calibration", str(d / "calibration.toml"), "--fps", str(run.fps),
+                  "--out", str(d / "run.csv"), "--h5", str(d / "run.h5"), "--report", str(d / "report.json")])
+    except Exception:  # noqa: BLE001 - a colder first solve, nothing worse
+        pass
+    finally:
+        _serving = False
 
 
 def _say(log, text: str) -> None:
