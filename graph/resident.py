@@ -33,14 +33,14 @@ resident and the old one idles out (it also checks its own key each minute and l
 Protocol: one Unix stream connection per solve.
 
 1. client -> resident: an 8-byte big-endian length and a JSON object ``{argv, cwd, env, umask,
-   commands}`` (``commands``: the :class:`graph.cli.Command` table of the client's entry point), with
-   the client's file descriptors 0, 1, 2 attached (``SCM_RIGHTS``).
-2. The resident forks a child for the connection. The child reads the request, makes the three
-   descriptors its own 0, 1, 2, enters ``cwd``, takes ``env`` and ``umask``, and answers
-   ``pid N\\n`` (``fail\\n`` if any of that failed).
-3. client -> child: ``go\\n``; child -> client: ``run\\n``, and from then on the solve is the child's.
-   A child that gets no ``go`` (the client gave up waiting) exits having done nothing, and a client
-   that gets no ``run`` solves in its own process.
+   commands}`` (``commands``: the :class:`graph.cli.Command` table of the client's entry point).
+2. The resident forks a child for the connection. The child reads the request, enters ``cwd``,
+   takes ``env`` and ``umask``, and answers ``pid N\\n`` (``fail\\n`` if any of that failed).
+3. client -> child: ``go\\n`` with the client's file descriptors 0, 1, 2 attached (``SCM_RIGHTS``;
+   sent only now, so that none waits in a hung resident's queue holding the client's pipes open);
+   the child makes them its own 0, 1, 2 and answers ``run\\n``: from then on the solve is the
+   child's. A child that gets no ``go`` (the client gave up waiting) exits having done nothing, and
+   a client that gets no ``run`` solves in its own process.
 4. The child runs ``graph.cli.main(argv, commands)``, exactly what the client would have run, and
    exits with its status. The resident reaps it and sends ``exit S\\n``, or ``signal N\\n`` if it
    was killed; the client exits the same way (re-raising the signal on itself).
@@ -74,7 +74,7 @@ DEFAULT_IDLE_S = 600.0
 KEY_ENV_PREFIXES = ("NUMBA_", "OMP_", "OPENBLAS_", "MKL_", "BLIS_", "GOTO", "VECLIB_", "KMP_", "NUMEXPR_",
                     "PYTHON", "LD_", "LC_", "LANG", "ACINOSET_")
 CONNECT_TIMEOUT_S = 1.0
-ANSWER_TIMEOUT_S = 10.0  # from the request to the child's ``pid`` line
+ANSWER_TIMEOUT_S = 5.0  # from the request to the child's ``pid`` line
 KEY_CHECK_S = 60.0
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
 NOT_TAKEN = 75  # a child's exit status when it ran no solve (a solve's own 75 is reported as 1)
@@ -193,6 +193,10 @@ def solve(argv: list[str], commands, run_here: Callable[[], int]) -> int:
 
 def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str]) -> int | None:
     """Steps 1-4 of the protocol; None if the solve was not taken (nothing was run)."""
+    try:
+        signals = _Signals()  # from the start: a Ctrl-C before the child runs is not lost
+    except ValueError:  # not the main thread: no handlers, no hand-over
+        return None
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         sock.settimeout(CONNECT_TIMEOUT_S)
@@ -202,28 +206,19 @@ def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str]) -> 
         os.umask(umask)
         body = json.dumps({"argv": argv, "cwd": os.getcwd(), "env": env, "umask": umask,
                            "commands": [[c.name, c.module, c.help] for c in commands]}).encode()
-        message = struct.pack(">Q", len(body)) + body
-        sent = socket.send_fds(sock, [message], [0, 1, 2])
-        sock.sendall(message[sent:])
+        sock.sendall(struct.pack(">Q", len(body)) + body)
         lines = _Lines(sock)
         answer = lines.next()
         pid = int(answer.split()[1]) if answer.startswith("pid ") else 0
+        # the descriptors go only to a child that answered: none is left in flight in a hung
+        # resident's queue, where it would hold the client's pipes open
+        taken = pid > 0 and socket.send_fds(sock, [b"go\n"], [0, 1, 2]) > 0 and lines.next() == "run"
     except (OSError, ValueError):
-        pid = 0
-    if pid <= 0:
-        sock.close()
-        return None
-    previous = {s: signal.signal(s, lambda signum, _frame: _forward(pid, signum)) for s in FORWARDED}
-    try:
-        sock.sendall(b"go\n")
-        taken = lines.next() == "run"
-    except OSError:
         taken = False
-    if not taken:  # the child did not run the solve (it exits having done nothing)
+    if not taken:  # no child runs the solve (one that answered exits having done nothing)
         sock.close()
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-        return None
+        return signals.restore_before_solving()
+    signals.forward_to(pid)
     # committed: the child runs the solve; wait for its end however long it takes
     try:
         sock.settimeout(None)
@@ -232,8 +227,7 @@ def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str]) -> 
         end = ""
     finally:
         sock.close()
-        for s, handler in previous.items():
-            signal.signal(s, handler)
+        signals.restore()
     word, _, value = end.partition(" ")
     if word == "exit":
         return int(value)
@@ -248,6 +242,46 @@ def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str]) -> 
     print("acinoset: error: the resident process serving this solve was stopped; run it again "
           f"(or with {SWITCH}=0)", file=sys.stderr)
     return 1
+
+
+class _Signals:
+    """The client's handlers of :data:`FORWARDED` while it hands a solve over: signals that come
+    before the child runs are kept, and sent to it once it does (:meth:`forward_to`)."""
+
+    def __init__(self):
+        self.pid = 0
+        self.pending: list[int] = []
+        self.previous = {s: signal.signal(s, self._handle) for s in FORWARDED}
+
+    def _handle(self, signum: int, _frame) -> None:
+        if self.pid:
+            _forward(self.pid, signum)
+        else:
+            self.pending.append(signum)
+
+    def forward_to(self, pid: int) -> None:
+        self.pid = pid
+        for signum in self.pending:
+            _forward(pid, signum)
+        self.pending.clear()
+
+    def restore(self) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler)
+
+    def restore_before_solving(self) -> int | None:
+        """The previous handlers back; None to solve in this process, or the exit status of a
+        signal that came meanwhile (the solve is not started: Ctrl-C is 'interrupted', 130)."""
+        self.restore()
+        if not self.pending:
+            return None
+        signum = self.pending[0]
+        if signum == signal.SIGINT:
+            print("acinoset: interrupted", file=sys.stderr)
+            return 130
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+        return 128 + signum
 
 
 def _forward(pid: int, signum: int) -> None:
@@ -516,10 +550,9 @@ def _child(conn: socket.socket, close: tuple[int, ...], log) -> None:
         conn.settimeout(ANSWER_TIMEOUT_S)
         request = _read_request(conn)
         conn.sendall(f"pid {os.getpid()}\n".encode())
-        if _Lines(conn).next() != "go":
+        if not _take_descriptors(conn):
             os._exit(NOT_TAKEN)
         conn.sendall(b"run\n")
-        conn.close()
     except BaseException as e:  # noqa: BLE001 - the client solves in its own process
         try:
             _say(log, f"child {os.getpid()} did not take its request: {type(e).__name__}: {e}")
@@ -527,37 +560,53 @@ def _child(conn: socket.socket, close: tuple[int, ...], log) -> None:
         except BaseException:  # noqa: BLE001
             pass
         os._exit(NOT_TAKEN)
-    log.close()
-    code = _run(request)
+    try:
+        conn.close()
+    except KeyboardInterrupt:  # forwarded the moment the client heard ``run``
+        print("acinoset: interrupted", file=sys.stderr, flush=True)
+        os._exit(130)
+    code = _run(request, log)
     os._exit(code if code != NOT_TAKEN else 1)
 
 
 def _read_request(conn: socket.socket) -> dict:
-    """Read the request, take its descriptors as 0, 1, 2, its cwd, environment and umask."""
-    data, fds, _, _ = socket.recv_fds(conn, 1 << 16, 3)
+    """Read the request; take its cwd, environment and umask."""
+    (n,) = struct.unpack(">Q", _read_exactly(conn, 8))
+    request = json.loads(_read_exactly(conn, n))
+    os.chdir(request["cwd"])
+    os.environ.clear()
+    os.environ.update(request["env"])
+    os.umask(int(request["umask"]))
+    return request
+
+
+def _read_exactly(conn: socket.socket, n: int) -> bytes:
+    data = b""
+    while len(data) < n:
+        chunk = conn.recv(min(1 << 20, n - len(data)))
+        if not chunk:
+            raise ValueError("the request ended early")
+        data += chunk
+    return data
+
+
+def _take_descriptors(conn: socket.socket) -> bool:
+    """Receive ``go`` with the client's stdin, stdout and stderr and make them this process's 0, 1,
+    2 (and ``sys.stdin/stdout/stderr``); False if the client sent no ``go`` (it gave up)."""
+    data, fds, _, _ = socket.recv_fds(conn, 64, 3)
     try:
-        if len(fds) != 3 or len(data) < 8:
-            raise ValueError("a request carries three descriptors and a length")
-        (n,) = struct.unpack(">Q", data[:8])
-        body = data[8:]
-        while len(body) < n:
-            chunk = conn.recv(min(1 << 20, n - len(body)))
-            if not chunk:
-                raise ValueError("the request ended early")
-            body += chunk
-        request = json.loads(body)
-        os.chdir(request["cwd"])
+        if data != b"go\n":
+            return False
+        if len(fds) != 3:
+            raise ValueError(f"'go' came with {len(fds)} descriptors, not 3")
         for fd, target in zip(fds, (0, 1, 2)):
             os.dup2(fd, target)
     finally:
         for fd in fds:
             if fd > 2:
                 os.close(fd)
-    os.environ.clear()
-    os.environ.update(request["env"])
-    os.umask(int(request["umask"]))
     _std_streams()
-    return request
+    return True
 
 
 def _std_streams() -> None:
@@ -579,13 +628,15 @@ def _std_streams() -> None:
         setattr(sys, f"__{name}__", stream)
 
 
-def _run(request: dict) -> int:
-    """``graph.cli.main(argv, commands)`` with its exit status as a process of its own would have it."""
-    from graph.cli import Command, main
-
-    argv = list(request["argv"])
-    sys.argv = ["acinoset", *argv]
+def _run(request: dict, log) -> int:
+    """``graph.cli.main(argv, commands)`` with its exit status as a process of its own would have it
+    (the solve is the child's from its first line: a Ctrl-C forwarded at once lands in here)."""
     try:
+        log.close()
+        from graph.cli import Command, main
+
+        argv = list(request["argv"])
+        sys.argv = ["acinoset", *argv]
         code = main(argv, tuple(Command(*c) for c in request["commands"]))
     except SystemExit as e:
         code = e.code
@@ -594,7 +645,8 @@ def _run(request: dict) -> int:
         elif not isinstance(code, int):
             print(code, file=sys.stderr)
             code = 1
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # a Ctrl-C forwarded before the command's own handler was in place
+        print("acinoset: interrupted", file=sys.stderr)
         code = 130
     except BaseException:  # noqa: BLE001 - a traceback, as in a process of its own
         import traceback

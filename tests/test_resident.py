@@ -223,6 +223,39 @@ def test_a_changed_key_starts_a_new_resident(env, warm, run_dir, tmp_path):
     assert sum("(this install)" in line for line in proc.stdout.splitlines()) == 1
 
 
+def test_a_hung_resident_leaves_the_solve_to_the_client(env, warm, run_dir, tmp_path):
+    """A resident that accepts but does not answer (stopped here with SIGSTOP): after the
+    hand-over's timeout the client solves in its own process; the resident, continued, runs nothing."""
+    pid = ready(env)[0].pid
+    before = len(served_lines(env))
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        t0 = time.monotonic()
+        proc = acinoset(env, *solve_args(run_dir, tmp_path), cwd=run_dir)
+        waited = time.monotonic() - t0
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    assert proc.returncode == 0, proc.stderr
+    assert waited >= resident.ANSWER_TIMEOUT_S and proc.stdout.startswith("fte: 60 frames")
+    same_outputs(warm, tmp_path)
+    log = resident.place_of(env).log
+    wait_for(lambda: "ran no solve" in log.read_text(), 30, "the resident to drop the request")
+    assert len(served_lines(env)) == before
+
+
+def test_a_killed_resident_is_replaced(env, warm, run_dir, tmp_path):
+    """SIGKILL leaves its socket file behind: the next solve runs in its own process and starts a new one."""
+    place = resident.place_of(env)
+    old = ready(env)[0].pid
+    os.kill(old, signal.SIGKILL)
+    wait_for(lambda: not any(r.current for r in resident.residents(env)), 30, "its lock to be free")
+    assert place.socket.exists()
+    proc = acinoset(env, *solve_args(run_dir, tmp_path), cwd=run_dir)
+    assert proc.returncode == 0, proc.stderr
+    new = wait_for(lambda: ready(env), WARM_UP_S, "a new resident")
+    assert new[0].pid != old
+
+
 def test_resident_stop(env, warm, run_dir, tmp_path):
     place = resident.place_of(env)
     proc = acinoset(env, "resident", "stop")
