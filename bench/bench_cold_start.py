@@ -8,11 +8,17 @@ bench/harness.py), written as a user brings it (``cam1.csv`` ... and ``calibrati
 * ``acinoset --version`` and ``acinoset solve --help`` (the parser alone);
 * ``acinoset solve ... --out run.csv --h5 run.h5`` as a new process, after one earlier run has
   filled numba's cache (every default: ``fte``, the cheetah, the body estimated), the median of
-  ``--repeats``; the solve's own ``seconds.total`` from its report beside it;
+  ``--repeats``; the solve's own ``seconds.total`` from its report beside it. Twice: solved in the
+  process itself (``ACINOSET_RESIDENT=0``), and handed to the warm resident process that an earlier
+  ``acinoset solve`` started (graph.resident; in a private runtime directory of this run, stopped at
+  the end; every timed run checked to have been served, and its CSV to equal the in-process one);
 * aniposelib's ``triangulate_optim`` call alone on the same detections, in this process (its
   import, the camera group and the threshold not counted), with every bone a limb constraint;
 * with ``--compile``, the first ``acinoset solve`` after an install: a new ``NUMBA_CACHE_DIR`` so
   that every kernel compiles, as on a fresh machine.
+
+The package's modules are byte-compiled first, as ``pip install`` leaves them (an environment with
+``PYTHONDONTWRITEBYTECODE`` set would otherwise compile every module from source in every process).
 
 Writes bench/results/cold_start.json.
 """
@@ -48,6 +54,11 @@ def wall(cmd: list[str], env: dict | None = None) -> tuple[float, subprocess.Com
     return t, proc
 
 
+def served(runtime: Path) -> int:
+    """How many solves the residents of ``runtime`` have served (their logs)."""
+    return sum(log.read_text().count(" served child ") for log in (runtime / "acinoset").glob("*.log"))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=150)
@@ -55,6 +66,13 @@ def main() -> int:
     ap.add_argument("--compile", action="store_true", help="also time a first run with an empty kernel cache")
     args = ap.parse_args()
     warnings.filterwarnings("ignore")
+    import compileall
+
+    import graph
+    import service
+
+    for package in (graph, service):
+        compileall.compile_dir(Path(package.__file__).parent, quiet=1)
     info = h.machine()
     print(f"# whole process: {args.frames} frames; {info['cpu']}, {info['cores']} cores, "
           f"load {info['load_average'][0]:.1f}", flush=True)
@@ -83,12 +101,38 @@ def main() -> int:
 
         version = [wall([ACINOSET, "--version"])[0] for _ in range(args.repeats)]
         helps = [wall([ACINOSET, "solve", "--help"])[0] for _ in range(args.repeats)]
-        wall(solve)  # fills the cache if it was empty
+        alone = {**os.environ, "ACINOSET_RESIDENT": "0"}
+        wall(solve, alone)  # fills the cache if it was empty
         runs, inner = [], []
         for _ in range(args.repeats):
-            t, _ = wall(solve)
+            t, _ = wall(solve, alone)
             runs.append(t)
             inner.append(json.loads((d / "report.json").read_text())["seconds"]["total"])
+        reference = (d / "run.csv").read_bytes()
+
+        runtime = d / "runtime"
+        runtime.mkdir(mode=0o700)
+        warm = {**os.environ, "ACINOSET_RESIDENT": "1", "XDG_RUNTIME_DIR": str(runtime)}
+        try:
+            t_start, _ = wall(solve, warm)  # in its own process; starts the resident
+            t0 = time.perf_counter()
+            while "ready" not in wall([ACINOSET, "resident", "status"], warm)[1].stdout:
+                if time.perf_counter() - t0 > 600:
+                    raise SystemExit("the resident did not get warm in 10 minutes")
+                time.sleep(0.2)
+            warm_s = time.perf_counter() - t0
+            resident, resident_inner = [], []
+            for _ in range(args.repeats):
+                before = served(runtime)
+                t, _ = wall(solve, warm)
+                if served(runtime) != before + 1:
+                    raise SystemExit("a solve meant for the resident was not served by it")
+                if (d / "run.csv").read_bytes() != reference:
+                    raise SystemExit("the resident's CSV differs from the in-process one")
+                resident.append(t)
+                resident_inner.append(json.loads((d / "report.json").read_text())["seconds"]["total"])
+        finally:
+            wall([ACINOSET, "resident", "stop"], warm)
         cg = h.anipose_group(cal)
         pts = h.anipose_points(run)
         cons = h.bone_constraints(run)
@@ -99,13 +143,19 @@ def main() -> int:
             anipose.append(time.perf_counter() - t0)
     med = statistics.median
     out.update({"version_s": version, "solve_help_s": helps, "solve_process_s": runs, "solve_in_process_s": inner,
+                "resident_first_solve_s": t_start, "resident_warm_up_s": warm_s,
+                "solve_process_resident_s": resident, "solve_in_resident_s": resident_inner,
                 "aniposelib_triangulate_optim_s": anipose,
-                "ratio_process": med(anipose) / med(runs), "ratio_in_process": med(anipose) / med(inner)})
+                "ratio_process": med(anipose) / med(runs), "ratio_process_resident": med(anipose) / med(resident),
+                "ratio_in_process": med(anipose) / med(inner)})
     print(f"  acinoset --version       median {med(version):.3f} s (best {min(version):.3f})")
     print(f"  acinoset solve --help    median {med(helps):.3f} s (best {min(helps):.3f})")
     print(f"  acinoset solve (process) median {med(runs):.2f} s (best {min(runs):.2f}); its solve() {med(inner):.2f} s")
+    print(f"  acinoset solve (served by the resident) median {med(resident):.3f} s (best {min(resident):.3f}); "
+          f"its solve() {med(resident_inner):.3f} s; the run that started it {t_start:.2f} s, warm {warm_s:.1f} s later")
     print(f"  aniposelib triangulate_optim alone: median {med(anipose):.2f} s")
-    print(f"  ratio: {out['ratio_process']:.1f}x the whole process, {out['ratio_in_process']:.1f}x in process")
+    print(f"  ratio: {out['ratio_process']:.1f}x the whole process on its own, {out['ratio_process_resident']:.1f}x "
+          f"the whole process served by the resident, {out['ratio_in_process']:.1f}x the solve in process")
     path = h.save("cold_start", out)
     print(f"wrote {path}")
     return 0

@@ -56,6 +56,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("video", "graph.video.cli", "draw a solved run over each camera's video, with a 3D view (H.264 MP4)"),
     Command("calibrate", "graph.calibrate.cli", "calibrate cameras from board views, or refine a rig from keypoints"),
     Command("evaluate", "graph.evaluate", "score a 3D method on a recording: leave one camera out"),
+    Command("resident", "graph.resident", "the warm background process that serves 'acinoset solve': status, stop"),
 )
 
 
@@ -121,6 +122,14 @@ def _command_named(argv: list[str]) -> str:
 
 def main(argv: list[str] | None = None, commands: tuple[Command, ...] = COMMANDS) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    if _command_named(argv) == "solve":  # handed to a warm resident process when one is up
+        from graph import resident
+
+        return resident.solve(argv, commands, lambda: _run(argv, commands))
+    return _run(argv, commands)
+
+
+def _run(argv: list[str], commands: tuple[Command, ...]) -> int:
     try:
         parser = build_parser(commands, only=_command_named(argv))
         args = parser.parse_args(argv)

@@ -6,7 +6,13 @@ tests import their real servers from ``servers.py``.
 
 from __future__ import annotations
 
+import os
+
 import pytest
+
+# Every ``acinoset solve`` the tests start runs in its own process: no warm resident process is left
+# behind or serves a test (tests/test_resident.py turns it on for its own, in a private directory).
+os.environ["ACINOSET_RESIDENT"] = "0"
 
 from graph.calibration import default_rig_path, load_calibration
 from graph.simulate import simulate_run

@@ -1,0 +1,328 @@
+"""The warm resident process behind ``acinoset solve`` (graph.resident), with real processes.
+
+Each test module's resident lives in its own runtime directory (``XDG_RUNTIME_DIR``) with the switch
+turned on only for these tests' commands (conftest.py turns it off for the suite); every resident
+started here is stopped at teardown.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from graph import resident
+from graph.calibration import default_rig_path, load_calibration, write_anipose_toml
+from graph.camera import Calibration
+from graph.keypoints import write_dlc_csv
+from graph.simulate import simulate_run
+
+ROOT = Path(__file__).resolve().parents[1]
+MARKERS = ["nose", "l_eye", "r_eye", "neck_base", "spine"]
+FRAMES = 60
+FPS = 90.0
+WARM_UP_S = 240  # a resident's warm-up: seconds here once the kernels are cached, a minute or two before
+
+
+def acinoset(env: dict, *args, cwd: Path | None = None, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "graph.cli", *map(str, args)], capture_output=True, text=True,
+                          env=env, cwd=cwd, timeout=300, **kw)
+
+
+def wait_for(condition, timeout: float, what: str):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+
+
+def ready(env: dict) -> list[resident.Resident]:
+    return [r for r in resident.residents(env) if r.ready and r.current]
+
+
+def served_lines(env: dict) -> list[str]:
+    place = resident.place_of(env)
+    return [line for line in place.log.read_text().splitlines() if " served child " in line]
+
+
+def write_run(out: Path, frames: int) -> Path:
+    """Five markers of a simulated cheetah run seen by three cameras of the AcinoSet rig, written as
+    a user brings them: DeepLabCut CSVs and an Anipose calibration.toml."""
+    cal = Calibration(load_calibration(default_rig_path()).cameras[:3])
+    run = simulate_run(cal, frames=frames, fps=FPS, noise=1.0, outliers=0.0, bodyparts=MARKERS, seed=5)
+    write_anipose_toml(out / "calibration.toml", cal)
+    for c, kp in enumerate(run.keypoints):
+        write_dlc_csv(out / f"cam{c + 1}.csv", kp)
+    return out
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory) -> Path:
+    return write_run(tmp_path_factory.mktemp("run"), FRAMES)
+
+
+def solve_args(run_dir: Path, out: Path) -> list:
+    """Relative input paths (the resident's child must work in the client's directory)."""
+    return ["solve", "cam1.csv", "cam2.csv", "cam3.csv", "--calibration", "calibration.toml", "--method", "fte",
+            "--skeleton", "points", "--fps", FPS, "--out", out / "run.csv", "--h5", out / "run.h5",
+            "--report", out / "report.json"]
+
+
+def make_env(runtime: Path, **extra: str) -> dict:
+    return {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+            "XDG_RUNTIME_DIR": str(runtime), "ACINOSET_RESIDENT": "1", "ACINOSET_RESIDENT_IDLE": "120", **extra}
+
+
+def stop_all(env: dict) -> None:
+    proc = acinoset(env, "resident", "stop")
+    assert proc.returncode == 0, proc.stderr
+    assert not resident.residents(env)
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    """The environment of a client with the resident on, in a runtime directory of this module."""
+    runtime = tmp_path_factory.mktemp("rt")
+    e = make_env(runtime)
+    yield e
+    stop_all(e)
+
+
+@pytest.fixture(scope="module")
+def warm(env, run_dir, tmp_path_factory):
+    """A resident started by a first solve (which ran in its own process), warm and listening;
+    that first solve's output folder."""
+    assert not resident.residents(env)
+    out = tmp_path_factory.mktemp("first")
+    proc = acinoset(env, *solve_args(run_dir, out), cwd=run_dir)
+    assert proc.returncode == 0, proc.stderr
+    found = wait_for(lambda: ready(env), WARM_UP_S, "the resident to be warm")
+    assert len(found) == 1 and found[0].served == 0  # the first solve was not served: it started it
+    return out
+
+
+def same_outputs(a: Path, b: Path) -> None:
+    """The CSV to the byte; every H5 dataset exactly; the report but for its timings."""
+    assert (a / "run.csv").read_bytes() == (b / "run.csv").read_bytes()
+    with h5py.File(a / "run.h5", "r") as fa, h5py.File(b / "run.h5", "r") as fb:
+        names = []
+        fa.visit(lambda n: names.append(n) if isinstance(fa[n], h5py.Dataset) else None)
+        assert names and sorted(names) == sorted(n for n in _datasets(fb))
+        for n in names:
+            x, y = fa[n][()], fb[n][()]
+            assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), n
+    ra, rb = (json.loads((d / "report.json").read_text()) for d in (a, b))
+    ra.pop("seconds"), rb.pop("seconds")
+    assert ra == rb
+
+
+def _datasets(f) -> list[str]:
+    names = []
+    f.visit(lambda n: names.append(n) if isinstance(f[n], h5py.Dataset) else None)
+    return names
+
+
+def test_a_second_solve_is_served_and_equals_an_in_process_one(env, warm, run_dir, tmp_path):
+    here, served = tmp_path / "here", tmp_path / "served"
+    here.mkdir()
+    served.mkdir()
+    alone = acinoset(dict(env, ACINOSET_RESIDENT="0"), *solve_args(run_dir, here), cwd=run_dir)
+    assert alone.returncode == 0, alone.stderr
+    before = len(served_lines(env))
+    proc = acinoset(env, *solve_args(run_dir, served), cwd=run_dir)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("fte: 60 frames, 3 cameras, 5 markers")
+    assert proc.stdout.split(" s -> ")[0].rsplit(",", 1)[0] == alone.stdout.split(" s -> ")[0].rsplit(",", 1)[0]
+    assert proc.stderr == alone.stderr  # the same warnings, on the client's stderr
+    lines = served_lines(env)
+    assert len(lines) == before + 1 and lines[-1].endswith(" s") and "exit 0" in lines[-1]
+    assert resident.residents(env)[0].served == before + 1
+    same_outputs(here, served)
+    same_outputs(warm, served)
+
+
+def test_an_input_error_is_one_line_and_exit_2_through_the_resident(env, warm, run_dir, tmp_path):
+    before = len(served_lines(env))
+    proc = acinoset(env, "solve", "cam1.csv", "cam2.csv", "cam3.csv", "--calibration", "missing.toml",
+                    "--out", tmp_path / "run.csv", cwd=run_dir)
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines() == ["acinoset: error: missing.toml: no such file"]
+    lines = served_lines(env)
+    assert len(lines) == before + 1 and "exit 2" in lines[-1]
+
+
+def test_concurrent_clients_each_get_a_child(env, warm, run_dir, tmp_path):
+    before = len(served_lines(env))
+    outs = [tmp_path / f"p{i}" for i in range(2)]
+    procs = []
+    for out in outs:
+        out.mkdir()
+        procs.append(subprocess.Popen([sys.executable, "-m", "graph.cli", *map(str, solve_args(run_dir, out))],
+                                      env=env, cwd=run_dir, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+    for p in procs:
+        stdout, stderr = p.communicate(timeout=300)
+        assert p.returncode == 0, stderr
+    lines = served_lines(env)
+    assert len(lines) == before + 2
+    assert len({line.split(" served child ")[1].split(":")[0] for line in lines[-2:]}) == 2  # two children
+    same_outputs(outs[0], outs[1])
+    same_outputs(warm, outs[0])
+
+
+def test_ctrl_c_reaches_the_served_solve(env, warm, run_dir, tmp_path):
+    """SIGINT to the client is forwarded to its child in the resident: 'interrupted', exit 130."""
+    big = write_run(tmp_path, 20000)  # a solve of some seconds
+    pid = resident.residents(env)[0].pid
+    proc = subprocess.Popen([sys.executable, "-m", "graph.cli", *map(str, solve_args(big, big))], env=env,
+                            cwd=big, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    children = Path(f"/proc/{pid}/task/{pid}/children")
+    if not children.exists():
+        proc.kill()
+        pytest.skip("this kernel does not list a process's children")
+    child = wait_for(lambda: children.read_text().split(), 60, "the resident's child")
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    if proc.returncode == 0:  # the solve ended before the signal reached it: nothing to check
+        pytest.skip("the solve finished before the signal")
+    assert proc.returncode == 130, stderr
+    assert stderr.splitlines()[-1] == "acinoset: interrupted"
+    wait_for(lambda: not Path(f"/proc/{child[0]}").exists(), 30, "the child to end")
+
+
+def test_the_off_switch(env, warm, run_dir, tmp_path):
+    before = len(served_lines(env))
+    proc = acinoset(dict(env, ACINOSET_RESIDENT="0"), *solve_args(run_dir, tmp_path), cwd=run_dir)
+    assert proc.returncode == 0, proc.stderr
+    assert len(served_lines(env)) == before
+
+
+def test_a_changed_key_starts_a_new_resident(env, warm, run_dir, tmp_path):
+    """An environment variable that may change what is imported or compiled (here an ACINOSET_ one)
+    makes a new key: that solve runs in its own process and starts a second resident."""
+    other = dict(env, ACINOSET_KEY_PROBE="1")
+    assert resident.key_of(other) != resident.key_of(env)
+    before = len(served_lines(env))
+    proc = acinoset(other, *solve_args(run_dir, tmp_path), cwd=run_dir)
+    assert proc.returncode == 0, proc.stderr
+    assert len(served_lines(env)) == before  # not served by the first one
+    new = wait_for(lambda: ready(other), WARM_UP_S, "a second resident")
+    assert len(resident.residents(env)) == 2 and new[0].key != ready(env)[0].key
+    proc = acinoset(other, "resident", "status")
+    assert proc.returncode == 0 and len(proc.stdout.splitlines()) == 2
+    assert sum("(this install)" in line for line in proc.stdout.splitlines()) == 1
+
+
+def test_a_hung_resident_leaves_the_solve_to_the_client(env, warm, run_dir, tmp_path):
+    """A resident that accepts but does not answer (stopped here with SIGSTOP): after the
+    hand-over's timeout the client solves in its own process; the resident, continued, runs nothing."""
+    pid = ready(env)[0].pid
+    before = len(served_lines(env))
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        t0 = time.monotonic()
+        proc = acinoset(env, *solve_args(run_dir, tmp_path), cwd=run_dir)
+        waited = time.monotonic() - t0
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    assert proc.returncode == 0, proc.stderr
+    assert waited >= resident.ANSWER_TIMEOUT_S and proc.stdout.startswith("fte: 60 frames")
+    same_outputs(warm, tmp_path)
+    log = resident.place_of(env).log
+    wait_for(lambda: "ran no solve" in log.read_text(), 30, "the resident to drop the request")
+    assert len(served_lines(env)) == before
+
+
+def test_a_killed_resident_is_replaced(env, warm, run_dir, tmp_path):
+    """SIGKILL leaves its socket file behind: the next solve runs in its own process and starts a new one."""
+    place = resident.place_of(env)
+    old = ready(env)[0].pid
+    os.kill(old, signal.SIGKILL)
+    wait_for(lambda: not any(r.current for r in resident.residents(env)), 30, "its lock to be free")
+    assert place.socket.exists()
+    proc = acinoset(env, *solve_args(run_dir, tmp_path), cwd=run_dir)
+    assert proc.returncode == 0, proc.stderr
+    new = wait_for(lambda: ready(env), WARM_UP_S, "a new resident")
+    assert new[0].pid != old
+
+
+def test_resident_stop(env, warm, run_dir, tmp_path):
+    place = resident.place_of(env)
+    proc = acinoset(env, "resident", "stop")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("stopped pid ")
+    assert not resident.residents(env) and not place.socket.exists()
+    assert "exit: stopped (SIGTERM)" in place.log.read_text()
+    proc = acinoset(env, "resident", "status")
+    assert proc.returncode == 0 and proc.stdout.startswith("no resident process")
+    # with none up, a solve runs in its own process (and starts one again)
+    proc = acinoset(env, *solve_args(run_dir, tmp_path), cwd=run_dir)
+    assert proc.returncode == 0, proc.stderr
+    wait_for(lambda: ready(env), WARM_UP_S, "a new resident")
+
+
+def test_a_resident_exits_when_idle(run_dir, tmp_path_factory, tmp_path):
+    e = make_env(tmp_path_factory.mktemp("idle"), ACINOSET_RESIDENT_IDLE="1")
+    try:
+        proc = acinoset(e, *solve_args(run_dir, tmp_path), cwd=run_dir)
+        assert proc.returncode == 0, proc.stderr
+        place = resident.place_of(e)
+        wait_for(lambda: place.log.exists() and "listening" in place.log.read_text(), WARM_UP_S, "warm")
+        wait_for(lambda: not resident.residents(e), 30, "the idle exit")
+        assert "exit: idle for 1 s" in place.log.read_text() and not place.socket.exists()
+    finally:
+        stop_all(e)
+
+
+def test_two_clients_at_once_start_one_resident(run_dir, tmp_path_factory, tmp_path):
+    e = make_env(tmp_path_factory.mktemp("two"))
+    try:
+        procs = []
+        for i in range(2):
+            (tmp_path / f"p{i}").mkdir()
+            procs.append(subprocess.Popen([sys.executable, "-m", "graph.cli",
+                                           *map(str, solve_args(run_dir, tmp_path / f"p{i}"))],
+                                          env=e, cwd=run_dir, stdout=subprocess.PIPE, stderr=subprocess.PIPE))
+        for p in procs:
+            p.communicate(timeout=300)
+            assert p.returncode == 0
+        wait_for(lambda: ready(e), WARM_UP_S, "warm")
+        time.sleep(0.5)
+        assert len(resident.residents(e)) == 1
+    finally:
+        stop_all(e)
+
+
+def test_the_client_imports_nothing_heavy(tmp_path):
+    """Deciding, computing the key and trying the socket load neither numpy nor the solver."""
+    code = (
+        "import os, sys\n"
+        "from graph import resident\n"
+        "from graph.cli import COMMANDS\n"
+        "env = dict(os.environ)\n"
+        "assert resident.wanted(['solve', 'a.csv'], env)\n"
+        "place = resident.place_of(env)\n"
+        "assert resident._hand_over(place, ['solve', 'a.csv'], COMMANDS, env) is None\n"
+        "print([m for m in ('numpy', 'numba', 'gtsam', 'scipy', 'h5py', 'cv2', 'graph.api') if m in sys.modules])\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=make_env(tmp_path))
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
+
+
+def test_the_directory_must_be_private(tmp_path):
+    (tmp_path / "acinoset").mkdir(mode=0o755)
+    os.chmod(tmp_path / "acinoset", 0o755)
+    with pytest.raises(OSError):
+        resident.runtime_dir({"XDG_RUNTIME_DIR": str(tmp_path)})
+    assert not resident.wanted(["solve", "--help"], {}) and not resident.wanted(["solve"], {"ACINOSET_RESIDENT": "0"})
+    assert not resident.wanted(["solve"], {"NUMBA_THREADING_LAYER": "omp"}) and resident.wanted(["solve"], {})
