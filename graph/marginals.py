@@ -50,6 +50,23 @@ def _lower_solve(L, B):
 
 
 @njit(cache=True)
+def _upper_solve(R, B):
+    """``R^-1 B`` for upper-triangular ``R`` (back substitution, a row of X at a time)."""
+    n, k = B.shape
+    X = np.empty((n, k))
+    for i in range(n - 1, -1, -1):
+        for c in range(k):
+            X[i, c] = B[i, c]
+        for j in range(i + 1, n):
+            r = R[i, j]
+            for c in range(k):
+                X[i, c] -= r * X[j, c]
+        for c in range(k):
+            X[i, c] /= R[i, i]
+    return X
+
+
+@njit(cache=True)
 def _schur(J, keep):
     """Information of the first ``keep`` rows/columns of ``J`` with the rest marginalised out:
     ``J_aa - W^T W`` with ``W = chol(J_bb)^-1 J_ba`` (a Gram product: it stays symmetric and
@@ -117,9 +134,10 @@ def banded_marginals(band, B, Dw):
     (the arrow-head: body lengths, time offsets). ``band`` (N, 4, d, d) holds the frames'
     information blocks (n, n + k), k = 0..3, ``B`` (N, d, G) each frame's coupling to ``W`` and
     ``Dw`` (G, G) ``W``'s own. Returns ``Sigma_n`` (N, d, d), the covariances ``Sigma_nW`` (N, d, G)
-    between each frame and ``W``, and ``Sigma_W`` (G, G), each marginal over everything else. The recursion of the module docstring with ``W`` appended to every
-    separator, ``s_n = (q_{n+1}, q_{n+2}, q_{n+3}, W)``: eliminating frames in time order leaves
-    ``W`` last, and the work stays linear in N. With G = 0 it is the plain chain."""
+    between each frame and ``W``, and ``Sigma_W`` (G, G), each marginal over everything else: the
+    recursion of the module docstring for the chain, eliminated in time order with ``W`` last
+    (linear in N), and ``W``'s part by the block inverse of the arrow-head (below). With G = 0 it
+    is the plain chain."""
     N, d = band.shape[0], band.shape[2]
     G = B.shape[2]
     out = np.zeros((N, d, d))
@@ -145,18 +163,61 @@ def banded_marginals(band, B, Dw):
             cross[n] = inv[n * d:(n + 1) * d, N * d:]
         return out, cross, np.ascontiguousarray(inv[N * d:, N * d:])
 
-    # forward elimination of frames 0 .. N-4, as a block Cholesky factorisation: with
-    # C = chol(D_n) and W = C^-1 U_n, U_n = [band[n, 1..3], B_n], the band and the tail lose W^T W
+    Ds, Ws, Cs, M = _forward(band, B, Dw)
+    if G == 0:
+        return _backward(Ds, Ws, M), cross, np.zeros((0, 0))
+    # W by the block inverse of the arrow-head [[A, B], [B^T, Dw]] (A the chain's information):
+    #   Sigma_W = (Dw - B^T A^-1 B)^-1,  Sigma_nW = -X_n Sigma_W,  Sigma_n = (A^-1)_nn + X_n Sigma_W X_n^T
+    # with X = A^-1 B. M, the information of the last three frames and W once the others are
+    # eliminated, gives Sigma_W (the Schur complement was accumulated as a Gram product) and the last
+    # frames' X; a back substitution through the factor gives the others, X_n = C_n^-T (Y_n -
+    # sum_k V_nk^T X_{n+k}) with W_n = C_n^-1 [V_n1 V_n2 V_n3 Y_n]. The chain's own marginals are the
+    # recursion without W (separators of three frames, not three frames and W: (3d)^2 d a frame
+    # instead of (3d + G)^2 d), and every term added to them is positive semi-definite.
+    t = 3 * d
+    Minv = np.linalg.inv(M)
+    Sigma_W = np.ascontiguousarray(0.5 * (Minv[t:, t:] + Minv[t:, t:].T))
+    X = np.empty((N, d, G))
+    last = np.linalg.solve(np.ascontiguousarray(M[:t, :t]), np.ascontiguousarray(M[:t, t:]))
+    for i in range(3):
+        X[N - 3 + i] = last[i * d:(i + 1) * d]
+    for n in range(N - 4, -1, -1):
+        rhs = np.ascontiguousarray(Ws[n][:, t:])
+        for k in range(3):
+            rhs = rhs - np.ascontiguousarray(Ws[n][:, k * d:(k + 1) * d]) @ X[n + k + 1]
+        X[n] = _upper_solve(Cs[n].T.copy(), rhs)
+    chain = _backward(Ds, np.ascontiguousarray(Ws[:, :, :t]), np.ascontiguousarray(M[:t, :t]))
+    for n in range(N):
+        XS = X[n] @ Sigma_W
+        cross[n] = -XS
+        out[n] = chain[n] + XS @ X[n].T
+    return out, cross, Sigma_W
+
+
+@njit(cache=True)
+def _forward(band, B, Dw):
+    """Forward elimination of frames 0 .. N-4 of a chain (``N > 4``) with the shared unknowns
+    ``W`` appended, as a block Cholesky factorisation: with ``C_n = chol(D_n)`` and
+    ``W_n = C_n^-1 U_n``, ``U_n = [band[n, 1..3], B_n]``, the band and the tail lose ``W_n^T W_n``.
+    Returns each frame's ``D_n`` (N-3, d, d), ``W_n`` (N-3, d, 3d + G), ``C_n`` and ``M``, the
+    information of the last three frames and ``W`` (3d + G square)."""
+    N, d = band.shape[0], band.shape[2]
+    G = B.shape[2]
+    band = band.copy()
+    B = B.copy()
+    Dw = Dw.copy()
     m = 3 * d + G
     Ds = np.empty((N - 3, d, d))
     Ws = np.empty((N - 3, d, m))
+    Cs = np.empty((N - 3, d, d))
     U = np.empty((d, m))
     Wb = np.empty((3, d, d))  # W's blocks, contiguous for the matrix products
     for n in range(N - 3):
         for k in range(3):
             U[:, k * d:(k + 1) * d] = band[n, k + 1]
         U[:, 3 * d:] = B[n]
-        W = _lower_solve(np.linalg.cholesky(band[n, 0]), U)
+        C = np.linalg.cholesky(band[n, 0])
+        W = _lower_solve(C, U)
         for i in range(3):
             Wb[i] = W[:, i * d:(i + 1) * d]
         Wg = np.ascontiguousarray(W[:, 3 * d:])
@@ -167,8 +228,7 @@ def banded_marginals(band, B, Dw):
         Dw -= Wg.T @ Wg
         Ds[n] = band[n, 0]
         Ws[n] = W
-
-    # marginal information of the last three frames and W, and their covariances
+        Cs[n] = C
     M = np.zeros((m, m))
     for i in range(3):
         for j in range(i, 3):
@@ -179,19 +239,25 @@ def banded_marginals(band, B, Dw):
         M[i * d:(i + 1) * d, 3 * d:] = B[N - 3 + i]
         M[3 * d:, i * d:(i + 1) * d] = B[N - 3 + i].T
     M[3 * d:, 3 * d:] = Dw
+    return Ds, Ws, Cs, M
+
+
+@njit(cache=True)
+def _backward(Ds, Ws, M):
+    """Marginal covariances (N, d, d) of every frame of a chain: the backward marginalisation of
+    the module docstring from the forward pass's ``D_n``, ``W_n`` (N-3, d, 3d) and ``M`` (the last
+    three frames' information, 3d square)."""
+    N = Ds.shape[0] + 3
+    d = Ds.shape[1]
+    m = 3 * d
+    out = np.zeros((N, d, d))
     Minv = np.linalg.inv(M)
     for i in range(3):
         out[N - 3 + i] = Minv[i * d:(i + 1) * d, i * d:(i + 1) * d]
-        cross[N - 3 + i] = Minv[i * d:(i + 1) * d, 3 * d:]
-    Sigma_W = np.ascontiguousarray(Minv[3 * d:, 3 * d:])
-
     # backward: M_n from the conditional of q_n and M_{n+1}; the joint information of (q_n, s_n)
     # is [[D_n, U_n], [U_n^T, W_n^T W_n + M_{n+1}]], with U_n = chol(D_n) W_n; q_{n+3} is moved
-    # last and marginalised out, leaving (q_n, q_{n+1}, q_{n+2}, W)
+    # last and marginalised out, leaving (q_n, q_{n+1}, q_{n+2})
     J = np.zeros((m + d, m + d))
-    order = np.concatenate((np.arange(3 * d), np.arange(4 * d, m + d), np.arange(3 * d, 4 * d)))
-    # (q_n, q_{n+1}, q_{n+2}, W) -> (q_n, W, q_{n+1}, q_{n+2}), to keep (q_n, W)
-    keep = np.concatenate((np.arange(d), np.arange(3 * d, m), np.arange(d, 3 * d)))
     for n in range(N - 4, -1, -1):
         W = Ws[n]
         J[:d, :d] = Ds[n]
@@ -199,23 +265,8 @@ def banded_marginals(band, B, Dw):
         J[:d, d:] = Un
         J[d:, :d] = Un.T
         J[d:, d:] = W.T @ W + M
-        Jp = np.empty_like(J)
-        for i in range(m + d):
-            for j in range(m + d):
-                Jp[i, j] = J[order[i], order[j]]
-        M = _schur(Jp, m)  # q_{n+3} marginalised out: (q_n, q_{n+1}, q_{n+2}, W)
+        M = _schur(J, m)  # q_{n+3}, last already, marginalised out: (q_n, q_{n+1}, q_{n+2})
         M = 0.5 * (M + M.T)
-        # the marginal information of q_n (and W): the rest out
-        if G == 0:
-            S = np.linalg.inv(_schur(M, d))
-            out[n] = 0.5 * (S + S.T)
-            continue
-        Mp = np.empty_like(M)
-        for i in range(m):
-            for j in range(m):
-                Mp[i, j] = M[keep[i], keep[j]]
-        S = np.linalg.inv(_schur(Mp, d + G))
-        S = 0.5 * (S + S.T)
-        out[n] = S[:d, :d]
-        cross[n] = S[:d, d:]
-    return out, cross, Sigma_W
+        S = np.linalg.inv(_schur(M, d))
+        out[n] = 0.5 * (S + S.T)
+    return out

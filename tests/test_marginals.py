@@ -1,0 +1,51 @@
+"""graph.marginals against dense linear algebra: the chain's and the arrow-head's marginal
+covariances equal the blocks of the inverse of the whole information matrix."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graph.marginals import banded_marginals, chain_band, chain_marginals
+
+
+def _arrow(N: int, d: int, G: int, seed: int, stiff: float):
+    """A chain's information (per-frame blocks plus third-difference weights ``stiff``) and a
+    coupling of every frame to ``G`` shared unknowns, as band blocks and as one dense matrix."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(N, d, d))
+    G_frames = A @ np.transpose(A, (0, 2, 1)) + 0.1 * np.eye(d)
+    band = chain_band(G_frames, np.full(d, stiff))
+    B = rng.normal(size=(N, d, G)) * 0.3
+    Dw = np.eye(G) * (N * 0.5) + 0.1
+    T = N * d + G
+    full = np.zeros((T, T))
+    for n in range(N):
+        for k in range(4):
+            if n + k < N:
+                full[n * d:(n + 1) * d, (n + k) * d:(n + k + 1) * d] = band[n, k]
+                if k:
+                    full[(n + k) * d:(n + k + 1) * d, n * d:(n + 1) * d] = band[n, k].T
+        full[n * d:(n + 1) * d, N * d:] = B[n]
+        full[N * d:, n * d:(n + 1) * d] = B[n].T
+    full[N * d:, N * d:] = Dw
+    return G_frames, band, B, Dw, full
+
+
+@pytest.mark.parametrize("N, d, G, stiff", [(3, 2, 2, 1.0), (12, 3, 2, 10.0), (40, 4, 3, 1e4), (30, 3, 0, 1e3)])
+def test_banded_marginals_are_the_blocks_of_the_inverse(N, d, G, stiff):
+    G_frames, band, B, Dw, full = _arrow(N, d, G, seed=N + G, stiff=stiff)
+    inv = np.linalg.inv(full)
+    Sigma, cross, SW = banded_marginals(band, B, Dw)
+    scale = np.max(np.abs(inv))
+    for n in range(N):
+        assert np.allclose(Sigma[n], inv[n * d:(n + 1) * d, n * d:(n + 1) * d], rtol=1e-7, atol=1e-9 * scale)
+        if G:
+            assert np.allclose(cross[n], inv[n * d:(n + 1) * d, N * d:], rtol=1e-7, atol=1e-9 * scale)
+    if G:
+        assert np.allclose(SW, inv[N * d:, N * d:], rtol=1e-7, atol=1e-9 * scale)
+    chain = np.linalg.inv(full[:N * d, :N * d])
+    plain = chain_marginals(G_frames, np.full(d, stiff))
+    for n in range(N):
+        assert np.allclose(plain[n], chain[n * d:(n + 1) * d, n * d:(n + 1) * d], rtol=1e-7,
+                           atol=1e-9 * np.max(np.abs(chain)))
