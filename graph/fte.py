@@ -309,16 +309,28 @@ class TrajectoryProblem:
         return S
 
 
+SMALL_GAINS = 2  # accepted steps in a row, each gaining under tol, that end an optimisation
+
+
 def optimise(tp: TrajectoryProblem, X, max_iterations: int = 50, progress=None,
              stretches=(4.0, 1.0), tol: float = 1e-4):
     """Levenberg-Marquardt with bound clipping and graduated robustness, on the state ``X`` of
-    ``tp`` (the trajectory Q, or a subclass's). Returns (X, iterations, cost)."""
+    ``tp`` (the trajectory Q, or a subclass's). Returns (X, iterations, cost).
+
+    Converged: a relative gain under ``tol`` from an undamped step (one that needed more damping to
+    succeed says nothing, alone, of the optimum's nearness), or from :data:`SMALL_GAINS` accepted
+    steps in a row, damped or not. The cost is not smooth everywhere (the redescending loss's
+    pieces, the joint limits, an offset crossing a whole frame, where a camera's first or last
+    frame leaves the trajectory): near such a kink every undamped step overshoots and the damped
+    one gains a few 1e-7, which, before that second rule, went on to the iteration limit (20-30
+    iterations of an ``fte`` with the clocks estimated and the offsets near 0, against 6)."""
     it_total = 0
     cost = np.inf
     budget = [min(3, max_iterations)] * (len(stretches) - 1) + [max_iterations]
     total_budget = sum(budget)
     for stretch, iters in zip(stretches, budget):
         lam = 1e-3
+        small = 0
         nrm = tp.normals(X, stretch)
         cost = tp.cost(X, nrm.cost)
         for _ in range(iters):
@@ -343,9 +355,8 @@ def optimise(tp: TrajectoryProblem, X, max_iterations: int = 50, progress=None,
             if progress:
                 progress(Progress(stage="optimise", fraction=0.1 + 0.85 * min(1.0, it_total / total_budget),
                                   iteration=it_total, cost=cost))
-            # converged: a small gain from an undamped step (one that needed more damping to
-            # succeed says nothing of the optimum's nearness)
-            if (rel < tol and _try == 0) or step < 1e-6:
+            small = small + 1 if rel < tol else 0
+            if (rel < tol and _try == 0) or small >= SMALL_GAINS or step < 1e-6:
                 break
     return X, it_total, cost
 
