@@ -103,8 +103,9 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
         skeleton = load_skeleton("points", bodyparts=names, bone_pairs=options.bone_lengths)
     else:
         skeleton = load_skeleton(options.skeleton)
-    if options.motion_scale is None:
-        options = replace(options, motion_scale=default_motion_scale(options.method, skeleton.kind == "points" and not skeleton.bones))
+    if options.motion_scale is None:  # the skeleton's and method's default, as the solvers will use it
+        free_points = skeleton.kind == "points" and not skeleton.bones
+        options = replace(options, motion_scale=default_motion_scale(options.method, free_points))
     M = len(skeleton.markers)
     meas = np.full((N, C, M, 2), np.nan)
     lik = np.zeros((N, C, M))
