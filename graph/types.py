@@ -38,12 +38,13 @@ MAX_LAG_SECONDS = 60.0
 
 def default_motion_scale(method: str, free_points: bool) -> float | Literal["auto"]:
     """``motion_scale`` when none is given. ``fte`` on free points (no bones): ``"auto"``. Their
-    process noise is a cheetah's, which fits no other animal (a fly's legs: 10^4 times too loose); fitted, the 3D
-    error fell by 27-33 % in every cell of the simulated paper table solved as free points, the
-    held-out error on the real fly by 8 %, at 1.6x the time (bench/RESULTS.md, sections 12 and 12a).
-    Otherwise 1: a kinematic skeleton's process noise is its animal's (the cheetah's, the paper's),
-    and fitting it, though 12-23 % more accurate on the paper table, costs 1.7x the time (0.95 s for
-    500 frames against the 0.5 s a solve is to take); ``ekf`` fits only over its first seconds."""
+    process noise is a cheetah's, which fits no other animal (a fly's legs: 10^4 times too loose);
+    fitted, the 3D error fell by 27-33 % in every cell of the simulated paper table solved as free
+    points, the held-out error on the real fly by 8 %, at 1.6x the time (bench/RESULTS.md, sections
+    12 and 12a). Otherwise 1: a kinematic skeleton's process noise is its animal's (the cheetah's,
+    the paper's), and fitting it, though 12-23 % more accurate on the paper table, costs 1.7x the
+    time (0.95 s for 500 frames against the 0.5 s a solve is to take); ``ekf`` fits only over its
+    first seconds, when asked."""
     return "auto" if method == "fte" and free_points else 1.0
 
 
