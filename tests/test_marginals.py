@@ -11,24 +11,24 @@ from graph.marginals import banded_marginals, chain_band, chain_marginals
 
 def _arrow(N: int, d: int, G: int, seed: int, stiff: float):
     """A chain's information (per-frame blocks plus third-difference weights ``stiff``) and a
-    coupling of every frame to ``G`` shared unknowns, as band blocks and as one dense matrix."""
+    coupling of every frame to ``G`` shared unknowns, as band blocks and as one dense matrix built
+    from the definitions: ``blockdiag(G_n) + D^T (stiff I) D`` with D the third difference."""
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(N, d, d))
     G_frames = A @ np.transpose(A, (0, 2, 1)) + 0.1 * np.eye(d)
     band = chain_band(G_frames, np.full(d, stiff))
     B = rng.normal(size=(N, d, G)) * 0.3
     Dw = np.eye(G) * (N * 0.5) + 0.1
-    T = N * d + G
-    full = np.zeros((T, T))
+    D3 = np.zeros(((N - 3) * d, N * d))
+    for j in range(N - 3):
+        for c, coef in enumerate((-1.0, 3.0, -3.0, 1.0)):
+            D3[j * d:(j + 1) * d, (j + c) * d:(j + c + 1) * d] = coef * np.eye(d)
+    chain = np.zeros((N * d, N * d))
     for n in range(N):
-        for k in range(4):
-            if n + k < N:
-                full[n * d:(n + 1) * d, (n + k) * d:(n + k + 1) * d] = band[n, k]
-                if k:
-                    full[(n + k) * d:(n + k + 1) * d, n * d:(n + 1) * d] = band[n, k].T
-        full[n * d:(n + 1) * d, N * d:] = B[n]
-        full[N * d:, n * d:(n + 1) * d] = B[n].T
-    full[N * d:, N * d:] = Dw
+        chain[n * d:(n + 1) * d, n * d:(n + 1) * d] = G_frames[n]
+    chain += stiff * D3.T @ D3
+    coupling = B.reshape(N * d, G)
+    full = np.block([[chain, coupling], [coupling.T, Dw]])
     return G_frames, band, B, Dw, full
 
 
