@@ -1,4 +1,4 @@
-"""The web pages: sign in, the job list, the submit form and the job page.
+"""The web pages: sign in, the job list, the submit form, the job page and the calibration page.
 
 Plain HTML and JavaScript (``service/templates``, ``service/static``) that call the REST API v1 with
 the user's token, which the browser keeps in localStorage. Nothing is fetched from outside the
@@ -6,7 +6,9 @@ server: plotly.js comes from the plotly wheel (:func:`graph.plot.plotly_js_path`
 and its stylesheet from the library (:mod:`graph.viewer`), both under ``/static/``. The app includes
 :data:`router` with ``include_in_schema=False``: pages are not part of the REST contract.
 
-A template's ``{{viewer_styles}}`` and ``{{viewer_scripts}}`` become the tags loading
+Every page is ``templates/_page.html`` (the head, the skip link and the top bar, once) around its own
+template (its ``<main>`` and its scripts), with its title. A template's ``{{viewer_styles}}`` and
+``{{viewer_scripts}}`` become the tags loading
 :data:`graph.viewer.STYLES` and :data:`graph.viewer.SCRIPTS`; ``{{job_statuses}}`` becomes the job
 statuses of :mod:`service.store` as JSON (``<script type="application/json" id="job-statuses">``),
 which the page scripts read instead of naming them again.
@@ -61,19 +63,25 @@ _FILLS = {
 _MARK = re.compile(r"\{\{(\w+)\}\}")
 
 
-def render_template(name: str) -> str:
-    """A page template with its marks filled; a mark nobody fills is an error, not left in the page."""
-    return _MARK.sub(lambda m: _FILLS[m.group(1)], (TEMPLATES / name).read_text(encoding="utf-8"))
+def _filled(name: str, fills: dict[str, str]) -> str:
+    """A template with its marks filled; a mark nobody fills is an error, not left in the page."""
+    return _MARK.sub(lambda m: fills[m.group(1)], (TEMPLATES / name).read_text(encoding="utf-8"))
 
 
-def _page(name: str, status_code: int = 200) -> HTMLResponse:
-    return HTMLResponse(render_template(name), status_code=status_code, headers=_PAGE_HEADERS)
+def render_template(name: str, title: str) -> str:
+    """The page of template ``name`` (its ``<main>`` and scripts) in ``_page.html``, titled ``title``."""
+    main = _filled(name, _FILLS).rstrip("\n")
+    return _filled("_page.html", {**_FILLS, "title": html.escape(title), "main": main})
+
+
+def _page(name: str, title: str, status_code: int = 200) -> HTMLResponse:
+    return HTMLResponse(render_template(name, title), status_code=status_code, headers=_PAGE_HEADERS)
 
 
 @router.get("/", response_class=HTMLResponse)
 def jobs_page() -> HTMLResponse:
     """The caller's jobs with live status and progress."""
-    return _page("jobs.html")
+    return _page("jobs.html", "Jobs")
 
 
 def same_origin_path(target: str) -> bool:
@@ -95,12 +103,12 @@ def login_page(next: str | None = None, reason: str | None = None) -> Response:
     if next is not None and not same_origin_path(next):
         query = urlencode({"reason": reason} if reason else {})
         return RedirectResponse("/login" + (f"?{query}" if query else ""), status_code=303, headers=_PAGE_HEADERS)
-    return _page("login.html")
+    return _page("login.html", "Sign in")
 
 
 @router.get("/jobs/new", response_class=HTMLResponse)
 def submit_page() -> HTMLResponse:
-    return _page("submit.html")
+    return _page("submit.html", "New job")
 
 
 @router.get("/jobs/{job_id}", response_class=HTMLResponse)
@@ -108,7 +116,7 @@ def job_page(job_id: str) -> HTMLResponse:
     """One job. The page itself holds no job data: its script asks the API, with the user's token."""
     if not _JOB_ID.match(job_id):
         raise HTTPException(404, "no such page")
-    return _page("job.html")
+    return _page("job.html", "Job")
 
 
 @router.get("/calibrations/{calibration_id}", response_class=HTMLResponse)
@@ -116,7 +124,7 @@ def calibration_page(calibration_id: str) -> HTMLResponse:
     """One calibration: status, quality per camera, downloads and figures (its script asks the API)."""
     if not _JOB_ID.match(calibration_id):
         raise HTTPException(404, "no such page")
-    return _page("calibration.html")
+    return _page("calibration.html", "Calibration")
 
 
 @router.get("/docs", response_class=HTMLResponse)
