@@ -104,6 +104,17 @@ def add_user(data_dir: Path, name: str, admin: bool = False) -> str:
     return token
 
 
+def server_with_users(data_dir: Path, log: Path, users: tuple[str, ...] = ("alice", "bob"),
+                      admins: tuple[str, ...] = ()) -> "Server":
+    """An embedded server on ``data_dir``, started, with these users and admins; ``.tokens`` maps
+    each name to its token (the service tests' ``alice`` and ``bob`` fixtures use them)."""
+    tokens = {name: add_user(data_dir, name) for name in users}
+    tokens.update({name: add_user(data_dir, name, admin=True) for name in admins})
+    srv = Server(data_dir, log).start()
+    srv.tokens = tokens
+    return srv
+
+
 # -- processes -----------------------------------------------------------------------------------
 
 class Proc:

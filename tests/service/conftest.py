@@ -1,4 +1,5 @@
-"""Fixtures of the service tests: simulated runs, written once per test run."""
+"""Fixtures of the service tests: simulated runs, written once per test run, and clients of the
+users ``alice`` and ``bob`` of the module's ``server`` (:func:`servers.server_with_users`)."""
 
 from __future__ import annotations
 
@@ -17,3 +18,15 @@ def small_run(tmp_path_factory) -> Run:
 def long_run(tmp_path_factory) -> Run:
     """3 cameras, 800 frames: an fte/cheetah solve of a few seconds, to stop or kill while it runs."""
     return make_run(tmp_path_factory.mktemp("long_run"), frames=800, cameras=3, seed=2)
+
+
+@pytest.fixture
+def alice(server):
+    with server.client(server.tokens["alice"]) as c:
+        yield c
+
+
+@pytest.fixture
+def bob(server):
+    with server.client(server.tokens["bob"]) as c:
+        yield c

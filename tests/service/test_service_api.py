@@ -9,29 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from servers import (PY, ROOT, Server, add_user, submit, submit_ok, wait_finished)
+from servers import (PY, ROOT, Server, add_user, server_with_users, submit, submit_ok, wait_finished)
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     data = tmp_path_factory.mktemp("api_data")
-    tokens = {"alice": add_user(data, "alice"), "bob": add_user(data, "bob"), "root": add_user(data, "root", admin=True)}
-    srv = Server(data, data.parent / "api_server.log").start()
-    srv.tokens = tokens
+    srv = server_with_users(data, data.parent / "api_server.log", admins=("root",))
     yield srv
     srv.stop()
-
-
-@pytest.fixture
-def alice(server):
-    with server.client(server.tokens["alice"]) as c:
-        yield c
-
-
-@pytest.fixture
-def bob(server):
-    with server.client(server.tokens["bob"]) as c:
-        yield c
 
 
 @pytest.fixture

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from servers import Redis, Server, add_user, have_redis, wait_finished, worker
+from servers import Redis, Server, add_user, have_redis, server_with_users, wait_finished, worker
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "acinoset_calib"
 EX1 = [DATA / "Ex1_static" / f"points_cam{n}.json" for n in (3, 4)]
@@ -28,23 +28,9 @@ def board_spec() -> str:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     data = tmp_path_factory.mktemp("calibration_data")
-    tokens = {"alice": add_user(data, "alice"), "bob": add_user(data, "bob")}
-    srv = Server(data, data.parent / "calibration_server.log").start()
-    srv.tokens = tokens
+    srv = server_with_users(data, data.parent / "calibration_server.log")
     yield srv
     srv.stop()
-
-
-@pytest.fixture
-def alice(server):
-    with server.client(server.tokens["alice"]) as c:
-        yield c
-
-
-@pytest.fixture
-def bob(server):
-    with server.client(server.tokens["bob"]) as c:
-        yield c
 
 
 def post_calibration(client, detections=EX1, intrinsics=INTRINSICS, board=None, options=None):
