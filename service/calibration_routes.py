@@ -15,7 +15,7 @@ from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
 from service.jobs import Upload
 from service.models import CalibrationList, CalibrationOut, calibration_out
 from service.store import JobStatus
-from service.routes import AUTH_ERRORS, BAD_REQUEST, BEARER, SERVER_ERROR, CurrentUser, Jobs, _err
+from service.routes import AUTH_ERRORS, BAD_REQUEST, BEARER, SERVER_ERROR, UPLOAD_ERRORS, CurrentUser, Jobs, _err
 
 router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR}, dependencies=[Security(BEARER)],
                    tags=["calibrations"])
@@ -32,15 +32,11 @@ Calibrations = Annotated[CalibrationService, Depends(_calibrations)]
 
 @router.post(
     "/v1/calibrations", status_code=202, response_model=CalibrationOut, summary="Calibrate a rig",
-    responses={400: _err("The body is not valid multipart/form-data"),
-               408: _err("The upload stalled or took too long (ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS, "
-                         "ACINOSET_UPLOAD_TIMEOUT_SECONDS)"),
-               503: _err("Too many uploads arriving at once; try again after Retry-After seconds"),
+    responses={**UPLOAD_ERRORS,
                413: _err("Upload or camera count over this server's limits, or the caller's storage full"),
                422: _err("A bad board spec, a detections or camera file the readers refuse, fewer than two "
                          "cameras, or bad options"),
-               429: _err("The caller already has the most queued and running jobs allowed"),
-               507: _err("The server's disk or its storage for jobs is full")})
+               429: _err("The caller already has the most queued and running jobs allowed")})
 def submit_calibration(
     user: CurrentUser, calibrations: Calibrations, response: Response,
     board: Annotated[str, Form(description="checkerboard:COLSxROWS:SQUARE_M (inner corners, square side in metres) "

@@ -41,6 +41,12 @@ AUTH_ERRORS = {401: _err("No token, or an unknown or revoked one")}
 NOT_FOUND = {404: _err("No such job, or it belongs to another user")}
 BAD_REQUEST = {422: _err("A request parameter or field is missing or malformed")}
 SERVER_ERROR = {500: _err("A fault of the server (logged there)")}
+# what every upload route may answer while it receives the body (service.uploads)
+UPLOAD_ERRORS = {400: _err("The body is not valid multipart/form-data"),
+                 408: _err("The upload stalled or took too long (ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS, "
+                           "ACINOSET_UPLOAD_TIMEOUT_SECONDS)"),
+                 503: _err("Too many uploads arriving at once; try again after Retry-After seconds"),
+                 507: _err("The server's disk or its storage for jobs is full")}
 
 # Declares the bearer scheme of every /v1 call in the spec; the check itself is service.auth's
 # (current_user), which answers 401 with the same challenge whether or not a token was sent.
@@ -86,13 +92,9 @@ JobBackend = Annotated[Backend, Depends(_backend)]
 
 @router.post(
     "/v1/jobs", status_code=202, response_model=JobOut, tags=["jobs"], summary="Submit a job",
-    responses={400: _err("The body is not valid multipart/form-data"),
-               408: _err("The upload stalled or took too long (ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS, "
-                         "ACINOSET_UPLOAD_TIMEOUT_SECONDS)"),
-               503: _err("Too many uploads arriving at once; try again after Retry-After seconds"),
+    responses={**UPLOAD_ERRORS,
                413: _err("Upload, frame count, bodyparts, camera count or the caller's storage over this "
                          "server's limits"),
-               507: _err("The server's disk or its storage for jobs is full"),
                403: _err("video_paths on a server without a video root, or outside it"),
                422: _err("A file the readers refuse (the detail names it), bad options, or videos that do not "
                          "match the keypoint files"),
@@ -284,10 +286,7 @@ Batches = Annotated[BatchService, Depends(_batches)]
 @router.post(
     "/v1/batches", status_code=202, response_model=BatchOut, tags=["batches"],
     summary="Submit an Anipose project: a job per trial",
-    responses={400: _err("The body is not valid multipart/form-data"),
-               408: _err("The upload stalled or took too long"),
-               503: _err("Too many uploads arriving at once; try again after Retry-After seconds"),
-               507: _err("The server's disk or its storage for jobs is full"),
+    responses={**UPLOAD_ERRORS,
                413: _err("The archive is over this server's upload limit"),
                422: _err("Not a zip, no config.toml, no trials, or bad options"),
                429: _err("More trials than the caller may still queue")})
