@@ -142,9 +142,6 @@ def banded_marginals(band, B, Dw):
     G = B.shape[2]
     out = np.zeros((N, d, d))
     cross = np.zeros((N, d, G))
-    band = band.copy()
-    B = B.copy()
-    Dw = Dw.copy()
     if N <= 4:  # too short for the recursion: invert the whole (small) matrix
         T = N * d + G
         full = np.zeros((T, T))
