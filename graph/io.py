@@ -80,14 +80,12 @@ def write_anipose_csv(path: str | Path, result: Result,
     score = np.where(has, np.asarray(result.score, dtype=np.float64), np.nan)
     header = [spreadsheet_safe(f"{name}_{f}") for name in result.markers for f in _MARKER_FIELDS]
     header += [f"M_{i}{j}" for i in range(3) for j in range(3)] + [f"center_{i}" for i in range(3)] + ["fnum"]
-    frame_const = [_cell(v) for v in M.ravel().tolist()] + [_cell(v) for v in center.tolist()]
+    frame_const = ",".join([_cell(v) for v in M.ravel().tolist()] + [_cell(v) for v in center.tolist()])
     per_marker = np.concatenate([pos, error[..., None], ncams[..., None], score[..., None]], axis=-1)
-    per_marker = per_marker.reshape(n, 6 * m).tolist()  # Python floats: repr and isfinite without numpy's per-call cost
+    per_marker = np.where(np.isfinite(per_marker), per_marker, np.nan).reshape(n, 6 * m)
     with open(path, "w", newline="", encoding="utf-8") as f:
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow(header)
-        for i in range(n):
-            w.writerow([_cell(v) for v in per_marker[i]] + frame_const + [str(i)])
+        csv.writer(f, lineterminator="\n").writerow(header)
+        f.writelines(f"{_cells(row)},{frame_const},{i}\n" for i, row in enumerate(per_marker.tolist()))
 
 
 def read_anipose_csv(path: str | Path) -> Points3D:
@@ -143,6 +141,13 @@ def _cell(v: float) -> str:
     return repr(float(v)) if math.isfinite(v) else ""
 
 
+def _cells(row: list[float]) -> str:
+    """``,``-joined ``repr`` of finite floats, empty cells for NaN, as :func:`_cell` each: one
+    ``repr`` of the whole list, which formats its floats the same way in one call (``nan`` is the
+    only non-number; no number's ``repr`` contains it)."""
+    return repr(row)[1:-1].replace(", ", ",").replace("nan", "")
+
+
 # ------------------------------------------------------------------------------------ HDF5 archive
 
 
@@ -170,7 +175,10 @@ def write_h5(path: str | Path, result: Result, calibration: Calibration | None =
             if value is None:
                 continue
             a = np.asarray(value)
-            kw = {"compression": "gzip", "compression_opts": 4, "shuffle": True} if a.size > 4096 else {}
+            # gzip for the flags and counts only: measured on a 150-frame run, it took the float
+            # arrays (positions, residuals, detections ...) from 1.17 to 1.01 MB (shuffled) at 8x the
+            # write time (20 ms against 2.5 ms), and the flags from 18 to 2 kB for nothing
+            kw = {"compression": "gzip", "compression_opts": 4} if a.size > 4096 and a.dtype.kind in "biu" else {}
             f.create_dataset(name, data=a.astype(np.uint8) if a.dtype == bool else a, **kw)
             if a.dtype == bool:
                 f[name].attrs["dtype"] = "bool"
