@@ -132,6 +132,7 @@ class TrajectoryProblem:
         self.max_stiffness = MAX_STIFFNESS
         self._motion_graph: list | None = None
         self._motion_band: np.ndarray | None = None
+        self._kept_normals: tuple | None = None  # (state, stretch, sigma_px, normals): normals_at
         if not self.chains:
             self._motion_graph = self._motion_factors()  # built now: solve_fte builds us in a thread
         self._ordering = gtsam.Ordering()
@@ -190,6 +191,18 @@ class TrajectoryProblem:
         return Normals(*kernels.all_normals(Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_cm,
                                             self.prob.options.robust, RA * stretch, RB * stretch, RC * stretch,
                                             *self.sk_args, self.bones, self.bone_len, self.bone_sigma))
+
+    def normals_at(self, X, stretch=1.0):
+        """:meth:`normals` at the state ``X``, or the last ones computed here if they were at this
+        very state object, stretch and noise: the optimiser's final evaluation serves the motion
+        fit, the noise's measurement and the result at its optimum, without a kernel call each.
+        States are never changed in place (a step makes a new one)."""
+        kept = self._kept_normals
+        if kept is not None and kept[0] is X and kept[1] == stretch and kept[2] == self.sigma_px:
+            return kept[3]
+        nrm = self.normals(X, stretch)
+        self._kept_normals = (X, stretch, self.sigma_px, nrm)
+        return nrm
 
     def motion_residual(self, Q):
         """Whitened third differences (N-3, P)."""
@@ -331,7 +344,7 @@ def optimise(tp: TrajectoryProblem, X, max_iterations: int = 50, progress=None,
     for stretch, iters in zip(stretches, budget):
         lam = 1e-3
         small = 0
-        nrm = tp.normals(X, stretch)
+        nrm = tp.normals_at(X, stretch)
         cost = tp.cost(X, nrm.cost)
         for _ in range(iters):
             it_total += 1
@@ -340,7 +353,7 @@ def optimise(tp: TrajectoryProblem, X, max_iterations: int = 50, progress=None,
             # first failed step instead of raising the damping until one succeeds
             for _try in range(10 if stretch == stretches[-1] else 1):
                 Xn = tp.step(X, nrm, lam)
-                nrm_n = tp.normals(Xn, stretch)
+                nrm_n = tp.normals_at(Xn, stretch)
                 new_cost = tp.cost(Xn, nrm_n.cost)
                 if new_cost <= cost:
                     improved = True
@@ -373,7 +386,7 @@ def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, cost: float, max_itera
     (Q, iterations, cost)."""
     iterations = 0
     for _ in range(NOISE_ROUNDS):
-        s = tp.normals(Q).s
+        s = tp.normals_at(Q).s
         sigma = scatter_px(np.where(tp.prob.valid & np.isfinite(s), s * tp.sigma_px, np.nan))
         if not np.isfinite(sigma) or abs(sigma / tp.sigma_px - 1.0) <= NOISE_TOLERANCE:
             break
@@ -394,7 +407,7 @@ def fit_motion(tp: TrajectoryProblem, X) -> float:
     data will do. Returns how far the scales moved (largest ``|log(new / old)|``)."""
     from graph.smoothing import fit_motion_scales
 
-    nrm = tp.normals(X)
+    nrm = tp.normals_at(X)
     scales = fit_motion_scales(nrm.H, nrm.g, tp.poses(X), tp.Q0, PRIOR_SIGMA, tp.base_sigma3, tp.groups,
                                start=tp.motion_scales, max_stiffness=tp.max_stiffness)
     moved = float(np.max(np.abs(np.log(scales / tp.motion_scales))))
@@ -526,7 +539,7 @@ def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[st
     two cameras has no estimate (NaN)."""
     prob = tp.prob
     t1 = time.perf_counter()
-    normals = tp.normals(X)
+    normals = tp.normals_at(X)
     if cost is None:
         cost = tp.cost(X, normals.cost)
     Q = tp.poses(X)
