@@ -8,10 +8,7 @@ from __future__ import annotations
 
 import argparse
 import functools
-import logging
 import os
-import secrets
-import socket
 import sys
 from pathlib import Path
 
@@ -133,6 +130,9 @@ def serve(args: argparse.Namespace) -> int:
     from service.app import DataDirInUse, DataDirLock, create_app
     from service.store import Store
 
+    import logging
+    import socket
+
     s = _settings(args, "host", "port", "data_dir", "backend", "redis_url", "workers", "log_level")
     logging.basicConfig(level=s.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     s.make_private()
@@ -185,6 +185,10 @@ def worker(args: argparse.Namespace) -> int:
     from redis import Redis
     from rq import Queue, Worker
     from rq.serializers import JSONSerializer
+
+    import logging
+    import secrets
+    import socket
 
     s = _settings(args, "redis_url", "queue_name", "log_level")
     logging.basicConfig(level=s.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")

@@ -56,6 +56,13 @@ def served_lines(env: dict) -> list[str]:
     return [line for line in place.log.read_text().splitlines() if " served child " in line]
 
 
+def served_since(env: dict, before: int, count: int = 1) -> list[str]:
+    """The log's served lines once ``count`` more than ``before`` are there: the child tells its
+    client the end itself, and the resident logs it when it reaps the child, a moment later."""
+    wait_for(lambda: len(served_lines(env)) >= before + count, 10, "the resident to log the served solve")
+    return served_lines(env)
+
+
 def write_run(out: Path, frames: int) -> Path:
     """Five markers of a simulated cheetah run seen by three cameras of the AcinoSet rig, written as
     a user brings them: DeepLabCut CSVs and an Anipose calibration.toml."""
@@ -145,9 +152,9 @@ def test_a_second_solve_is_served_and_equals_an_in_process_one(env, warm, run_di
     assert proc.stdout.startswith("fte: 60 frames, 3 cameras, 5 markers")
     assert proc.stdout.split(" s -> ")[0].rsplit(",", 1)[0] == alone.stdout.split(" s -> ")[0].rsplit(",", 1)[0]
     assert proc.stderr == alone.stderr  # the same warnings, on the client's stderr
-    lines = served_lines(env)
+    lines = served_since(env, before)
     assert len(lines) == before + 1 and lines[-1].endswith(" s") and "exit 0" in lines[-1]
-    assert resident.residents(env)[0].served == before + 1
+    wait_for(lambda: resident.residents(env)[0].served == before + 1, 10, "the resident's count")
     same_outputs(here, served)
     same_outputs(warm, served)
 
@@ -158,7 +165,7 @@ def test_an_input_error_is_one_line_and_exit_2_through_the_resident(env, warm, r
                     "--out", tmp_path / "run.csv", cwd=run_dir)
     assert proc.returncode == 2
     assert proc.stderr.splitlines() == ["acinoset: error: missing.toml: no such file"]
-    lines = served_lines(env)
+    lines = served_since(env, before)
     assert len(lines) == before + 1 and "exit 2" in lines[-1]
 
 
@@ -173,7 +180,7 @@ def test_concurrent_clients_each_get_a_child(env, warm, run_dir, tmp_path):
     for p in procs:
         stdout, stderr = p.communicate(timeout=300)
         assert p.returncode == 0, stderr
-    lines = served_lines(env)
+    lines = served_since(env, before, 2)
     assert len(lines) == before + 2
     assert len({line.split(" served child ")[1].split(":")[0] for line in lines[-2:]}) == 2  # two children
     same_outputs(outs[0], outs[1])
