@@ -121,11 +121,13 @@ def _command_named(argv: list[str]) -> str:
 
 
 def main(argv: list[str] | None = None, commands: tuple[Command, ...] = COMMANDS) -> int:
+    """Run the command line ``argv`` (default: this process's own, ``sys.argv[1:]``); the exit status."""
+    command_line = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
     if _command_named(argv) == "solve":  # handed to a warm resident process when one is up
         from graph import resident
 
-        return resident.solve(argv, commands, lambda: _run(argv, commands))
+        return resident.solve(argv, commands, lambda: _run(argv, commands), exit_when_served=command_line)
     return _run(argv, commands)
 
 

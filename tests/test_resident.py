@@ -159,6 +159,37 @@ def test_a_second_solve_is_served_and_equals_an_in_process_one(env, warm, run_di
     same_outputs(warm, served)
 
 
+def resident_children(pid: int) -> list[int]:
+    listed = Path(f"/proc/{pid}/task/{pid}/children")
+    if not listed.exists():
+        pytest.skip("this kernel does not list a process's children")
+    return [int(c) for c in listed.read_text().split()]
+
+
+def gone(pid: int) -> bool:
+    """Exited (a zombie counts: here PID 1 may not reap a dead resident's orphans)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+def test_the_next_solve_runs_in_a_child_forked_ahead(env, warm, run_dir, tmp_path):
+    """Between solves the resident keeps one child forked ahead; the next solve runs in it (its pid
+    is the one the log names), and a new one is forked once that solve has ended."""
+    pid = resident.residents(env)[0].pid
+    spare = wait_for(lambda: resident_children(pid), 30, "a child forked ahead")
+    assert len(spare) == 1
+    before = len(served_lines(env))
+    proc = acinoset(env, *solve_args(run_dir, tmp_path), cwd=run_dir)
+    assert proc.returncode == 0, proc.stderr
+    lines = served_since(env, before)
+    assert f" served child {spare[0]}: exit 0" in lines[-1]
+    after = wait_for(lambda: resident_children(pid), 30, "the next child forked ahead")
+    assert len(after) == 1 and after != spare
+    same_outputs(warm, tmp_path)
+
+
 def test_an_input_error_is_one_line_and_exit_2_through_the_resident(env, warm, run_dir, tmp_path):
     before = len(served_lines(env))
     proc = acinoset(env, "solve", "cam1.csv", "cam2.csv", "cam3.csv", "--calibration", "missing.toml",
@@ -197,7 +228,18 @@ def test_ctrl_c_reaches_the_served_solve(env, warm, run_dir, tmp_path):
     if not children.exists():
         proc.kill()
         pytest.skip("this kernel does not list a process's children")
-    child = wait_for(lambda: children.read_text().split(), 60, "the resident's child")
+
+    def serving() -> list[str]:  # a child that took this request (it enters the client's folder)
+        found = []
+        for c in children.read_text().split():
+            try:
+                if os.readlink(f"/proc/{c}/cwd") == str(big):
+                    found.append(c)
+            except OSError:  # gone meanwhile
+                pass
+        return found
+
+    child = wait_for(serving, 60, "the resident's child serving this solve")
     proc.send_signal(signal.SIGINT)
     stdout, stderr = proc.communicate(timeout=120)
     if proc.returncode == 0:  # the solve ended before the signal reached it: nothing to check
@@ -265,11 +307,14 @@ def test_a_killed_resident_is_replaced(env, warm, run_dir, tmp_path):
 
 def test_resident_stop(env, warm, run_dir, tmp_path):
     place = resident.place_of(env)
+    pid = resident.residents(env)[0].pid
+    spare = wait_for(lambda: resident_children(pid), 30, "a child forked ahead")
     proc = acinoset(env, "resident", "stop")
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith("stopped pid ")
     assert not resident.residents(env) and not place.socket.exists()
     assert "exit: stopped (SIGTERM)" in place.log.read_text()
+    wait_for(lambda: all(gone(c) for c in spare), 10, "the child forked ahead to end with the resident")
     proc = acinoset(env, "resident", "status")
     assert proc.returncode == 0 and proc.stdout.startswith("no resident process")
     # with none up, a solve runs in its own process (and starts one again)
