@@ -49,7 +49,10 @@ Protocol: one Unix stream connection per solve.
    was killed before it could; the client takes the first line and exits the same way
    (re-raising the signal on itself).
 
-Ctrl-C and SIGTERM/SIGHUP/SIGQUIT sent to the client are forwarded to the child's pid. Anything that
+Ctrl-C and SIGTERM/SIGHUP/SIGQUIT sent to the client are forwarded to the child's pid; Ctrl-Z
+(SIGTSTP) stops the child with the client, and SIGCONT resumes both. A client that dies without a
+word (SIGKILL, a crashed shell) ends its child too: the child watches its connection and, when the
+client's end closes before the solve has, kills itself as the client was killed. Anything that
 fails before ``run`` makes the client solve in its own process: a resident never makes a solve fail.
 The client's side imports nothing heavy (no numpy, numba or gtsam).
 """
@@ -81,6 +84,7 @@ CONNECT_TIMEOUT_S = 1.0
 ANSWER_TIMEOUT_S = 5.0  # from the request to the child's ``pid`` line
 KEY_CHECK_S = 60.0
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
+JOB_CONTROL = (signal.SIGTSTP, signal.SIGCONT)  # Ctrl-Z and fg/bg: the child stops and resumes with the client
 NOT_TAKEN = 75  # a child's exit status when it ran no solve (a solve's own 75 is reported as 1)
 SOCKET_PATH_MAX = 100  # sun_path is 108 bytes on Linux, 104 on macOS
 
@@ -266,10 +270,19 @@ class _Signals:
     def __init__(self):
         self.pid = 0
         self.pending: list[int] = []
-        self.previous = {s: signal.signal(s, self._handle) for s in FORWARDED}
+        self.previous = {s: signal.signal(s, self._handle) for s in FORWARDED + JOB_CONTROL}
 
     def _handle(self, signum: int, _frame) -> None:
-        if self.pid:
+        if signum == signal.SIGTSTP:  # Ctrl-Z: the child stops with us; we stop as we would have
+            if self.pid:
+                _forward(self.pid, signal.SIGSTOP)
+            signal.signal(signal.SIGTSTP, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGTSTP)  # here until a SIGCONT (its own handler goes on)
+            signal.signal(signal.SIGTSTP, self._handle)
+        elif signum == signal.SIGCONT:
+            if self.pid:
+                _forward(self.pid, signal.SIGCONT)
+        elif self.pid:
             _forward(self.pid, signum)
         else:
             self.pending.append(signum)
@@ -630,17 +643,43 @@ def _child(conn: socket.socket, close: tuple[int, ...], log) -> None:
         except BaseException:  # noqa: BLE001
             pass
         os._exit(NOT_TAKEN)
+    watch = _ClientWatch(conn)
     try:
         code = _run(request, log)
     except KeyboardInterrupt:  # forwarded the moment the client heard ``run``, before the solve began
         print("acinoset: interrupted", file=sys.stderr, flush=True)
         code = 130
     code = code if code != NOT_TAKEN else 1
+    watch.finished = True
     try:  # the client hears the end now, not after this process's teardown and the resident's reaping
         conn.sendall(f"exit {code}\n".encode())
     except BaseException:  # noqa: BLE001 - the resident reports it when it reaps this process
         pass
     os._exit(code)
+
+
+class _ClientWatch:
+    """A served child's watch on its client: a thread waiting on the connection, on which the
+    client sends nothing more once the solve runs. Its end (the client gone: SIGKILL, a crashed
+    shell or CI runner) before the solve's own end kills this process with SIGKILL, as a solve in
+    the client's own process would have died with it, instead of letting it run on unseen."""
+
+    def __init__(self, conn: socket.socket):
+        import threading
+
+        self.finished = False
+        self.conn = conn
+        threading.Thread(target=self._wait, name="client-watch", daemon=True).start()
+
+    def _wait(self) -> None:
+        try:
+            self.conn.settimeout(None)
+            while self.conn.recv(64):
+                pass
+        except OSError:
+            pass
+        if not self.finished:
+            os.kill(os.getpid(), signal.SIGKILL)
 
 
 def _detach(close: tuple[int, ...]) -> None:

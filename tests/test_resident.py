@@ -168,10 +168,7 @@ def resident_children(pid: int) -> list[int]:
 
 def gone(pid: int) -> bool:
     """Exited (a zombie counts: here PID 1 may not reap a dead resident's orphans)."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
-    except OSError:
-        return True
+    return state(pid) in ("", "Z", "X")
 
 
 def test_the_next_solve_runs_in_a_child_forked_ahead(env, warm, run_dir, tmp_path):
@@ -220,18 +217,29 @@ def test_concurrent_clients_each_get_a_child(env, warm, run_dir, tmp_path):
 
 def test_ctrl_c_reaches_the_served_solve(env, warm, run_dir, tmp_path):
     """SIGINT to the client is forwarded to its child in the resident: 'interrupted', exit 130."""
-    big = write_run(tmp_path, 20000)  # a solve of some seconds
+    before = len(served_lines(env))
+    proc, child = start_long_solve(env, tmp_path)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    if proc.returncode == 0:  # the solve ended before the signal reached it: nothing to check
+        pytest.skip("the solve finished before the signal")
+    assert proc.returncode == 130, stderr
+    assert stderr.splitlines()[-1] == "acinoset: interrupted"
+    wait_for(lambda: gone(child), 30, "the child to end")
+    assert "exit 130" in served_since(env, before)[-1]
+
+
+def start_long_solve(env: dict, folder: Path) -> tuple[subprocess.Popen, int]:
+    """A served solve of some seconds (20000 frames), begun: the client process and the resident's
+    child that took it (it has entered the client's folder)."""
+    big = write_run(folder, 20000)
     pid = resident.residents(env)[0].pid
     proc = subprocess.Popen([sys.executable, "-m", "graph.cli", *map(str, solve_args(big, big))], env=env,
                             cwd=big, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    children = Path(f"/proc/{pid}/task/{pid}/children")
-    if not children.exists():
-        proc.kill()
-        pytest.skip("this kernel does not list a process's children")
 
-    def serving() -> list[str]:  # a child that took this request (it enters the client's folder)
+    def serving() -> list[int]:
         found = []
-        for c in children.read_text().split():
+        for c in resident_children(pid):
             try:
                 if os.readlink(f"/proc/{c}/cwd") == str(big):
                     found.append(c)
@@ -239,14 +247,46 @@ def test_ctrl_c_reaches_the_served_solve(env, warm, run_dir, tmp_path):
                 pass
         return found
 
-    child = wait_for(serving, 60, "the resident's child serving this solve")
-    proc.send_signal(signal.SIGINT)
-    stdout, stderr = proc.communicate(timeout=120)
-    if proc.returncode == 0:  # the solve ended before the signal reached it: nothing to check
-        pytest.skip("the solve finished before the signal")
-    assert proc.returncode == 130, stderr
-    assert stderr.splitlines()[-1] == "acinoset: interrupted"
-    wait_for(lambda: not Path(f"/proc/{child[0]}").exists(), 30, "the child to end")
+    try:
+        return proc, wait_for(serving, 60, "the resident's child serving this solve")[0]
+    except BaseException:
+        proc.kill()
+        raise
+
+
+def state(pid: int) -> str:
+    """The process's state letter (R, S, T stopped, Z ...); "" when gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return ""
+
+
+def test_a_killed_client_ends_its_served_solve(env, warm, run_dir, tmp_path):
+    """SIGKILL cannot be forwarded: the child sees its client's end of the connection close and
+    kills itself, rather than solving on unseen."""
+    before = len(served_lines(env))
+    proc, child = start_long_solve(env, tmp_path)
+    proc.kill()
+    proc.communicate(timeout=30)
+    wait_for(lambda: gone(child), 30, "the child to end with its client")
+    assert "signal 9" in served_since(env, before)[-1]
+
+
+def test_ctrl_z_stops_and_resumes_the_served_solve(env, warm, run_dir, tmp_path):
+    """SIGTSTP stops the client and its child; SIGCONT resumes both; the solve then ends as usual."""
+    before = len(served_lines(env))
+    proc, child = start_long_solve(env, tmp_path)
+    proc.send_signal(signal.SIGTSTP)
+    wait_for(lambda: state(child) == "T" and state(proc.pid) == "T", 30, "the client and its child to stop")
+    time.sleep(0.3)
+    assert state(child) == "T"  # still stopped
+    proc.send_signal(signal.SIGCONT)
+    wait_for(lambda: state(child) not in ("T", "t"), 30, "the child to resume")
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 0, stderr
+    assert stdout.startswith("fte: 20000 frames")
+    assert "exit 0" in served_since(env, before)[-1]
 
 
 def test_the_off_switch(env, warm, run_dir, tmp_path):
