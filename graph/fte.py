@@ -326,10 +326,10 @@ class TrajectoryProblem:
 SMALL_GAINS = 2  # accepted steps in a row, each gaining under tol, that end an optimisation
 # Steps at most in each stretched stage of the graduated robust loss. One: its first step takes the
 # start to the detections (the cost falls 100-1000x), the next ones gained little or failed. Measured
-# against 3 (the value before) on 100 simulated runs (the paper table's 12 conditions and the model's
-# body, 2 seeds, 200 frames; the body and clocks conditions of both rigs, 300 frames; realistic
-# outliers with the cheetah, free points and ekf): 3D error the same (mean change -0.01 %, worst
-# +0.10 %), 1-2 fewer steps, 10-20 % less time; 3 sometimes ran on to 16-18 steps.
+# against 3 (the value before) on 94 simulated runs (bench/bench_graduated.py: the paper table's 12
+# conditions with the body estimated and the model's, the body and clocks conditions of both rigs,
+# realistic outliers with the cheetah, free points and ekf; bench/RESULTS.md, section 13): the same
+# 3D error (mean change -0.00 %, worst +0.11 %), 7.0 steps a solve instead of 8.6, 17 % less time.
 STRETCHED_STEPS = 1
 
 
