@@ -24,7 +24,9 @@ What runs, on the same data in one run:
   (smoothing ``scale_smooth=4``, ``n_deriv_smooth=1``, ``reproj_loss='soft_l1'``,
   ``reproj_error_threshold=15``) and detections below Anipose's score threshold (0.8) set to NaN, as
   ``anipose triangulate`` does; the calibration as shipped (millimetres). Timed after an untimed
-  warm-up call that pays its numba compile;
+  warm-up call that pays its numba compile. Again on the ensemble's combined detections (the
+  members' median and mean likelihood, what acinoset's ensemble rows are given; aniposelib has no
+  use for their spread), so that both peers are also compared on the same members;
 * EKS (``ensemble-kalman-smoother``), ``ensemble_kalman_smoother_multicam`` on both members with
   aniposelib's camera group (its nonlinear path, smoothing fitted by maximum likelihood), every
   option at its default, run by ``bench/eks_multicam_run.py`` in EKS's own virtualenv (it pins
@@ -145,6 +147,8 @@ def main() -> int:
         rec = aniposelib_reconstruct(data, h.ANIPOSE_DEFAULTS["score_threshold"])
         methods["aniposelib triangulate_optim"] = lambda: leave_one_camera_out(
             kps, cal, reconstruct=rec, method="aniposelib triangulate_optim")
+        methods["aniposelib triangulate_optim, ensemble"] = lambda: leave_one_camera_out(
+            ens, cal, reconstruct=rec, method="aniposelib triangulate_optim, ensemble", judge=kps)
     if args.eks_python:
         rec_eks = eks_reconstruct(data, args.eks_python, [1, 2], eks_log)
         methods["EKS multicam, 2 members"] = lambda: leave_one_camera_out(
