@@ -651,6 +651,11 @@ def _child(conn: socket.socket, close: tuple[int, ...], log) -> None:
         code = 130
     code = code if code != NOT_TAKEN else 1
     watch.finished = True
+    for fd in (0, 1, 2):  # flushed by _run: the client's pipes are not held open through the teardown
+        try:
+            os.close(fd)
+        except OSError:
+            pass
     try:  # the client hears the end now, not after this process's teardown and the resident's reaping
         conn.sendall(f"exit {code}\n".encode())
     except BaseException:  # noqa: BLE001 - the resident reports it when it reaps this process
