@@ -274,11 +274,7 @@ class _Signals:
 
     def _handle(self, signum: int, _frame) -> None:
         if signum == signal.SIGTSTP:  # Ctrl-Z: the child stops with us; we stop as we would have
-            if self.pid:
-                _forward(self.pid, signal.SIGSTOP)
-            signal.signal(signal.SIGTSTP, signal.SIG_DFL)
-            os.kill(os.getpid(), signal.SIGTSTP)  # here until a SIGCONT (its own handler goes on)
-            signal.signal(signal.SIGTSTP, self._handle)
+            self._stop_together()
         elif signum == signal.SIGCONT:
             if self.pid:
                 _forward(self.pid, signal.SIGCONT)
@@ -286,6 +282,25 @@ class _Signals:
             _forward(self.pid, signum)
         else:
             self.pending.append(signum)
+
+    def _stop_together(self) -> None:
+        """Stop the child (SIGSTOP: in the resident's session, its own SIGTSTP would be discarded),
+        then this process as SIGTSTP's default would. In an orphaned process group (no shell to
+        resume it) the kernel discards that: then the child goes on too. Whether this process
+        stopped shows as a SIGCONT pending once it runs again (held blocked meanwhile); its handler
+        resumes the child."""
+        if self.pid:
+            _forward(self.pid, signal.SIGSTOP)
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGCONT})
+        try:
+            signal.signal(signal.SIGTSTP, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGTSTP)  # stopped here until a SIGCONT, unless discarded
+            signal.signal(signal.SIGTSTP, self._handle)
+            stopped = signal.SIGCONT in signal.sigpending()
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGCONT})
+        if not stopped and self.pid:
+            _forward(self.pid, signal.SIGCONT)
 
     def forward_to(self, pid: int) -> None:
         self.pid = pid

@@ -229,13 +229,13 @@ def test_ctrl_c_reaches_the_served_solve(env, warm, run_dir, tmp_path):
     assert "exit 130" in served_since(env, before)[-1]
 
 
-def start_long_solve(env: dict, folder: Path) -> tuple[subprocess.Popen, int]:
+def start_long_solve(env: dict, folder: Path, **popen) -> tuple[subprocess.Popen, int]:
     """A served solve of some seconds (20000 frames), begun: the client process and the resident's
-    child that took it (it has entered the client's folder)."""
+    child that took it (it has entered the client's folder). ``popen``: more of Popen's arguments."""
     big = write_run(folder, 20000)
     pid = resident.residents(env)[0].pid
     proc = subprocess.Popen([sys.executable, "-m", "graph.cli", *map(str, solve_args(big, big))], env=env,
-                            cwd=big, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=big, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
 
     def serving() -> list[int]:
         found = []
@@ -274,9 +274,11 @@ def test_a_killed_client_ends_its_served_solve(env, warm, run_dir, tmp_path):
 
 
 def test_ctrl_z_stops_and_resumes_the_served_solve(env, warm, run_dir, tmp_path):
-    """SIGTSTP stops the client and its child; SIGCONT resumes both; the solve then ends as usual."""
+    """SIGTSTP stops the client and its child; SIGCONT resumes both; the solve then ends as usual.
+    (The client leads a process group of its own, whose parent, this test, is in its session: a
+    shell's job, not an orphaned group, whatever the test runner's own group is.)"""
     before = len(served_lines(env))
-    proc, child = start_long_solve(env, tmp_path)
+    proc, child = start_long_solve(env, tmp_path, process_group=0)
     proc.send_signal(signal.SIGTSTP)
     wait_for(lambda: state(child) == "T" and state(proc.pid) == "T", 30, "the client and its child to stop")
     time.sleep(0.3)
@@ -286,6 +288,21 @@ def test_ctrl_z_stops_and_resumes_the_served_solve(env, warm, run_dir, tmp_path)
     stdout, stderr = proc.communicate(timeout=300)
     assert proc.returncode == 0, stderr
     assert stdout.startswith("fte: 20000 frames")
+    assert "exit 0" in served_since(env, before)[-1]
+
+
+def test_ctrl_z_in_an_orphaned_process_group_stops_nothing(env, warm, run_dir, tmp_path):
+    """With no shell to resume it (a session of its own: an orphaned process group), the kernel
+    discards SIGTSTP's stop; the served solve is not left stopped either, and ends as usual."""
+    before = len(served_lines(env))
+    proc, child = start_long_solve(env, tmp_path, start_new_session=True)
+    proc.send_signal(signal.SIGTSTP)
+    time.sleep(0.5)
+    if proc.poll() is None:
+        assert state(proc.pid) not in ("T", "t")
+        wait_for(lambda: state(child) not in ("T", "t"), 10, "the child to go on")
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 0, stderr
     assert "exit 0" in served_since(env, before)[-1]
 
 
