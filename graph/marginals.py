@@ -162,7 +162,7 @@ def banded_marginals(band, B, Dw):
 
     Ds, Ws, Cs, M = _forward(band, B, Dw)
     if G == 0:
-        return _backward(Ds, Ws, M), cross, np.zeros((0, 0))
+        return _backward(Ds, Cs, Ws, M), cross, np.zeros((0, 0))
     # W by the block inverse of the arrow-head [[A, B], [B^T, Dw]] (A the chain's information):
     #   Sigma_W = (Dw - B^T A^-1 B)^-1,  Sigma_nW = -X_n Sigma_W,  Sigma_n = (A^-1)_nn + X_n Sigma_W X_n^T
     # with X = A^-1 B. M, the information of the last three frames and W once the others are
@@ -183,7 +183,7 @@ def banded_marginals(band, B, Dw):
         for k in range(3):
             rhs = rhs - np.ascontiguousarray(Ws[n][:, k * d:(k + 1) * d]) @ X[n + k + 1]
         X[n] = _upper_solve(Cs[n].T.copy(), rhs)
-    chain = _backward(Ds, np.ascontiguousarray(Ws[:, :, :t]), np.ascontiguousarray(M[:t, :t]))
+    chain = _backward(Ds, Cs, np.ascontiguousarray(Ws[:, :, :t]), np.ascontiguousarray(M[:t, :t]))
     for n in range(N):
         XS = X[n] @ Sigma_W
         cross[n] = -XS
@@ -240,10 +240,10 @@ def _forward(band, B, Dw):
 
 
 @njit(cache=True)
-def _backward(Ds, Ws, M):
+def _backward(Ds, Cs, Ws, M):
     """Marginal covariances (N, d, d) of every frame of a chain: the backward marginalisation of
-    the module docstring from the forward pass's ``D_n``, ``W_n`` (N-3, d, 3d) and ``M`` (the last
-    three frames' information, 3d square)."""
+    the module docstring from the forward pass's ``D_n``, their Cholesky factors ``C_n``, ``W_n``
+    (N-3, d, 3d) and ``M`` (the last three frames' information, 3d square)."""
     N = Ds.shape[0] + 3
     d = Ds.shape[1]
     m = 3 * d
@@ -258,7 +258,7 @@ def _backward(Ds, Ws, M):
     for n in range(N - 4, -1, -1):
         W = Ws[n]
         J[:d, :d] = Ds[n]
-        Un = np.linalg.cholesky(Ds[n]) @ W
+        Un = Cs[n] @ W
         J[:d, d:] = Un
         J[d:, :d] = Un.T
         J[d:, d:] = W.T @ W + M
