@@ -457,6 +457,7 @@ def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> 
     os.set_blocking(wake_r, False)
     os.set_blocking(wake_w, False)
     signal.set_wakeup_fd(wake_w)
+    held = (listener.fileno(), wake_r, wake_w, lock_fd)  # the resident's own: a child closes them
     stop = []
     signal.signal(signal.SIGCHLD, lambda *_: None)
     signal.signal(signal.SIGTERM, lambda *_: stop.append("stopped (SIGTERM)"))
@@ -488,7 +489,7 @@ def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> 
         if spare is None and listener is not None and not children:
             # the next solve's process, forked while none runs rather than on the next solve's time
             # (a fork of this process takes 5-7 ms); solves that overlap get one forked on the spot
-            spare = _Spare.fork((listener.fileno(), wake_r, wake_w, lock_fd), log)
+            spare = _Spare.fork(held, log)
         if children:
             timeout = KEY_CHECK_S  # a child's end wakes the loop (SIGCHLD)
         else:
@@ -538,7 +539,7 @@ def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> 
                     say(f"cannot fork: {e}")
                     continue
                 if pid == 0:
-                    _child(conn, (listener.fileno(), wake_r, wake_w, lock_fd), log)  # never returns
+                    _child(conn, held, log)  # never returns
             children[pid] = (conn, time.monotonic())
             last = time.monotonic()
     if spare is not None:
