@@ -18,7 +18,9 @@ What runs, on the same data in one run:
   member 1; then with ``motion_scale="auto"`` (the default for free points since 12a; and with
   ``measurement_std_px="auto"`` too); then given both members as one ensemble per camera
   (:func:`graph.ensemble.combine`: their median, their spread weighing cameras and markers), with
-  the same three settings. The three reconstructions timed in process (wall clock around
+  the same three settings; then with the motion prior's order chosen from the data
+  (``motion_order="auto"``, member 1 and the ensemble) and with the first order given (the
+  ensemble). The three reconstructions timed in process (wall clock around
   :func:`graph.api.solve`, compiled kernels loaded by an untimed warm-up);
 * aniposelib ``CameraGroup.triangulate_optim`` on member 1 with every option at its default
   (smoothing ``scale_smooth=4``, ``n_deriv_smooth=1``, ``reproj_loss='soft_l1'``,
@@ -139,6 +141,10 @@ def main() -> int:
         "acinoset fte points, ensemble, motion auto": (ens, replace(base, motion_scale="auto")),
         "acinoset fte points, ensemble, motion and noise auto": (ens, replace(base, motion_scale="auto",
                                                                               measurement_std_px="auto")),
+        "acinoset fte points, motion auto, order auto": (kps, replace(base, motion_scale="auto", motion_order="auto")),
+        "acinoset fte points, ensemble, motion auto, order auto": (ens, replace(base, motion_scale="auto",
+                                                                                motion_order="auto")),
+        "acinoset fte points, ensemble, motion auto, order 1": (ens, replace(base, motion_scale="auto", motion_order=1)),
     }
     methods = {name: (lambda i=i, o=o, name=name: leave_one_camera_out(i, cal, o, method=name, judge=kps))
                for name, (i, o) in ours.items()}

@@ -224,6 +224,10 @@ def add_solve_options(p) -> None:
                    help="multiplies the motion model's process noise (larger follows the data more), or 'auto' to "
                         "fit it to the data (per marker for free points); default: auto for fte on free points, "
                         "else 1")
+    p.add_argument("--motion-order", default="3", choices=["1", "2", "3", "auto"],
+                   help="the motion prior's order: on the k-th differences of each coordinate, 3 (constant "
+                        "acceleration, the default), 2, 1 (what aniposelib smooths), or 'auto' to choose it per "
+                        "marker from the data (fte, with the motion scale fitted)")
     p.add_argument("--individual", default=None, metavar="NAME", help="multi-animal files: which individual")
     p.add_argument("--calibration-units", choices=list(CALIBRATION_UNITS), default="auto",
                    help="units of the calibration's translations (default: auto, which recognises millimetres)")
@@ -291,6 +295,7 @@ def solve_options(args: argparse.Namespace):
         options = SolveOptions(body=body, body_lengths=lengths, sync=args.sync, time_offsets=offsets,
                                method=args.method, fps=args.fps, skeleton=args.skeleton, measurement_std_px=std_px,
                                motion_scale=motion,
+                               motion_order=args.motion_order if args.motion_order == "auto" else int(args.motion_order),
                                likelihood_threshold=args.likelihood_threshold, individual=args.individual,
                                calibration_units=args.calibration_units, bone_lengths=bones,
                                uncertainty=args.uncertainty)
@@ -347,6 +352,9 @@ def run_solve(args: argparse.Namespace) -> int:
         v = sorted(rep.motion_scales.values())
         noise += (f", motion scale {v[0]:.3g} (fitted)" if len(v) == 1 else
                   f", motion scales {v[0]:.3g}-{v[-1]:.3g} (fitted, median {v[len(v) // 2]:.3g})")
+    if rep.motion_orders:
+        counts = {k: list(rep.motion_orders.values()).count(k) for k in sorted(set(rep.motion_orders.values()))}
+        noise += ", motion order " + ", ".join(f"{k} for {n}" for k, n in counts.items())
     print(f"{rep.method}: {rep.frames} frames, {rep.cameras} cameras, {rep.markers} markers, "
           f"reprojection RMSE {rmse}{noise}, {rep.seconds.get('total', 0.0):.2f} s -> {', '.join(map(str, written))}")
     return 0

@@ -34,6 +34,7 @@ per-marker ``Sigma_p = J_p Sigma_n J_p^T``.
 
 from __future__ import annotations
 
+import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
@@ -126,6 +127,10 @@ class TrajectoryProblem:
         else:
             self.groups = [np.arange(P)]
         self.motion_scales = np.full(len(self.groups), 1.0 if scale == "auto" else float(scale))
+        # the order of each group's motion prior: the prior is on its k-th differences (3: constant
+        # acceleration, the paper's model). motion_order "auto" starts at 3 and is chosen by fit_motion
+        order = getattr(prob.options, "motion_order", None)
+        self.orders = np.full(len(self.groups), 3 if order in (None, "auto") else int(order), dtype=np.int64)
         # free points without bones: independent chains, solved by banded Cholesky (solve_linear)
         self.chains = len(self.groups) > 1
         # the stiffest smoothing a fit may choose (graph.smoothing.stiffest_scale); ekf's stream, which
@@ -148,8 +153,11 @@ class TrajectoryProblem:
         """The detection noise of each camera and marker (C, M) at the current ``sigma_px``."""
         return self.prob.sigma_cm(self.sigma_px)
 
-    def set_motion_scales(self, scales: np.ndarray) -> None:
-        """Each group's process noise scaled by its entry of ``scales``; the motion factors anew."""
+    def set_motion_scales(self, scales: np.ndarray, orders: np.ndarray | None = None) -> None:
+        """Each group's process noise scaled by its entry of ``scales`` (and its prior's order set
+        to its entry of ``orders``, if given); the motion factors anew."""
+        if orders is not None:
+            self.orders = np.asarray(orders, dtype=np.int64).copy()
         self.motion_scales = np.asarray(scales, dtype=np.float64).copy()
         sigma3 = self.base_sigma3.copy()
         for s, idx in zip(self.motion_scales, self.groups):
@@ -171,9 +179,12 @@ class TrajectoryProblem:
         return list(self.prob.skeleton.markers)
 
     def _motion_factors(self) -> list:
-        """``(q_{n+3} - 3 q_{n+2} + 3 q_{n+1} - q_n) / sigma_3 = 0`` per group: a GaussianConditional
-        on ``q_{n+3}`` given the three before it, as a 4-key JacobianFactor, kept in Hessian form
-        (elimination is then Cholesky throughout, a third faster than mixing in QR)."""
+        """``(q_{n+3} - 3 q_{n+2} + 3 q_{n+1} - q_n) / sigma_3 = 0`` per group (the k-th difference
+        of the group's order k): a GaussianConditional on ``q_{n+k}`` given the k before it, as a
+        (k+1)-key JacobianFactor, kept in Hessian form (elimination is then Cholesky throughout, a
+        third faster than mixing in QR)."""
+        from graph.smoothing import STENCILS
+
         out = []
         for gi, idx in enumerate(self.groups):
             # whitened by hand (unit noise): GTSAM takes a sigma below 1e-9 for a hard constraint, and a
@@ -182,9 +193,12 @@ class TrajectoryProblem:
             model = gtsam.noiseModel.Unit.Create(len(idx))
             zero = np.zeros(len(idx))
             k = [self.key(n, gi) for n in range(self.N)]
+            order = int(self.orders[gi])
+            st = STENCILS[order]
             out += [gtsam.HessianFactor(gtsam.JacobianFactor(gtsam.GaussianConditional(
-                        [(k[n + 3], eye), (k[n], -eye), (k[n + 1], 3 * eye), (k[n + 2], -3 * eye)], 1, zero, model)))
-                    for n in range(self.N - 3)]
+                        [(k[n + order], st[order] * eye)] + [(k[n + a], st[a] * eye) for a in range(order)],
+                        1, zero, model)))
+                    for n in range(self.N - order)]
         return out
 
     def normals(self, Q, stretch=1.0) -> Normals:
@@ -205,15 +219,21 @@ class TrajectoryProblem:
         self._kept_normals = (X, stretch, self.sigma_px, nrm)
         return nrm
 
-    def motion_residual(self, Q):
-        """Whitened third differences (N-3, P)."""
-        d3 = Q[3:] - 3 * Q[2:-1] + 3 * Q[1:-2] - Q[:-3]
-        return d3 / self.sigma3
+    def motion_cost(self, Q) -> float:
+        """``1/2 sum |Dk q / sigma_3|^2``: each group's whitened k-th differences (third for the
+        constant-acceleration model), squared and summed."""
+        if np.all(self.orders == 3):
+            m = (Q[3:] - 3 * Q[2:-1] + 3 * Q[1:-2] - Q[:-3]) / self.sigma3
+            return 0.5 * float(np.sum(m * m))
+        total = 0.0
+        for order, idx in zip(self.orders, self.groups):
+            m = np.diff(Q[:, idx], int(order), axis=0) / self.sigma3[idx]
+            total += 0.5 * float(np.sum(m * m))
+        return total
 
     def cost(self, Q, data_cost):
-        m = self.motion_residual(Q)
         pr = (Q - self.Q0) / PRIOR_SIGMA
-        return float(data_cost.sum() + 0.5 * np.sum(m * m) + 0.5 * np.sum(pr * pr))
+        return float(data_cost.sum() + self.motion_cost(Q) + 0.5 * np.sum(pr * pr))
 
     def linear_graph(self, Q, H, g, lam: float) -> gtsam.GaussianFactorGraph:
         """The damped Gauss-Newton system at Q over the new trajectory Q'.
@@ -271,7 +291,7 @@ class TrajectoryProblem:
         w = 1.0 / PRIOR_SIGMA**2
         Hg = np.stack([H[:, i][:, :, i] for i in idx])  # (G, N, d, d)
         if self._motion_band is None:
-            self._motion_band = motion_band(1.0 / self.sigma3[idx] ** 2, self.N)
+            self._motion_band = motion_band(1.0 / self.sigma3[idx] ** 2, self.N, self.orders)
         rhs = np.einsum("npq,nq->np", H, Q) - g + w * self.Q0 + lam * Q  # (N, P); H couples no groups
         rhs = np.stack([rhs[:, i] for i in idx]).ravel()
         try:
@@ -314,12 +334,14 @@ class TrajectoryProblem:
         is zero). The same numbers as GTSAM's Bayes tree of :meth:`linear_graph` (tests)."""
         G = H + np.eye(self.P)[None] / PRIOR_SIGMA**2
         w2 = 1.0 / self.sigma3**2
+        from graph.smoothing import STENCILS
+
         if len(self.groups) == 1:
-            return chain_marginals(G, w2)
+            return chain_marginals(G, w2, STENCILS[int(self.orders[0])])
         S = np.zeros((self.N, self.P, self.P))
-        for idx in self.groups:
+        for order, idx in zip(self.orders, self.groups):
             a, b = idx[0], idx[-1] + 1
-            S[:, a:b, a:b] = chain_marginals(np.ascontiguousarray(G[:, a:b, a:b]), w2[a:b])
+            S[:, a:b, a:b] = chain_marginals(np.ascontiguousarray(G[:, a:b, a:b]), w2[a:b], STENCILS[int(order)])
         return S
 
 
@@ -408,18 +430,37 @@ MOTION_TOLERANCE = 0.1  # solve again when a scale moved by more than this fract
 MOTION_ROUNDS = 2  # fits at an optimum, each followed by a solve when it moved
 
 
-def fit_motion(tp: TrajectoryProblem, X) -> float:
+def fit_motion(tp: TrajectoryProblem, X, choose_orders: bool = False) -> float:
     """Set each group's motion scale to the one of largest marginal likelihood given the data's
-    quadratic model at ``X`` (:func:`graph.smoothing.fit_motion_scales`). The evidence solves the
-    linearised smoother for every scale tried, so ``X`` need not be its optimum: a start near the
-    data will do. Returns how far the scales moved (largest ``|log(new / old)|``)."""
-    from graph.smoothing import fit_motion_scales
+    quadratic model at ``X`` (:func:`graph.smoothing.fit_motion_scales`), and with
+    ``choose_orders`` its prior's order first (1, 2 or 3, by the evidence compared across orders).
+    The evidence solves the linearised smoother for every scale tried, so ``X`` need not be its
+    optimum: a start near the data will do. Returns how far the scales moved (largest
+    ``|log(new / old)|``; infinite when an order changed).
+
+    The orders are compared at the detection noise measured on the residuals at ``X``
+    (:func:`graph.noise.scatter_px`), whatever noise the solve assumes: the data's information and
+    gradient scale as ``1 / sigma^2``, so the comparison takes ``H`` and ``g`` times
+    ``(sigma_px / measured)^2``. At a noise stated too small the evidence prefers a low order (a
+    first-order walk follows the noise the data then claim as signal): on the simulated cheetah as
+    free points at 10 px, solved assuming 5 px, it chose the first order for every marker, 2.2x the
+    3D error of the third (bench/RESULTS.md, section 12d)."""
+    from graph.smoothing import ORDERS, fit_motion_scales
 
     nrm = tp.normals_at(X)
-    scales = fit_motion_scales(nrm.H, nrm.g, tp.poses(X), tp.Q0, PRIOR_SIGMA, tp.base_sigma3, tp.groups,
-                               start=tp.motion_scales, max_stiffness=tp.max_stiffness)
-    moved = float(np.max(np.abs(np.log(scales / tp.motion_scales))))
-    tp.set_motion_scales(scales)
+    fit_args = (tp.poses(X), tp.Q0, PRIOR_SIGMA, tp.base_sigma3, tp.groups)
+    orders = tp.orders
+    if choose_orders:
+        measured = scatter_px(np.where(tp.prob.valid & np.isfinite(nrm.s), nrm.s * tp.sigma_px, np.nan))
+        r = (tp.sigma_px / measured) ** 2 if np.isfinite(measured) and measured > 0 else 1.0
+        orders = fit_motion_scales(nrm.H * r, nrm.g * r, *fit_args, max_stiffness=tp.max_stiffness,
+                                   candidates=ORDERS).orders
+    fit = fit_motion_scales(nrm.H, nrm.g, *fit_args, start=tp.motion_scales if np.all(orders == tp.orders) else None,
+                            max_stiffness=tp.max_stiffness, orders=orders)
+    moved = float(np.max(np.abs(np.log(fit.scales / tp.motion_scales))))
+    if np.any(orders != tp.orders):
+        moved = math.inf
+    tp.set_motion_scales(fit.scales, orders)
     return moved
 
 
@@ -432,11 +473,15 @@ def refit_motion(tp: TrajectoryProblem, X, cost: float, max_iterations: int):
     poses, per-frame and noisy) was such a start: 20-40x looser than the answer on the simulated
     cheetah at 10 px, still 2-10x off after two rounds. The first solve with the skeleton's own
     process noise is a better one (there two rounds end within 2 %; bench/RESULTS.md, section 12),
-    and costs a fit less. Each fit warm-starts from the scales before. Returns (X, iterations,
+    and costs a fit less. Each fit warm-starts from the scales before. With ``motion_order="auto"``
+    the first fit also chooses each group's order (the later ones keep it). Returns (X, iterations,
     cost)."""
     iterations = 0
+    choose = getattr(tp.prob.options, "motion_order", None) == "auto"
     for _ in range(MOTION_ROUNDS):
-        if fit_motion(tp, X) <= np.log1p(MOTION_TOLERANCE):
+        moved = fit_motion(tp, X, choose_orders=choose)
+        choose = False
+        if moved <= np.log1p(MOTION_TOLERANCE):
             break
         X, more, cost = optimise(tp, X, max_iterations, stretches=(1.0,))
         iterations += more
@@ -556,6 +601,8 @@ def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[st
     report = dict(est.report or {})
     if prob.options.motion_scale == "auto":
         report["motion_scales"] = {name: float(v) for name, v in zip(tp.group_names(), tp.motion_scales)}
+    if getattr(prob.options, "motion_order", None) == "auto":
+        report["motion_orders"] = {name: int(k) for name, k in zip(tp.group_names(), tp.orders)}
     loose = loose_motion(Q, tp.sigma3) if prob.options.motion_scale != "auto" else None
     report["warnings"] = list(notes or []) + report.get("warnings", []) + ([loose] if loose else [])
     causal_pos = prob.skeleton.positions(causal) if causal is not None else None

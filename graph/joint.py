@@ -42,6 +42,7 @@ from graph.errors import InputError
 from graph.fte import PRIOR_SIGMA, Estimate, TrajectoryProblem, bone_lengths, solve_fte, solve_from
 from graph.initial import initial_poses
 from graph.marginals import banded_marginals, chain_band, eliminated_tail
+from graph.smoothing import STENCILS
 from graph.problem import Problem
 from graph.robust import A as RA, B as RB, C as RC
 from graph.sync import coarse_offsets, on_reference_clock, shift_and_fraction
@@ -241,9 +242,9 @@ class JointTrajectoryProblem(TrajectoryProblem):
         w2 = 1.0 / self.sigma3**2
         DW = nrm.HWW + np.diag(self.prior_info)
         bands, Bs = [], []
-        for idx in self.groups:
+        for order, idx in zip(self.orders, self.groups):
             a, b = idx[0], idx[-1] + 1
-            band = chain_band(np.ascontiguousarray(Gd[:, a:b, a:b]), w2[a:b])
+            band = chain_band(np.ascontiguousarray(Gd[:, a:b, a:b]), w2[a:b], STENCILS[int(order)])
             band[:-1, 1] += nrm.Hx[:-1, a:b, a:b]
             bands.append(band)
             Bs.append(np.ascontiguousarray(nrm.HW[:, a:b]))

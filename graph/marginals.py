@@ -77,27 +77,30 @@ def _schur(J, keep):
 
 
 @njit(cache=True)
-def chain_band(G, w2):
+def chain_band(G, w2, stencil=D3):
     """The information of a chain as its blocks ``band[n, k]`` = (n, n + k), k = 0..3 (N, 4, d, d):
-    per-frame information ``G`` (N, d, d) and third-difference weights ``w2`` (d,)."""
+    per-frame information ``G`` (N, d, d) and the weights ``w2`` (d,) of the differences whose
+    coefficients on frames j .. j+k are ``stencil`` (k + 1 <= 4; default the third difference's)."""
     N, d = G.shape[0], G.shape[1]
+    k = stencil.shape[0] - 1
     band = np.zeros((N, 4, d, d))
     for n in range(N):
         band[n, 0] += G[n]
-    for j in range(N - 3):
-        for a in range(4):
-            for b in range(a, 4):
+    for j in range(N - k):
+        for a in range(k + 1):
+            for b in range(a, k + 1):
                 for i in range(d):
-                    band[j + a, b - a, i, i] += D3[a] * D3[b] * w2[i]
+                    band[j + a, b - a, i, i] += stencil[a] * stencil[b] * w2[i]
     return band
 
 
 @njit(cache=True)
-def chain_marginals(G, w2):
+def chain_marginals(G, w2, stencil=D3):
     """Marginal covariances (N, d, d) of a chain with per-frame information ``G`` (N, d, d) and
-    third-difference weights ``w2`` (d,) (``1/sigma_3^2``); see the module docstring."""
+    difference weights ``w2`` (d,) (``1/sigma_3^2``) on ``stencil`` (:func:`chain_band`); see the
+    module docstring (a lower order leaves the band's outer blocks zero)."""
     N, d = G.shape[0], G.shape[1]
-    out, _, _ = banded_marginals(chain_band(G, w2), np.zeros((N, d, 0)), np.zeros((0, 0)))
+    out, _, _ = banded_marginals(chain_band(G, w2, stencil), np.zeros((N, d, 0)), np.zeros((0, 0)))
     return out
 
 

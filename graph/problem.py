@@ -106,6 +106,9 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
     if options.motion_scale is None:  # the skeleton's and method's default, as the solvers will use it
         free_points = skeleton.kind == "points" and not skeleton.bones
         options = replace(options, motion_scale=default_motion_scale(options.method, free_points))
+    if options.motion_order == "auto" and options.motion_scale != "auto":
+        raise InputError("motion_order 'auto' compares the orders at their fitted scales: it needs motion_scale "
+                         f"'auto', not {options.motion_scale!r}")
     M = len(skeleton.markers)
     meas = np.full((N, C, M, 2), np.nan)
     lik = np.zeros((N, C, M))

@@ -464,7 +464,8 @@ def simulate_run(calibration: Calibration, frames: int = 200, fps: float = 120.0
 
 
 def random_jerk_run(calibration: Calibration, frames: int = 300, fps: float = 120.0, process_noise: float = 0.5,
-                    noise: float = 2.0, markers: int = 8, spread: float = 0.15, seed: int = 0) -> SimulatedRun:
+                    noise: float = 2.0, markers: int = 8, spread: float = 0.15, seed: int = 0,
+                    order: int = 3) -> SimulatedRun:
     """Free points that move exactly as the smoothers' motion model says, seen by ``calibration``:
     a run whose true smoothness is known, for fitting it (``motion_scale="auto"``).
 
@@ -473,20 +474,25 @@ def random_jerk_run(calibration: Calibration, frames: int = 300, fps: float = 12
     ``x_{n+3} - 3 x_{n+2} + 3 x_{n+1} - x_n ~ N(0, (h^2 process_noise)^2)`` (h = 1/fps: the change of
     acceleration from frame to frame has sd ``process_noise``, m/s^2, the unit of a skeleton's process
     noise). The triple sum of those draws has its least-squares quadratic taken off, which keeps the
-    points near the centre and leaves every third difference as drawn. Detections: Gaussian noise of
-    ``noise`` px, no outliers (:func:`observe`). The run's ``process_noise`` holds the truth."""
+    points near the centre and leaves every third difference as drawn. With ``order`` k (1 or 2) the
+    k-th difference is the white one instead, of sd ``h^(k-1) process_noise`` (k = 1: a random walk
+    of ``process_noise`` m a frame), and the polynomial of degree below k is taken off. Detections:
+    Gaussian noise of ``noise`` px, no outliers (:func:`observe`). The run's ``process_noise`` holds
+    the truth."""
     if frames < 4:
         raise ValueError("frames must be at least 4")
+    if order not in (1, 2, 3):
+        raise ValueError(f"order must be 1, 2 or 3, not {order}")
     rng = np.random.default_rng(seed)
     stage = rig_stage(calibration)
     h = 1.0 / fps
-    jerk = rng.normal(0.0, h * h * process_noise, (frames - 3, markers, 3))
+    jerk = rng.normal(0.0, h ** (order - 1) * process_noise, (frames - order, markers, 3))
     x = np.zeros((frames, markers, 3))
-    x[3:] = jerk
-    for _ in range(3):  # x_n = sum of draws thrice: its third difference is the draw
+    x[order:] = jerk
+    for _ in range(order):  # x_n = sum of draws k times: its k-th difference is the draw
         x = np.cumsum(x, axis=0)
     t = np.arange(frames, dtype=float)
-    basis = np.stack([np.ones_like(t), t, t * t], axis=1)
+    basis = np.stack([t**j for j in range(order)], axis=1)
     coef, *_ = np.linalg.lstsq(basis, x.reshape(frames, -1), rcond=None)
     x = x - (basis @ coef).reshape(x.shape)
     centre = np.array([*stage.centre, stage.ground_z + 0.6])

@@ -31,11 +31,18 @@ The fit is local: it is made at the smoother's optimum, the smoother solved agai
 found and the fit repeated (:func:`graph.fte.refit_motion`), since H and the robust weights depend
 on the trajectory. The same banded band form solves the smoother's own steps for free points
 without bones (:func:`solve_chains`).
+
+**The order** (``motion_order``): the prior may be on the k-th differences instead, k = 1 (a random
+walk of positions, what aniposelib's ``triangulate_optim`` penalises), 2 or 3; ``Dk`` then replaces
+``D3`` above and N - k replaces N - 3. With ``motion_order="auto"`` each group's order is chosen by
+the fractional Bayes factor (:meth:`ChainEvidence.across_orders`): the evidence as above is defined
+only up to a constant of the order, which a fraction of the data's own evidence cancels.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg import cho_solve_banded, cholesky_banded
@@ -47,15 +54,31 @@ _X_TOL = 0.02  # ... ending when the vertex moves less than this in log s (2 % i
 _D3 = np.array([-1.0, 3.0, -3.0, 1.0])  # the third difference's stencil on frames n .. n+3
 
 
-def third_difference_gram(N: int) -> np.ndarray:
-    """The lower diagonals of ``D3^T D3`` (N x N): row L (0..3) holds ``(D3^T D3)[n + L, n]`` for
-    n < N - L (zero-padded), with ``D3`` the (N-3) x N third-difference operator."""
+ORDERS = (1, 2, 3)  # the difference orders the motion prior may take
+STENCILS = {1: np.array([-1.0, 1.0]), 2: np.array([1.0, -2.0, 1.0]), 3: _D3}  # on frames n .. n+k
+
+
+def difference_gram(N: int, order: int = 3) -> np.ndarray:
+    """The lower diagonals of ``Dk^T Dk`` (N x N) for the k-th difference operator ``Dk``
+    ((N-k) x N, k = ``order``): row L (0..3) holds ``(Dk^T Dk)[n + L, n]`` for n < N - L (zero-padded;
+    rows past k are zero)."""
+    st = STENCILS[order]
     T = np.zeros((4, N))
-    for a in range(4):  # window j contributes s[a] s[a+L] to (j + a + L, j + a)
-        for L in range(4 - a):
-            n = np.arange(max(N - 3, 0)) + a  # n = j + a for windows j = 0 .. N-4
-            np.add.at(T[L], n, _D3[a] * _D3[a + L])
+    for a in range(order + 1):  # window j contributes st[a] st[a+L] to (j + a + L, j + a)
+        for L in range(order + 1 - a):
+            n = np.arange(max(N - order, 0)) + a  # n = j + a for windows j = 0 .. N-k-1
+            np.add.at(T[L], n, st[a] * st[a + L])
     return T
+
+
+def third_difference_gram(N: int) -> np.ndarray:
+    """:func:`difference_gram` of the third difference (the constant-acceleration model)."""
+    return difference_gram(N, 3)
+
+
+def difference(x: np.ndarray, order: int, axis: int = 0) -> np.ndarray:
+    """The k-th differences of ``x`` along ``axis``."""
+    return np.diff(x, order, axis=axis)
 
 
 def data_band(H: np.ndarray, w: float) -> np.ndarray:
@@ -71,17 +94,20 @@ def data_band(H: np.ndarray, w: float) -> np.ndarray:
     return ab
 
 
-def motion_band(c: np.ndarray, N: int, T: np.ndarray | None = None) -> np.ndarray:
-    """``sum_i c_gi D3^T D3`` (on parameter i of chain g) of G chains of N frames, ``c`` (G, d), in
-    the band form of :func:`data_band`: parameter i of frame n couples only with itself in frames
-    n + 1 .. n + 3, at band rows d, 2d, 3d. ``T`` is :func:`third_difference_gram` (N)."""
+def motion_band(c: np.ndarray, N: int, orders: np.ndarray | None = None) -> np.ndarray:
+    """``sum_i c_gi Dk^T Dk`` (on parameter i of chain g, k its order, default 3) of G chains of N
+    frames, ``c`` (G, d), in the band form of :func:`data_band`: parameter i of frame n couples only
+    with itself in frames n + 1 .. n + k, at band rows d .. kd."""
     G, d = c.shape
-    T = third_difference_gram(N) if T is None else T
+    orders = np.full(G, 3) if orders is None else np.asarray(orders)
     ab = np.zeros((4 * d, G * N * d))
-    for L in range(4):
-        row = ab[L * d].reshape(G, N * d)  # a view: chain g's columns
-        for i in range(d):
-            row[:, i::d][:, : N - L] = c[:, i, None] * T[L, : N - L]
+    for k in np.unique(orders):
+        T = difference_gram(N, int(k))
+        sel = np.flatnonzero(orders == k)
+        for L in range(int(k) + 1):
+            row = ab[L * d].reshape(G, N * d)  # a view: chain g's columns
+            for i in range(d):
+                row[np.ix_(sel, np.arange(i, (N - L) * d, d))] = c[sel, i, None] * T[L, : N - L]
     return ab
 
 
@@ -114,42 +140,65 @@ class ChainEvidence:
 
     ``H`` (G, N, d, d) and ``g`` (G, N, d): the data's Gauss-Newton information and gradient at
     ``x`` (G, N, d), a trajectory near the data; ``x0`` (G, N, d) the anchor's target, ``w`` its
-    precision; ``sigma`` (G, d) the third-difference sd of each parameter at scale 1."""
+    precision; ``sigma`` (G, d) the k-th difference sd of each parameter at scale 1; ``orders`` (G,)
+    each chain's k (default 3: the module docstring's D3 is then Dk, and N - 3 is N - k)."""
 
-    def __init__(self, H: np.ndarray, g: np.ndarray, x: np.ndarray, x0: np.ndarray, w: float, sigma: np.ndarray):
+    def __init__(self, H: np.ndarray, g: np.ndarray, x: np.ndarray, x0: np.ndarray, w: float, sigma: np.ndarray,
+                 orders: np.ndarray | None = None):
         G, N, d = x.shape
         self.G, self.N, self.d, self.w = G, N, d, w
         self.H, self.g, self.x, self.x0 = H, g, x, x0
         self.sigma = np.asarray(sigma, dtype=np.float64).reshape(G, d)
-        self.T = third_difference_gram(N)
+        self.orders = np.full(G, 3) if orders is None else np.asarray(orders, dtype=np.int64)
         self.base = data_band(H, w)
         self.rhs = (np.einsum("gnij,gnj->gni", H, x) - g + w * x0).ravel()
 
+    def _c(self, s) -> np.ndarray:
+        return 1.0 / (np.asarray(s, dtype=np.float64).reshape(self.G, 1) * self.sigma) ** 2  # (G, d)
+
     def __call__(self, s: np.ndarray) -> np.ndarray:
-        """``log p(z | s_g)`` of every chain g (G,) up to a constant (module docstring)."""
+        """``log p(z | s_g)`` of every chain g (G,) up to a constant of its order (module docstring)."""
         G, N, d = self.G, self.N, self.d
-        c = 1.0 / (np.asarray(s, dtype=np.float64).reshape(G, 1) * self.sigma) ** 2  # (G, d)
-        ab = self.base + motion_band(c, N, self.T)
+        c = self._c(s)
+        ab = self.base + motion_band(c, N, self.orders)
         try:
             chol = cholesky_banded(ab, lower=True)
         except np.linalg.LinAlgError:
             return np.full(G, -math.inf)
         xs = cho_solve_banded((chol, True), self.rhs).reshape(G, N, d)
         dx = xs - self.x
-        d3 = xs[:, 3:] - 3 * xs[:, 2:-1] + 3 * xs[:, 1:-2] - xs[:, :-3]
+        motion = np.empty(G)
+        for k in np.unique(self.orders):
+            sel = self.orders == k
+            dk = difference(xs[sel], int(k), axis=1)
+            motion[sel] = np.einsum("gi,gni->g", c[sel], dk * dk)
         phi = (np.einsum("gni,gni->g", self.g, dx) + 0.5 * np.einsum("gni,gnij,gnj->g", dx, self.H, dx)
-               + 0.5 * np.einsum("gi,gni->g", c, d3 * d3) + 0.5 * self.w * np.sum((xs - self.x0) ** 2, axis=(1, 2)))
+               + 0.5 * motion + 0.5 * self.w * np.sum((xs - self.x0) ** 2, axis=(1, 2)))
         logdet_K = 2.0 * np.log(chol[0]).reshape(G, N * d).sum(axis=1)
-        log_pdet = max(N - 3, 0) * np.log(c).sum(axis=1)  # log pdet A(s) but for a constant
+        log_pdet = np.maximum(N - self.orders, 0) * np.log(c).sum(axis=1)  # log pdet A(s) but for a constant
         return -phi - 0.5 * logdet_K + 0.5 * log_pdet
+
+    def across_orders(self, s: np.ndarray, frames: float = 3.0) -> np.ndarray:
+        """The log evidence (G,) comparable between orders: O'Hagan's fractional Bayes factor. The
+        k-th difference prior is flat along the polynomials of degree below k, so its evidence holds
+        only up to a constant of the order (the width given those polynomials, arbitrary). Dividing
+        by the evidence of a fraction ``b = frames / N`` of the data's information (``b H``,
+        ``b g``: as much as ``frames`` frames hold, enough to pin those polynomials) cancels it:
+        ``log p(z | s) - log p_b(z | s)``, each by ``__call__``. A proper prior (the anchor's
+        precision on the polynomials) was tried instead: its verdict moved with the anchor's width,
+        and it chose the second order on the simulated cheetah, 4-6 % more 3D error than the
+        third (bench/RESULTS.md, section 12d)."""
+        b = frames / self.N
+        part = ChainEvidence(self.H * b, self.g * b, self.x, self.x0, self.w, self.sigma, self.orders)
+        return self(s) - part(s)
 
 
 class GroupEvidence(ChainEvidence):
     """:class:`ChainEvidence` of one chain: ``H`` (N, d, d), ``g``, ``x``, ``x0`` (N, d),
     ``sigma`` (d,); called with a scalar scale."""
 
-    def __init__(self, H, g, x, x0, w, sigma):
-        super().__init__(H[None], g[None], x[None], x0[None], w, np.asarray(sigma)[None])
+    def __init__(self, H, g, x, x0, w, sigma, order: int = 3):
+        super().__init__(H[None], g[None], x[None], x0[None], w, np.asarray(sigma)[None], np.array([order]))
 
     def __call__(self, s: float) -> float:
         return float(super().__call__(np.array([s]))[0])
@@ -222,23 +271,50 @@ def best_scale(evidence, lo: float = SCALE_RANGE[0], hi: float = SCALE_RANGE[1])
     return float(best_scales(lambda s: np.array([evidence(float(s[0]))]), np.array([lo]), hi)[0])
 
 
+class MotionFit(NamedTuple):
+    """What :func:`fit_motion_scales` chose for each of G groups."""
+
+    scales: np.ndarray  # (G,) the motion scale of each group
+    orders: np.ndarray  # (G,) the difference order of each group's prior
+    evidence: dict[int, np.ndarray] | None = None  # order -> (G,) log evidence at its best scale, when orders were compared
+
+
 def fit_motion_scales(H: np.ndarray, g: np.ndarray, Q: np.ndarray, Q0: np.ndarray, prior_sigma: float,
                       sigma3: np.ndarray, groups: list[np.ndarray], start: np.ndarray | None = None,
-                      max_stiffness: float | None = None) -> np.ndarray:
+                      max_stiffness: float | None = None, orders: np.ndarray | None = None,
+                      candidates: tuple[int, ...] | None = None) -> MotionFit:
     """The scale of each group in ``groups`` (index arrays into the P parameters, all of one size)
     maximising its evidence, given the data's ``H`` (N, P, P), ``g`` (N, P) at the trajectory ``Q``
-    (N, P), the anchor ``Q0`` (N, P) of sd ``prior_sigma`` and the third-difference sds ``sigma3``
+    (N, P), the anchor ``Q0`` (N, P) of sd ``prior_sigma`` and the difference sds ``sigma3``
     (P,) at scale 1; the search starts from ``start`` (G,) (a previous fit's scales; default 1) and
     stops at ``max_stiffness`` (:func:`stiffest_scale`; default ``MAX_STIFFNESS``).
-    Cross-group blocks of H are left out (groups are independent chains)."""
+    Cross-group blocks of H are left out (groups are independent chains).
+
+    Each group's prior is on the differences of its order in ``orders`` (G,) (default 3). With
+    ``candidates`` (orders, e.g. :data:`ORDERS`) the order is chosen too: for each candidate k every
+    group's scale is fitted with the k-th difference, and each group takes the order of largest
+    :meth:`ChainEvidence.across_orders` at its best scale (the same quadratic model of the data at
+    ``Q`` for every order; the optimum moves little between orders, and the caller solves again)."""
     idx = np.stack(groups)  # (G, d)
     Hg = np.ascontiguousarray(np.stack([H[:, i][:, :, i] for i in idx]))  # (G, N, d, d)
     w = 1.0 / prior_sigma**2
-    ev = ChainEvidence(Hg, np.stack([g[:, i] for i in idx]), np.stack([Q[:, i] for i in idx]),
-                       np.stack([Q0[:, i] for i in idx]), w, sigma3[idx])
+    chains = (Hg, np.stack([g[:, i] for i in idx]), np.stack([Q[:, i] for i in idx]), np.stack([Q0[:, i] for i in idx]),
+              w, sigma3[idx])
     lo = np.array([stiffest_scale(Hg[k], sigma3[i], w, max_stiffness) for k, i in enumerate(idx)])
+    G = len(idx)
     with one_blas_thread():
-        return best_scales(ev, lo, start=start)
+        if not candidates:
+            orders = np.full(G, 3) if orders is None else np.asarray(orders)
+            return MotionFit(best_scales(ChainEvidence(*chains, orders), lo, start=start), orders)
+        fits, evidence = {}, {}
+        for k in candidates:
+            ev = ChainEvidence(*chains, np.full(G, k))
+            fits[k] = best_scales(ev, lo, start=start if orders is not None and np.all(orders == k) else None)
+            evidence[k] = ev.across_orders(fits[k])
+    table = np.stack([evidence[k] for k in candidates])  # (K, G)
+    best = np.asarray(candidates)[np.argmax(table, axis=0)]
+    scales = np.array([fits[k][gi] for gi, k in enumerate(best)])
+    return MotionFit(scales, best, evidence)
 
 
 MAX_STIFFNESS = 1e7  # the motion's precision at most this many times the data's (per frame and parameter)

@@ -63,6 +63,10 @@ class SolveOptions:
     # the marginal likelihood (graph.smoothing), per marker for free points, one scale for a skeleton;
     # None: the default for the skeleton and method (default_motion_scale)
     motion_scale: float | Literal["auto"] | None = None
+    # the order k of the motion prior, on the k-th differences of each parameter: 3 (constant
+    # acceleration, the paper's), 2 (constant velocity), 1 (constant position), or "auto": chosen per
+    # group by the marginal likelihood (graph.smoothing), "fte" with motion_scale "auto" only
+    motion_order: int | Literal["auto"] = 3
     bone_lengths: list[tuple[str, str]] | None = None  # soft bone-length terms for "points"
     individual: str | None = None  # multi-animal DLC files: which individual
     lag_seconds: float = 0.25  # "ekf": the fixed-lag window
@@ -96,6 +100,11 @@ class SolveOptions:
                                                  and 0 < self.motion_scale <= MAX_MOTION_SCALE):
             raise ValueError(f"motion_scale must be positive and at most {MAX_MOTION_SCALE:g}, or 'auto', "
                              f"not {self.motion_scale!r}")
+        if self.motion_order not in (1, 2, 3, "auto") or isinstance(self.motion_order, bool):
+            raise ValueError(f"motion_order must be 1, 2, 3 or 'auto', not {self.motion_order!r}")
+        if self.motion_order != 3 and self.method != "fte":
+            raise ValueError(f"motion_order {self.motion_order!r} is for method 'fte' ({self.method!r} keeps 3: "
+                             "its stream is a constant-acceleration filter)")
         if not (0 < self.lag_seconds <= MAX_LAG_SECONDS):
             raise ValueError(f"lag_seconds must be positive and at most {MAX_LAG_SECONDS:g}, not {self.lag_seconds}")
         if self.body not in BODIES:
@@ -151,6 +160,8 @@ class SolveReport:
     noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.noise)
     # motion_scale "auto": the scale fitted per group ({marker: scale} for free points, {"all": scale})
     motion_scales: dict[str, float] | None = None
+    # motion_order "auto": the order chosen per group ({marker: 1, 2 or 3} for free points, {"all": k})
+    motion_orders: dict[str, int] | None = None
     # ensembles: each camera's detection noise relative to sigma_px (the median over its markers)
     relative_noise: dict[str, float] | None = None
     # the body's lengths, where estimated: {group or bone: {length_m, std_m, model_m}}

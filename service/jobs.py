@@ -178,6 +178,8 @@ class JobService:
                 msg = "must be a positive number of pixels or 'auto'"
             elif where == "motion_scale":
                 msg = "must be a positive number or 'auto'"
+            elif where == "motion_order":
+                msg = "must be 1, 2, 3 or 'auto'"
             raise Unprocessable(f"options: {where + ': ' if where else ''}{msg}")
         except (TypeError, ValueError) as e:
             raise Unprocessable(f"options: {e}")

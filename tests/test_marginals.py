@@ -49,3 +49,26 @@ def test_banded_marginals_are_the_blocks_of_the_inverse(N, d, G, stiff):
     for n in range(N):
         assert np.allclose(plain[n], chain[n * d:(n + 1) * d, n * d:(n + 1) * d], rtol=1e-7,
                            atol=1e-9 * np.max(np.abs(chain)))
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_chain_marginals_of_a_lower_order_prior_are_the_blocks_of_the_inverse(order):
+    """The first- and second-difference priors (motion_order 1, 2) leave the band's outer blocks
+    zero; the same recursion gives the blocks of the dense inverse."""
+    from graph.smoothing import STENCILS
+
+    N, d, stiff = 25, 3, 1e3
+    rng = np.random.default_rng(order)
+    A = rng.normal(size=(N, d, d))
+    G_frames = A @ np.transpose(A, (0, 2, 1)) + 0.1 * np.eye(d)
+    Dk = np.zeros(((N - order) * d, N * d))
+    for j in range(N - order):
+        for c, coef in enumerate(STENCILS[order]):
+            Dk[j * d:(j + 1) * d, (j + c) * d:(j + c + 1) * d] = coef * np.eye(d)
+    full = stiff * Dk.T @ Dk
+    for n in range(N):
+        full[n * d:(n + 1) * d, n * d:(n + 1) * d] += G_frames[n]
+    inv = np.linalg.inv(full)
+    ours = chain_marginals(G_frames, np.full(d, stiff), STENCILS[order])
+    for n in range(N):
+        assert np.allclose(ours[n], inv[n * d:(n + 1) * d, n * d:(n + 1) * d], rtol=1e-7, atol=1e-9 * np.abs(inv).max())

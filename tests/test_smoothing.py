@@ -12,25 +12,46 @@ from graph.api import SolveOptions, solve
 from graph.calibration import default_rig_path, load_calibration
 from graph.skeleton import POINTS_PROCESS_NOISE
 from graph.simulate import random_jerk_run, simulate_run
-from graph.smoothing import GroupEvidence, best_scale, third_difference_gram
+from graph.smoothing import STENCILS, ChainEvidence, GroupEvidence, best_scale, difference_gram, motion_band
 
 
-def _d3(N: int) -> np.ndarray:
-    D = np.zeros((N - 3, N))
-    for j in range(N - 3):
-        D[j, j:j + 4] = [-1.0, 3.0, -3.0, 1.0]
+def _dk(N: int, order: int = 3) -> np.ndarray:
+    D = np.zeros((N - order, N))
+    for j in range(N - order):
+        D[j, j:j + order + 1] = STENCILS[order]
     return D
 
 
-def test_third_difference_gram_is_dense_d3t_d3():
+def _d3(N: int) -> np.ndarray:
+    return _dk(N, 3)
+
+
+@pytest.mark.parametrize("order", [1, 2, 3])
+def test_difference_gram_is_dense_dkt_dk(order):
     N = 9
-    G = _d3(N).T @ _d3(N)
-    T = third_difference_gram(N)
+    G = _dk(N, order).T @ _dk(N, order)
+    T = difference_gram(N, order)
     for L in range(4):
-        np.testing.assert_allclose(T[L, :N - L], np.diagonal(G, -L))
+        np.testing.assert_allclose(T[L, :N - L], np.diagonal(G, -L), atol=0)
 
 
-def test_evidence_equals_the_dense_gaussian_evidence():
+def test_motion_band_of_chains_of_mixed_orders_is_the_dense_prior():
+    """Three chains of orders 1, 3, 2 (d = 2, their own weights c): the band holds
+    sum_i c_gi Dk^T Dk on each chain's block, in LAPACK's lower band form."""
+    N, d = 7, 2
+    orders = np.array([1, 3, 2])
+    c = np.array([[1.0, 2.0], [3.0, 0.5], [0.25, 4.0]])
+    ab = motion_band(c, N, orders)
+    dense = np.zeros((3 * N * d, 3 * N * d))
+    for g, k in enumerate(orders):
+        block = sum(c[g, i] * np.kron(_dk(N, k).T @ _dk(N, k), np.diag(np.eye(d)[i])) for i in range(d))
+        dense[g * N * d:(g + 1) * N * d, g * N * d:(g + 1) * N * d] = block
+    for L in range(ab.shape[0]):
+        np.testing.assert_allclose(ab[L, :3 * N * d - L], np.diagonal(dense, -L), atol=0)
+
+
+@pytest.mark.parametrize("order", [3, 2, 1])
+def test_evidence_equals_the_dense_gaussian_evidence(order):
     """For a quadratic data term the banded evidence is the Gaussian marginal likelihood computed
     densely (the detections y ~ N(x, H^-1), the anchor x0 ~ N(x, I/w), x from the motion prior,
     made proper by a tiny eps I whose normaliser does not depend on s), up to a constant."""
@@ -43,11 +64,11 @@ def test_evidence_equals_the_dense_gaussian_evidence():
     g = np.einsum("nij,nj->ni", H, x - y)  # gradient at x of 1/2 (x-y)^T H (x-y)
     x0 = y + rng.normal(scale=0.5, size=(N, d))
     w, sigma, eps = 0.05, np.array([0.4, 1.3]), 1e-7
-    ev = GroupEvidence(H, g, x, x0, w, sigma)
+    ev = GroupEvidence(H, g, x, x0, w, sigma, order)
     Hd = np.zeros((N * d, N * d))
     for n in range(N):
         Hd[n * d:(n + 1) * d, n * d:(n + 1) * d] = H[n]
-    D = _d3(N)
+    D = _dk(N, order)
     R = np.block([[np.linalg.inv(Hd), np.zeros((N * d, N * d))], [np.zeros((N * d, N * d)), np.eye(N * d) / w]])
     B = np.vstack([np.eye(N * d), np.eye(N * d)])
     z = np.concatenate([y.ravel(), x0.ravel()])
@@ -57,7 +78,7 @@ def test_evidence_equals_the_dense_gaussian_evidence():
         Am = sum(c[i] * np.kron(D.T @ D, np.diag(np.eye(d)[i])) for i in range(d))
         P = np.linalg.inv(Am + eps * np.eye(N * d))
         S = B @ P @ B.T + R
-        # N(0, (Am + eps I)^-1)'s normaliser det(Am + eps I)^(1/2) is pdet(Am)^(1/2) eps^(3d/2) to first
+        # N(0, (Am + eps I)^-1)'s normaliser det(Am + eps I)^(1/2) is pdet(Am)^(1/2) eps^(kd/2) to first
         # order: the improper prior's pdet times a constant, which the differences below cancel
         return -0.5 * z @ np.linalg.solve(S, z) - 0.5 * np.linalg.slogdet(S)[1]
 
@@ -216,3 +237,53 @@ def test_the_stiffest_smoothing_is_the_solvers_bound():
     ratio = np.array(list(ekf.report.motion_scales.values())) / np.array(list(fte.report.motion_scales.values()))
     np.testing.assert_allclose(ratio, math.sqrt(MAX_STIFFNESS / GTSAM_MAX_STIFFNESS), rtol=0.1)
     assert np.isfinite(fte.positions).all() and np.isfinite(ekf.positions).all()
+
+
+@pytest.mark.parametrize("order, process_noise", [(1, 0.002), (3, 0.5)])
+def test_auto_order_finds_the_order_the_points_moved_by(order, process_noise):
+    """Free points whose k-th differences are white (graph.simulate.random_jerk_run: a random walk
+    for k = 1, constant acceleration's model for k = 3), 2 px noise: motion_order 'auto' chooses k
+    for every marker (the fractional Bayes factor; the plain evidence is defined only up to a
+    constant of the order), reports it, and is as accurate as the true order given."""
+    cal = load_calibration(default_rig_path())
+    run = random_jerk_run(cal, frames=300, process_noise=process_noise, noise=2.0, seed=2, order=order)
+    kw = dict(skeleton="points", fps=run.fps, motion_scale="auto", uncertainty=False)
+    auto = solve(run.keypoints, cal, SolveOptions(motion_order="auto", **kw))
+    assert auto.report.motion_orders == {m: order for m in run.markers}
+    given = solve(run.keypoints, cal, SolveOptions(motion_order=order, **kw))
+    err = lambda r: float(np.nanmean(np.linalg.norm(r.positions - run.positions, axis=-1)))  # noqa: E731
+    assert err(auto) == pytest.approx(err(given), rel=0.02)
+    assert given.report.motion_orders is None
+    other = solve(run.keypoints, cal, SolveOptions(motion_order=4 - order, **kw))
+    assert err(auto) < err(other)
+
+
+def test_fractional_evidence_does_not_depend_on_the_anchor_width():
+    """The order comparison's verdict is the data's: the anchor's precision w, the only other
+    proper part of the prior, changes the fractional Bayes factor between orders by little."""
+    rng = np.random.default_rng(7)
+    N, d = 200, 1
+    t = np.arange(N) / N
+    y = np.sin(6 * t)[:, None] + rng.normal(scale=0.01, size=(N, d))
+    H = np.full((N, d, d), 1e4)
+    x = y.copy()
+    g = np.zeros((N, d))
+    verdicts = []
+    for w in (1e-4, 1e-2, 1.0):
+        values = [ChainEvidence(H[None], g[None], x[None], y[None], w, np.ones((1, d)), np.array([k])).across_orders(
+            np.array([s])) for k, s in ((1, 0.1), (3, 1e-3))]
+        verdicts.append(float(values[1][0] - values[0][0]))
+    assert max(verdicts) - min(verdicts) < 0.05 * abs(verdicts[0])
+
+
+def test_motion_order_options():
+    """motion_order takes 1, 2, 3 or 'auto'; other methods keep 3; 'auto' needs the scale fitted."""
+    for bad in (0, 4, "fast", True):
+        with pytest.raises(ValueError, match="motion_order"):
+            SolveOptions(motion_order=bad)
+    with pytest.raises(ValueError, match="motion_order"):
+        SolveOptions(method="ekf", motion_order=1)
+    cal = load_calibration(default_rig_path())
+    run = random_jerk_run(cal, frames=40, markers=2, seed=1)
+    with pytest.raises(ValueError, match="motion_scale 'auto'"):
+        solve(run.keypoints, cal, SolveOptions(skeleton="points", fps=run.fps, motion_scale=1.0, motion_order="auto"))
