@@ -1,4 +1,4 @@
-"""Full Trajectory Estimation (``--method fte``): the whole run as one GTSAM factor graph.
+"""Full Trajectory Estimation (``--method fte``): the whole run as one factor graph.
 
 Variables: the pose ``q_n`` (P,) of every frame n (GTSAM key n). The cost is
 
@@ -14,7 +14,8 @@ skeleton's per-parameter process noise.
 
 Solver: Levenberg-Marquardt driven from Python. Each iteration linearises the measurement part
 of all frames in one compiled call (:func:`graph.kernels.all_normals`: the IRLS-weighted normal
-equations ``H_n, g_n`` of every frame), and builds a :class:`gtsam.GaussianFactorGraph` of
+equations ``H_n, g_n`` of every frame). The damped system is the :class:`gtsam.GaussianFactorGraph`
+of :meth:`TrajectoryProblem.linear_graph`:
 
 * one ``HessianFactor`` per frame: the frame's normal equations, the anchor and the Marquardt
   damping ``lambda I`` (see :class:`TrajectoryProblem`);
@@ -22,7 +23,11 @@ equations ``H_n, g_n`` of every frame), and builds a :class:`gtsam.GaussianFacto
   ``q_{n+3} | q_n, q_{n+1}, q_{n+2}``, as a ``JacobianFactor`` kept in Hessian form: the Python
   ``JacobianFactor`` constructors stop at three keys);
 
-which GTSAM eliminates (banded, natural ordering). Steps are clipped to the bounds. Graduated
+and is solved as GTSAM eliminates that graph (banded, natural ordering: the Bayes net of the chain,
+then back substitution), by a compiled block Cholesky of the same matrix in the same order
+(:meth:`TrajectoryProblem.solve_chain`, equal to GTSAM's solution to 1e-9 in the tests): building
+the graph from Python cost more than eliminating it. Free points without bones are independent
+chains, solved by LAPACK's banded Cholesky (:meth:`TrajectoryProblem.solve_chains`). Steps are clipped to the bounds. Graduated
 robustness: the first step (:data:`STRETCHED_STEPS`) uses the loss with its knots a, b, c
 stretched by 4, so that detections far from a rough start are not rejected before the pose comes
 to them.
@@ -36,7 +41,6 @@ from __future__ import annotations
 
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import gtsam
@@ -44,7 +48,7 @@ import numpy as np
 
 from graph import kernels
 from graph.initial import initial_poses
-from graph.marginals import chain_marginals
+from graph.marginals import chain_band, chain_marginals, solve_band
 from graph.noise import scatter_px
 from graph.problem import AUTO_RANGE_PX, Problem
 from graph.result import build_result
@@ -139,8 +143,6 @@ class TrajectoryProblem:
         self._motion_graph: list | None = None
         self._motion_band: np.ndarray | None = None
         self._kept_normals: tuple | None = None  # (state, stretch, sigma_px, normals): normals_at
-        if not self.chains:
-            self._motion_graph = self._motion_factors()  # built now: solve_fte builds us in a thread
         self._ordering = gtsam.Ordering()
         for k in range(len(self.groups) * N):
             self._ordering.push_back(k)
@@ -266,11 +268,34 @@ class TrajectoryProblem:
         return Q
 
     def solve_linear(self, Q, H, g, lam: float) -> np.ndarray:
-        """The minimiser Q' of the damped system at Q: GTSAM's elimination of :meth:`linear_graph`,
-        or, for independent chains, :meth:`solve_chains`."""
+        """The minimiser Q' of the damped system at Q: for independent chains :meth:`solve_chains`,
+        else the compiled elimination of the one chain (:meth:`solve_chain`); both equal GTSAM's
+        elimination of :meth:`linear_graph` (tests)."""
         if self.chains:
             return self.solve_chains(Q, H, g, lam)
-        return self._solution(self.linear_graph(Q, H, g, lam).optimize(self._ordering))
+        return self.solve_chain(Q, H, g, lam)
+
+    def solve_chain(self, Q, H, g, lam: float) -> np.ndarray:
+        """The damped system of :meth:`linear_graph` for one group, by the block Cholesky
+        factorisation of its chain in time order and two substitutions
+        (:func:`graph.marginals.chain_forward`, :func:`~graph.marginals.chain_backward`), compiled:
+        the elimination GTSAM makes of the same graph, in the same order, without building the
+        graph's N + N - k factors (motion factors that took 22 ms to build at 150 frames, and 10 ms a
+        step to eliminate where this takes 5: bench/RESULTS.md, section 13c)."""
+        w = 1.0 / PRIOR_SIGMA**2
+        band = self.chain_band(H + (w + lam) * np.eye(self.P))
+        rhs = np.einsum("npq,nq->np", H, Q) - g + w * self.Q0 + lam * Q
+        try:
+            return solve_band(band, np.zeros((self.N, self.P, 0)), rhs, np.zeros((0, 0)), np.zeros(0))[0]
+        except np.linalg.LinAlgError as e:
+            raise RuntimeError(f"the smoother's system is not positive definite: {e}") from None
+
+    def chain_band(self, G: np.ndarray) -> np.ndarray:
+        """The one group's information as chain blocks (:func:`graph.marginals.chain_band`): the
+        per-frame ``G`` (N, P, P) and the motion prior of the group's order."""
+        from graph.smoothing import STENCILS
+
+        return chain_band(np.ascontiguousarray(G), 1.0 / self.sigma3**2, STENCILS[int(self.orders[0])])
 
     def solve_chains(self, Q, H, g, lam: float) -> np.ndarray:
         """The same system as :meth:`linear_graph` for free points without bones, whose markers are
@@ -514,14 +539,8 @@ def solve_fte(prob: Problem, progress: ProgressCallback | None = None) -> Result
         progress(Progress(stage="initialise", fraction=0.0))
     X, _, _ = robust_points(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
     bl = bone_lengths(prob, X) if prob.skeleton.kind == "points" else None
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        # GTSAM's motion factors are built (holding the GIL) on one core while the compiled inverse
-        # kinematics (which releases it) runs on the other
-        building = pool.submit(TrajectoryProblem, prob, np.zeros((prob.frames, prob.skeleton.n_params)), bl)
-        Q0 = initial_poses(prob, X)
-        tp = building.result()
-    tp.Q0 = Q0  # the weak anchor's target, known now
-    return solve_from(tp, Q0.copy(), t0, progress)
+    tp = TrajectoryProblem(prob, initial_poses(prob, X), bl)  # Q0: the weak anchor's target
+    return solve_from(tp, tp.Q0.copy(), t0, progress)
 
 
 def solve_from(tp: TrajectoryProblem, X0, t0: float, progress: ProgressCallback | None = None) -> Result:

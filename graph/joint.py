@@ -14,10 +14,12 @@ Unknowns: the poses ``q_n`` and one vector ``W`` shared by all frames:
   centres each on the whole-frame search (:mod:`graph.sync`).
 
 The cost is ``fte``'s (:mod:`graph.fte`) with the detections so evaluated, plus
-``1/2 |(W - W0) / sd|^2``. Each Gauss-Newton system is one GTSAM graph: per frame a
-``HessianFactor`` on ``(q_n, q_{n+1}, W)`` (``(q_n, W)`` without time offsets), the motion
-factors, and one factor on ``W``, eliminated in time order with ``W`` last: the arrow-head on the
-banded chain, linear in frames. The marginals, of the poses and of ``W``, come from the same
+``1/2 |(W - W0) / sd|^2``. Each Gauss-Newton system is one GTSAM graph
+(:meth:`JointTrajectoryProblem.joint_graph`): per frame a ``HessianFactor`` on ``(q_n, q_{n+1}, W)``
+(``(q_n, W)`` without time offsets), the motion factors, and one factor on ``W``, eliminated in time
+order with ``W`` last: the arrow-head on the banded chain, linear in frames. The step makes that
+elimination compiled, without building the graph (:meth:`JointTrajectoryProblem.step`,
+:func:`graph.marginals.chain_forward`; equal to GTSAM's to 1e-9 in the tests). The marginals, of the poses and of ``W``, come from the same
 structure in one compiled pass (:func:`graph.marginals.banded_marginals`); a marker's sd includes
 the lengths' own uncertainty, ``Var p = [J_q J_l] Cov(q_n, l) [J_q J_l]^T``.
 
@@ -30,7 +32,6 @@ names those cameras.
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
@@ -41,7 +42,7 @@ from graph import kernels
 from graph.errors import InputError
 from graph.fte import PRIOR_SIGMA, Estimate, TrajectoryProblem, bone_lengths, solve_fte, solve_from
 from graph.initial import initial_poses
-from graph.marginals import banded_marginals, chain_band, eliminated_tail
+from graph.marginals import banded_marginals, chain_backward, chain_band, chain_forward, eliminated_tail
 from graph.smoothing import STENCILS
 from graph.problem import Problem
 from graph.robust import A as RA, B as RB, C as RC
@@ -197,6 +198,30 @@ class JointTrajectoryProblem(TrajectoryProblem):
         return Gd, gv, GW, gW
 
     def step(self, X: JointState, nrm: JointNormals, lam: float) -> JointState:
+        """The damped Gauss-Newton step: each group's chain (with the neighbouring frames' coupling
+        ``Hx``) eliminated in time order by the compiled block Cholesky
+        (:func:`graph.marginals.chain_forward`), W's system reduced by every chain and solved, then
+        each chain's back substitution: the elimination GTSAM makes of :meth:`joint_graph` (tests)."""
+        Gd, gv, GW, gW = self._system(X, nrm, lam)
+        w2 = 1.0 / self.sigma3**2
+        factors = []
+        for order, idx in zip(self.orders, self.groups):
+            a, b = idx[0], idx[-1] + 1
+            band = chain_band(np.ascontiguousarray(Gd[:, a:b, a:b]), w2[a:b], STENCILS[int(order)])
+            band[:-1, 1] += nrm.Hx[:-1, a:b, a:b]
+            factors.append(chain_forward(band, np.ascontiguousarray(nrm.HW[:, a:b]), np.ascontiguousarray(gv[:, a:b])))
+        try:
+            W = np.linalg.solve(GW - sum(f[3] for f in factors), gW - sum(f[4] for f in factors))
+        except np.linalg.LinAlgError as e:
+            raise RuntimeError(f"the smoother's system is not positive definite: {e}") from None
+        Q = np.empty_like(X.Q)
+        for idx, f in zip(self.groups, factors):
+            Q[:, idx[0]:idx[-1] + 1] = chain_backward(f[0], f[1], f[2], W)
+        sk = self.prob.skeleton
+        return JointState(np.clip(Q, sk.lower, sk.upper), np.clip(W, self.unknowns.lower, self.unknowns.upper))
+
+    def joint_graph(self, X: JointState, nrm: JointNormals, lam: float) -> gtsam.GaussianFactorGraph:
+        """The same damped system as GTSAM's graph (the reference :meth:`step` is tested against)."""
         Gd, gv, GW, gW = self._system(X, nrm, lam)
         graph = gtsam.GaussianFactorGraph()
         for f in self._motion:
@@ -217,11 +242,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
                 else:
                     graph.add(gtsam.HessianFactor(k, kw, Gg[n], HWg[n], gg[n], zGG, zG, 0.0))
         graph.add(gtsam.HessianFactor(kw, GW, gW, 0.0))
-        vv = graph.optimize(self._ordering)
-        sk = self.prob.skeleton
-        Q = np.clip(self._solution(vv), sk.lower, sk.upper)
-        W = np.clip(vv.at(kw), self.unknowns.lower, self.unknowns.upper)
-        return JointState(Q, W)
+        return graph
 
     @staticmethod
     def change(X: JointState, Xn: JointState) -> float:
@@ -447,12 +468,5 @@ def solve_fte_joint(prob: Problem, progress: ProgressCallback | None = None) -> 
     scales0, _, _ = unknowns.split(W0)
     start = replace(prob, skeleton=prob.skeleton.scaled(scales0) if prob.skeleton.kind != "points" else prob.skeleton,
                     meas=meas_ref, valid=valid_ref)
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        # GTSAM's motion factors are built (holding the GIL) while the compiled inverse kinematics
-        # (which releases it) runs, as in graph.fte
-        building = pool.submit(JointTrajectoryProblem, prob, np.zeros((prob.frames, prob.skeleton.n_params)),
-                               unknowns, bl)
-        Q0 = initial_poses(start, X)
-        tp = building.result()
-    tp.Q0 = Q0
-    return solve_from(tp, JointState(Q0.copy(), W0), t0, progress)
+    tp = JointTrajectoryProblem(prob, initial_poses(start, X), unknowns, bl)  # Q0: the anchor's target
+    return solve_from(tp, JointState(tp.Q0.copy(), W0), t0, progress)

@@ -1,4 +1,5 @@
-"""Marginal covariances of every frame of a trajectory chain, in one compiled pass.
+"""Marginal covariances of every frame of a trajectory chain, in one compiled pass; and the
+chain's linear solves (:func:`solve_band`) by the same block Cholesky elimination.
 
 The FTE information matrix (undamped, at the optimum) of one parameter group is block-banded:
 
@@ -37,15 +38,20 @@ D3 = np.array([-1.0, 3.0, -3.0, 1.0])  # coefficients of q_j .. q_{j+3} in the t
 
 @njit(cache=True)
 def _lower_solve(L, B):
-    """``L^-1 B`` for lower-triangular ``L`` (forward substitution, column by column of B)."""
+    """``L^-1 B`` for lower-triangular ``L`` (forward substitution, a row of X at a time: the inner
+    loop runs along B's rows, contiguous; each entry sums its terms in the textbook's order)."""
     n, k = B.shape
     X = np.empty((n, k))
-    for c in range(k):
-        for i in range(n):
-            acc = B[i, c]
-            for j in range(i):
-                acc -= L[i, j] * X[j, c]
-            X[i, c] = acc / L[i, i]
+    for i in range(n):
+        for c in range(k):
+            X[i, c] = B[i, c]
+        for j in range(i):
+            lij = L[i, j]
+            for c in range(k):
+                X[i, c] -= lij * X[j, c]
+        inv = L[i, i]
+        for c in range(k):
+            X[i, c] /= inv
     return X
 
 
@@ -270,3 +276,78 @@ def _backward(Ds, Cs, Ws, M):
         S = np.linalg.inv(_schur(M, d))
         out[n] = 0.5 * (S + S.T)
     return out
+
+
+@njit(cache=True)
+def chain_forward(band, B, r):
+    """The forward half of a solve with a chain's information (``band`` (N, 4, d, d) as in
+    :func:`banded_marginals`, coupled by ``B`` (N, d, G) to unknowns W shared by every frame) and
+    right-hand side ``r`` (N, d): the block Cholesky factorisation in time order, every frame
+    eliminated (the chain's last frames too), and the forward substitution with it. Frame n's
+    factor is ``C_n = chol(D_n)`` with ``D_n`` its block once the frames before it are eliminated,
+    ``W_n = C_n^-1 [band[n, 1..3], B_n]`` its coupling to the next three frames and W, and
+    ``y_n = C_n^-1 r_n``; later blocks lose ``W_ni^T W_nj``, later right-hand sides ``W_ni^T y_n``.
+    Returns ``C`` (N, d, d), ``W`` (N, d, 3d + G), ``y`` (N, d), and what the chain takes off W's
+    information and right-hand side: ``sum_n W_ng^T W_ng`` (G, G) and ``sum_n W_ng^T y_n`` (G,)."""
+    N, d = band.shape[0], band.shape[2]
+    G = B.shape[2]
+    band = band.copy()
+    B = B.copy()
+    r = r.copy()
+    m = 3 * d + G
+    Cs = np.empty((N, d, d))
+    Ws = np.zeros((N, d, m))
+    ys = np.empty((N, d))
+    taken = np.zeros((G, G))
+    taken_r = np.zeros(G)
+    Wb = np.empty((3, d, d))
+    for n in range(N):
+        k_max = min(3, N - 1 - n)
+        U = np.zeros((d, m))
+        for k in range(k_max):
+            U[:, k * d:(k + 1) * d] = band[n, k + 1]
+        U[:, 3 * d:] = B[n]
+        C = np.linalg.cholesky(band[n, 0])
+        W = _lower_solve(C, U)
+        y = _lower_solve(C, np.ascontiguousarray(r[n]).reshape(d, 1))[:, 0]
+        for i in range(k_max):
+            Wb[i] = W[:, i * d:(i + 1) * d]
+        Wg = np.ascontiguousarray(W[:, 3 * d:])
+        for i in range(1, k_max + 1):
+            for j in range(i, k_max + 1):
+                band[n + i, j - i] -= Wb[i - 1].T @ Wb[j - 1]
+            B[n + i] -= Wb[i - 1].T @ Wg
+            r[n + i] -= Wb[i - 1].T @ y
+        taken += Wg.T @ Wg
+        taken_r += Wg.T @ y
+        Cs[n] = C
+        Ws[n] = W
+        ys[n] = y
+    return Cs, Ws, ys, taken, taken_r
+
+
+@njit(cache=True)
+def chain_backward(Cs, Ws, ys, xW):
+    """The back substitution of a solve factored by :func:`chain_forward`, given the shared
+    unknowns' solution ``xW`` (G,): ``x_n = C_n^-T (y_n - sum_k W_nk x_{n+k} - W_ng xW)``, last
+    frame first. Returns x (N, d)."""
+    N, d = ys.shape
+    x = np.empty((N, d))
+    for n in range(N - 1, -1, -1):
+        k_max = min(3, N - 1 - n)
+        rhs = ys[n] - np.ascontiguousarray(Ws[n][:, 3 * d:]) @ xW
+        for k in range(k_max):
+            rhs -= np.ascontiguousarray(Ws[n][:, k * d:(k + 1) * d]) @ x[n + k + 1]
+        x[n] = _upper_solve(Cs[n].T.copy(), rhs.reshape(d, 1))[:, 0]
+    return x
+
+
+def solve_band(band, B, r, Dw, rW):
+    """``x`` (N, d) and ``xW`` (G,) solving ``[[A, B], [B^T, Dw]] [x; xW] = [r; rW]`` for a
+    chain's information ``A`` (``band``), its coupling ``B`` (N, d, G) to shared unknowns W and W's
+    own ``Dw`` (G, G): :func:`chain_forward`, W's reduced system ``(Dw - taken) xW = rW - taken_r``
+    solved densely, :func:`chain_backward`. ``numpy.linalg.LinAlgError`` where a pivot block is not
+    positive definite."""
+    C, W, y, taken, taken_r = chain_forward(band, B, r)
+    xW = np.linalg.solve(Dw - taken, rW - taken_r) if len(rW) else np.zeros(0)
+    return chain_backward(C, W, y, xW), xW

@@ -201,3 +201,40 @@ def test_cli_body_and_sync_round_trip(tmp_path, rig):
         assert proc.returncode == 2, proc.stderr
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and words in lines[0], proc.stderr
+
+
+def test_the_compiled_joint_step_is_gtsams_elimination(rig):
+    """With the body's lengths and the clocks estimated (the frames coupled to their neighbours by
+    the offsets, every frame to W): the compiled step equals GTSAM's elimination of the same graph,
+    on the cheetah and on free points whose markers are separate chains sharing W."""
+    import gtsam
+
+    from graph import joint
+
+    taken = []
+    original = joint.JointTrajectoryProblem.step
+
+    def step(self, X, nrm, lam):
+        if not taken:
+            taken.append((self, X, nrm, lam))
+        return original(self, X, nrm, lam)
+
+    run = simulate_run(rig, frames=60, seed=3, time_offsets=[0.0, 0.4, -1.3, 0.0, 2.6, 0.0])
+    for skeleton in ("cheetah", "points"):
+        taken.clear()
+        joint.JointTrajectoryProblem.step = step
+        try:
+            solve(run.keypoints, rig, SolveOptions(fps=run.fps, skeleton=skeleton, sync="estimate", uncertainty=False,
+                                                   max_iterations=3))
+        finally:
+            joint.JointTrajectoryProblem.step = original
+        tp, X, nrm, lam = taken[0]
+        assert np.any(nrm.Hx) and tp.G > 0
+        ours = tp.step(X, nrm, lam)
+        vv = tp.joint_graph(X, nrm, lam).optimize(tp._ordering)
+        sk = tp.prob.skeleton
+        Q = np.clip(tp._solution(vv), sk.lower, sk.upper)
+        W = np.clip(vv.at(tp.w_key), tp.unknowns.lower, tp.unknowns.upper)
+        assert np.abs(ours.Q - Q).max() <= 1e-9 * np.abs(Q).max()
+        assert np.abs(ours.W - W).max() <= 1e-9 * max(np.abs(W).max(), 1.0)
+        assert isinstance(vv, gtsam.VectorValues)

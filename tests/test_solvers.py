@@ -192,6 +192,28 @@ def test_marginal_covariances_are_the_bayes_trees(rig, skeleton, bones):
     assert np.all(np.linalg.eigvalsh(ours[:, :3, :3]) > 0)
 
 
+@pytest.mark.parametrize("skeleton,order", [("cheetah", 3), ("points", 3), ("points", 1)])
+def test_the_compiled_chain_solve_is_gtsams_elimination(rig, skeleton, order):
+    """One group (the cheetah, or free points joined by bones): the damped step by the compiled
+    block Cholesky equals GTSAM's elimination of the same linear graph, in each order."""
+    from graph import fte
+    from graph.initial import initial_poses
+    from graph.triangulate import triangulate
+
+    run = simulate_run(rig, frames=150, fps=120, noise=5.0, outliers=0.1, outlier_std=100, seed=4)
+    opts = SolveOptions(method="fte", fps=run.fps, skeleton=skeleton, motion_order=order,
+                        bone_lengths=list(run.bones) if skeleton == "points" else None)
+    prob = build(run.keypoints, run.calibration, opts)
+    X, _, _, _ = triangulate(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
+    tp = TrajectoryProblem(prob, initial_poses(prob, X), fte.bone_lengths(prob, X) if skeleton == "points" else None)
+    assert not tp.chains and tp._motion_graph is None  # GTSAM's factors are not built to solve
+    nrm = tp.normals(tp.Q0, 4.0)
+    for lam in (1e-3, 0.0):
+        ours = tp.solve_linear(tp.Q0, nrm.H, nrm.g, lam)
+        theirs = tp._solution(tp.linear_graph(tp.Q0, nrm.H, nrm.g, lam).optimize(tp._ordering))
+        assert np.abs(ours - theirs).max() <= 1e-9 * np.abs(theirs).max()
+
+
 def test_running_median_and_mean_equal_scipy_ndimage_with_nearest_ends():
     from scipy.ndimage import median_filter, uniform_filter1d
 
