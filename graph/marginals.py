@@ -288,10 +288,11 @@ def chain_forward(band, B, r):
     ``W_n = C_n^-1 [band[n, 1..3], B_n]`` its coupling to the next three frames and W, and
     ``y_n = C_n^-1 r_n``; later blocks lose ``W_ni^T W_nj``, later right-hand sides ``W_ni^T y_n``.
     Returns ``C`` (N, d, d), ``W`` (N, d, 3d + G), ``y`` (N, d), and what the chain takes off W's
-    information and right-hand side: ``sum_n W_ng^T W_ng`` (G, G) and ``sum_n W_ng^T y_n`` (G,)."""
+    information and right-hand side: ``sum_n W_ng^T W_ng`` (G, G) and ``sum_n W_ng^T y_n`` (G,).
+    ``band`` is overwritten (the eliminated blocks: not copied, 10 MB at 500 frames of 25
+    parameters); ``B`` and ``r`` are not."""
     N, d = band.shape[0], band.shape[2]
     G = B.shape[2]
-    band = band.copy()
     B = B.copy()
     r = r.copy()
     m = 3 * d + G
@@ -347,7 +348,7 @@ def solve_band(band, B, r, Dw, rW):
     chain's information ``A`` (``band``), its coupling ``B`` (N, d, G) to shared unknowns W and W's
     own ``Dw`` (G, G): :func:`chain_forward`, W's reduced system ``(Dw - taken) xW = rW - taken_r``
     solved densely, :func:`chain_backward`. ``numpy.linalg.LinAlgError`` where a pivot block is not
-    positive definite."""
+    positive definite. ``band`` is overwritten."""
     C, W, y, taken, taken_r = chain_forward(band, B, r)
     xW = np.linalg.solve(Dw - taken, rW - taken_r) if len(rW) else np.zeros(0)
     return chain_backward(C, W, y, xW), xW
