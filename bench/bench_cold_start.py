@@ -1,6 +1,6 @@
 """What a user waits for: the whole ``acinoset solve`` process from a shell, against aniposelib.
 
-    python bench/bench_cold_start.py [--frames 150] [--repeats 5] [--compile]
+    python bench/bench_cold_start.py [--frames 150] [--repeats 5] [--compile] [--install regular]
 
 A simulated 150-frame run on the AcinoSet rig (6 cameras, 120 fps, 5 px noise, 10 % outliers;
 bench/harness.py), written as a user brings it (``cam1.csv`` ... and ``calibration.toml``). Timed:
@@ -19,6 +19,13 @@ bench/harness.py), written as a user brings it (``cam1.csv`` ... and ``calibrati
 
 The package's modules are byte-compiled first, as ``pip install`` leaves them (an environment with
 ``PYTHONDONTWRITEBYTECODE`` set would otherwise compile every module from source in every process).
+
+``--install regular`` times the ``acinoset`` of a user's install instead of this editable one: a
+temporary virtual environment with the project installed by pip, not editable, and this
+environment's dependencies on its path. An editable install puts setuptools' import finder in every
+process's start (``site`` imports it, with ``pathlib``, ``re`` and ``urllib.parse``: 18 ms of a
+30 ms interpreter start here); an install from PyPI or ``pip install .`` has none. Its kernels
+compile once in that environment before the timed runs (the bench says so).
 
 Writes bench/results/cold_start.json.
 """
@@ -45,6 +52,33 @@ from graph.keypoints import write_dlc_csv
 ACINOSET = str(Path(sys.executable).with_name("acinoset"))
 
 
+def regular_install(dest: Path) -> str:
+    """The project installed at ``dest`` as ``pip install .`` leaves it (no editable finder), in a
+    virtual environment that sees this one's dependencies; returns its ``acinoset``."""
+    import sysconfig
+
+    root = Path(__file__).resolve().parents[1]
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(dest)], check=True)
+    python = dest / "bin" / "python"
+    site = Path(subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                               capture_output=True, text=True, check=True).stdout.strip())
+    (site / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")  # this venv's packages, after its own
+    with tempfile.TemporaryDirectory() as build:  # a copy: pip's build must not write into the checkout
+        src = Path(build) / "src"
+        shutil.copytree(root, src, ignore=shutil.ignore_patterns(".venv", ".git", "__pycache__", "results", "*.egg-info"))
+        subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps",
+                        "--target", str(site), str(src)], check=True)
+    script = dest / "bin" / "acinoset"  # pip's console script, run by the new environment's python
+    made = (site / "bin" / "acinoset").read_text().split("\n", 1)[1]
+    script.write_text(f"#!{python}\n{made}")
+    script.chmod(0o755)
+    import compileall
+
+    for package in ("graph", "service"):
+        compileall.compile_dir(site / package, quiet=1)
+    return str(script)
+
+
 def wall(cmd: list[str], env: dict | None = None) -> tuple[float, subprocess.CompletedProcess]:
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
@@ -64,7 +98,10 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--compile", action="store_true", help="also time a first run with an empty kernel cache")
+    ap.add_argument("--install", choices=["editable", "regular"], default="editable",
+                    help="whose acinoset: this editable install's, or a temporary regular install's")
     args = ap.parse_args()
+    global ACINOSET
     warnings.filterwarnings("ignore")
     import compileall
 
@@ -81,6 +118,9 @@ def main() -> int:
     out: dict = {"machine": info, "args": vars(args)}
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
+        if args.install == "regular":
+            ACINOSET = regular_install(d / "venv")
+            print(f"  a regular install at {d / 'venv'}; its kernels compile in the first run", flush=True)
         cams = []
         for name, kp in zip(cal.names, run.keypoints):
             write_dlc_csv(d / f"{name}.csv", kp)
