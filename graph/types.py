@@ -103,8 +103,8 @@ class SolveOptions:
         if self.motion_order not in (1, 2, 3, "auto") or isinstance(self.motion_order, bool):
             raise ValueError(f"motion_order must be 1, 2, 3 or 'auto', not {self.motion_order!r}")
         if self.motion_order != 3 and self.method != "fte":
-            raise ValueError(f"motion_order {self.motion_order!r} is for method 'fte' ({self.method!r} keeps 3: "
-                             "its stream is a constant-acceleration filter)")
+            why = "it has no motion model" if self.method == "tri" else "its stream is a constant-acceleration filter"
+            raise ValueError(f"motion_order {self.motion_order!r} is for method 'fte' ({self.method!r}: {why})")
         if not (0 < self.lag_seconds <= MAX_LAG_SECONDS):
             raise ValueError(f"lag_seconds must be positive and at most {MAX_LAG_SECONDS:g}, not {self.lag_seconds}")
         if self.body not in BODIES:

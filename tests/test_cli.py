@@ -330,6 +330,25 @@ def test_solve_motion_scale_auto(run_dir, tmp_path):
     assert bad.returncode == 2 and "--motion-scale" in bad.stderr and len(bad.stderr.splitlines()) == 1
 
 
+def test_solve_motion_order(run_dir, tmp_path):
+    """``--motion-order auto`` (with the scale fitted, the points' default): each marker's order
+    is in the report and counted on the summary line; 'auto' with a fixed scale, and an order
+    that is not 1, 2, 3 or auto, are one line each."""
+    report = tmp_path / "report.json"
+    args = solve_args(run_dir, tmp_path)[:-2]
+    proc = run_cli(*args, "--method", "fte", "--skeleton", "points", "--motion-order", "auto",
+                   "--out", tmp_path / "out.csv", "--report", report)
+    assert proc.returncode == 0, proc.stderr
+    assert "motion order" in proc.stdout
+    orders = json.loads(report.read_text())["motion_orders"]
+    assert set(orders) == set(MARKERS) and set(orders.values()) <= {1, 2, 3}
+    fixed = run_cli(*args, "--method", "fte", "--skeleton", "points", "--motion-scale", "1", "--motion-order", "auto",
+                    "--out", tmp_path / "out2.csv")
+    assert fixed.returncode == 2 and "motion_scale 'auto'" in fixed.stderr and len(fixed.stderr.splitlines()) == 1
+    bad = run_cli(*args, "--motion-order", "4", "--out", tmp_path / "out3.csv")
+    assert bad.returncode == 2 and "--motion-order" in bad.stderr and len(bad.stderr.splitlines()) == 1
+
+
 def test_solve_an_ensemble_per_camera(run_dir, tmp_path):
     """``CAM_a.csv+CAM_b.csv``: an ensemble of two models per camera, combined; the report gives each
     camera's relative noise, and a missing member is named."""
