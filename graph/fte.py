@@ -27,10 +27,10 @@ and is solved as GTSAM eliminates that graph (banded, natural ordering: the Baye
 then back substitution), by a compiled block Cholesky of the same matrix in the same order
 (:meth:`TrajectoryProblem.solve_chain`, equal to GTSAM's solution to 1e-9 in the tests): building
 the graph from Python cost more than eliminating it. Free points without bones are independent
-chains, solved by LAPACK's banded Cholesky (:meth:`TrajectoryProblem.solve_chains`). Steps are clipped to the bounds. Graduated
-robustness: the first step (:data:`STRETCHED_STEPS`) uses the loss with its knots a, b, c
-stretched by 4, so that detections far from a rough start are not rejected before the pose comes
-to them.
+chains, solved by LAPACK's banded Cholesky (:meth:`TrajectoryProblem.solve_chains`). Steps are
+clipped to the bounds. Graduated robustness: the first step (:data:`STRETCHED_STEPS`) uses the
+loss with its knots a, b, c stretched by 4, so that detections far from a rough start are not
+rejected before the pose comes to them.
 
 Uncertainty: the marginal covariance ``Sigma_n`` of each ``q_n`` under the final (undamped)
 linearisation, the Bayes tree's numbers in one compiled pass (:mod:`graph.marginals`), and
@@ -133,8 +133,8 @@ class TrajectoryProblem:
         self.motion_scales = np.full(len(self.groups), 1.0 if scale == "auto" else float(scale))
         # the order of each group's motion prior: the prior is on its k-th differences (3: constant
         # acceleration, the paper's model). motion_order "auto" starts at 3 and is chosen by fit_motion
-        order = getattr(prob.options, "motion_order", None)
-        self.orders = np.full(len(self.groups), 3 if order in (None, "auto") else int(order), dtype=np.int64)
+        order = prob.options.motion_order
+        self.orders = np.full(len(self.groups), 3 if order == "auto" else int(order), dtype=np.int64)
         # free points without bones: independent chains, solved by banded Cholesky (solve_linear)
         self.chains = len(self.groups) > 1
         # the stiffest smoothing a fit may choose (graph.smoothing.stiffest_scale); ekf's stream, which
@@ -502,7 +502,7 @@ def refit_motion(tp: TrajectoryProblem, X, cost: float, max_iterations: int):
     the first fit also chooses each group's order (the later ones keep it). Returns (X, iterations,
     cost)."""
     iterations = 0
-    choose = getattr(tp.prob.options, "motion_order", None) == "auto"
+    choose = tp.prob.options.motion_order == "auto"
     for _ in range(MOTION_ROUNDS):
         moved = fit_motion(tp, X, choose_orders=choose)
         choose = False
@@ -625,7 +625,7 @@ def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[st
     report = dict(est.report or {})
     if prob.options.motion_scale == "auto":
         report["motion_scales"] = {name: float(v) for name, v in zip(tp.group_names(), tp.motion_scales)}
-    if getattr(prob.options, "motion_order", None) == "auto":
+    if prob.options.motion_order == "auto":
         report["motion_orders"] = {name: int(k) for name, k in zip(tp.group_names(), tp.orders)}
     loose = loose_motion(Q, tp.sigma3, tp.orders, tp.groups) if prob.options.motion_scale != "auto" else None
     report["warnings"] = list(notes or []) + report.get("warnings", []) + ([loose] if loose else [])
