@@ -295,7 +295,7 @@ def solve_options(args: argparse.Namespace):
         options = SolveOptions(body=body, body_lengths=lengths, sync=args.sync, time_offsets=offsets,
                                method=args.method, fps=args.fps, skeleton=args.skeleton, measurement_std_px=std_px,
                                motion_scale=motion,
-                               motion_order=args.motion_order if args.motion_order == "auto" else int(args.motion_order),
+                               motion_order="auto" if args.motion_order == "auto" else int(args.motion_order),
                                likelihood_threshold=args.likelihood_threshold, individual=args.individual,
                                calibration_units=args.calibration_units, bone_lengths=bones,
                                uncertainty=args.uncertainty)

@@ -468,7 +468,7 @@ def fit_motion(tp: TrajectoryProblem, X, choose_orders: bool = False) -> float:
     gradient scale as ``1 / sigma^2``, so the comparison takes ``H`` and ``g`` times
     ``(sigma_px / measured)^2``. At a noise stated too small the evidence prefers a low order (a
     first-order walk follows the noise the data then claim as signal): on the simulated cheetah as
-    free points at 10 px, solved assuming 5 px, it chose the first order for every marker, 2.2x the
+    free points at 10 px, solved assuming 5 px, it chose the first order for every marker, 2.6x the
     3D error of the third (bench/RESULTS.md, section 12d)."""
     from graph.smoothing import ORDERS, fit_motion_scales
 

@@ -19,9 +19,10 @@ The cost is ``fte``'s (:mod:`graph.fte`) with the detections so evaluated, plus
 (``(q_n, W)`` without time offsets), the motion factors, and one factor on ``W``, eliminated in time
 order with ``W`` last: the arrow-head on the banded chain, linear in frames. The step makes that
 elimination compiled, without building the graph (:meth:`JointTrajectoryProblem.step`,
-:func:`graph.marginals.chain_forward`; equal to GTSAM's to 1e-9 in the tests). The marginals, of the poses and of ``W``, come from the same
-structure in one compiled pass (:func:`graph.marginals.banded_marginals`); a marker's sd includes
-the lengths' own uncertainty, ``Var p = [J_q J_l] Cov(q_n, l) [J_q J_l]^T``.
+:func:`graph.marginals.chain_forward`; equal to GTSAM's to 1e-9 in the tests). The marginals, of
+the poses and of ``W``, come from the same structure in one compiled pass
+(:func:`graph.marginals.banded_marginals`); a marker's sd includes the lengths' own uncertainty,
+``Var p = [J_q J_l] Cov(q_n, l) [J_q J_l]^T``.
 
 An offset is *not identified* when no whole-frame lag stands out for its camera (a still animal, a
 camera that shares too little with the others: it then stays at its start, 0 or the one of the

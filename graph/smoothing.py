@@ -186,7 +186,7 @@ class ChainEvidence:
         ``b g``: as much as ``frames`` frames hold, enough to pin those polynomials) cancels it:
         ``log p(z | s) - log p_b(z | s)``, each by ``__call__``. A proper prior (the anchor's
         precision on the polynomials) was tried instead: its verdict moved with the anchor's width,
-        and it chose the second order on the simulated cheetah, 4-6 % more 3D error than the
+        and it chose the second order on the simulated cheetah, 3-6 % more 3D error than the
         third (bench/RESULTS.md, section 12d)."""
         b = frames / self.N
         part = ChainEvidence(self.H * b, self.g * b, self.x, self.x0, self.w, self.sigma, self.orders)
@@ -276,7 +276,8 @@ class MotionFit(NamedTuple):
 
     scales: np.ndarray  # (G,) the motion scale of each group
     orders: np.ndarray  # (G,) the difference order of each group's prior
-    evidence: dict[int, np.ndarray] | None = None  # order -> (G,) log evidence at its best scale, when orders were compared
+    # order -> (G,) the log evidence at its best scale (across_orders), when the orders were compared
+    evidence: dict[int, np.ndarray] | None = None
 
 
 def fit_motion_scales(H: np.ndarray, g: np.ndarray, Q: np.ndarray, Q0: np.ndarray, prior_sigma: float,
