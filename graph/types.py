@@ -63,9 +63,10 @@ class SolveOptions:
     # the marginal likelihood (graph.smoothing), per marker for free points, one scale for a skeleton;
     # None: the default for the skeleton and method (default_motion_scale)
     motion_scale: float | Literal["auto"] | None = None
-    # the order k of the motion prior, on the k-th differences of each parameter: 3 (constant
-    # acceleration, the paper's), 2 (constant velocity), 1 (constant position), or "auto": chosen per
-    # group by the marginal likelihood (graph.smoothing), "fte" with motion_scale "auto" only
+    # the order k of the motion prior, white k-th differences of each parameter: 3 (constant
+    # acceleration with white jerk, the paper's), 2 (white changes of velocity), 1 (a random walk of
+    # positions), or "auto": chosen per group from the data (graph.smoothing: the fractional Bayes
+    # factor); "fte" with motion_scale "auto" only
     motion_order: int | Literal["auto"] = 3
     bone_lengths: list[tuple[str, str]] | None = None  # soft bone-length terms for "points"
     individual: str | None = None  # multi-animal DLC files: which individual
