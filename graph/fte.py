@@ -286,7 +286,7 @@ class TrajectoryProblem:
         band = self.chain_band(H + (w + lam) * np.eye(self.P))
         rhs = np.einsum("npq,nq->np", H, Q) - g + w * self.Q0 + lam * Q
         try:
-            return solve_band(band, np.zeros((self.N, self.P, 0)), rhs, np.zeros((0, 0)), np.zeros(0))[0]
+            return solve_band([band], [np.zeros((self.N, self.P, 0))], [rhs], np.zeros((0, 0)), np.zeros(0))[0][0]
         except np.linalg.LinAlgError as e:
             raise RuntimeError(f"the smoother's system is not positive definite: {e}") from None
 

@@ -43,7 +43,7 @@ from graph import kernels
 from graph.errors import InputError
 from graph.fte import PRIOR_SIGMA, Estimate, TrajectoryProblem, bone_lengths, solve_fte, solve_from
 from graph.initial import initial_poses
-from graph.marginals import banded_marginals, chain_backward, chain_band, chain_forward, eliminated_tail
+from graph.marginals import banded_marginals, chain_band, eliminated_tail, solve_band
 from graph.smoothing import STENCILS
 from graph.problem import Problem
 from graph.robust import A as RA, B as RB, C as RC
@@ -201,23 +201,25 @@ class JointTrajectoryProblem(TrajectoryProblem):
     def step(self, X: JointState, nrm: JointNormals, lam: float) -> JointState:
         """The damped Gauss-Newton step: each group's chain (with the neighbouring frames' coupling
         ``Hx``) eliminated in time order by the compiled block Cholesky
-        (:func:`graph.marginals.chain_forward`), W's system reduced by every chain and solved, then
+        (:func:`graph.marginals.solve_band`), W's system reduced by every chain and solved, then
         each chain's back substitution: the elimination GTSAM makes of :meth:`joint_graph` (tests)."""
         Gd, gv, GW, gW = self._system(X, nrm, lam)
         w2 = 1.0 / self.sigma3**2
-        factors = []
+        bands, Bs, rs = [], [], []
         for order, idx in zip(self.orders, self.groups):
             a, b = idx[0], idx[-1] + 1
             band = chain_band(np.ascontiguousarray(Gd[:, a:b, a:b]), w2[a:b], STENCILS[int(order)])
             band[:-1, 1] += nrm.Hx[:-1, a:b, a:b]
-            factors.append(chain_forward(band, np.ascontiguousarray(nrm.HW[:, a:b]), np.ascontiguousarray(gv[:, a:b])))
+            bands.append(band)
+            Bs.append(np.ascontiguousarray(nrm.HW[:, a:b]))
+            rs.append(np.ascontiguousarray(gv[:, a:b]))
         try:
-            W = np.linalg.solve(GW - sum(f[3] for f in factors), gW - sum(f[4] for f in factors))
+            xs, W = solve_band(bands, Bs, rs, GW, gW)
         except np.linalg.LinAlgError as e:
             raise RuntimeError(f"the smoother's system is not positive definite: {e}") from None
         Q = np.empty_like(X.Q)
-        for idx, f in zip(self.groups, factors):
-            Q[:, idx[0]:idx[-1] + 1] = chain_backward(f[0], f[1], f[2], W)
+        for idx, x in zip(self.groups, xs):
+            Q[:, idx[0]:idx[-1] + 1] = x
         sk = self.prob.skeleton
         return JointState(np.clip(Q, sk.lower, sk.upper), np.clip(W, self.unknowns.lower, self.unknowns.upper))
 

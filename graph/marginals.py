@@ -343,12 +343,18 @@ def chain_backward(Cs, Ws, ys, xW):
     return x
 
 
-def solve_band(band, B, r, Dw, rW):
-    """``x`` (N, d) and ``xW`` (G,) solving ``[[A, B], [B^T, Dw]] [x; xW] = [r; rW]`` for a
-    chain's information ``A`` (``band``), its coupling ``B`` (N, d, G) to shared unknowns W and W's
-    own ``Dw`` (G, G): :func:`chain_forward`, W's reduced system ``(Dw - taken) xW = rW - taken_r``
-    solved densely, :func:`chain_backward`. ``numpy.linalg.LinAlgError`` where a pivot block is not
-    positive definite. ``band`` is overwritten."""
-    C, W, y, taken, taken_r = chain_forward(band, B, r)
-    xW = np.linalg.solve(Dw - taken, rW - taken_r) if len(rW) else np.zeros(0)
-    return chain_backward(C, W, y, xW), xW
+def solve_band(bands, Bs, rs, Dw, rW):
+    """``x_c`` (N, d_c) of every chain c and ``xW`` (G,) solving the arrow-head system of chains that
+    share only the unknowns W: chain c's information ``A_c`` (``bands[c]``), its coupling ``Bs[c]``
+    (N, d_c, G) to W and right-hand side ``rs[c]`` (N, d_c); W's own information ``Dw`` (G, G) and
+    right-hand side ``rW`` (G,). Each chain by :func:`chain_forward`, W's system reduced by all of
+    them, ``(Dw - sum_c taken_c) xW = rW - sum_c taken_r_c``, solved densely, then each chain by
+    :func:`chain_backward`. One chain with G = 0 is a plain chain solve.
+    ``numpy.linalg.LinAlgError`` where a pivot block is not positive definite. The bands are
+    overwritten."""
+    factors = [chain_forward(band, B, r) for band, B, r in zip(bands, Bs, rs)]
+    if len(rW):
+        xW = np.linalg.solve(Dw - sum(f[3] for f in factors), rW - sum(f[4] for f in factors))
+    else:
+        xW = np.zeros(0)
+    return [chain_backward(f[0], f[1], f[2], xW) for f in factors], xW
