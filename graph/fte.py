@@ -221,17 +221,19 @@ class TrajectoryProblem:
         self._kept_normals = (X, stretch, self.sigma_px, nrm)
         return nrm
 
-    def motion_cost(self, Q) -> float:
-        """``1/2 sum |Dk q / sigma_3|^2``: each group's whitened k-th differences (third for the
-        constant-acceleration model), squared and summed."""
+    def motion_residuals(self, Q) -> np.ndarray:
+        """Each group's k-th differences whitened, ``Dk q / sigma_3`` (third differences for the
+        constant-acceleration model): (N-3, P) when every group is of order 3, else all of them
+        flattened."""
         if np.all(self.orders == 3):
-            m = (Q[3:] - 3 * Q[2:-1] + 3 * Q[1:-2] - Q[:-3]) / self.sigma3
-            return 0.5 * float(np.sum(m * m))
-        total = 0.0
-        for order, idx in zip(self.orders, self.groups):
-            m = np.diff(Q[:, idx], int(order), axis=0) / self.sigma3[idx]
-            total += 0.5 * float(np.sum(m * m))
-        return total
+            return (Q[3:] - 3 * Q[2:-1] + 3 * Q[1:-2] - Q[:-3]) / self.sigma3
+        return np.concatenate([(np.diff(Q[:, idx], int(k), axis=0) / self.sigma3[idx]).ravel()
+                               for k, idx in zip(self.orders, self.groups)])
+
+    def motion_cost(self, Q) -> float:
+        """``1/2 sum |Dk q / sigma_3|^2`` over :meth:`motion_residuals`."""
+        m = self.motion_residuals(Q)
+        return 0.5 * float(np.sum(m * m))
 
     def cost(self, Q, data_cost):
         pr = (Q - self.Q0) / PRIOR_SIGMA
@@ -577,21 +579,15 @@ def solve_from(tp: TrajectoryProblem, X0, t0: float, progress: ProgressCallback 
 LOOSE_MOTION = 0.01  # the smoothed motion's third differences under this share of the process noise
 
 
-def loose_motion(Q: np.ndarray, sigma3: np.ndarray, orders=None, groups=None) -> str | None:
+def loose_motion(residuals: np.ndarray) -> str | None:
     """A one-line warning when the motion model is far looser than the motion it smoothed: the
-    median of ``|q_{n+3} - 3 q_{n+2} + 3 q_{n+1} - q_n| / sigma_3`` under :data:`LOOSE_MOTION`. A
-    model that fits has these near its own scale (0.12-0.14 on simulated cheetah runs, with the
-    model's or free points); the cheetah's default process noise on a fly's legs gave 0.0014: the
-    motion prior then carries no weight, every frame is its own triangulation, and ``ekf`` and
-    ``fte`` return the same numbers. With ``orders`` (G,) and ``groups``: each group's differences
-    of its own order (:data:`graph.types.SolveOptions.motion_order`)."""
-    if Q.shape[0] < 4:
-        return None
-    if orders is None or np.all(np.asarray(orders) == 3):
-        d3 = np.abs(np.diff(Q, 3, axis=0)) / np.maximum(sigma3, 1e-300)
-    else:  # each group's differences of its own order
-        d3 = np.concatenate([(np.abs(np.diff(Q[:, idx], int(k), axis=0)) / np.maximum(sigma3[idx], 1e-300)).ravel()
-                             for k, idx in zip(orders, groups)])
+    median of the whitened differences ``residuals`` (:meth:`TrajectoryProblem.motion_residuals`:
+    ``|q_{n+3} - 3 q_{n+2} + 3 q_{n+1} - q_n| / sigma_3``, or each group's k-th differences) under
+    :data:`LOOSE_MOTION`. A model that fits has these near its own scale (0.12-0.14 on simulated
+    cheetah runs, with the model's or free points); the cheetah's default process noise on a fly's
+    legs gave 0.0014: the motion prior then carries no weight, every frame is its own
+    triangulation, and ``ekf`` and ``fte`` return the same numbers."""
+    d3 = np.abs(residuals)
     d3 = d3[np.isfinite(d3)]
     if d3.size < 10:
         return None
@@ -627,7 +623,7 @@ def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[st
         report["motion_scales"] = {name: float(v) for name, v in zip(tp.group_names(), tp.motion_scales)}
     if prob.options.motion_order == "auto":
         report["motion_orders"] = {name: int(k) for name, k in zip(tp.group_names(), tp.orders)}
-    loose = loose_motion(Q, tp.sigma3, tp.orders, tp.groups) if prob.options.motion_scale != "auto" else None
+    loose = loose_motion(tp.motion_residuals(Q)) if prob.options.motion_scale != "auto" else None
     report["warnings"] = list(notes or []) + report.get("warnings", []) + ([loose] if loose else [])
     causal_pos = prob.skeleton.positions(causal) if causal is not None else None
     if prob.skeleton.kind == "points":
