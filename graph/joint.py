@@ -198,21 +198,28 @@ class JointTrajectoryProblem(TrajectoryProblem):
               + lam * W)
         return Gd, gv, GW, gW
 
-    def step(self, X: JointState, nrm: JointNormals, lam: float) -> JointState:
-        """The damped Gauss-Newton step: each group's chain (with the neighbouring frames' coupling
-        ``Hx``) eliminated in time order by the compiled block Cholesky
-        (:func:`graph.marginals.solve_band`), W's system reduced by every chain and solved, then
-        each chain's back substitution: the elimination GTSAM makes of :meth:`joint_graph` (tests)."""
-        Gd, gv, GW, gW = self._system(X, nrm, lam)
+    def _chains(self, Gd: np.ndarray, nrm: JointNormals) -> tuple[list, list]:
+        """Each group's chain blocks (:func:`graph.marginals.chain_band`: the per-frame ``Gd``
+        (N, P, P), the motion prior of its order, the neighbouring frames' coupling ``Hx``) and its
+        coupling to W (N, d, G): what the step solves and the marginals invert."""
         w2 = 1.0 / self.sigma3**2
-        bands, Bs, rs = [], [], []
+        bands, Bs = [], []
         for order, idx in zip(self.orders, self.groups):
             a, b = idx[0], idx[-1] + 1
             band = chain_band(np.ascontiguousarray(Gd[:, a:b, a:b]), w2[a:b], STENCILS[int(order)])
             band[:-1, 1] += nrm.Hx[:-1, a:b, a:b]
             bands.append(band)
             Bs.append(np.ascontiguousarray(nrm.HW[:, a:b]))
-            rs.append(np.ascontiguousarray(gv[:, a:b]))
+        return bands, Bs
+
+    def step(self, X: JointState, nrm: JointNormals, lam: float) -> JointState:
+        """The damped Gauss-Newton step: each group's chain (with the neighbouring frames' coupling
+        ``Hx``) eliminated in time order by the compiled block Cholesky
+        (:func:`graph.marginals.solve_band`), W's system reduced by every chain and solved, then
+        each chain's back substitution: the elimination GTSAM makes of :meth:`joint_graph` (tests)."""
+        Gd, gv, GW, gW = self._system(X, nrm, lam)
+        bands, Bs = self._chains(Gd, nrm)
+        rs = [np.ascontiguousarray(gv[:, idx[0]:idx[-1] + 1]) for idx in self.groups]
         try:
             xs, W = solve_band(bands, Bs, rs, GW, gW)
         except np.linalg.LinAlgError as e:
@@ -262,16 +269,8 @@ class JointTrajectoryProblem(TrajectoryProblem):
         chain per marker: each marker's marginals use W's information with every other marker's
         chain eliminated (:func:`graph.marginals.eliminated_tail`)."""
         G = self.G
-        Gd = nrm.H + np.eye(self.P)[None] / PRIOR_SIGMA**2
-        w2 = 1.0 / self.sigma3**2
         DW = nrm.HWW + np.diag(self.prior_info)
-        bands, Bs = [], []
-        for order, idx in zip(self.orders, self.groups):
-            a, b = idx[0], idx[-1] + 1
-            band = chain_band(np.ascontiguousarray(Gd[:, a:b, a:b]), w2[a:b], STENCILS[int(order)])
-            band[:-1, 1] += nrm.Hx[:-1, a:b, a:b]
-            bands.append(band)
-            Bs.append(np.ascontiguousarray(nrm.HW[:, a:b]))
+        bands, Bs = self._chains(nrm.H + np.eye(self.P)[None] / PRIOR_SIGMA**2, nrm)
         Sigma = np.zeros((self.N, self.P, self.P))
         cross = np.zeros((self.N, self.P, G))
         if len(self.groups) == 1:
