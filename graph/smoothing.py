@@ -71,16 +71,6 @@ def difference_gram(N: int, order: int = 3) -> np.ndarray:
     return T
 
 
-def third_difference_gram(N: int) -> np.ndarray:
-    """:func:`difference_gram` of the third difference (the constant-acceleration model)."""
-    return difference_gram(N, 3)
-
-
-def difference(x: np.ndarray, order: int, axis: int = 0) -> np.ndarray:
-    """The k-th differences of ``x`` along ``axis``."""
-    return np.diff(x, order, axis=axis)
-
-
 def data_band(H: np.ndarray, w: float) -> np.ndarray:
     """``blockdiag(H) + w I`` of G independent chains, ``H`` (G, N, d, d), in LAPACK's lower band
     form (4d, G N d) over the variables ``(g N + n) d + i`` (chain by chain, frame by frame): row k
@@ -170,7 +160,7 @@ class ChainEvidence:
         motion = np.empty(G)
         for k in np.unique(self.orders):
             sel = self.orders == k
-            dk = difference(xs[sel], int(k), axis=1)
+            dk = np.diff(xs[sel], int(k), axis=1)
             motion[sel] = np.einsum("gi,gni->g", c[sel], dk * dk)
         phi = (np.einsum("gni,gni->g", self.g, dx) + 0.5 * np.einsum("gni,gnij,gnj->g", dx, self.H, dx)
                + 0.5 * motion + 0.5 * self.w * np.sum((xs - self.x0) ** 2, axis=(1, 2)))
