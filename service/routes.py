@@ -8,7 +8,7 @@ import re
 from datetime import datetime, timezone
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, Security, UploadFile
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, Response, Security, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
 from fastapi.security import HTTPBearer
 from pydantic import BeforeValidator
@@ -217,8 +217,8 @@ def list_videos(job_id: str, user: CurrentUser, jobs: Jobs) -> VideoList:
     job = jobs.visible(user, job_id)
     if job.status != "succeeded":
         jobs.video_file(job, "1")  # says why (409)
-    access = media.sign(job.id)
-    expires = datetime.fromtimestamp(int(access.split(".")[0]), timezone.utc)
+    access = media.sign(job.id, user.token_key)
+    expires = datetime.fromtimestamp(media.expiry(access), timezone.utc)
     return VideoList(videos=[VideoOut(view=v, href=f"/v1/jobs/{job.id}/videos/{v}?access={access}")
                              for v in jobs.video_views(job)], expires_at=expires)
 
@@ -230,6 +230,7 @@ def list_videos(job_id: str, user: CurrentUser, jobs: Jobs) -> VideoList:
                                                                                            "format": "binary"}}}},
                206: {"description": "The byte range asked for (Range: bytes=A-B)",
                      "content": {"video/mp4": {"schema": {"type": "string", "format": "binary"}}}},
+               401: _err("No token, or the link's token was revoked or its user removed"),
                **NOT_FOUND, 409: _err("The job has not succeeded (yet)")})
 def get_video(job_id: str, view: str, request: Request, jobs: Jobs,
               access: Annotated[str | None, Query(max_length=200, description="the access key of a link of GET "
@@ -237,12 +238,12 @@ def get_video(job_id: str, view: str, request: Request, jobs: Jobs,
               ) -> FileResponse:
     """A camera's number (from 1), ``3d`` or ``combined``. Answers Range requests (206), so a
     player can seek without downloading the whole file."""
-    if access is not None and JOB_ID.match(job_id) and media.valid(job_id, access):
-        job = jobs.store.job(job_id)
-        if job is None:
-            raise NotFound(f"no job {job_id}")
-    else:
-        job = jobs.visible(current_user(request), job_id)
+    key_id = media.signer(job_id, access) if access is not None and JOB_ID.match(job_id) else None
+    holder = jobs.store.token_holder(key_id) if key_id else None
+    if key_id and holder is None:
+        raise HTTPException(401, "the token this video link was made for was revoked or its user removed: "
+                                 "list the job's videos again for new links", headers={"WWW-Authenticate": "Bearer"})
+    job = jobs.visible(holder or current_user(request), job_id)
     path = jobs.video_file(job, view)
     return FileResponse(path, media_type="video/mp4", filename=f"{job.id}.{path.stem}.mp4",
                         content_disposition_type="inline", headers={"Cache-Control": "private, max-age=3600"})

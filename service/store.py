@@ -132,6 +132,7 @@ class User:
     is_admin: bool
     disabled: bool
     created_at: float
+    token_key: str = ""  # the key id of the token it signed in with (a media link names it)
 
 
 @dataclass
@@ -335,7 +336,17 @@ class Store:
         ok = hmac.compare_digest(hash_secret(secret), expected)
         if not (ok and row) or row[4]:
             return None
-        return User(row[1], row[2], bool(row[3]), bool(row[4]), row[5])
+        return User(row[1], row[2], bool(row[3]), bool(row[4]), row[5], key_id)
+
+    def token_holder(self, key_id: str) -> User | None:
+        """The user of the live token whose key id is ``key_id`` (a media link names it), or None
+        once that token was revoked or its user removed."""
+        row = self._db().execute(
+            "SELECT u.id, u.name, u.is_admin, u.disabled, u.created_at "
+            "FROM tokens t JOIN users u ON u.id = t.user_id WHERE t.key_id = ?", (key_id,)).fetchone()
+        if not row or row[3]:
+            return None
+        return User(row[0], row[1], bool(row[2]), bool(row[3]), row[4], key_id)
 
     # -- jobs: submit, read, list ------------------------------------------------------------
 

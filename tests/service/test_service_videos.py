@@ -41,13 +41,13 @@ def served(tmp_path_factory):
     token = add_user(data, "alice")
     srv = Server(data, base / "server.log", workers=1, env=dict(os.environ, ACINOSET_VIDEO_ROOT=str(root))).start()
     with srv.client(token) as c:
-        yield c, run, videos, root
+        yield c, run, videos, root, srv, data
     srv.stop()
 
 
 @pytest.fixture(scope="module")
 def job(served):
-    client, run, videos, _ = served
+    client, run, videos, *_ = served
     r = submit_with_videos(client, run, videos=videos)
     assert r.status_code == 202, r.text
     done = wait_finished(client, r.json()["id"], timeout=300)
@@ -56,7 +56,7 @@ def job(served):
 
 
 def test_uploaded_videos_yield_playable_labelled_videos(served, job, tmp_path):
-    client, run, videos, _ = served
+    client, run, videos, *_ = served
     assert [v["frames"] for v in job["inputs"]["videos"]] == [FRAMES] * 3
     listing = client.get(job["links"]["videos"])
     assert listing.status_code == 200, listing.text
@@ -91,8 +91,31 @@ def test_access_keys_open_one_job_only_and_are_checked(served, job):
     assert client.get(f"/v1/jobs/{job['id']}/videos/7").status_code == 404
 
 
+def test_a_revoked_token_closes_its_video_links(served, job):
+    """A link names the token it was made for: once that token is revoked (a new one issued) or its
+    user removed, the link no longer opens the video, though its signature and expiry still hold."""
+    _, _, _, _, srv, data = served
+    from service.store import Store
+
+    admin_token = add_user(data, "vera", admin=True)  # an admin may see alice's job
+    with srv.client(admin_token) as admin:
+        href = admin.get(job["links"]["videos"]).json()["videos"][0]["href"]
+    with srv.client() as anon:
+        assert anon.get(href).status_code == 200
+        store = Store(data / "acinoset.db")
+        new_token = store.new_token("vera")
+        revoked = anon.get(href)
+        assert revoked.status_code == 401 and "revoked" in revoked.json()["detail"], revoked.text
+        with srv.client(new_token) as admin:
+            href = admin.get(job["links"]["videos"]).json()["videos"][0]["href"]
+        assert anon.get(href).status_code == 200
+        store.disable_user("vera")
+        store.close()
+        assert anon.get(href).status_code == 401
+
+
 def test_frame_picker_draws_on_the_cameras_frame(served, job):
-    client, run, videos, _ = served
+    client, run, videos, *_ = served
     r = client.get(f"/v1/jobs/{job['id']}/frame", params={"camera": 2, "n": 5})
     assert r.status_code == 200 and r.headers["content-type"] == "image/png", r.text
     png = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR)
@@ -108,7 +131,7 @@ def test_frame_picker_draws_on_the_cameras_frame(served, job):
 
 
 def test_video_paths_under_the_root_are_used(served, tmp_path):
-    client, run, videos, root = served
+    client, run, videos, root, *_ = served
     paths = [f"trial1/{v.name}" for v in videos[:2]] + [str(root / "trial1" / videos[2].name)]  # relative, absolute
     r = submit_with_videos(client, run, paths=paths)
     assert r.status_code == 202, r.text
@@ -119,7 +142,7 @@ def test_video_paths_under_the_root_are_used(served, tmp_path):
 
 
 def test_paths_outside_the_root_are_refused(served, tmp_path):
-    client, run, videos, root = served
+    client, run, videos, root, *_ = served
     outside = str(videos[0])  # a real video, but not under the root
     link = root / "escape.mp4"
     link.symlink_to(videos[0])  # a link inside the root that leads out of it
@@ -130,7 +153,7 @@ def test_paths_outside_the_root_are_refused(served, tmp_path):
 
 
 def test_a_count_mismatch_and_a_non_video_are_refused(served):
-    client, run, videos, _ = served
+    client, run, videos, *_ = served
     r = submit_with_videos(client, run, videos=videos[:2])
     assert r.status_code == 422 and "2 videos for 3 keypoint files" in r.json()["detail"], r.text
     r = submit_with_videos(client, run, videos=[videos[0], videos[1], run.cams[0]])
@@ -140,7 +163,7 @@ def test_a_count_mismatch_and_a_non_video_are_refused(served):
 
 
 def test_a_server_without_a_root_refuses_any_path_and_videos_count_in_the_upload_limit(tmp_path, served):
-    _, run, videos, _ = served
+    _, run, videos, *_ = served
     data = tmp_path / "data"
     data.mkdir()
     token = add_user(data, "bob")
@@ -162,7 +185,7 @@ def test_a_server_without_a_root_refuses_any_path_and_videos_count_in_the_upload
 def test_rq_workers_render_the_videos_and_send_them_back(tmp_path, served):
     """With RQ the uploaded videos travel to the worker in the job's input archive and the labelled
     videos come back in its result archive."""
-    _, run, videos, _ = served
+    _, run, videos, *_ = served
     data = tmp_path / "data"
     data.mkdir()
     token = add_user(data, "carol")
@@ -193,7 +216,7 @@ def test_videos_that_cannot_be_rendered_leave_the_solve_standing_with_a_warning(
     from service import jobfiles
     from service.worker import ThrottledProgress, solve_job
 
-    _, run, videos, _ = served
+    _, run, videos, *_ = served
     short = tmp_path / "short.mp4"
     with FrameWriter(short, 64, 48, 30.0) as w:
         for _ in range(5):
