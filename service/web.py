@@ -119,6 +119,18 @@ def job_page(job_id: str) -> HTMLResponse:
     return _page("job.html", "Job")
 
 
+@router.get("/calibrations", response_class=HTMLResponse)
+def calibrations_page() -> HTMLResponse:
+    """The caller's calibrations, newest first (its script asks the API)."""
+    return _page("calibrations.html", "Calibrations")
+
+
+@router.get("/calibrations/new", response_class=HTMLResponse)
+def calibrate_page() -> HTMLResponse:
+    """The form that calibrates a rig from board detections or videos."""
+    return _page("calibrate.html", "New calibration")
+
+
 @router.get("/calibrations/{calibration_id}", response_class=HTMLResponse)
 def calibration_page(calibration_id: str) -> HTMLResponse:
     """One calibration: status, quality per camera, downloads and figures (its script asks the API)."""

@@ -162,6 +162,35 @@
 
   // ------------------------------------------------------------------ summary
 
+  const ORDER_WORDS = { 1: "a random walk of positions", 2: "constant velocity", 3: "constant acceleration" };
+
+  /** The process noise's scale: fitted ("x1.4", or per marker their median and range) or given. */
+  function smoothingText(report, options) {
+    const fmt = (v) => (isFinite(v) ? Number(v).toPrecision(2) : "–");  // scales span 1e-6 to 1e3
+    const fitted = report.motion_scales ? Object.values(report.motion_scales) : [];
+    if (fitted.length === 1) return `fitted to the data: ×${fmt(fitted[0])} the model's process noise`;
+    if (fitted.length > 1) {
+      const sorted = fitted.slice().sort((a, b) => a - b);
+      const median = sorted[Math.floor(sorted.length / 2)];
+      return `fitted to the data per marker: ×${fmt(median)} (median; ${fmt(sorted[0])}–` +
+        `${fmt(sorted[sorted.length - 1])} over ${sorted.length} markers)`;
+    }
+    return typeof options.motion_scale === "number" ? `×${fmt(options.motion_scale)} the model's process noise (given)` : null;
+  }
+
+  /** The motion prior's order: chosen from the data (how many groups took each) or given. */
+  function motionModelText(report, options) {
+    const chosen = report.motion_orders ? Object.values(report.motion_orders) : [];
+    if (chosen.length) {
+      const counts = {};
+      for (const k of chosen) counts[k] = (counts[k] || 0) + 1;
+      return "chosen from the data: " + Object.keys(counts).sort().map((k) =>
+        `order ${k} (${ORDER_WORDS[k] || "?"}) for ${counts[k]}`).join(", ");
+    }
+    const k = options.motion_order || 3;
+    return `order ${k} (${ORDER_WORDS[k] || "?"})`;
+  }
+
   function summaryPanel(ctx) {
     const { P, N, M, fps, report } = ctx;
     const section = card("Summary");
@@ -179,6 +208,9 @@
       if (!measuredNoise && report.noise_px > 0) noise += `; the residuals scatter ${fmt(report.noise_px, 2)} px`;
       fact("Detection noise", noise);
     }
+    const smoothing = smoothingText(report, P.options || {});
+    if (smoothing) fact("Smoothing", smoothing);
+    if (P.method !== "tri") fact("Motion model", motionModelText(report, P.options || {}));
     const { unconstrainedMarkers, unconstrainedFrames } = ctx;
     fact("Never seen by two cameras", unconstrainedMarkers.size ? [...unconstrainedMarkers].join(", ") : "none");
     fact("Frames with no marker seen twice", unconstrainedFrames.size

@@ -5,7 +5,7 @@
   "use strict";
   const A = window.Acino;
   if (!A.requireToken()) return;
-  A.header("calibration");
+  A.header("calibrations");
   const { el } = A;
   const id = decodeURIComponent(location.pathname.split("/").filter(Boolean)[1] || "");
   const short = id.slice(0, 8);
@@ -76,6 +76,7 @@
   function drawDownloads(cal) {
     const names = Object.keys(FILES).filter((n) => cal.links && cal.links[n]);
     $("downloads").hidden = !names.length;
+    $("use-in-job").href = `/jobs/new?calibration=${encodeURIComponent(cal.id)}`;
     $("download-buttons").replaceChildren(...names.map((n) => el("button", { type: "button", onclick: async (ev) => {
       $("download-error").hidden = true;
       ev.target.disabled = true;

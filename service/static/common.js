@@ -1,5 +1,6 @@
 /* Shared by every page: the API token (kept in this browser's localStorage), calls to the REST API
- * v1 with it, the page header, the job statuses, and small formatting helpers. Needs dom.js. */
+ * v1 with it, the page header, the job statuses, the camera-ordered file list of the forms, and
+ * small formatting helpers. Needs dom.js. */
 (function () {
   "use strict";
 
@@ -154,6 +155,77 @@
     return bits.join(", ");
   }
 
+  /** Files chosen in a multiple file ``input`` (in several goes if need be) as an ordered list in
+   * ``list`` (an <ol>): row i is camera i + 1, with Up, Down and Remove buttons. A new batch is
+   * sorted by name (numbers in names as numbers) and added at the end. ``changed(files)`` is called
+   * after every change. Returns ``{ files() }``, the files in their order. */
+  function fileOrder(input, list, changed) {
+    let files = [];
+    function focusRow(i, label) {
+      const b = list.children[i] && [...list.children[i].querySelectorAll("button")].find((x) => x.textContent === label);
+      if (b && !b.disabled) b.focus();
+    }
+    function draw() {
+      list.replaceChildren(...files.map((f, i) => {
+        const up = el("button", { type: "button", text: "Up", "aria-label": `Move ${f.name} up`, disabled: i === 0,
+          onclick: () => { [files[i - 1], files[i]] = [files[i], files[i - 1]]; draw(); focusRow(i - 1, "Up"); } });
+        const down = el("button", { type: "button", text: "Down", "aria-label": `Move ${f.name} down`,
+          disabled: i === files.length - 1,
+          onclick: () => { [files[i + 1], files[i]] = [files[i], files[i + 1]]; draw(); focusRow(i + 1, "Down"); } });
+        const rm = el("button", { type: "button", text: "Remove", class: "danger", "aria-label": `Remove ${f.name}`,
+          onclick: () => { files.splice(i, 1); draw(); input.focus(); } });
+        return el("li", {}, el("span", { class: "cam", text: `camera ${i + 1}` }),
+          el("span", { class: "name", text: `${f.name} (${(f.size / 1024).toFixed(0)} KiB)` }), up, down, rm);
+      }));
+      if (changed) changed(files);
+    }
+    input.addEventListener("change", () => {
+      const known = new Set(files.map((f) => `${f.name}/${f.size}`));
+      const added = [...input.files].filter((f) => !known.has(`${f.name}/${f.size}`));
+      added.sort((a, b) => a.name.localeCompare(b.name, undefined, { numeric: true }));
+      files = files.concat(added);
+      input.value = "";
+      draw();
+    });
+    return { files: () => files.slice() };
+  }
+
+  /** The Cancel/Delete button of a list row: asks first, then DELETEs ``path`` (a queued or running
+   * item is cancelled, a finished one deleted with ``gone``, its files). Resolves to "" when done or
+   * not confirmed, else the sentence to show. */
+  async function cancelOrDelete(noun, item, path, gone) {
+    const active = isActive(item.status);
+    const what = active ? "Cancel" : "Delete";
+    if (!confirm(`${what} ${noun} ${item.id.slice(0, 8)}?` + (active ? "" : ` ${gone}`))) return "";
+    try {
+      await api(path, { method: "DELETE" });
+      return "";
+    } catch (e) {
+      return `Could not ${what.toLowerCase()} the ${noun}: ${e.message}`;
+    }
+  }
+
+  /** Send a form's multipart ``data`` to ``path`` (POST); on 202 go to ``pageOf(answer)``. While it
+   * uploads the ``button`` is disabled and ``status`` says so; a refusal is shown in ``errorBox``
+   * (focused, so a screen reader reads it) as "The NOUN was not submitted: detail". */
+  async function submitForm(path, data, { noun, button, status, errorBox, pageOf }) {
+    button.disabled = true;
+    status.textContent = "Uploading and checking the files…";
+    try {
+      const made = await api(path, { method: "POST", body: data });
+      status.textContent = "Submitted.";
+      location.assign(pageOf(made));
+    } catch (e) {
+      status.textContent = "";
+      errorBox.textContent = `The ${noun} was not submitted: ${e.message}`;
+      errorBox.hidden = false;
+      errorBox.setAttribute("tabindex", "-1");
+      errorBox.focus();
+    } finally {
+      button.disabled = false;
+    }
+  }
+
   /** The page header: brand, navigation with the current page marked, who is signed in, sign out. */
   function header(active) {
     const top = document.getElementById("top");
@@ -167,6 +239,7 @@
     top.replaceChildren(
       el("a", { class: "brand", href: "/", text: "acinoset" }),
       el("nav", { "aria-label": "Main" }, link("/", "Jobs", "jobs"), link("/jobs/new", "New job", "new"),
+        link("/calibrations", "Calibrations", "calibrations"),
         el("span", { class: "spacer" }), token() ? who : null, token() ? out : null));
     if (token()) {
       api("/v1/me").then((me) => { who.textContent = `Signed in as ${me.name}${me.admin ? " (admin)" : ""}`; })
@@ -175,6 +248,7 @@
   }
 
   window.Acino = { TOKEN_KEY, ApiError, el, token, requireToken, api, download, STATUSES, isActive, statusBadge,
-    statusWord, statusSentence, fmtDate, fmtSeconds, progressText, queuedText, header, toLogin,
+    statusWord, statusSentence, fmtDate, fmtSeconds, progressText, queuedText, header, toLogin, fileOrder,
+    cancelOrDelete, submitForm,
     setToken(t) { localStorage.setItem(TOKEN_KEY, t); } };
 })();

@@ -63,14 +63,9 @@
   }
 
   async function act(job) {
-    const active = A.isActive(job.status);
-    const what = active ? "Cancel" : "Delete";
-    if (!confirm(`${what} job ${job.id.slice(0, 8)}?` + (active ? "" : " Its result files are removed."))) return;
-    try {
-      await A.api(`/v1/jobs/${encodeURIComponent(job.id)}`, { method: "DELETE" });
-    } catch (e) {
-      showError(`Could not ${what.toLowerCase()} the job: ${e.message}`);
-    }
+    const failed = await A.cancelOrDelete("job", job, `/v1/jobs/${encodeURIComponent(job.id)}`,
+      "Its result files are removed.");
+    if (failed) showError(failed);
     refresh();
   }
 

@@ -1,5 +1,5 @@
-/* Submit a job: keypoint files in camera order, the calibration and the solve options, sent as
- * POST /v1/jobs (multipart); on 202 go to the job's page. */
+/* Submit a job: keypoint files in camera order, the calibration (a file, or one made on this
+ * server) and the solve options, sent as POST /v1/jobs (multipart); on 202 go to the job's page. */
 (function () {
   "use strict";
   const A = window.Acino;
@@ -14,7 +14,8 @@
   const skeletonHint = document.getElementById("skeleton-hint");
   const errorBox = document.getElementById("submit-error");
   const status = document.getElementById("submit-status");
-  let files = [];
+  const calibId = document.getElementById("calibration-id");
+  const calibIdHint = document.getElementById("calibration-id-hint");
   let skeletons = [];
 
   function showError(text, focus) {
@@ -23,34 +24,29 @@
     if (text && focus) focus.focus();
   }
 
-  function drawList() {
-    list.replaceChildren(...files.map((f, i) => {
-      const up = el("button", { type: "button", text: "Up", "aria-label": `Move ${f.name} up`, disabled: i === 0,
-        onclick: () => { [files[i - 1], files[i]] = [files[i], files[i - 1]]; drawList(); focusRow(i - 1, "Up"); } });
-      const down = el("button", { type: "button", text: "Down", "aria-label": `Move ${f.name} down`,
-        disabled: i === files.length - 1,
-        onclick: () => { [files[i + 1], files[i]] = [files[i], files[i + 1]]; drawList(); focusRow(i + 1, "Down"); } });
-      const rm = el("button", { type: "button", text: "Remove", class: "danger", "aria-label": `Remove ${f.name}`,
-        onclick: () => { files.splice(i, 1); drawList(); kpInput.focus(); } });
-      return el("li", {}, el("span", { class: "cam", text: `camera ${i + 1}` }),
-        el("span", { class: "name", text: `${f.name} (${(f.size / 1024).toFixed(0)} KiB)` }), up, down, rm);
-    }));
+  const keypoints = A.fileOrder(kpInput, list, (files) => {
     status.textContent = files.length ? `${files.length} keypoint file${files.length === 1 ? "" : "s"} selected.` : "";
-  }
-
-  function focusRow(i, label) {
-    const b = list.children[i] && [...list.children[i].querySelectorAll("button")].find((x) => x.textContent === label);
-    if (b && !b.disabled) b.focus();
-  }
-
-  kpInput.addEventListener("change", () => {
-    const known = new Set(files.map((f) => `${f.name}/${f.size}`));
-    const added = [...kpInput.files].filter((f) => !known.has(`${f.name}/${f.size}`));
-    added.sort((a, b) => a.name.localeCompare(b.name, undefined, { numeric: true }));
-    files = files.concat(added);
-    kpInput.value = "";
-    drawList();
   });
+
+  /** The caller's succeeded calibrations as choices: a job may name one instead of uploading a file. */
+  async function loadCalibrations() {
+    try {
+      const data = await A.api("/v1/calibrations?status=succeeded&limit=100");
+      const rows = data.calibrations || [];
+      calibId.append(...rows.map((c) => {
+        const r = c.report || {};
+        const bits = [`${c.inputs.cameras} cameras`];
+        if (r.rms_px != null) bits.push(`RMS ${Number(r.rms_px).toFixed(2)} px`);
+        bits.push(A.fmtDate(c.timings && c.timings.created_at));
+        return el("option", { value: c.id, text: `${c.label || c.id.slice(0, 8)} (${bits.join(", ")})` });
+      }));
+      const wanted = new URLSearchParams(location.search).get("calibration");
+      if (wanted && rows.some((c) => c.id === wanted)) calibId.value = wanted;
+      calibIdHint.textContent = rows.length ? "" : "None yet: calibrate a rig on the Calibrations page.";
+    } catch (e) {
+      calibIdHint.textContent = `The calibrations could not be loaded: ${e.message}`;
+    }
+  }
 
   async function loadSkeletons() {
     try {
@@ -77,8 +73,14 @@
   form.addEventListener("submit", async (ev) => {
     ev.preventDefault();
     showError("");
+    const files = keypoints.files();
     if (!files.length) return showError("Choose at least one keypoint file (one per camera).", kpInput);
-    if (!calib.files.length) return showError("Choose the calibration file.", calib);
+    if (!calib.files.length && !calibId.value) {
+      return showError("Choose the calibration file, or a calibration made on this server.", calib);
+    }
+    if (calib.files.length && calibId.value) {
+      return showError("Give one calibration: a file or one made on this server, not both.", calibId);
+    }
     const fps = Number(document.getElementById("fps").value);
     if (!(fps > 0)) return showError("The frame rate must be a positive number.", document.getElementById("fps"));
     const thr = Number(document.getElementById("threshold").value);
@@ -93,11 +95,16 @@
       body: document.getElementById("body-estimate").checked ? "estimate" : "model",
       sync: document.getElementById("sync-estimate").checked ? "estimate" : "given",
     };
+    const smoothing = document.getElementById("motion-scale").value;  // "": the skeleton's default
+    if (smoothing) options.motion_scale = smoothing === "auto" ? "auto" : Number(smoothing);
+    const order = document.getElementById("motion-order").value;
+    options.motion_order = order === "auto" ? "auto" : Number(order);
     const label = document.getElementById("label").value.trim();
     if (label) options.label = label;
     const data = new FormData();
     for (const f of files) data.append("keypoints", f, f.name);
-    data.append("calibration", calib.files[0], calib.files[0].name);
+    if (calibId.value) data.append("calibration_id", calibId.value);
+    else data.append("calibration", calib.files[0], calib.files[0].name);
     const spec = document.getElementById("skeleton-file");
     if (spec.files.length) data.append("skeleton", spec.files[0], spec.files[0].name);
     const videos = Array.from(document.getElementById("videos").files)
@@ -108,22 +115,10 @@
     }
     for (const v of videos) data.append("videos", v, v.name);
     data.append("options", JSON.stringify(options));
-    const button = form.querySelector("button[type=submit]");
-    button.disabled = true;
-    status.textContent = "Uploading and checking the files…";
-    try {
-      const job = await A.api("/v1/jobs", { method: "POST", body: data });
-      status.textContent = "Submitted.";
-      location.assign(`/jobs/${encodeURIComponent(job.id)}`);
-    } catch (e) {
-      status.textContent = "";
-      showError(`The job was not submitted: ${e.message}`);
-      errorBox.focus && errorBox.setAttribute("tabindex", "-1");
-      errorBox.focus();
-    } finally {
-      button.disabled = false;
-    }
+    await A.submitForm("/v1/jobs", data, { noun: "job", button: form.querySelector("button[type=submit]"), status,
+      errorBox, pageOf: (job) => `/jobs/${encodeURIComponent(job.id)}` });
   });
 
   loadSkeletons();
+  loadCalibrations();
 })();

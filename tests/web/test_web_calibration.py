@@ -52,3 +52,83 @@ def test_the_calibration_page_shows_quality_and_figures(page, server):
         drawn = np.asarray(Image.open(io.BytesIO(img.screenshot())).convert("L"))
         assert (drawn < 200).mean() > 0.01  # something is drawn, not a blank box
     assert page.get_by_role("button", name=re.compile(r"^Download calibration\.toml")).is_visible()
+
+
+def test_calibrate_on_the_form_then_solve_with_it(page, server, simulated_run):
+    """The calibration form sends the board and each camera's detections in camera order; the list
+    shows the result, and its "use in a new job" link preselects it on the job form, which sends it
+    as calibration_id (the server then checks the keypoints against that two-camera rig)."""
+    from playwright.sync_api import expect
+
+    base, token = server
+    page.goto("/login")
+    page.get_by_label("API token").fill(token)
+    page.get_by_role("button", name="Sign in").click()
+    page.wait_for_url(re.compile(r"/$"))
+    page.get_by_role("link", name="Calibrations", exact=True).click()
+    page.get_by_role("link", name="New calibration").click()
+    page.wait_for_url(re.compile(r"/calibrations/new$"))
+    assert page.locator("#board-spec").inner_text() == "checkerboard:9x6:0.031"  # the defaults: Ex1's board
+    page.get_by_label("Detection files, one per camera").set_input_files(
+        [str(DATA / "Ex1_static" / f"points_cam{n}.json") for n in (4, 3)])  # numeric order: cam3 first
+    assert page.locator("#view-list li").nth(0).inner_text().startswith("camera 1")
+    assert "points_cam3.json" in page.locator("#view-list li").nth(0).inner_text()
+    page.get_by_label("Intrinsics (optional), one file per camera").set_input_files(
+        [str(DATA / "intrinsic_calib_2021" / f"camera_{n}.json") for n in (3, 4)])
+    page.get_by_label("Label (optional)").fill("pair from the form")
+    page.get_by_role("button", name="Calibrate").click()
+    page.wait_for_url(re.compile(r"/calibrations/[0-9a-f]{32}$"))
+    cal_id = page.url.rsplit("/", 1)[1]
+    page.locator("body[data-ready=true]").wait_for(timeout=240_000)
+    assert page.locator("#cal-status [data-status=succeeded]").count() == 1
+    facts = page.locator("#cal-facts").inner_text()
+    assert "checkerboard:9x6:0.031" in facts and "pair from the form" in facts
+    assert "camera 1: points_cam3.json" in facts and "camera 2: points_cam4.json" in facts
+
+    page.get_by_role("link", name="All calibrations").click()
+    row = page.locator(f"tr[data-calibration='{cal_id}']")
+    row.wait_for()
+    assert row.get_attribute("data-status") == "succeeded" and "pair from the form" in row.inner_text()
+    assert re.search(r"RMS \d+\.\d\d px", row.inner_text())
+    row.get_by_role("link", name=re.compile("Use calibration .* in a new job")).click()
+    page.wait_for_url(re.compile(rf"/jobs/new\?calibration={cal_id}$"))
+    picker = page.get_by_label("or a calibration made on this server")
+    expect(picker).to_have_value(cal_id)
+    assert "pair from the form" in picker.locator("option:checked").inner_text()
+    page.get_by_label("Keypoint files, one per camera").set_input_files(
+        [str(simulated_run / f"cam{i}.csv") for i in range(1, 7)])
+    page.get_by_label("Calibration file").set_input_files(str(simulated_run / "calibration.toml"))
+    page.get_by_role("button", name="Submit job").click()
+    assert "not both" in page.locator("#submit-error").inner_text()
+    page.get_by_label("Calibration file").set_input_files([])
+    page.get_by_role("button", name="Submit job").click()
+    alert = page.locator("#submit-error")
+    expect(alert).to_contain_text("keypoint files", timeout=60_000)
+    assert "2 cameras" in alert.inner_text() and "6 keypoint files" in alert.inner_text(), alert.inner_text()
+    assert page.url.endswith(f"/jobs/new?calibration={cal_id}")
+    assert page.page_errors == []
+
+
+def test_the_calibration_form_says_why_the_server_refused(page, server):
+    """A board the server refuses (a square checkerboard has no orientation) is named on the form in
+    one line, and no calibration is made."""
+    from playwright.sync_api import expect
+
+    base, token = server
+    page.goto("/login")
+    page.get_by_label("API token").fill(token)
+    page.get_by_role("button", name="Sign in").click()
+    page.wait_for_url(re.compile(r"/$"))
+    page.goto("/calibrations/new")
+    before = httpx.get(f"{base}/v1/calibrations", headers={"Authorization": f"Bearer {token}"}).json()["total"]
+    page.get_by_label("Inner corners down").fill("9")
+    assert page.locator("#board-spec").inner_text() == "checkerboard:9x9:0.031"
+    page.get_by_label("Detection files, one per camera").set_input_files(
+        [str(DATA / "Ex1_static" / f"points_cam{n}.json") for n in (3, 4)])
+    page.get_by_role("button", name="Calibrate").click()
+    alert = page.locator("#submit-error")
+    expect(alert).to_contain_text("square checkerboard", timeout=60_000)
+    assert alert.inner_text().startswith("The calibration was not submitted:") and "\n" not in alert.inner_text()
+    assert page.url.endswith("/calibrations/new")
+    after = httpx.get(f"{base}/v1/calibrations", headers={"Authorization": f"Bearer {token}"}).json()["total"]
+    assert after == before

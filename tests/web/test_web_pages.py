@@ -48,13 +48,15 @@ def _submit(page, run, **choices) -> str:
     items = page.locator("#keypoint-list li")
     assert items.count() == 6
     assert "camera 1" in items.nth(0).inner_text() and "cam1.csv" in items.nth(0).inner_text()
-    page.get_by_label("Calibration").set_input_files(str(run / "calibration.toml"))
+    page.get_by_label("Calibration file").set_input_files(str(run / "calibration.toml"))
     page.get_by_role("radio", name=re.compile("^" + choices.get("method", "fte") + ":")).check()
     page.get_by_label("Frame rate (frames per second)").fill(str(choices.get("fps", 120)))
     page.get_by_label("Skeleton", exact=True).select_option(choices.get("skeleton", "cheetah"))
     page.get_by_label("Likelihood threshold").fill(str(choices.get("threshold", 0.5)))
-    if choices.get("measure_noise") or choices.get("sync"):
+    if choices.get("measure_noise") or choices.get("sync") or choices.get("smoothing"):
         page.locator("details summary", has_text="More options").click()
+    if choices.get("smoothing"):
+        page.get_by_label("Smoothing", exact=True).select_option(label=choices["smoothing"])
     if choices.get("measure_noise"):
         page.get_by_label("Measure it from the data").check()
         assert page.get_by_label("Detection noise (px)").is_disabled()
@@ -73,7 +75,7 @@ def test_sign_in_submit_watch_scrub_and_download(page, server, simulated_run, tm
     page.get_by_role("button", name="Sign in").click()
     assert "not accepted" in page.get_by_role("alert").inner_text()
     _sign_in(page, token)
-    job_id = _submit(page, simulated_run, method="fte", measure_noise=True)
+    job_id = _submit(page, simulated_run, method="fte", measure_noise=True, smoothing="fitted to the data")
 
     status = page.locator("#job-status [data-status]")
     status.and_(page.locator("[data-status=succeeded]")).wait_for(timeout=SOLVE_TIMEOUT_MS)
@@ -107,6 +109,11 @@ def test_sign_in_submit_watch_scrub_and_download(page, server, simulated_run, tm
     # The noise was measured, and the summary says so.
     noise = page.locator("dt", has_text="Detection noise").locator("xpath=following-sibling::dd[1]")
     assert "measured from the data" in noise.inner_text()
+    # The smoothing was fitted (one scale for a skeleton), and the summary gives it.
+    smoothing = page.locator("dt", has_text="Smoothing").locator("xpath=following-sibling::dd[1]").inner_text()
+    assert re.fullmatch(r"fitted to the data: ×[0-9.e+-]+ the model's process noise", smoothing), smoothing
+    motion = page.locator("dt", has_text="Motion model").locator("xpath=following-sibling::dd[1]").inner_text()
+    assert motion == "order 3 (constant acceleration)", motion
     # The other views are there and labelled.
     assert page.get_by_test_id("heatmap").locator(".main-svg").count() >= 1
     assert page.get_by_role("heading", name="Flagged by the solver").is_visible()
@@ -173,7 +180,7 @@ def test_bad_upload_is_refused_on_the_form(page, server, simulated_run):
     page.goto("/jobs/new")
     page.get_by_label("Keypoint files, one per camera").set_input_files(
         [str(simulated_run / "cam1.csv"), str(simulated_run / "cam2.csv")])
-    page.get_by_label("Calibration").set_input_files(str(simulated_run / "calibration.toml"))
+    page.get_by_label("Calibration file").set_input_files(str(simulated_run / "calibration.toml"))
     page.get_by_role("button", name="Submit job").click()
     alert = page.locator("#submit-error")
     alert.wait_for()
@@ -190,7 +197,7 @@ UNLABELLED = """() => [...document.querySelectorAll('input, select, button, text
 def test_controls_are_labelled(page, server):
     _, token = server
     _sign_in(page, token)
-    for path in ("/", "/jobs/new"):
+    for path in ("/", "/jobs/new", "/calibrations", "/calibrations/new"):
         page.goto(path)
         page.wait_for_load_state("networkidle")
         assert page.evaluate(UNLABELLED) == [], path

@@ -115,7 +115,7 @@ def test_the_form_sends_the_videos_in_camera_order(page, server, video_job, tmp_
     _sign_in(page, token)
     page.goto("/jobs/new")
     page.get_by_label("Keypoint files, one per camera").set_input_files([str(p) for p in run.cams])
-    page.get_by_label("Calibration").set_input_files(str(run.calibration))
+    page.get_by_label("Calibration file").set_input_files(str(run.calibration))
     page.get_by_role("radio", name=re.compile("^tri:")).check()
     page.get_by_label("Frame rate (frames per second)").fill(str(run.fps))
     page.get_by_label("Videos (optional)").set_input_files([str(videos[1]), str(videos[0])])
