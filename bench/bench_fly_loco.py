@@ -35,7 +35,12 @@ What runs, on the same data in one run:
   jax<=0.4.36; see bench/bench_eks.py for the install). Its time is the smoother call in that
   process (jax compiles in every call, as a user sees it), not the process start.
 
-Prints a Markdown table and writes bench/results/fly_loco.json (``--out``; ``--eks-python ''``
+Then each acinoset row against aniposelib given the same inputs (member 1, or the ensemble): the
+paired difference of the pooled median and p90 and its 95 % moving-block bootstrap interval over
+frames (:func:`graph.metrics.loco_difference`). The fly's 500 frames make about ten blocks, so those
+intervals are if anything too narrow.
+
+Prints Markdown tables and writes bench/results/fly_loco.json (``--out``; ``--eks-python ''``
 leaves EKS out). Times are medians over repeats;
 the machine is shared, so ratios matter more than seconds.
 """
@@ -59,7 +64,7 @@ from graph.api import SolveOptions
 from graph.calibration import load_calibration
 from graph.ensemble import combine
 from graph.keypoints import read_keypoints
-from graph.metrics import leave_one_camera_out
+from graph.metrics import leave_one_camera_out, loco_difference
 
 DATA = Path("/work/shared/data/eks_fly")
 FPS = 300.0  # assumed (SOURCE.md)
@@ -168,6 +173,7 @@ def main() -> int:
         leave_one_camera_out(short, cal, reconstruct=aniposelib_reconstruct(data, 0.8))
 
     summary = {}
+    last_scores = {}
     for name, run in methods.items():
         repeats = args.eks_repeats if name.startswith("EKS") else args.repeats
         scores, seconds = [], []
@@ -179,6 +185,7 @@ def main() -> int:
             print(f"  {name:<40} run {r + 1}: median {s.median_px:.3f} px  p90 {s.p90_px:.3f} px  "
                   f"coverage {s.coverage:.3f}  {seconds[-1]:.2f} s", flush=True)
         last = scores[-1]
+        last_scores[name] = last
         summary[name] = {**last.to_dict(), "seconds_runs": seconds, "median_s": statistics.median(seconds),
                          "median_px_runs": [s.median_px for s in scores], "p90_px_runs": [s.p90_px for s in scores]}
         if name.startswith("EKS"):
@@ -193,9 +200,26 @@ def main() -> int:
     print()
     print(h.markdown_table(["method", "median px", "p90 px", "coverage", *[f"median {n}" for n in cal.names],
                             "s (3 solves)", "speed-up vs aniposelib"], rows))
+    # each acinoset row against aniposelib given the same inputs (one member, or the ensemble's
+    # combined rows): the paired difference of the pooled median and p90, with 95 % block-bootstrap
+    # intervals (graph.metrics.loco_difference)
+    versus = {}
+    for name in ours:
+        peer = "aniposelib triangulate_optim" + (", ensemble" if ours[name][0] is ens else "")
+        if peer in last_scores:
+            d = loco_difference(last_scores[peer], last_scores[name])
+            versus[name] = {"against": peer, **d.to_dict()}
+    if versus:
+        print()
+        print(h.markdown_table(
+            ["acinoset row", "against", "median diff px (95 %)", "p90 diff px (95 %)", "share p90 lower", "blocks"],
+            [[name, v["against"], f"{v['median_px']:+.3f} [{v['median_interval'][0]:+.3f}, {v['median_interval'][1]:+.3f}]",
+              f"{v['p90_px']:+.3f} [{v['p90_interval'][0]:+.3f}, {v['p90_interval'][1]:+.3f}]",
+              f"{v['share_b_p90_lower']:.2f}", f"{v['blocks']} x {v['block_frames']} frames"]
+             for name, v in versus.items()]))
     path = h.save(args.out, {"machine": info, "args": {k: str(v) for k, v in vars(args).items()}, "fps": FPS,
                                "anipose_score_threshold": h.ANIPOSE_DEFAULTS["score_threshold"],
-                               "results": summary})
+                               "results": summary, "versus_aniposelib": versus})
     print(f"\nwrote {path}")
     return 0
 

@@ -502,3 +502,98 @@ def _solver_reconstruct(options, scale: float) -> Reconstructor:
         return list(result.markers), np.asarray(result.positions) / scale
 
     return reconstruct
+
+
+@dataclass
+class LocoDifference:
+    """``b`` minus ``a`` on the same held-out detections (:func:`loco_difference`): the pooled median
+    and 90th percentile of ``b`` less those of ``a`` (px; negative: ``b`` predicts better) with 95 %
+    intervals from a moving-block bootstrap over frames."""
+
+    median_px: float
+    median_interval: tuple[float, float]
+    p90_px: float
+    p90_interval: tuple[float, float]
+    share_b_p90_lower: float  # the share of the resamples in which b's p90 was below a's
+    block_frames: int
+    blocks: int  # runs of block_frames frames a resample; few (under ~30) give too narrow intervals
+    resamples: int
+    count: int  # detections both judged
+
+    def to_dict(self) -> dict:
+        return {"median_px": self.median_px, "median_interval": list(self.median_interval), "p90_px": self.p90_px,
+                "p90_interval": list(self.p90_interval), "share_b_p90_lower": self.share_b_p90_lower,
+                "block_frames": self.block_frames, "blocks": self.blocks, "resamples": self.resamples,
+                "count": self.count}
+
+
+def decorrelation_lag(series: np.ndarray, max_lag: int) -> int:
+    """The first lag ``k >= 1`` at which the sample autocorrelation of ``series`` lies within the
+    white-noise band ``+-2 / sqrt(n)``, at most ``max_lag``: frames that far apart are about
+    independent, so blocks that long keep the dependence a bootstrap must not break."""
+    x = np.asarray(series, dtype=np.float64)
+    x = x[np.isfinite(x)] - np.nanmean(x)
+    n = x.size
+    denom = float(x @ x)
+    if n < 3 or denom <= 0:
+        return 1
+    band = 2.0 / np.sqrt(n)
+    for k in range(1, min(max_lag, n - 1) + 1):
+        if abs(float(x[:-k] @ x[k:]) / denom) <= band:
+            return k
+    return max(1, min(max_lag, n - 1))
+
+
+def loco_difference(a: LeaveOneCameraOut, b: LeaveOneCameraOut, resamples: int = 2000,
+                    seed: int = 0) -> LocoDifference:
+    """How much better or worse ``b`` predicts the held-out cameras than ``a`` on the same recording,
+    and how sure that is.
+
+    The statistic is ``D = q(e_b) - q(e_a)`` for the pooled median and 90th percentile ``q`` over the
+    detections both judged. Errors are correlated within a frame (all cameras and markers share one
+    pose) and across neighbouring frames (a smoother's error drifts), so resampling detections one
+    by one would give intervals far too narrow. The moving-block bootstrap (Kunsch 1989) resamples
+    runs of ``L`` consecutive frames with every camera and marker in them, both methods together
+    (paired), ``ceil(N / L)`` runs a resample; the interval is the resamples' 2.5 and 97.5 %
+    quantiles of ``D``. ``L`` is :func:`decorrelation_lag` of the per-frame mean difference
+    ``mean_cm(e_b - e_a)``, at most ``N / 10``. Both must judge the same recording (same frames).
+
+    The intervals are only as good as the number of runs ``N / L`` is large: on simulated drifting
+    errors of two equally good methods (an AR(1) drift of coefficient 0.95) the 95 % interval held
+    0 in 90-93 % of 2000-frame recordings (about 40 runs of 48 frames), but in 72 % of 600-frame ones
+    (16 runs); ``blocks`` says how many there were."""
+    A = np.stack([h.errors for h in a.cameras])  # (C, N, M)
+    B = np.stack([h.errors for h in b.cameras])
+    if A.shape != B.shape:
+        raise ValueError(f"the two scores judged different detections ({A.shape} and {B.shape})")
+    both = np.isfinite(A) & np.isfinite(B)
+    A = np.where(both, A, np.nan).transpose(1, 0, 2).reshape(A.shape[1], -1)  # (N, C*M)
+    B = np.where(both, B, np.nan).transpose(1, 0, 2).reshape(B.shape[1], -1)
+    N = A.shape[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # frames nobody judged
+        per_frame = np.nanmean(B - A, axis=1)
+    L = decorrelation_lag(per_frame, max(1, N // 10))
+
+    def stats(rows: np.ndarray) -> tuple[float, float]:
+        a_, b_ = A[rows].ravel(), B[rows].ravel()
+        ok = np.isfinite(a_)
+        if not ok.any():
+            return float("nan"), float("nan")
+        a_, b_ = a_[ok], b_[ok]
+        return (float(np.median(b_) - np.median(a_)),
+                float(np.percentile(b_, 90) - np.percentile(a_, 90)))
+
+    d_median, d_p90 = stats(np.arange(N))
+    rng = np.random.default_rng(seed)
+    runs = int(np.ceil(N / L))
+    draws = np.empty((resamples, 2))
+    offsets = np.arange(L)
+    for r in range(resamples):
+        starts = rng.integers(0, N - L + 1, runs)
+        draws[r] = stats((starts[:, None] + offsets).ravel()[:N])
+    lo, hi = np.nanpercentile(draws, [2.5, 97.5], axis=0)
+    return LocoDifference(median_px=d_median, median_interval=(float(lo[0]), float(hi[0])), p90_px=d_p90,
+                          p90_interval=(float(lo[1]), float(hi[1])),
+                          share_b_p90_lower=float(np.mean(draws[:, 1] < 0)), block_frames=L, blocks=runs,
+                          resamples=resamples, count=int(both.sum()))
