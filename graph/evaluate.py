@@ -4,6 +4,11 @@
 reconstructs from every set of all cameras but one, projects into the camera left out and compares
 with its confident detections (:func:`graph.metrics.leave_one_camera_out`): the median and 90th
 percentile of that pixel error, per camera and over all, for the solve options given.
+
+``--versus "OPTIONS"`` (repeatable) scores the same recording again with those solve options
+changed (``--versus "--motion-order 1"``) and gives each one's difference from the first with its
+95 % interval (:func:`graph.metrics.loco_difference`): whether a setting is better on this rig, or
+within what the recording can tell apart.
 """
 
 from __future__ import annotations
@@ -33,17 +38,49 @@ def register(sub) -> None:
     add_solve_options(loco)
     loco.add_argument("--confidence", type=float, default=LOCO_CONFIDENCE, metavar="P",
                       help=f"judge the held-out detections of at least this likelihood (default {LOCO_CONFIDENCE:g})")
+    loco.add_argument("--versus", action="append", default=[], metavar='"OPTIONS"',
+                      help='score again with these solve options changed (e.g. "--motion-order 1"; repeatable) '
+                           "and give the difference from the first, with its 95%% interval")
     loco.add_argument("--json", default=None, metavar="OUT.json", help="also write the scores as JSON")
     loco.set_defaults(func=run_loco)
+
+
+def _variant(args: argparse.Namespace, text: str):
+    """The solve options of ``args`` with those in ``text`` (a --versus value) changed."""
+    import copy
+    import shlex
+
+    from graph.cli import UsageError, add_solve_options, solve_options
+
+    parser = argparse.ArgumentParser(prog=f"--versus {text!r}", add_help=False, exit_on_error=False)
+    add_solve_options(parser)
+    try:
+        words = shlex.split(text)
+        changed, rest = parser.parse_known_args(words, namespace=copy.copy(args))
+    except (ValueError, argparse.ArgumentError) as e:
+        raise UsageError(f"--versus {text!r}: {e}") from None
+    if rest or not words:
+        raise UsageError(f"--versus {text!r}: give solve options to change, such as \"--motion-order 1\""
+                         + (f" ({' '.join(rest)} is not one)" if rest else ""))
+    return solve_options(changed)
+
+
+def _table(score) -> None:
+    print(f"  {'camera':<16} {'median px':>10} {'p90 px':>10} {'judged':>8} {'coverage':>9} {'seconds':>8}")
+    for c in score.cameras:
+        print(f"  {c.camera:<16} {c.median_px:10.3f} {c.p90_px:10.3f} {c.count:8d} {c.coverage:9.3f} {c.seconds:8.2f}")
+    print(f"  {'all':<16} {score.median_px:10.3f} {score.p90_px:10.3f} {score.count:8d} {score.coverage:9.3f} "
+          f"{score.seconds:8.2f}")
 
 
 def run_loco(args: argparse.Namespace) -> int:
     from graph.calibration import load_calibration
     from graph.cli import UsageError, read_cameras, solve_options
-    from graph.metrics import leave_one_camera_out
+    from graph.metrics import leave_one_camera_out, loco_difference
     from graph.types import jsonable
 
     options = solve_options(args)
+    variants = [(text, _variant(args, text)) for text in args.versus]
     if not 0.0 <= args.confidence <= 1.0:
         raise UsageError(f"--confidence must be in [0, 1], not {args.confidence:g}")
     if args.json is not None and not Path(args.json).parent.is_dir():
@@ -58,14 +95,23 @@ def run_loco(args: argparse.Namespace) -> int:
     for note in score.notes:
         print(f"acinoset: note: {note}", file=sys.stderr)
     print(f"leave one camera out, {score.method}, detections of likelihood >= {score.confidence:g}:")
-    print(f"  {'camera':<16} {'median px':>10} {'p90 px':>10} {'judged':>8} {'coverage':>9} {'seconds':>8}")
-    for c in score.cameras:
-        print(f"  {c.camera:<16} {c.median_px:10.3f} {c.p90_px:10.3f} {c.count:8d} {c.coverage:9.3f} {c.seconds:8.2f}")
-    print(f"  {'all':<16} {score.median_px:10.3f} {score.p90_px:10.3f} {score.count:8d} {score.coverage:9.3f} "
-          f"{score.seconds:8.2f}")
+    _table(score)
+    versus = []
+    for text, other in variants:
+        if say:
+            say(f"versus {text}")
+        theirs = leave_one_camera_out(keypoints, calibration, other, confidence=args.confidence, progress=say)
+        d = loco_difference(score, theirs)
+        print(f"versus {text}:")
+        _table(theirs)
+        few = "; few blocks: the intervals are too narrow" if d.blocks < 30 else ""
+        print(f"  minus the first: median {d.median_px:+.3f} px [{d.median_interval[0]:+.3f}, {d.median_interval[1]:+.3f}], "
+              f"p90 {d.p90_px:+.3f} px [{d.p90_interval[0]:+.3f}, {d.p90_interval[1]:+.3f}] (95 %, "
+              f"{d.blocks} blocks of {d.block_frames} frames{few})")
+        versus.append({"versus": text, "options": other.to_dict(), **theirs.to_dict(), "difference": d.to_dict()})
     if args.json:
         doc = {"options": options.to_dict(), "keypoints": [str(p) for p in args.keypoints],
-               "calibration": str(args.calibration), **score.to_dict()}
+               "calibration": str(args.calibration), **score.to_dict(), "versus": versus}
         Path(args.json).write_text(json.dumps(jsonable(doc), indent=2) + "\n", encoding="utf-8")
         print(f"  -> {args.json}")
     return 0

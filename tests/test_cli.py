@@ -316,6 +316,27 @@ def test_evaluate_loco(run_dir, tmp_path):
     assert proc.returncode == 2 and "--confidence" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def test_evaluate_loco_versus(run_dir, tmp_path):
+    """``--versus "OPTIONS"``: the recording scored again with those options changed, with the
+    difference from the first and its interval; a value that names no solve option is one line."""
+    out = tmp_path / "loco.json"
+    base = ["evaluate", "loco", *cams(run_dir), "--calibration", run_dir / "calibration.toml", "--skeleton", "points",
+            "--fps", FPS]
+    proc = run_cli(*base, "--versus", "--motion-order 1", "--json", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "versus --motion-order 1:" in proc.stdout and "minus the first: median" in proc.stdout, proc.stdout
+    doc = json.loads(out.read_text())
+    (v,) = doc["versus"]
+    assert doc["options"]["motion_order"] == 3 and v["options"]["motion_order"] == 1
+    d = v["difference"]
+    assert d["median_px"] == pytest.approx(v["median_px"] - doc["median_px"])
+    assert d["p90_interval"][0] <= d["p90_px"] <= d["p90_interval"][1] and d["blocks"] * d["block_frames"] >= FRAMES
+    for bad in ("--no-such-option 1", "fte"):
+        proc = run_cli(*base, "--versus", bad)
+        assert proc.returncode == 2 and "--versus" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
 def test_solve_motion_scale_auto(run_dir, tmp_path):
     """``--motion-scale auto``: the fitted scales are in the report and said on the summary line;
     a malformed value is one line."""
