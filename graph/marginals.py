@@ -110,31 +110,13 @@ def chain_marginals(G, w2, stencil=D3):
     return out
 
 
-@njit(cache=True)
 def eliminated_tail(band, B, Dw):
     """The information left on the shared unknowns ``W`` when every frame of the chain is
     eliminated: ``Dw - B^T A^-1 B`` for the chain's information ``A`` (``band``), its coupling
-    ``B`` (N, d, G) to ``W`` and ``W``'s own information ``Dw`` (G, G); see :func:`banded_marginals`."""
-    N, d, G = B.shape
-    band = band.copy()
-    B = B.copy()
-    Dw = Dw.copy()
-    for n in range(N):
-        k_max = min(3, N - 1 - n)
-        m = k_max * d + G
-        U = np.empty((d, m))
-        for k in range(k_max):
-            U[:, k * d:(k + 1) * d] = band[n, k + 1]
-        U[:, k_max * d:] = B[n]
-        W = _lower_solve(np.linalg.cholesky(band[n, 0]), U)
-        for i in range(1, k_max + 1):
-            Wi = np.ascontiguousarray(W[:, (i - 1) * d:i * d])
-            for j in range(i, k_max + 1):
-                band[n + i, j - i] -= Wi.T @ np.ascontiguousarray(W[:, (j - 1) * d:j * d])
-            B[n + i] -= Wi.T @ np.ascontiguousarray(W[:, k_max * d:])
-        Wg = np.ascontiguousarray(W[:, k_max * d:])
-        Dw -= Wg.T @ Wg
-    return Dw
+    ``B`` (N, d, G) to ``W`` and ``W``'s own information ``Dw`` (G, G): what
+    :func:`chain_forward` takes off it (``band`` is not overwritten)."""
+    N, d = band.shape[0], band.shape[2]
+    return Dw - chain_forward(band.copy(), B, np.zeros((N, d)), N)[3]
 
 
 @njit(cache=True)
@@ -169,7 +151,10 @@ def banded_marginals(band, B, Dw):
             cross[n] = inv[n * d:(n + 1) * d, N * d:]
         return out, cross, np.ascontiguousarray(inv[N * d:, N * d:])
 
-    Ds, Ws, Cs, M = _forward(band, B, Dw)
+    band = band.copy()  # chain_forward overwrites it: the frames' D_n stay on its diagonal
+    Cs, Ws, _, taken, _, B = chain_forward(band, B, np.zeros((N, d)), N - 3)
+    Ds = band[:N - 3, 0]
+    M = _tail_information(band, B, Dw - taken)
     if G == 0:
         return _backward(Ds, Cs, Ws, M), cross, np.zeros((0, 0))
     # W by the block inverse of the arrow-head [[A, B], [B^T, Dw]] (A the chain's information):
@@ -201,40 +186,14 @@ def banded_marginals(band, B, Dw):
 
 
 @njit(cache=True)
-def _forward(band, B, Dw):
-    """Forward elimination of frames 0 .. N-4 of a chain (``N > 4``) with the shared unknowns
-    ``W`` appended, as a block Cholesky factorisation: with ``C_n = chol(D_n)`` and
-    ``W_n = C_n^-1 U_n``, ``U_n = [band[n, 1..3], B_n]``, the band and the tail lose ``W_n^T W_n``.
-    Returns each frame's ``D_n`` (N-3, d, d), ``W_n`` (N-3, d, 3d + G), ``C_n`` and ``M``, the
-    information of the last three frames and ``W`` (3d + G square)."""
+def _tail_information(band, B, Dw):
+    """``M``, the information (3d + G square) of a chain's last three frames and the shared unknowns
+    ``W`` once the frames before them are eliminated: their blocks of ``band`` and ``B`` as
+    :func:`chain_forward` left them (stopped three frames before the end) and ``W``'s own ``Dw``
+    less what those frames took."""
     N, d = band.shape[0], band.shape[2]
     G = B.shape[2]
-    band = band.copy()
-    B = B.copy()
-    Dw = Dw.copy()
     m = 3 * d + G
-    Ds = np.empty((N - 3, d, d))
-    Ws = np.empty((N - 3, d, m))
-    Cs = np.empty((N - 3, d, d))
-    U = np.empty((d, m))
-    Wb = np.empty((3, d, d))  # W's blocks, contiguous for the matrix products
-    for n in range(N - 3):
-        for k in range(3):
-            U[:, k * d:(k + 1) * d] = band[n, k + 1]
-        U[:, 3 * d:] = B[n]
-        C = np.linalg.cholesky(band[n, 0])
-        W = _lower_solve(C, U)
-        for i in range(3):
-            Wb[i] = W[:, i * d:(i + 1) * d]
-        Wg = np.ascontiguousarray(W[:, 3 * d:])
-        for i in range(1, 4):
-            for j in range(i, 4):
-                band[n + i, j - i] -= Wb[i - 1].T @ Wb[j - 1]
-            B[n + i] -= Wb[i - 1].T @ Wg
-        Dw -= Wg.T @ Wg
-        Ds[n] = band[n, 0]
-        Ws[n] = W
-        Cs[n] = C
     M = np.zeros((m, m))
     for i in range(3):
         for j in range(i, 3):
@@ -245,7 +204,7 @@ def _forward(band, B, Dw):
         M[i * d:(i + 1) * d, 3 * d:] = B[N - 3 + i]
         M[3 * d:, i * d:(i + 1) * d] = B[N - 3 + i].T
     M[3 * d:, 3 * d:] = Dw
-    return Ds, Ws, Cs, M
+    return M
 
 
 @njit(cache=True)
@@ -279,30 +238,32 @@ def _backward(Ds, Cs, Ws, M):
 
 
 @njit(cache=True)
-def chain_forward(band, B, r):
+def chain_forward(band, B, r, stop):
     """The forward half of a solve with a chain's information (``band`` (N, 4, d, d) as in
     :func:`banded_marginals`, coupled by ``B`` (N, d, G) to unknowns W shared by every frame) and
-    right-hand side ``r`` (N, d): the block Cholesky factorisation in time order, every frame
-    eliminated (the chain's last frames too), and the forward substitution with it. Frame n's
-    factor is ``C_n = chol(D_n)`` with ``D_n`` its block once the frames before it are eliminated,
-    ``W_n = C_n^-1 [band[n, 1..3], B_n]`` its coupling to the next three frames and W, and
-    ``y_n = C_n^-1 r_n``; later blocks lose ``W_ni^T W_nj``, later right-hand sides ``W_ni^T y_n``.
-    Returns ``C`` (N, d, d), ``W`` (N, d, 3d + G), ``y`` (N, d), and what the chain takes off W's
-    information and right-hand side: ``sum_n W_ng^T W_ng`` (G, G) and ``sum_n W_ng^T y_n`` (G,).
-    ``band`` is overwritten (the eliminated blocks: not copied, 10 MB at 500 frames of 25
-    parameters); ``B`` and ``r`` are not."""
+    right-hand side ``r`` (N, d): the block Cholesky factorisation in time order of frames
+    ``0 .. stop - 1`` (``stop = N``: every frame, the chain's last ones too), and the forward
+    substitution with it. Frame n's factor is ``C_n = chol(D_n)`` with ``D_n`` its block once the
+    frames before it are eliminated, ``W_n = C_n^-1 [band[n, 1..3], B_n]`` its coupling to the next
+    three frames and W, and ``y_n = C_n^-1 r_n``; later blocks lose ``W_ni^T W_nj``, later
+    couplings ``W_ni^T W_ng`` and right-hand sides ``W_ni^T y_n``. Returns ``C`` (stop, d, d), ``W``
+    (stop, d, 3d + G), ``y`` (stop, d), what those frames take off W's information and right-hand
+    side, ``sum_n W_ng^T W_ng`` (G, G) and ``sum_n W_ng^T y_n`` (G,), and the coupling ``B`` as
+    the elimination left it. ``band`` is overwritten (not copied: 10 MB at 500 frames of 25
+    parameters): the frames not eliminated hold their remaining information, and each eliminated
+    frame its ``D_n`` on the diagonal. ``B`` and ``r`` are not overwritten."""
     N, d = band.shape[0], band.shape[2]
     G = B.shape[2]
     B = B.copy()
     r = r.copy()
     m = 3 * d + G
-    Cs = np.empty((N, d, d))
-    Ws = np.zeros((N, d, m))
-    ys = np.empty((N, d))
+    Cs = np.empty((stop, d, d))
+    Ws = np.zeros((stop, d, m))
+    ys = np.empty((stop, d))
     taken = np.zeros((G, G))
     taken_r = np.zeros(G)
     Wb = np.empty((3, d, d))
-    for n in range(N):
+    for n in range(stop):
         k_max = min(3, N - 1 - n)
         U = np.zeros((d, m))
         for k in range(k_max):
@@ -324,7 +285,7 @@ def chain_forward(band, B, r):
         Cs[n] = C
         Ws[n] = W
         ys[n] = y
-    return Cs, Ws, ys, taken, taken_r
+    return Cs, Ws, ys, taken, taken_r, B
 
 
 @njit(cache=True)
@@ -352,7 +313,7 @@ def solve_band(bands, Bs, rs, Dw, rW):
     :func:`chain_backward`. One chain with G = 0 is a plain chain solve.
     ``numpy.linalg.LinAlgError`` where a pivot block is not positive definite. The bands are
     overwritten."""
-    factors = [chain_forward(band, B, r) for band, B, r in zip(bands, Bs, rs)]
+    factors = [chain_forward(band, B, r, band.shape[0]) for band, B, r in zip(bands, Bs, rs)]
     if len(rW):
         xW = np.linalg.solve(Dw - sum(f[3] for f in factors), rW - sum(f[4] for f in factors))
     else:
