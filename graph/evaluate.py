@@ -66,11 +66,15 @@ def _variant(args: argparse.Namespace, text: str):
 
 
 def _table(score) -> None:
+    """The score per held-out camera and over all; what a reconstruction warned of, after it."""
     print(f"  {'camera':<16} {'median px':>10} {'p90 px':>10} {'judged':>8} {'coverage':>9} {'seconds':>8}")
     for c in score.cameras:
         print(f"  {c.camera:<16} {c.median_px:10.3f} {c.p90_px:10.3f} {c.count:8d} {c.coverage:9.3f} {c.seconds:8.2f}")
     print(f"  {'all':<16} {score.median_px:10.3f} {score.p90_px:10.3f} {score.count:8d} {score.coverage:9.3f} "
-          f"{score.seconds:8.2f}")
+          f"{score.seconds:8.2f}", flush=True)
+    for c in score.cameras:
+        for w in c.warnings:
+            print(f"acinoset: warning: {c.camera} held out: {w}", file=sys.stderr)
 
 
 def run_loco(args: argparse.Namespace) -> int:

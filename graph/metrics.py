@@ -346,11 +346,13 @@ class HeldOutCamera:
     seconds: float  # the reconstruction's wall time
     per_marker_median_px: dict[str, float]
     errors: np.ndarray
+    warnings: list[str] = field(default_factory=list)  # what the reconstruction warned of
 
     def to_dict(self) -> dict:
         return {"camera": self.camera, "median_px": self.median_px, "p90_px": self.p90_px, "mean_px": self.mean_px,
                 "count": self.count, "confident": self.confident, "coverage": self.coverage,
-                "seconds": self.seconds, "per_marker_median_px": self.per_marker_median_px}
+                "seconds": self.seconds, "per_marker_median_px": self.per_marker_median_px,
+                "warnings": self.warnings}
 
 
 @dataclass
@@ -426,6 +428,7 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
     in those units. ``judge`` (one :class:`~graph.keypoints.Keypoints` per camera, default
     ``keypoints``) are the detections each held-out camera is scored against: for instance one
     ensemble member's, to compare a method given the ensemble with methods given that member.
+    Warnings a reconstruction gives are kept in its camera's ``warnings``, not raised.
     """
     from graph.calibration import CALIBRATION_UNITS, resolve_units
     from graph.camera import Calibration
@@ -471,8 +474,11 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
         sub = Calibration(cameras=[calibration.cameras[i] for i in keep], source=calibration.source,
                           metadata=dict(calibration.metadata))
         t0 = time.perf_counter()
-        names, positions = reconstruct([keypoints[i] for i in keep], sub)
+        with warnings.catch_warnings(record=True) as said:  # kept with the camera they came from
+            warnings.simplefilter("always")
+            names, positions = reconstruct([keypoints[i] for i in keep], sub)
         seconds = time.perf_counter() - t0
+        said = list(dict.fromkeys(str(w.message) for w in said))
         markers = list(names) if markers is None else markers
         positions = align_markers(list(names), np.asarray(positions, dtype=np.float64), markers)
         e, confident = held_out_errors(calibration.cameras[c], positions, markers, judge[c], confidence)
@@ -481,7 +487,8 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
             camera=name, median_px=_stat(e, np.median), p90_px=_stat(e, lambda v: np.percentile(v, 90)),
             mean_px=_stat(e, np.mean), count=int(np.isfinite(e).sum()), confident=n_conf,
             coverage=float(np.isfinite(e).sum() / n_conf) if n_conf else float("nan"), seconds=seconds,
-            per_marker_median_px={m: _stat(e[:, k], np.median) for k, m in enumerate(markers)}, errors=e))
+            per_marker_median_px={m: _stat(e[:, k], np.median) for k, m in enumerate(markers)}, errors=e,
+            warnings=said))
     pooled = np.concatenate([h.errors.ravel() for h in held])
     n_conf = sum(h.confident for h in held)
     count = int(np.isfinite(pooled).sum())

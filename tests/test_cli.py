@@ -325,6 +325,9 @@ def test_evaluate_loco_versus(run_dir, tmp_path):
     proc = run_cli(*base, "--versus", "--motion-order 1", "--json", out)
     assert proc.returncode == 0, proc.stderr
     assert "versus --motion-order 1:" in proc.stdout and "minus the first: median" in proc.stdout, proc.stdout
+    # the solves' warnings (1 px noise solved as 5 px) name the camera held out, once per solve
+    held = [line for line in proc.stderr.splitlines() if " held out: the detections scatter" in line]
+    assert len(held) == 6 and held[0].startswith("acinoset: warning: cam1 held out: "), proc.stderr
     doc = json.loads(out.read_text())
     (v,) = doc["versus"]
     assert doc["options"]["motion_order"] == 3 and v["options"]["motion_order"] == 1
