@@ -24,7 +24,6 @@ import argparse
 import importlib
 import json
 import sys
-import time
 import warnings
 from collections import namedtuple
 from pathlib import Path
@@ -120,13 +119,16 @@ def _command_named(argv: list[str]) -> str:
 
 
 def main(argv: list[str] | None = None, commands: tuple[Command, ...] = COMMANDS) -> int:
-    """Run the command line ``argv`` (default: this process's own, ``sys.argv[1:]``); the exit status."""
+    """Run the command line ``argv`` (default: this process's own, ``sys.argv[1:]``) with the
+    ``commands`` table (:class:`Command`, or plain ``(name, module, help)`` triples); the exit status."""
     command_line = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
+    commands = tuple(Command(*c) for c in commands)
     if _command_named(argv) == "solve":  # handed to a warm resident process when one is up
         from graph import resident
 
-        return resident.solve(argv, commands, lambda: _run(argv, commands), exit_when_served=command_line)
+        return resident.solve(argv, commands, lambda: _run(argv, commands), exit_when_served=command_line,
+                              entry="graph.cli:main")
     return _run(argv, commands)
 
 
@@ -322,6 +324,7 @@ def run_solve(args: argparse.Namespace) -> int:
     check_same_frames(keypoints)
 
     from graph.kernels import compile_notice
+    from graph.progress import ProgressBar
 
     bar = ProgressBar(sys.stderr) if sys.stderr.isatty() else None
     try:
@@ -358,44 +361,6 @@ def run_solve(args: argparse.Namespace) -> int:
     print(f"{rep.method}: {rep.frames} frames, {rep.cameras} cameras, {rep.markers} markers, "
           f"reprojection RMSE {rmse}{noise}, {rep.seconds.get('total', 0.0):.2f} s -> {', '.join(map(str, written))}")
     return 0
-
-
-class ProgressBar:
-    """A plain one-line progress bar on a terminal: ``[#####-----]  50% solve it 12 cost 3.1e+03``.
-    Called with a :class:`graph.types.Progress`; :meth:`show` draws any fraction and text."""
-
-    def __init__(self, stream, width: int = 30, min_interval: float = 0.1):
-        self.stream = stream
-        self.width = width
-        self.min_interval = min_interval
-        self._last = 0.0
-        self._shown = False
-
-    def show(self, fraction: float, text: str) -> None:
-        """``[###---] NN% text``, at most every ``min_interval`` seconds (the end always)."""
-        now = time.monotonic()
-        if now - self._last < self.min_interval and fraction < 1.0:
-            return
-        self._last = now
-        frac = min(max(float(fraction), 0.0), 1.0)
-        filled = int(round(frac * self.width))
-        line = f"\r[{'#' * filled}{'-' * (self.width - filled)}] {frac * 100:3.0f}% {text}"
-        self.stream.write(line.ljust(self.width + 40))
-        self.stream.flush()
-        self._shown = True
-
-    def __call__(self, p) -> None:
-        text = p.stage
-        if p.iteration:
-            text += f" it {p.iteration}"
-        if p.cost == p.cost:  # not NaN
-            text += f" cost {p.cost:.3g}"
-        self.show(p.fraction, text)
-
-    def close(self) -> None:
-        if self._shown:
-            self.stream.write("\n")
-            self.stream.flush()
 
 
 if __name__ == "__main__":  # ``python -m graph.cli``: the library's commands, from the module proper

@@ -92,7 +92,7 @@ def _videos(run, result, out: Path, log) -> None:
     import sys
 
     from graph.video import render_videos, write_simulated_videos
-    from graph.video.cli import FrameProgress
+    from graph.progress import FrameProgress
 
     log(f"filming the run: {len(run.keypoints)} cameras x {run.frames} frames ...")
     bar = FrameProgress(sys.stderr, label="camera-frames filmed") if sys.stderr.isatty() else None

@@ -33,7 +33,8 @@ resident and the old one idles out (it also checks its own key each minute and l
 Protocol: one Unix stream connection per solve.
 
 1. client -> resident: an 8-byte big-endian length and a JSON object ``{argv, cwd, env, umask,
-   commands}`` (``commands``: the :class:`graph.cli.Command` table of the client's entry point).
+   entry, commands}`` (``entry``: the command line's ``main`` as ``module:function``, one of
+   :data:`ENTRIES`; ``commands``: the :class:`graph.cli.Command` table it is called with).
 2. The resident hands the connection to a child: the one it forked ahead while no solve ran (it
    waits on a socket pair for the connection; a fork of the resident takes 5-7 ms), or, when
    solves overlap, one forked on the spot. The child reads the request, enters ``cwd``, takes
@@ -43,7 +44,7 @@ Protocol: one Unix stream connection per solve.
    the child makes them its own 0, 1, 2 and answers ``run\\n``: from then on the solve is the
    child's. A child that gets no ``go`` (the client gave up waiting) exits having done nothing, and
    a client that gets no ``run`` solves in its own process.
-4. The child runs ``graph.cli.main(argv, commands)``, exactly what the client would have run, sends
+4. The child runs ``entry(argv, commands)``, exactly what the client would have run, sends
    ``exit S\\n`` with its status and exits with it (the client need not wait for the teardown of a
    large process: 5-10 ms). The resident reaps it and sends the same line, or ``signal N\\n`` if it
    was killed before it could; the client takes the first line and exits the same way
@@ -180,8 +181,23 @@ def wanted(argv: list[str], env: dict[str, str]) -> bool:
 # --------------------------------------------------------------------------------- the client
 
 
-def solve(argv: list[str], commands, run_here: Callable[[], int], exit_when_served: bool = False) -> int:
-    """Run ``acinoset solve`` (``argv``): handed over to a warm resident if one is up, else
+ENTRIES = ("graph.cli:main",)  # the command lines a resident runs (named, so that it imports no CLI)
+
+
+def _entry(name: str) -> Callable[..., int]:
+    """The ``main`` an entry of :data:`ENTRIES` names (``module:function``), imported."""
+    import importlib
+
+    if name not in ENTRIES:
+        raise ValueError(f"not a command line a resident runs: {name!r}")
+    module, _, function = name.partition(":")
+    return getattr(importlib.import_module(module), function)
+
+
+def solve(argv: list[str], commands, run_here: Callable[[], int], exit_when_served: bool = False,
+          entry: str = ENTRIES[0]) -> int:
+    """Run ``acinoset solve`` (``argv``): handed over to a warm resident if one is up, which runs
+    ``entry`` (``module:function`` of :data:`ENTRIES`) with ``argv`` and ``commands``, else
     ``run_here()`` in this process, after which a resident is started for the next ones.
 
     ``exit_when_served``: this process is the command itself (its own command line, not a caller's
@@ -195,7 +211,7 @@ def solve(argv: list[str], commands, run_here: Callable[[], int], exit_when_serv
         place = place_of(env)
     except OSError:
         return run_here()
-    status = _hand_over(place, argv, commands, env)
+    status = _hand_over(place, argv, commands, env, entry)
     if status is not None:
         if exit_when_served:
             for stream in (sys.stdout, sys.stderr):
@@ -211,7 +227,7 @@ def solve(argv: list[str], commands, run_here: Callable[[], int], exit_when_serv
         start(place, env)
 
 
-def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str]) -> int | None:
+def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str], entry: str) -> int | None:
     """Steps 1-4 of the protocol; None if the solve was not taken (nothing was run)."""
     try:
         signals = _Signals()  # from the start: a Ctrl-C before the child runs is not lost
@@ -224,7 +240,7 @@ def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str]) -> 
         sock.settimeout(ANSWER_TIMEOUT_S)
         umask = os.umask(0o022)
         os.umask(umask)
-        body = json.dumps({"argv": argv, "cwd": os.getcwd(), "env": env, "umask": umask,
+        body = json.dumps({"argv": argv, "cwd": os.getcwd(), "env": env, "umask": umask, "entry": entry,
                            "commands": [[c.name, c.module, c.help] for c in commands]}).encode()
         sock.sendall(struct.pack(">Q", len(body)) + body)
         lines = _Lines(sock)
@@ -605,7 +621,6 @@ def _warm_cli(where: Path) -> None:
     import tempfile
 
     from graph.calibration import default_rig_path, load_calibration, write_anipose_toml
-    from graph.cli import main
     from graph.keypoints import write_dlc_csv
     from graph.simulate import simulate_run
 
@@ -619,7 +634,7 @@ def _warm_cli(where: Path) -> None:
             cams = [str(d / f"{name}.csv") for name in cal.names]
             for path, kp in zip(cams, run.keypoints):
                 write_dlc_csv(path, kp)
-            main(["solve", *cams, "--calibration", str(d / "calibration.toml"), "--fps", str(run.fps),
+            _entry(ENTRIES[0])(["solve", *cams, "--calibration", str(d / "calibration.toml"), "--fps", str(run.fps),
                   "--out", str(d / "run.csv"), "--h5", str(d / "run.h5"), "--report", str(d / "report.json")])
     except Exception:  # noqa: BLE001 - a colder first solve, nothing worse
         pass
@@ -777,15 +792,14 @@ def _std_streams() -> None:
 
 
 def _run(request: dict, log) -> int:
-    """``graph.cli.main(argv, commands)`` with its exit status as a process of its own would have it
-    (the solve is the child's from its first line: a Ctrl-C forwarded at once lands in here)."""
+    """``entry(argv, commands)`` with its exit status as a process of its own would have it (the
+    solve is the child's from its first line: a Ctrl-C forwarded at once lands in here)."""
     try:
         log.close()
-        from graph.cli import Command, main
-
+        main = _entry(request.get("entry", ENTRIES[0]))
         argv = list(request["argv"])
         sys.argv = ["acinoset", *argv]
-        code = main(argv, tuple(Command(*c) for c in request["commands"]))
+        code = main(argv, tuple(tuple(c) for c in request["commands"]))
     except SystemExit as e:
         code = e.code
         if code is None:

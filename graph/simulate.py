@@ -670,7 +670,7 @@ def _film(run: SimulatedRun, out: str | Path) -> list[Path]:
     import sys
 
     from graph.video import write_simulated_videos
-    from graph.video.cli import FrameProgress
+    from graph.progress import FrameProgress
 
     bar = FrameProgress(sys.stderr, label="camera-frames filmed") if sys.stderr.isatty() else None
     try:

@@ -421,7 +421,7 @@ def test_the_client_imports_nothing_heavy(tmp_path):
         "env = dict(os.environ)\n"
         "assert resident.wanted(['solve', 'a.csv'], env)\n"
         "place = resident.place_of(env)\n"
-        "assert resident._hand_over(place, ['solve', 'a.csv'], COMMANDS, env) is None\n"
+        "assert resident._hand_over(place, ['solve', 'a.csv'], COMMANDS, env, resident.ENTRIES[0]) is None\n"
         "print([m for m in ('numpy', 'numba', 'gtsam', 'scipy', 'h5py', 'cv2', 'graph.api') if m in sys.modules])\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=make_env(tmp_path))
     assert proc.returncode == 0, proc.stderr
@@ -435,3 +435,12 @@ def test_the_directory_must_be_private(tmp_path):
         resident.runtime_dir({"XDG_RUNTIME_DIR": str(tmp_path)})
     assert not resident.wanted(["solve", "--help"], {}) and not resident.wanted(["solve"], {"ACINOSET_RESIDENT": "0"})
     assert not resident.wanted(["solve"], {"NUMBA_THREADING_LAYER": "omp"}) and resident.wanted(["solve"], {})
+
+
+def test_a_resident_runs_only_the_command_lines_it_knows():
+    """The request names the command line to run as module:function; only those of ENTRIES are
+    imported (a request is the user's own, but a resident runs nothing it was not made for)."""
+    assert resident._entry("graph.cli:main").__module__ == "graph.cli"
+    for name in ("os:system", "graph.cli:_run", "graph.cli"):
+        with pytest.raises(ValueError):
+            resident._entry(name)

@@ -81,7 +81,7 @@ def _progress_bar():
     """A callback ``(stage, fraction)`` drawing the library's progress bar on a terminal (else None)."""
     if not sys.stderr.isatty():
         return None, None
-    from graph.cli import ProgressBar
+    from graph.progress import ProgressBar
     from graph.types import Progress
 
     bar = ProgressBar(sys.stderr)

@@ -4,27 +4,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
-from graph.cli import ProgressBar
 from graph.errors import InputError
+from graph.progress import FrameProgress
 
 AXES = {"x": (1, 0, 0), "-x": (-1, 0, 0), "y": (0, 1, 0), "-y": (0, -1, 0), "z": (0, 0, 1), "-z": (0, 0, -1)}
-
-
-class FrameProgress(ProgressBar):
-    """``[#####-----]  50% 450/900 camera-frames, 52/s`` on one terminal line, called with
-    ``(done, total)``."""
-
-    def __init__(self, stream, label: str = "camera-frames", width: int = 30, min_interval: float = 0.2):
-        super().__init__(stream, width, min_interval)
-        self.label = label
-        self._t0 = time.monotonic()
-
-    def __call__(self, done: int, total: int) -> None:
-        rate = done / max(time.monotonic() - self._t0, 1e-9)
-        self.show(done / max(total, 1), f"{done}/{total} {self.label}, {rate:.0f}/s")
 
 
 def register(sub) -> None:
