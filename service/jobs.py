@@ -214,10 +214,11 @@ class JobService:
 
     def submit(self, user: User, keypoints: list[Upload], calibration: Upload, options_text: str | None,
                skeleton: Upload | None = None, videos: list[Upload] | None = None,
-               video_paths: list[str] | None = None) -> Job:
+               video_paths: list[str] | None = None, calibration_id: str | None = None) -> Job:
         """Validate the upload with the core's readers, store it, queue the job. ``videos`` (uploads)
         or ``video_paths`` (on shared storage, :meth:`video_path`): each camera's footage, one per
-        keypoint file, for the labelled videos."""
+        keypoint file, for the labelled videos. ``calibration_id``: the calibration job whose
+        ``calibration.toml`` ``calibration`` is, recorded with the inputs."""
         s = self.settings
         if not keypoints:
             raise Unprocessable("keypoints: upload one keypoint file per camera")
@@ -241,6 +242,8 @@ class JobService:
         try:
             with self._validating:
                 job_id, inputs = self._store_upload(keypoints, calibration, skeleton, options, videos or None, shared)
+            if calibration_id is not None:
+                inputs["calibration_id"] = calibration_id
             try:
                 job = self.store.insert_job(job_id, user.id, self.backend.name, options, inputs, s.max_attempts,
                                             max_active=s.max_active_jobs_per_user, label=label)

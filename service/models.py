@@ -67,6 +67,8 @@ class Inputs(BaseModel):
     bodyparts: list[str]
     keypoints: list[InputFile] = Field(description="one per camera, in the calibration's order")
     calibration: InputFile
+    calibration_id: str | None = Field(None, description="the calibration made on this server that the job "
+                                                         "was given (GET /v1/calibrations/{id}), if one was")
     skeleton: InputFile | None = None
     videos: list[InputFile] | None = Field(None, description="each camera's video, when the job was given them")
 

@@ -135,7 +135,7 @@ def submit_job(
         job = jobs.submit(user, [Upload(f.filename, f.file) for f in keypoints], cal,
                           options, Upload(skeleton.filename, skeleton.file) if skeleton is not None else None,
                           videos=[Upload(f.filename, f.file) for f in videos or []] or None,
-                          video_paths=video_paths or None)
+                          video_paths=video_paths or None, calibration_id=calibration_id)
     out = job_out(job)
     response.headers["Location"] = out.links.self
     return out

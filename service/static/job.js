@@ -50,7 +50,10 @@
     fact("Input", `${i.cameras} cameras, ${i.frames} frames, ${(i.bodyparts || []).length} bodyparts`);
     if (i.keypoints) fact("Keypoint files", el("ul", { class: "plain" },
       i.keypoints.map((f, k) => el("li", { text: `camera ${k + 1}: ${f.name}` + (f.frames != null ? ` (${f.frames} frames)` : "") }))));
-    if (i.calibration) fact("Calibration", i.calibration.name);
+    if (i.calibration_id) {
+      fact("Calibration", el("span", {}, "made on this server: ",
+        el("a", { href: `/calibrations/${encodeURIComponent(i.calibration_id)}`, text: `calibration ${i.calibration_id.slice(0, 8)}` })));
+    } else if (i.calibration) fact("Calibration", i.calibration.name);
     fact("Submitted", A.fmtDate(t.created_at));
     fact("Started", t.started_at ? A.fmtDate(t.started_at) : null);
     fact("Finished", t.finished_at ? A.fmtDate(t.finished_at) : null);

@@ -113,6 +113,7 @@ def test_a_solve_job_names_the_calibration(ex1, alice, bob, tmp_path):
     job = wait_finished(alice, r.json()["id"])
     assert job["status"] == "succeeded", job["error"]
     assert job["inputs"]["cameras"] == 2 and job["inputs"]["calibration"]["name"] == "calibration.toml"
+    assert job["inputs"]["calibration_id"] == ex1["id"]  # the job says which calibration it used
     h5 = tmp_path / "result.h5"
     h5.write_bytes(alice.get(f"/v1/jobs/{job['id']}/result", params={"format": "h5"}).content)
     res = read_result(h5)
