@@ -222,11 +222,12 @@ def add_solve_options(p) -> None:
     p.add_argument("--measurement-std", default=str(defaults.measurement_std_px), metavar="PX|auto",
                    help=f"detection noise in pixels per coordinate (default {defaults.measurement_std_px:g}, the "
                         "paper's), or 'auto' to measure it from the data; the 3D uncertainties scale with it")
-    p.add_argument("--motion-scale", default=None, metavar="S|auto",
-                   help="multiplies the motion model's process noise (larger follows the data more), or 'auto' to "
-                        "fit it to the data (per marker for free points); default: auto for fte on free points, "
-                        "else 1")
-    p.add_argument("--motion-order", default="3", choices=["1", "2", "3", "auto"],
+    p.add_argument("--motion-scale", default=None, metavar="S|auto|FILE",
+                   help="multiplies the motion model's process noise (larger follows the data more), 'auto' to "
+                        "fit it to the data (per marker for free points), or the report JSON or result H5 of a "
+                        "run that fitted it, to use its scales (and their orders) without fitting again; default: "
+                        "auto for fte on free points, else 1")
+    p.add_argument("--motion-order", default=None, choices=["1", "2", "3", "auto"],
                    help="the motion prior's order: on the k-th differences of each coordinate, 3 (constant "
                         "acceleration, the default), 2, 1 (what aniposelib smooths), or 'auto' to choose it per "
                         "marker from the data (fte, with the motion scale fitted)")
@@ -268,6 +269,40 @@ def _body_option(text: str) -> tuple[str, dict[str, float] | None]:
     return "given", read_body(text)
 
 
+def _motion_options(scale: str | None, order: str | None):
+    """``--motion-scale`` and ``--motion-order`` as SolveOptions values. A scale that is neither a
+    number nor ``auto`` names an earlier run's report or result (:func:`graph.io.read_motion`): its
+    scales per group, with the orders they were fitted for (an order given too must agree)."""
+    given_order = None if order is None else ("auto" if order == "auto" else int(order))
+    if scale is None:
+        return None, 3 if given_order is None else given_order
+    if scale.strip().lower() == "auto" or _is_number(scale):
+        return _auto_option(scale, "--motion-scale", "a positive number"), 3 if given_order is None else given_order
+    if not Path(scale).exists():
+        raise ValueError(f"--motion-scale takes a positive number, 'auto', or the report JSON or result H5 of a run "
+                         f"that fitted it; {scale!r} is none of these")
+    from graph.io import read_motion
+
+    scales, orders = read_motion(scale)
+    if orders is None:  # a report from before the orders were kept with the scales
+        if not isinstance(given_order, int):
+            raise ValueError(f"--motion-scale {scale}: it does not say which order its scales were fitted for; "
+                             "give that order as --motion-order 1, 2 or 3")
+        return scales, given_order
+    if given_order is not None and {given_order} != set(orders.values()):
+        raise ValueError(f"--motion-scale {scale}: its scales were fitted for order(s) "
+                         f"{', '.join(str(k) for k in sorted(set(orders.values())))}; leave --motion-order out")
+    return scales, orders
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _offsets_option(text: str | None) -> list[float] | None:
     """``--time-offsets``: comma-separated frames, one per camera."""
     if text is None:
@@ -290,14 +325,13 @@ def solve_options(args: argparse.Namespace):
             if any(len(b) != 2 or not all(b) for b in bones):
                 raise ValueError("--bones takes pairs of bodyparts as A-B,C-D")
         std_px = _auto_option(args.measurement_std)
-        motion = None if args.motion_scale is None else _auto_option(args.motion_scale, "--motion-scale",
-                                                                       "a positive number")
+        motion, order = _motion_options(args.motion_scale, args.motion_order)
         body, lengths = _body_option(args.body)
         offsets = _offsets_option(args.time_offsets)
         options = SolveOptions(body=body, body_lengths=lengths, sync=args.sync, time_offsets=offsets,
                                method=args.method, fps=args.fps, skeleton=args.skeleton, measurement_std_px=std_px,
                                motion_scale=motion,
-                               motion_order="auto" if args.motion_order == "auto" else int(args.motion_order),
+                               motion_order=order,
                                likelihood_threshold=args.likelihood_threshold, individual=args.individual,
                                calibration_units=args.calibration_units, bone_lengths=bones,
                                uncertainty=args.uncertainty)
@@ -355,7 +389,7 @@ def run_solve(args: argparse.Namespace) -> int:
         v = sorted(rep.motion_scales.values())
         noise += (f", motion scale {v[0]:.3g} (fitted)" if len(v) == 1 else
                   f", motion scales {v[0]:.3g}-{v[-1]:.3g} (fitted, median {v[len(v) // 2]:.3g})")
-    if rep.motion_orders:
+    if rep.motion_orders and options.motion_order == "auto":
         counts = {k: list(rep.motion_orders.values()).count(k) for k in sorted(set(rep.motion_orders.values()))}
         noise += ", motion order " + ", ".join(f"{k} for {n}" for k, n in counts.items())
     print(f"{rep.method}: {rep.frames} frames, {rep.cameras} cameras, {rep.markers} markers, "

@@ -47,6 +47,7 @@ import gtsam
 import numpy as np
 
 from graph import kernels
+from graph.errors import InputError
 from graph.initial import initial_poses
 from graph.marginals import chain_band, chain_marginals, solve_band
 from graph.noise import scatter_px
@@ -113,8 +114,7 @@ class TrajectoryProblem:
         # the third difference's sd per parameter at motion scale 1, and the scale of each group
         # (motion_scale "auto" starts at 1 and is fitted: :func:`refit_motion`)
         self.base_sigma3 = sk.process_noise * prob.dt**2
-        scale = prob.options.motion_scale
-        self.sigma3 = self.base_sigma3 * (1.0 if scale == "auto" else float(scale))
+        self.sigma3 = self.base_sigma3.copy()  # each group's scale applied below (set_motion_scales)
         self.bones = sk.bone_index if sk.kind == "points" else np.zeros((0, 2), dtype=np.int64)
         if bone_len is None:
             bone_len = np.zeros(len(self.bones))
@@ -130,11 +130,11 @@ class TrajectoryProblem:
             self.groups = [np.arange(3 * m, 3 * m + 3) for m in range(len(sk.markers))]
         else:
             self.groups = [np.arange(P)]
-        self.motion_scales = np.full(len(self.groups), 1.0 if scale == "auto" else float(scale))
-        # the order of each group's motion prior: the prior is on its k-th differences (3: constant
-        # acceleration, the paper's model). motion_order "auto" starts at 3 and is chosen by fit_motion
-        order = prob.options.motion_order
-        self.orders = np.full(len(self.groups), 3 if order == "auto" else int(order), dtype=np.int64)
+        # each group's scale of the process noise ("auto" starts at 1) and the order of its motion
+        # prior: on its k-th differences (3: constant acceleration, the paper's model; "auto" starts at
+        # 3 and is chosen by fit_motion); one for all, or per group as a report gives them
+        self.set_motion_scales(self._per_group(prob.options.motion_scale, "motion_scale", 1.0, float),
+                               self._per_group(prob.options.motion_order, "motion_order", 3, int))
         # free points without bones: independent chains, solved by banded Cholesky (solve_linear)
         self.chains = len(self.groups) > 1
         # the stiffest smoothing a fit may choose (graph.smoothing.stiffest_scale); ekf's stream, which
@@ -149,6 +149,23 @@ class TrajectoryProblem:
 
     def key(self, n: int, group: int) -> int:
         return group * self.N + n
+
+    def _per_group(self, value, option: str, auto, kind) -> np.ndarray:
+        """``value`` of ``option`` for each group: one for all, ``auto`` for "auto", or a
+        ``{group: value}`` map (a report's motion_scales / motion_orders) naming exactly this solve's
+        groups (:meth:`group_names`); :class:`InputError` naming the difference otherwise."""
+        if not isinstance(value, dict):
+            return np.full(len(self.groups), auto if value == "auto" else kind(value))
+        names = self.group_names()
+        missing = [n for n in names if n not in value]
+        extra = [n for n in value if n not in names]
+        if missing or extra:
+            raise InputError(f"{option} gives a value per group, but not for this solve's groups ({', '.join(names[:6])}"
+                             f"{', ...' if len(names) > 6 else ''}): "
+                             + "; ".join(part for part in (f"missing {', '.join(missing[:6])}" if missing else "",
+                                                            f"unknown {', '.join(extra[:6])}" if extra else "") if part)
+                             + " (a report of a run with the same markers and skeleton gives the right ones)")
+        return np.array([kind(value[n]) for n in names])
 
     @property
     def sigma_cm(self) -> np.ndarray:
@@ -619,9 +636,8 @@ def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[st
     est = tp.estimate(X, normals, prob.options.uncertainty)
     pos, std, params_std = est.positions, est.std, est.params_std
     report = dict(est.report or {})
-    if prob.options.motion_scale == "auto":
+    if prob.options.motion_scale == "auto":  # with the order each scale was fitted for (chosen, or given)
         report["motion_scales"] = {name: float(v) for name, v in zip(tp.group_names(), tp.motion_scales)}
-    if prob.options.motion_order == "auto":
         report["motion_orders"] = {name: int(k) for name, k in zip(tp.group_names(), tp.orders)}
     loose = loose_motion(tp.motion_residuals(Q)) if prob.options.motion_scale != "auto" else None
     report["warnings"] = list(notes or []) + report.get("warnings", []) + ([loose] if loose else [])

@@ -345,27 +345,32 @@ def _safe_name(name: str) -> str:
 
 # ----------------------------------------------------------------------------------- a body, reused
 
-def read_body(path: str | Path) -> dict[str, float]:
-    """The body lengths (m per length group or bone) of an earlier solve, to solve more runs of the
-    same animal with (``body="given"``): its report JSON or result H5 (``body_lengths``: ``{name:
-    {length_m, std_m, model_m}}``), or a JSON object ``{name: length_m}``."""
+def _earlier_report(path: str | Path, missing: str) -> dict | list:
+    """The report of an earlier solve, from its report JSON or result H5 (or a JSON file of one's
+    own); :class:`InputError` naming ``path`` (``missing``: what to say when there is no file)."""
     path = Path(path)
     if not path.is_file():
-        raise InputError("no such body file (give model, estimate, or a report JSON or result H5 "
-                         "with body_lengths)", path)
+        raise InputError(missing, path)
     if path.read_bytes()[:8] == b"\x89HDF\r\n\x1a\n":
         import h5py
 
         try:
             with h5py.File(path, "r") as f:
-                data = json.loads(_attr(f, "report") or "{}")
+                return json.loads(_attr(f, "report") or "{}")
         except (OSError, ValueError):
             raise InputError("not a result file written by acinoset", path) from None
-    else:
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except (UnicodeDecodeError, ValueError) as e:
-            raise InputError(f"not JSON ({type(e).__name__})", path) from None
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, ValueError) as e:
+        raise InputError(f"not JSON ({type(e).__name__})", path) from None
+
+
+def read_body(path: str | Path) -> dict[str, float]:
+    """The body lengths (m per length group or bone) of an earlier solve, to solve more runs of the
+    same animal with (``body="given"``): its report JSON or result H5 (``body_lengths``: ``{name:
+    {length_m, std_m, model_m}}``), or a JSON object ``{name: length_m}``."""
+    data = _earlier_report(path, "no such body file (give model, estimate, or a report JSON or result H5 "
+                                 "with body_lengths)")
     lengths = data.get("body_lengths", data) if isinstance(data, dict) else None
     if not isinstance(lengths, dict) or not lengths:
         raise InputError("holds no body_lengths (solve one run with --body estimate and give its report)", path)
@@ -376,3 +381,24 @@ def read_body(path: str | Path) -> dict[str, float]:
             raise InputError(f"body length {name!r} is not a positive number of metres", path)
         out[str(name)] = float(L)
     return out
+
+
+def read_motion(path: str | Path) -> tuple[dict[str, float], dict[str, int] | None]:
+    """The smoothing an earlier solve fitted (``motion_scale="auto"``), to solve more runs of the
+    same rig and animal with it, without fitting again: ``motion_scales`` ``{group: scale}`` of its
+    report JSON or result H5, and ``motion_orders`` ``{group: k}``, the order each was fitted for
+    (None in reports written before they were kept with the scales)."""
+    data = _earlier_report(path, "no such file (give a number, auto, or the report JSON or result H5 of a "
+                                 "solve with the motion scale fitted)")
+    scales = data.get("motion_scales") if isinstance(data, dict) else None
+    if not isinstance(scales, dict) or not scales:
+        raise InputError("holds no motion_scales (solve one run with --motion-scale auto and give its report)", path)
+    orders = data.get("motion_orders")
+    for name, v in scales.items():
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 < v < float("inf"):
+            raise InputError(f"motion scale {name!r} is not a positive number", path)
+    if orders is not None and (not isinstance(orders, dict) or set(orders) != set(scales)
+                               or any(k not in (1, 2, 3) or isinstance(k, bool) for k in orders.values())):
+        raise InputError("motion_orders must give 1, 2 or 3 for each group of motion_scales", path)
+    return ({str(k): float(v) for k, v in scales.items()},
+            {str(k): int(v) for k, v in orders.items()} if orders is not None else None)

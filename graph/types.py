@@ -61,13 +61,15 @@ class SolveOptions:
     max_iterations: int = 50
     # multiplies every process-noise std (larger: follows the data more); "auto": fitted to the data by
     # the marginal likelihood (graph.smoothing), per marker for free points, one scale for a skeleton;
+    # {group: scale}: a scale per group as a report's motion_scales gives them ({marker: s} for free
+    # points, {"all": s}), to solve more runs with the smoothing one run fitted;
     # None: the default for the skeleton and method (default_motion_scale)
-    motion_scale: float | Literal["auto"] | None = None
+    motion_scale: float | Literal["auto"] | dict[str, float] | None = None
     # the order k of the motion prior, white k-th differences of each parameter: 3 (constant
     # acceleration with white jerk, the paper's), 2 (white changes of velocity), 1 (a random walk of
     # positions), or "auto": chosen per group from the data (graph.smoothing: the fractional Bayes
-    # factor); "fte" with motion_scale "auto" only
-    motion_order: int | Literal["auto"] = 3
+    # factor); "fte" with motion_scale "auto" only; {group: k}: per group, as a report's motion_orders
+    motion_order: int | Literal["auto"] | dict[str, int] = 3
     bone_lengths: list[tuple[str, str]] | None = None  # soft bone-length terms for "points"
     individual: str | None = None  # multi-animal DLC files: which individual
     lag_seconds: float = 0.25  # "ekf": the fixed-lag window
@@ -97,13 +99,16 @@ class SolveOptions:
             raise ValueError(f"calibration_units must be one of {', '.join(CALIBRATION_UNITS)}")
         if not (1 <= self.max_iterations <= MAX_ITERATIONS):
             raise ValueError(f"max_iterations must be from 1 to {MAX_ITERATIONS}, not {self.max_iterations}")
-        if self.motion_scale not in ("auto", None) and not (isinstance(self.motion_scale, (int, float))
-                                                 and 0 < self.motion_scale <= MAX_MOTION_SCALE):
-            raise ValueError(f"motion_scale must be positive and at most {MAX_MOTION_SCALE:g}, or 'auto', "
-                             f"not {self.motion_scale!r}")
-        if self.motion_order not in (1, 2, 3, "auto") or isinstance(self.motion_order, bool):
-            raise ValueError(f"motion_order must be 1, 2, 3 or 'auto', not {self.motion_order!r}")
-        if self.motion_order != 3 and self.method != "fte":
+        scales = self.motion_scale.values() if isinstance(self.motion_scale, dict) else [self.motion_scale]
+        if self.motion_scale not in ("auto", None) and not (scales and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v <= MAX_MOTION_SCALE for v in scales)):
+            raise ValueError(f"motion_scale must be positive and at most {MAX_MOTION_SCALE:g} (or one such per group), "
+                             f"or 'auto', not {self.motion_scale!r}")
+        orders = self.motion_order.values() if isinstance(self.motion_order, dict) else [self.motion_order]
+        if self.motion_order != "auto" and not (orders and all(k in (1, 2, 3) and not isinstance(k, bool)
+                                                               for k in orders)):
+            raise ValueError(f"motion_order must be 1, 2, 3 (or one such per group) or 'auto', not {self.motion_order!r}")
+        if self.motion_order != "auto" and set(orders) != {3} and self.method != "fte":
             why = "it has no motion model" if self.method == "tri" else "its stream is a constant-acceleration filter"
             raise ValueError(f"motion_order {self.motion_order!r} is for method 'fte' ({self.method!r}: {why})")
         if not (0 < self.lag_seconds <= MAX_LAG_SECONDS):
@@ -159,9 +164,10 @@ class SolveReport:
     bounds_active: int = 0
     sigma_px: float = float("nan")  # the detection noise the loss and the uncertainties assumed (px)
     noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.noise)
-    # motion_scale "auto": the scale fitted per group ({marker: scale} for free points, {"all": scale})
+    # motion_scale "auto": the scale fitted per group ({marker: scale} for free points, {"all": scale}),
+    # and the order of each group's prior it was fitted for (chosen with motion_order "auto", else given);
+    # give both back (SolveOptions.motion_scale / motion_order) to solve more runs with the same smoothing
     motion_scales: dict[str, float] | None = None
-    # motion_order "auto": the order chosen per group ({marker: 1, 2 or 3} for free points, {"all": k})
     motion_orders: dict[str, int] | None = None
     # ensembles: each camera's detection noise relative to sigma_px (the median over its markers)
     relative_noise: dict[str, float] | None = None

@@ -177,9 +177,9 @@ class JobService:
             if where == "measurement_std_px":
                 msg = "must be a positive number of pixels or 'auto'"
             elif where == "motion_scale":
-                msg = "must be a positive number or 'auto'"
+                msg = "must be a positive number, 'auto', or {group: positive number} as a report's motion_scales"
             elif where == "motion_order":
-                msg = "must be 1, 2, 3 or 'auto'"
+                msg = "must be 1, 2, 3, 'auto', or {group: 1, 2 or 3} as a report's motion_orders"
             raise Unprocessable(f"options: {where + ': ' if where else ''}{msg}")
         except (TypeError, ValueError) as e:
             raise Unprocessable(f"options: {e}")

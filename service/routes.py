@@ -114,7 +114,7 @@ def submit_job(
     options: Annotated[str, Form(
         description='JSON object of solve options, e.g. {"method": "fte", "fps": 120, "skeleton": "cheetah", '
                     '"likelihood_threshold": 0.5, "measurement_std_px": 5}; measurement_std_px "auto" measures '
-                    'the detection noise from the data, motion_scale "auto" fits the smoothing to it (the default for fte on free points; 1 otherwise), motion_order 1, 2, 3 (the default) or "auto" the order of the motion prior; body "estimate" (the default), "model" or "given" with '
+                    'the detection noise from the data, motion_scale "auto" fits the smoothing to it (the default for fte on free points; 1 otherwise), motion_order 1, 2, 3 (the default) or "auto" the order of the motion prior (an earlier report\'s motion_scales and motion_orders given back reuse its fitted smoothing); body "estimate" (the default), "model" or "given" with '
                     'body_lengths {group: metres}; sync "given" (the default, with time_offsets in frames per '
                     'camera) or "estimate"; see GET /v1/skeletons')] = "{}",
     # a file or nothing: declared as a file only (a form field "null" is no file, and is refused)

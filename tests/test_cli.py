@@ -373,6 +373,32 @@ def test_solve_motion_order(run_dir, tmp_path):
     assert bad.returncode == 2 and "--motion-order" in bad.stderr and len(bad.stderr.splitlines()) == 1
 
 
+def test_solve_with_an_earlier_runs_smoothing(run_dir, tmp_path):
+    """``--motion-scale REPORT`` (a report JSON or result H5 of a run that fitted the smoothing): its
+    scales and orders, not fitted again; an order that disagrees, and a report without scales, are
+    one line each."""
+    args = [*solve_args(run_dir, tmp_path)[:-2], "--method", "fte", "--skeleton", "points"]
+    report, h5 = tmp_path / "fitted.json", tmp_path / "fitted.h5"
+    proc = run_cli(*args, "--motion-order", "1", "--out", tmp_path / "a.csv", "--report", report, "--h5", h5)
+    assert proc.returncode == 0, proc.stderr
+    fitted = json.loads(report.read_text())
+    assert set(fitted["motion_orders"].values()) == {1}
+    for source in (report, h5):
+        again = tmp_path / f"again_{source.suffix[1:]}.json"
+        proc = run_cli(*args, "--motion-scale", source, "--out", tmp_path / "b.csv", "--report", again, "--h5",
+                       tmp_path / "b.h5")
+        assert proc.returncode == 0, proc.stderr
+        assert "(fitted" not in proc.stdout and json.loads(again.read_text())["motion_scales"] is None
+        opts = read_result(tmp_path / "b.h5").options
+        assert opts.motion_scale == fitted["motion_scales"] and opts.motion_order == fitted["motion_orders"]
+    clash = run_cli(*args, "--motion-scale", report, "--motion-order", "3", "--out", tmp_path / "c.csv")
+    assert clash.returncode == 2 and "fitted for order(s) 1" in clash.stderr and len(clash.stderr.splitlines()) == 1
+    none = tmp_path / "none.json"
+    none.write_text(json.dumps({"method": "fte"}))
+    proc = run_cli(*args, "--motion-scale", none, "--out", tmp_path / "d.csv")
+    assert_user_error(proc, "none.json", "holds no motion_scales")
+
+
 def test_solve_an_ensemble_per_camera(run_dir, tmp_path):
     """``CAM_a.csv+CAM_b.csv``: an ensemble of two models per camera, combined; the report gives each
     camera's relative noise, and a missing member is named."""

@@ -253,7 +253,7 @@ def test_auto_order_finds_the_order_the_points_moved_by(order, process_noise):
     given = solve(run.keypoints, cal, SolveOptions(motion_order=order, **kw))
     err = lambda r: float(np.nanmean(np.linalg.norm(r.positions - run.positions, axis=-1)))  # noqa: E731
     assert err(auto) == pytest.approx(err(given), rel=0.02)
-    assert given.report.motion_orders is None
+    assert given.report.motion_orders == {m: order for m in run.markers}  # the order the scales are for
     other = solve(run.keypoints, cal, SolveOptions(motion_order=4 - order, **kw))
     assert err(auto) < err(other)
 
@@ -287,3 +287,31 @@ def test_motion_order_options():
     run = random_jerk_run(cal, frames=40, markers=2, seed=1)
     with pytest.raises(ValueError, match="motion_scale 'auto'"):
         solve(run.keypoints, cal, SolveOptions(skeleton="points", fps=run.fps, motion_scale=1.0, motion_order="auto"))
+
+
+def test_fitted_smoothing_given_back_solves_the_same_run_without_fitting():
+    """A report's motion_scales and motion_orders given back as options (a lab fits one run and
+    solves the rest of the session with its smoothing) land on the trajectory the fit solved, at a
+    fraction of the time; a map that does not name this solve's groups is refused, naming them."""
+    import time
+
+    from graph.errors import InputError
+
+    cal = load_calibration(default_rig_path())
+    run = random_jerk_run(cal, frames=300, process_noise=0.002, noise=2.0, seed=4, order=1)
+    kw = dict(skeleton="points", fps=run.fps, uncertainty=False)
+    t0 = time.perf_counter()
+    fitted = solve(run.keypoints, cal, SolveOptions(motion_scale="auto", motion_order="auto", **kw))
+    t1 = time.perf_counter()
+    given = solve(run.keypoints, cal, SolveOptions(motion_scale=fitted.report.motion_scales,
+                                                   motion_order=fitted.report.motion_orders, **kw))
+    t2 = time.perf_counter()
+    assert set(fitted.report.motion_orders.values()) == {1}
+    assert given.report.motion_scales is None  # given, not fitted
+    err = lambda r: float(np.nanmean(np.linalg.norm(r.positions - run.positions, axis=-1)))  # noqa: E731
+    assert err(given) == pytest.approx(err(fitted), rel=0.02)
+    assert np.nanmax(np.abs(given.positions - fitted.positions)) < 0.1 * err(fitted)
+    assert t2 - t1 < t1 - t0
+    wrong = {f"{m}_x": s for m, s in fitted.report.motion_scales.items()}
+    with pytest.raises(InputError, match="missing .*; unknown "):
+        solve(run.keypoints, cal, SolveOptions(motion_scale=wrong, **kw))

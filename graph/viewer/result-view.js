@@ -164,30 +164,37 @@
 
   const ORDER_WORDS = { 1: "a random walk of positions", 2: "constant velocity", 3: "constant acceleration" };
 
-  /** The process noise's scale: fitted ("x1.4", or per marker their median and range) or given. */
-  function smoothingText(report, options) {
+  /** Scales as "x1.4", or many as their median and range. */
+  function scalesText(values) {
     const fmt = (v) => (isFinite(v) ? Number(v).toPrecision(2) : "–");  // scales span 1e-6 to 1e3
+    if (values.length === 1) return `×${fmt(values[0])} the model's process noise`;
+    const sorted = values.slice().sort((a, b) => a - b);
+    return `×${fmt(sorted[Math.floor(sorted.length / 2)])} (median; ${fmt(sorted[0])}–` +
+      `${fmt(sorted[sorted.length - 1])} over ${sorted.length} markers)`;
+  }
+
+  /** The process noise's scale: fitted, or given (one, or one per group from an earlier run). */
+  function smoothingText(report, options) {
     const fitted = report.motion_scales ? Object.values(report.motion_scales) : [];
-    if (fitted.length === 1) return `fitted to the data: ×${fmt(fitted[0])} the model's process noise`;
-    if (fitted.length > 1) {
-      const sorted = fitted.slice().sort((a, b) => a - b);
-      const median = sorted[Math.floor(sorted.length / 2)];
-      return `fitted to the data per marker: ×${fmt(median)} (median; ${fmt(sorted[0])}–` +
-        `${fmt(sorted[sorted.length - 1])} over ${sorted.length} markers)`;
-    }
-    return typeof options.motion_scale === "number" ? `×${fmt(options.motion_scale)} the model's process noise (given)` : null;
+    if (fitted.length) return `fitted to the data${fitted.length > 1 ? " per marker" : ""}: ${scalesText(fitted)}`;
+    const given = options.motion_scale;
+    if (typeof given === "number") return `${scalesText([given])} (given)`;
+    if (given && typeof given === "object") return `given per group: ${scalesText(Object.values(given))}`;
+    return null;
   }
 
   /** The motion prior's order: chosen from the data (how many groups took each) or given. */
   function motionModelText(report, options) {
-    const chosen = report.motion_orders ? Object.values(report.motion_orders) : [];
-    if (chosen.length) {
+    const per = (orders) => {
       const counts = {};
-      for (const k of chosen) counts[k] = (counts[k] || 0) + 1;
-      return "chosen from the data: " + Object.keys(counts).sort().map((k) =>
-        `order ${k} (${ORDER_WORDS[k] || "?"}) for ${counts[k]}`).join(", ");
+      for (const k of orders) counts[k] = (counts[k] || 0) + 1;
+      return Object.keys(counts).sort().map((k) => `order ${k} (${ORDER_WORDS[k] || "?"}) for ${counts[k]}`).join(", ");
+    };
+    if (options.motion_order === "auto" && report.motion_orders) {
+      return "chosen from the data: " + per(Object.values(report.motion_orders));
     }
     const k = options.motion_order || 3;
+    if (typeof k === "object") return "given per group: " + per(Object.values(k));
     return `order ${k} (${ORDER_WORDS[k] || "?"})`;
   }
 
