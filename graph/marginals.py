@@ -115,8 +115,8 @@ def eliminated_tail(band, B, Dw):
     eliminated: ``Dw - B^T A^-1 B`` for the chain's information ``A`` (``band``), its coupling
     ``B`` (N, d, G) to ``W`` and ``W``'s own information ``Dw`` (G, G): what
     :func:`chain_forward` takes off it (``band`` is not overwritten)."""
-    N, d = band.shape[0], band.shape[2]
-    return Dw - chain_forward(band.copy(), B, np.zeros((N, d)), N)[3]
+    N = band.shape[0]
+    return Dw - chain_forward(band.copy(), B, np.zeros((N, 0)), N)[3]
 
 
 @njit(cache=True)
@@ -152,7 +152,7 @@ def banded_marginals(band, B, Dw):
         return out, cross, np.ascontiguousarray(inv[N * d:, N * d:])
 
     band = band.copy()  # chain_forward overwrites it: the frames' D_n stay on its diagonal
-    Cs, Ws, _, taken, _, B = chain_forward(band, B, np.zeros((N, d)), N - 3)
+    Cs, Ws, _, taken, _, B = chain_forward(band, B, np.zeros((N, 0)), N - 3)
     Ds = band[:N - 3, 0]
     M = _tail_information(band, B, Dw - taken)
     if G == 0:
@@ -241,7 +241,7 @@ def _backward(Ds, Cs, Ws, M):
 def chain_forward(band, B, r, stop):
     """The forward half of a solve with a chain's information (``band`` (N, 4, d, d) as in
     :func:`banded_marginals`, coupled by ``B`` (N, d, G) to unknowns W shared by every frame) and
-    right-hand side ``r`` (N, d): the block Cholesky factorisation in time order of frames
+    right-hand side ``r`` (N, d; (N, 0) for the factorisation alone, ``y`` then zero): the block Cholesky factorisation in time order of frames
     ``0 .. stop - 1`` (``stop = N``: every frame, the chain's last ones too), and the forward
     substitution with it. Frame n's factor is ``C_n = chol(D_n)`` with ``D_n`` its block once the
     frames before it are eliminated, ``W_n = C_n^-1 [band[n, 1..3], B_n]`` its coupling to the next
@@ -256,22 +256,26 @@ def chain_forward(band, B, r, stop):
     G = B.shape[2]
     B = B.copy()
     r = r.copy()
+    solving = r.shape[1] == d  # else (N, 0): the factorisation alone (the marginals')
     m = 3 * d + G
     Cs = np.empty((stop, d, d))
-    Ws = np.zeros((stop, d, m))
-    ys = np.empty((stop, d))
+    Ws = np.empty((stop, d, m))  # every row written whole below
+    ys = np.zeros((stop, d))
     taken = np.zeros((G, G))
     taken_r = np.zeros(G)
     Wb = np.empty((3, d, d))
+    U = np.empty((d, m))
     for n in range(stop):
         k_max = min(3, N - 1 - n)
-        U = np.zeros((d, m))
         for k in range(k_max):
             U[:, k * d:(k + 1) * d] = band[n, k + 1]
+        U[:, k_max * d:3 * d] = 0.0  # the last frames couple to fewer than three after them
         U[:, 3 * d:] = B[n]
         C = np.linalg.cholesky(band[n, 0])
         W = _lower_solve(C, U)
-        y = _lower_solve(C, np.ascontiguousarray(r[n]).reshape(d, 1))[:, 0]
+        if solving:
+            y = _lower_solve(C, np.ascontiguousarray(r[n]).reshape(d, 1))[:, 0]
+            ys[n] = y
         for i in range(k_max):
             Wb[i] = W[:, i * d:(i + 1) * d]
         Wg = np.ascontiguousarray(W[:, 3 * d:])
@@ -279,12 +283,13 @@ def chain_forward(band, B, r, stop):
             for j in range(i, k_max + 1):
                 band[n + i, j - i] -= Wb[i - 1].T @ Wb[j - 1]
             B[n + i] -= Wb[i - 1].T @ Wg
-            r[n + i] -= Wb[i - 1].T @ y
+            if solving:
+                r[n + i] -= Wb[i - 1].T @ ys[n]
         taken += Wg.T @ Wg
-        taken_r += Wg.T @ y
+        if solving:
+            taken_r += Wg.T @ ys[n]
         Cs[n] = C
         Ws[n] = W
-        ys[n] = y
     return Cs, Ws, ys, taken, taken_r, B
 
 
