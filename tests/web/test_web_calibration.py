@@ -54,7 +54,7 @@ def test_the_calibration_page_shows_quality_and_figures(page, server):
     assert page.get_by_role("button", name=re.compile(r"^Download calibration\.toml")).is_visible()
 
 
-def test_calibrate_on_the_form_then_solve_with_it(page, server, simulated_run):
+def test_calibrate_on_the_form_then_solve_with_it(page, server, simulated_run, tmp_path):
     """The calibration form sends the board and each camera's detections in camera order; the list
     shows the result, and its "use in a new job" link preselects it on the job form, which sends it
     as calibration_id (the server then checks the keypoints against that two-camera rig)."""
@@ -106,7 +106,40 @@ def test_calibrate_on_the_form_then_solve_with_it(page, server, simulated_run):
     expect(alert).to_contain_text("keypoint files", timeout=60_000)
     assert "2 cameras" in alert.inner_text() and "6 keypoint files" in alert.inner_text(), alert.inner_text()
     assert page.url.endswith(f"/jobs/new?calibration={cal_id}")
+
+    # two cameras' points that fit the rig: the job solves with it, and its page links back to it
+    pair = _points_seen_by(base, token, cal_id, tmp_path)
+    page.goto(f"/jobs/new?calibration={cal_id}")
+    expect(picker).to_have_value(cal_id)
+    page.get_by_label("Keypoint files, one per camera").set_input_files([str(p) for p in pair])
+    page.get_by_role("radio", name=re.compile("^tri:")).check()
+    page.get_by_label("Skeleton", exact=True).select_option("points")
+    page.get_by_role("button", name="Submit job").click()
+    page.wait_for_url(re.compile(r"/jobs/[0-9a-f]{32}$"))
+    link = page.locator("#job-facts a", has_text=f"calibration {cal_id[:8]}")
+    expect(link).to_have_attribute("href", f"/calibrations/{cal_id}")
     assert page.page_errors == []
+
+
+def _points_seen_by(base: str, token: str, cal_id: str, tmp: Path) -> list[Path]:
+    """Two DeepLabCut CSVs of points 2-3 m in front of calibration ``cal_id``'s pair, projected
+    through the rig the server made (1 px noise)."""
+    from graph.calibration import load_calibration
+    from graph.keypoints import Keypoints, write_dlc_csv
+
+    r = httpx.get(f"{base}/v1/calibrations/{cal_id}/calibration.toml", headers={"Authorization": f"Bearer {token}"})
+    assert r.status_code == 200, r.text
+    (tmp / "pair.toml").write_bytes(r.content)
+    cal = load_calibration(tmp / "pair.toml")
+    rng = np.random.default_rng(5)
+    c0 = cal.cameras[0]
+    truth = c0.center + 2.5 * c0.R[2] + rng.uniform(-0.3, 0.3, size=(20, 3, 3))
+    out = []
+    for cam, name in zip(cal.cameras, cal.names):
+        uv = cam.project(truth) + rng.normal(0, 1.0, size=truth.shape[:2] + (2,))
+        out.append(tmp / f"{name}.csv")
+        write_dlc_csv(out[-1], Keypoints([f"p{i}" for i in range(3)], uv, np.ones(truth.shape[:2])))
+    return out
 
 
 def test_the_calibration_form_says_why_the_server_refused(page, server):
