@@ -122,7 +122,9 @@
 
   function drawActions(job) {
     const active = A.isActive(job.status);
-    actions.replaceChildren(el("button", { type: "button", class: active ? "" : "danger",
+    const fitted = job.status === "succeeded" && job.result && job.result.motion_scales;
+    actions.replaceChildren(fitted ? el("a", { class: "button", href: `/jobs/new?smoothing=${encodeURIComponent(id)}`,
+      text: "Use its smoothing in a new job" }) : "", el("button", { type: "button", class: active ? "" : "danger",
       text: active ? "Cancel this job" : "Delete this job", onclick: async () => {
         if (!confirm(active ? `Cancel job ${short}?` : `Delete job ${short} and its result files?`)) return;
         try {

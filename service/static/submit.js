@@ -28,6 +28,31 @@
     status.textContent = files.length ? `${files.length} keypoint file${files.length === 1 ? "" : "s"} selected.` : "";
   });
 
+  /** ``?smoothing=JOB``: the smoothing that job fitted (its result's motion_scales, with the orders
+   * they are for) offered, and chosen, as the new job's smoothing and motion model. */
+  let earlier = null;
+  async function loadEarlierSmoothing() {
+    const from = new URLSearchParams(location.search).get("smoothing");
+    if (!from) return;
+    try {
+      const job = await A.api(`/v1/jobs/${encodeURIComponent(from)}`);
+      const r = job.result || {};
+      if (!r.motion_scales) throw new Error("that job did not fit its smoothing");
+      earlier = { scales: r.motion_scales, orders: r.motion_orders };
+      const what = `fitted by job ${from.slice(0, 8)}` + (job.label ? ` (${job.label})` : "");
+      const n = Object.keys(r.motion_scales).length;
+      document.getElementById("motion-scale").append(el("option", { value: "job", text: `${what}, ${n} group${n > 1 ? "s" : ""}` }));
+      document.getElementById("motion-scale").value = "job";
+      if (r.motion_orders) {
+        document.getElementById("motion-order").append(el("option", { value: "job", text: `the orders ${what}` }));
+        document.getElementById("motion-order").value = "job";
+      }
+      document.querySelector("details").open = true;
+    } catch (e) {
+      showError(`The smoothing of job ${from.slice(0, 8)} could not be used: ${e.message}`);
+    }
+  }
+
   /** The caller's succeeded calibrations as choices: a job may name one instead of uploading a file. */
   async function loadCalibrations() {
     try {
@@ -96,9 +121,11 @@
       sync: document.getElementById("sync-estimate").checked ? "estimate" : "given",
     };
     const smoothing = document.getElementById("motion-scale").value;  // "": the skeleton's default
-    if (smoothing) options.motion_scale = smoothing === "auto" ? "auto" : Number(smoothing);
+    if (smoothing === "job") options.motion_scale = earlier.scales;
+    else if (smoothing) options.motion_scale = smoothing === "auto" ? "auto" : Number(smoothing);
     const order = document.getElementById("motion-order").value;
-    options.motion_order = order === "auto" ? "auto" : Number(order);
+    if (order === "job") options.motion_order = earlier.orders;
+    else options.motion_order = order === "auto" ? "auto" : Number(order);
     const label = document.getElementById("label").value.trim();
     if (label) options.label = label;
     const data = new FormData();
@@ -121,4 +148,5 @@
 
   loadSkeletons();
   loadCalibrations();
+  loadEarlierSmoothing();
 })();

@@ -130,6 +130,26 @@ def test_sign_in_submit_watch_scrub_and_download(page, server, simulated_run, tm
     nose = np.array([[float(r[rows[0].index(f"nose_{a}")]) for a in "xyz"] for r in rows[1:]])
     assert np.isfinite(nose).all() and np.ptp(nose[:, :2], axis=0).max() > 0.1  # the animal moved
 
+    # Its fitted smoothing, reused: the job page offers it for a new job, which is solved with it.
+    from playwright.sync_api import expect
+
+    page.goto(f"/jobs/{job_id}")
+    page.get_by_role("link", name="Use its smoothing in a new job").click()
+    page.wait_for_url(re.compile(rf"/jobs/new\?smoothing={job_id}$"))
+    expect(page.get_by_label("Smoothing", exact=True)).to_have_value("job")
+    expect(page.get_by_label("Motion model")).to_have_value("job")
+    page.get_by_label("Keypoint files, one per camera").set_input_files(
+        [str(simulated_run / f"cam{i}.csv") for i in range(1, 7)])
+    page.get_by_label("Calibration file").set_input_files(str(simulated_run / "calibration.toml"))
+    page.get_by_role("button", name="Submit job").click()
+    page.wait_for_url(re.compile(r"/jobs/[0-9a-f]{32}$"))
+    page.locator("#job-status [data-status=succeeded]").wait_for(timeout=SOLVE_TIMEOUT_MS)
+    page.locator("#result[data-ready=true]").wait_for(timeout=60_000)
+    again = page.locator("dt", has_text="Smoothing").locator("xpath=following-sibling::dd[1]").inner_text()
+    assert again == smoothing.replace("fitted to the data:", "given per group:"), (again, smoothing)
+    motion = page.locator("dt", has_text="Motion model").locator("xpath=following-sibling::dd[1]").inner_text()
+    assert motion == "given per group: order 3 (constant acceleration) for 1", motion
+
     # The list shows the job as succeeded.
     page.get_by_role("link", name="Jobs", exact=True).click()
     row = page.locator(f"tr[data-job='{job_id}']")
