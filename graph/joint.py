@@ -43,7 +43,7 @@ from graph import kernels
 from graph.errors import InputError
 from graph.fte import PRIOR_SIGMA, Estimate, TrajectoryProblem, bone_lengths, solve_fte, solve_from
 from graph.initial import initial_poses
-from graph.marginals import banded_marginals, chain_band, eliminated_tail, solve_band
+from graph.marginals import banded_marginals, chain_band, information_taken, solve_band
 from graph.smoothing import STENCILS
 from graph.problem import Problem
 from graph.robust import A as RA, B as RB, C as RC
@@ -267,7 +267,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
         """Marginal covariances of every pose (N, P, P), between each pose and W (N, P, G), and of
         W (G, G), at the optimum (undamped; module docstring). For free points without bones, one
         chain per marker: each marker's marginals use W's information with every other marker's
-        chain eliminated (:func:`graph.marginals.eliminated_tail`)."""
+        chain eliminated (:func:`graph.marginals.information_taken`)."""
         G = self.G
         DW = nrm.HWW + np.diag(self.prior_info)
         bands, Bs = self._chains(nrm.H + np.eye(self.P)[None] / PRIOR_SIGMA**2, nrm)
@@ -277,7 +277,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
             Sigma, cross, SW = banded_marginals(bands[0], Bs[0], DW)
             return Sigma, cross, SW
         # what each chain takes off W's information when eliminated
-        taken = [DW - eliminated_tail(band, B, DW) for band, B in zip(bands, Bs)]
+        taken = [information_taken(band, B) for band, B in zip(bands, Bs)]
         total = sum(taken)
         SW = None
         for idx, band, B, t in zip(self.groups, bands, Bs, taken):

@@ -110,13 +110,12 @@ def chain_marginals(G, w2, stencil=D3):
     return out
 
 
-def eliminated_tail(band, B, Dw):
-    """The information left on the shared unknowns ``W`` when every frame of the chain is
-    eliminated: ``Dw - B^T A^-1 B`` for the chain's information ``A`` (``band``), its coupling
-    ``B`` (N, d, G) to ``W`` and ``W``'s own information ``Dw`` (G, G): what
-    :func:`chain_forward` takes off it (``band`` is not overwritten)."""
+def information_taken(band, B):
+    """What eliminating every frame of a chain takes off the shared unknowns' information:
+    ``B^T A^-1 B`` for the chain's information ``A`` (``band``) and its coupling ``B`` (N, d, G) to
+    ``W``, :func:`chain_forward`'s ``sum_n W_ng^T W_ng`` (``band`` is not overwritten)."""
     N = band.shape[0]
-    return Dw - chain_forward(band.copy(), B, np.zeros((N, 0)), N)[3]
+    return chain_forward(band.copy(), B, np.zeros((N, 0)), N)[3]
 
 
 @njit(cache=True)
@@ -241,9 +240,9 @@ def _backward(Ds, Cs, Ws, M):
 def chain_forward(band, B, r, stop):
     """The forward half of a solve with a chain's information (``band`` (N, 4, d, d) as in
     :func:`banded_marginals`, coupled by ``B`` (N, d, G) to unknowns W shared by every frame) and
-    right-hand side ``r`` (N, d; (N, 0) for the factorisation alone, ``y`` then zero): the block Cholesky factorisation in time order of frames
-    ``0 .. stop - 1`` (``stop = N``: every frame, the chain's last ones too), and the forward
-    substitution with it. Frame n's factor is ``C_n = chol(D_n)`` with ``D_n`` its block once the
+    right-hand side ``r`` (N, d; (N, 0) for the factorisation alone, ``y`` then zero): the block
+    Cholesky factorisation in time order of frames ``0 .. stop - 1`` (``stop = N``: every frame, the
+    chain's last ones too), and the forward substitution with it. Frame n's factor is ``C_n = chol(D_n)`` with ``D_n`` its block once the
     frames before it are eliminated, ``W_n = C_n^-1 [band[n, 1..3], B_n]`` its coupling to the next
     three frames and W, and ``y_n = C_n^-1 r_n``; later blocks lose ``W_ni^T W_nj``, later
     couplings ``W_ni^T W_ng`` and right-hand sides ``W_ni^T y_n``. Returns ``C`` (stop, d, d), ``W``
