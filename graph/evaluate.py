@@ -109,9 +109,9 @@ def run_loco(args: argparse.Namespace) -> int:
         print(f"versus {text}:")
         _table(theirs)
         few = "; few blocks: the intervals are too narrow" if d.blocks < 30 else ""
-        print(f"  minus the first: median {d.median_px:+.3f} px [{d.median_interval[0]:+.3f}, {d.median_interval[1]:+.3f}], "
-              f"p90 {d.p90_px:+.3f} px [{d.p90_interval[0]:+.3f}, {d.p90_interval[1]:+.3f}] (95 %, "
-              f"{d.blocks} blocks of {d.block_frames} frames{few})")
+        (m0, m1), (q0, q1) = d.median_interval, d.p90_interval
+        print(f"  minus the first: median {d.median_px:+.3f} px [{m0:+.3f}, {m1:+.3f}], p90 {d.p90_px:+.3f} px "
+              f"[{q0:+.3f}, {q1:+.3f}] (95 %, {d.blocks} blocks of {d.block_frames} frames{few})")
         versus.append({"versus": text, "options": other.to_dict(), **theirs.to_dict(), "difference": d.to_dict()})
     if args.json:
         doc = {"options": options.to_dict(), "keypoints": [str(p) for p in args.keypoints],

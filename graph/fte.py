@@ -160,11 +160,11 @@ class TrajectoryProblem:
         missing = [n for n in names if n not in value]
         extra = [n for n in value if n not in names]
         if missing or extra:
-            raise InputError(f"{option} gives a value per group, but not for this solve's groups ({', '.join(names[:6])}"
-                             f"{', ...' if len(names) > 6 else ''}): "
-                             + "; ".join(part for part in (f"missing {', '.join(missing[:6])}" if missing else "",
-                                                            f"unknown {', '.join(extra[:6])}" if extra else "") if part)
-                             + " (a report of a run with the same markers and skeleton gives the right ones)")
+            few = lambda xs: ", ".join(xs[:6]) + (", ..." if len(xs) > 6 else "")  # noqa: E731
+            wrong = [f"missing {few(missing)}"] * bool(missing) + [f"unknown {few(extra)}"] * bool(extra)
+            raise InputError(f"{option} gives a value per group, but not for this solve's groups ({few(names)}): "
+                             f"{'; '.join(wrong)} (a report of a run with the same markers and skeleton gives "
+                             "the right ones)")
         return np.array([kind(value[n]) for n in names])
 
     @property

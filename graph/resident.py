@@ -635,7 +635,8 @@ def _warm_cli(where: Path) -> None:
             for path, kp in zip(cams, run.keypoints):
                 write_dlc_csv(path, kp)
             _entry(ENTRIES[0])(["solve", *cams, "--calibration", str(d / "calibration.toml"), "--fps", str(run.fps),
-                  "--out", str(d / "run.csv"), "--h5", str(d / "run.h5"), "--report", str(d / "report.json")])
+                                "--out", str(d / "run.csv"), "--h5", str(d / "run.h5"),
+                                "--report", str(d / "report.json")])
     except Exception:  # noqa: BLE001 - a colder first solve, nothing worse
         pass
     finally:

@@ -107,7 +107,8 @@ class SolveOptions:
         orders = self.motion_order.values() if isinstance(self.motion_order, dict) else [self.motion_order]
         if self.motion_order != "auto" and not (orders and all(k in (1, 2, 3) and not isinstance(k, bool)
                                                                for k in orders)):
-            raise ValueError(f"motion_order must be 1, 2, 3 (or one such per group) or 'auto', not {self.motion_order!r}")
+            raise ValueError(f"motion_order must be 1, 2, 3 (or one such per group) or 'auto', "
+                             f"not {self.motion_order!r}")
         if self.motion_order != "auto" and set(orders) != {3} and self.method != "fte":
             why = "it has no motion model" if self.method == "tri" else "its stream is a constant-acceleration filter"
             raise ValueError(f"motion_order {self.motion_order!r} is for method 'fte' ({self.method!r}: {why})")
