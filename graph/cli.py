@@ -281,18 +281,9 @@ def _motion_options(scale: str | None, order: str | None):
     if not Path(scale).exists():
         raise ValueError(f"--motion-scale takes a positive number, 'auto', or the report JSON or result H5 of a run "
                          f"that fitted it; {scale!r} is none of these")
-    from graph.io import read_motion
+    from graph.io import given_motion
 
-    scales, orders = read_motion(scale)
-    if orders is None:  # a report from before the orders were kept with the scales
-        if not isinstance(given_order, int):
-            raise ValueError(f"--motion-scale {scale}: it does not say which order its scales were fitted for; "
-                             "give that order as --motion-order 1, 2 or 3")
-        return scales, given_order
-    if given_order is not None and {given_order} != set(orders.values()):
-        raise ValueError(f"--motion-scale {scale}: its scales were fitted for order(s) "
-                         f"{', '.join(str(k) for k in sorted(set(orders.values())))}; leave --motion-order out")
-    return scales, orders
+    return given_motion(scale, given_order)
 
 
 def _is_number(text: str) -> bool:

@@ -402,3 +402,20 @@ def read_motion(path: str | Path) -> tuple[dict[str, float], dict[str, int] | No
         raise InputError("motion_orders must give 1, 2 or 3 for each group of motion_scales", path)
     return ({str(k): float(v) for k, v in scales.items()},
             {str(k): int(v) for k, v in orders.items()} if orders is not None else None)
+
+
+def given_motion(path: str | Path, order: int | str | None = None) -> tuple[dict[str, float], dict[str, int] | int]:
+    """An earlier solve's fitted smoothing (:func:`read_motion`) as ``motion_scale`` and
+    ``motion_order`` values: its scales with the orders they were fitted for. ``order``, when given,
+    must be those orders; a file from before the orders were kept needs it (1, 2 or 3), since a
+    scale means nothing with another order's prior. :class:`InputError` naming ``path`` otherwise."""
+    scales, orders = read_motion(path)
+    if orders is None:
+        if order not in (1, 2, 3):
+            raise InputError("it does not say which order its scales were fitted for: give that motion order "
+                             "(1, 2 or 3) with it", path)
+        return scales, order
+    if order is not None and {order} != set(orders.values()):
+        fitted = ", ".join(str(k) for k in sorted(set(orders.values())))
+        raise InputError(f"its scales were fitted for motion order(s) {fitted}: give no motion order with it", path)
+    return scales, orders

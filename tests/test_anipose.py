@@ -188,3 +188,40 @@ def test_the_csv_is_in_the_axes_frame(tmp_path):
     np.testing.assert_allclose(csv.positions, res.positions @ csv.M.T - csv.center, atol=1e-12)
     spine = csv.positions[:, csv.markers.index("spine")]
     np.testing.assert_allclose(np.nanmedian(spine, axis=0), 0.0, atol=1e-12)  # the reference point's median
+
+
+def test_a_session_is_solved_with_the_smoothing_one_trial_fitted(tmp_path):
+    import shutil
+
+    from graph.io import read_motion
+
+    root = write_project(tmp_path / "p", sessions={"s1": ["t1", "t2"]}, frames=40,
+                         extra_config='motion_scale = "auto"\n')
+    first = acinoset("anipose", root, "--jobs", "1")
+    assert "2 trials: 2 solved" in first.stdout, first.stderr
+    fitted = root / "fitted.h5"  # a lab keeps one trial's fitted smoothing for the rest of the season
+    shutil.copy(root / "s1" / "pose-3d" / "t1.h5", fitted)
+    scales, orders = read_motion(fitted)
+    config = (root / "config.toml").read_text()
+    (root / "config.toml").write_text(config.replace('motion_scale = "auto"', 'motion_scale = "fitted.h5"'))
+    project = load_project(root)
+    assert project.inputs == [root / "config.toml", fitted]
+    assert project.options.motion_scale == scales and project.options.motion_order == orders
+
+    given = acinoset("anipose", root, "--jobs", "1")
+    assert "2 trials: 2 solved" in given.stdout, given.stderr
+    assert f"smoothing given for {len(scales)} groups" in given.stderr
+    for trial in ("t1", "t2"):
+        res = read_result(root / "s1" / "pose-3d" / f"{trial}.h5")
+        assert res.options.motion_scale == scales and res.options.motion_order == orders
+        assert res.report.motion_scales is None  # given, not fitted again
+    assert "0 solved, 2 up to date" in acinoset("anipose", root).stdout
+    newer = (root / "s1" / "pose-3d" / "t2.h5").stat().st_mtime_ns + 10**9
+    os.utime(fitted, ns=(newer, newer))  # the smoothing file changed: every trial is solved again
+    assert "2 trials: 2 solved" in acinoset("anipose", root, "--jobs", "1").stdout
+
+    (root / "config.toml").write_text(config.replace('motion_scale = "auto"',
+                                                     'motion_scale = "fitted.h5"\nmotion_order = 1'))
+    clash = acinoset("anipose", root)
+    assert clash.returncode == 2 and len(clash.stderr.splitlines()) == 1, clash.stderr
+    assert "fitted.h5: its scales were fitted for motion order(s) 3" in clash.stderr

@@ -392,7 +392,7 @@ def test_solve_with_an_earlier_runs_smoothing(run_dir, tmp_path):
         opts = read_result(tmp_path / "b.h5").options
         assert opts.motion_scale == fitted["motion_scales"] and opts.motion_order == fitted["motion_orders"]
     clash = run_cli(*args, "--motion-scale", report, "--motion-order", "3", "--out", tmp_path / "c.csv")
-    assert clash.returncode == 2 and "fitted for order(s) 1" in clash.stderr and len(clash.stderr.splitlines()) == 1
+    assert_user_error(clash, "fitted.json", "fitted for motion order(s) 1: give no motion order with it")
     none = tmp_path / "none.json"
     none.write_text(json.dumps({"method": "fte"}))
     proc = run_cli(*args, "--motion-scale", none, "--out", tmp_path / "d.csv")

@@ -48,10 +48,11 @@ class TrialEvent:
     message: str = ""
 
 
-def up_to_date(trial: Trial, config: Path) -> bool:
-    """Both outputs exist and are newer than every input."""
+def up_to_date(trial: Trial, shared: list[Path]) -> bool:
+    """Both outputs exist and are newer than every input (its own and ``shared``,
+    :attr:`Project.inputs`)."""
     try:
-        newest_in = max(p.stat().st_mtime_ns for p in trial.inputs(config))
+        newest_in = max(p.stat().st_mtime_ns for p in trial.inputs(shared))
         oldest_out = min(p.stat().st_mtime_ns for p in (trial.csv, trial.h5))
     except FileNotFoundError:
         return False
@@ -73,7 +74,7 @@ def run_project(project: Project, jobs: int = 1, force: bool = False,
     outcomes: dict[int, TrialOutcome] = {}
     todo = []
     for i, trial in enumerate(project.trials):
-        if not force and up_to_date(trial, project.config):
+        if not force and up_to_date(trial, project.inputs):
             outcomes[i] = TrialOutcome(trial, "skipped", "outputs newer than its inputs")
             report(TrialEvent(trial.label, "skipped", 1.0, outcomes[i].message))
         else:

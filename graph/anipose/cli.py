@@ -37,10 +37,11 @@ def run(args: argparse.Namespace) -> int:
     o = project.options
     say(f"{len(project.trials)} trials; method {o.method}, skeleton {o.skeleton}, likelihood threshold "
         f"{o.likelihood_threshold:g}" + (f", bones {', '.join('-'.join(b) for b in o.bone_lengths)}"
-                                          if o.bone_lengths else ""))
+                                          if o.bone_lengths else "")
+        + (f", smoothing given for {len(o.motion_scale)} groups" if isinstance(o.motion_scale, dict) else ""))
     if args.list:
         for t in project.trials:
-            state = "up to date" if up_to_date(t, project.config) and not args.force else "to solve"
+            state = "up to date" if up_to_date(t, project.inputs) and not args.force else "to solve"
             print(f"{t.label}\t{','.join(t.cameras)}\t{state}")
         return 0
     jobs = args.jobs or os.cpu_count() or 1

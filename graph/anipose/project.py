@@ -26,7 +26,10 @@ Options (:func:`solve_options`): ``[triangulation] score_threshold`` is the like
 ``constraints`` (and ``constraints_weak``) are its bones, soft length terms. Our own options go in
 an ``[acinoset]`` table: ``method``, ``skeleton`` (a name or a TOML file relative to the project),
 ``body`` (model, estimate or a file), ``sync``, ``fps`` (else each trial's video frame rate when its
-``videos-raw`` file is readable, else 120), and any other :class:`SolveOptions` field. Keys of
+``videos-raw`` file is readable, else 120), and any other :class:`SolveOptions` field;
+``motion_scale`` may name an earlier solve's report or result, whose fitted smoothing every trial
+is then solved with (:func:`graph.io.given_motion`). Files named there are relative to the project
+and count as every trial's inputs: a trial is solved again when one of them changes. Keys of
 Anipose's 3D step that have no equivalent here are listed in :attr:`Project.ignored`.
 ``axes`` with ``reference_point`` turn the CSVs into Anipose's frame (:mod:`graph.anipose.frame`);
 the H5 stays in the calibration's.
@@ -83,8 +86,9 @@ class Trial:
     def label(self) -> str:
         return self.name if self.session == "." else f"{self.session}/{self.name}"
 
-    def inputs(self, config: Path) -> list[Path]:
-        return [*self.pose_files, self.calibration, config]
+    def inputs(self, shared: list[Path]) -> list[Path]:
+        """The files its results depend on: its own and ``shared`` (:attr:`Project.inputs`)."""
+        return [*self.pose_files, self.calibration, *shared]
 
 
 @dataclass
@@ -100,6 +104,12 @@ class Project:
     frame: tuple[list, str] | None = None
     ignored: list[str] = field(default_factory=list)  # "[section] key (what stands in)"
     notes: list[str] = field(default_factory=list)  # sessions without a calibration, ...
+    option_files: list[Path] = field(default_factory=list)  # skeleton, body, motion files of [acinoset]
+
+    @property
+    def inputs(self) -> list[Path]:
+        """The files every trial's results depend on: ``config.toml`` and :attr:`option_files`."""
+        return [self.config, *self.option_files]
 
 
 def load_project(folder: str | Path = ".") -> Project:
@@ -137,7 +147,7 @@ def load_project(folder: str | Path = ".") -> Project:
     filt = _table(config, "filter", config_path)
     pose_dir = pipeline["pose_2d_filter"] if filt.get("enabled", False) else pipeline["pose_2d"]
 
-    options = solve_options(config, root, config_path)
+    options, option_files = solve_options(config, root, config_path)
     offsets = {}
     for name, cam in _table(config, "cameras", config_path).items():
         off = cam.get("offset", (0, 0)) if isinstance(cam, dict) else None
@@ -181,11 +191,12 @@ def load_project(folder: str | Path = ".") -> Project:
         if not isinstance(frame[0], list) or not all(isinstance(a, list) and len(a) == 3 for a in frame[0]):
             raise InputError('[triangulation] axes must be a list of ["x|y|z", bodypart, bodypart]', config_path)
     return Project(root=root, config=config_path, options=options, offsets=offsets, trials=trials,
-                   frame=frame, ignored=ignored_keys(config), notes=notes)
+                   frame=frame, ignored=ignored_keys(config), notes=notes, option_files=option_files)
 
 
-def solve_options(config: dict, root: Path, config_path: Path) -> SolveOptions:
-    """The :class:`SolveOptions` a project's ``config.toml`` asks for (see the module's docstring)."""
+def solve_options(config: dict, root: Path, config_path: Path) -> tuple[SolveOptions, list[Path]]:
+    """The :class:`SolveOptions` a project's ``config.toml`` asks for (see the module's docstring),
+    and the files its ``[acinoset]`` table names (a skeleton, body or motion file)."""
     tri = _table(config, "triangulation", config_path)
     ours = dict(_table(config, "acinoset", config_path))
     known = {f.name for f in dataclasses.fields(SolveOptions)}
@@ -200,18 +211,28 @@ def solve_options(config: dict, root: Path, config_path: Path) -> SolveOptions:
     kw = {"method": "fte" if tri.get("optim", False) else "tri", "skeleton": "points",
           "likelihood_threshold": float(threshold), "bone_lengths": bones or None}
     kw.update(ours)
-    skel = kw["skeleton"]
-    if isinstance(skel, str) and skel not in ("cheetah", "points") and not Path(skel).is_absolute():
-        kw["skeleton"] = str(root / skel)
+    files: list[Path] = []
+
+    def project_file(name: str) -> Path:
+        path = Path(os.path.expanduser(name))
+        files.append(path if path.is_absolute() else root / path)
+        return files[-1]
+
+    if isinstance(kw["skeleton"], str) and kw["skeleton"] not in ("cheetah", "points"):
+        kw["skeleton"] = str(project_file(kw["skeleton"]))
     if isinstance(kw.get("body"), str) and kw["body"] not in ("model", "estimate", "given"):
         from graph.io import read_body
 
-        body_file = Path(kw["body"]) if Path(kw["body"]).is_absolute() else root / kw["body"]
-        kw["body"], kw["body_lengths"] = "given", read_body(body_file)
+        kw["body"], kw["body_lengths"] = "given", read_body(project_file(kw["body"]))
+    if isinstance(kw.get("motion_scale"), str) and kw["motion_scale"].strip().lower() != "auto":
+        from graph.io import given_motion
+
+        kw["motion_scale"], kw["motion_order"] = given_motion(project_file(kw["motion_scale"]),
+                                                              kw.get("motion_order"))
     if kw["skeleton"] != "points":
         kw["bone_lengths"] = None  # bones between free points only
     try:
-        return SolveOptions(**kw)
+        return SolveOptions(**kw), files
     except (TypeError, ValueError) as e:
         raise InputError(f"[acinoset] / [triangulation]: {e}", config_path) from None
 
