@@ -348,8 +348,7 @@ def run_solve(args: argparse.Namespace) -> int:
     keypoints = read_cameras(args.keypoints, args.individual)
     check_same_frames(keypoints)
 
-    from graph.kernels import compile_notice
-    from graph.progress import ProgressBar
+    from graph.progress import ProgressBar, compile_notice
 
     bar = ProgressBar(sys.stderr) if sys.stderr.isatty() else None
     try:

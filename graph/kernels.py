@@ -15,12 +15,9 @@ see :meth:`graph.camera.Camera.packed`; the maths is documented in :mod:`graph.c
 
 from __future__ import annotations
 
-from contextlib import contextmanager
-from typing import Callable
 
 import numpy as np
 from numba import njit, prange
-from numba.core import event
 
 
 @njit(cache=True)
@@ -991,24 +988,3 @@ def lag_sampson(xa, xc, E, lags, stride, min_pairs):
             out[i] = np.median(buf[:k])
     return out
 
-
-@contextmanager
-def compile_notice(say: Callable[[str], None]):
-    """Within this context, ``say`` is called once, with one line, when numba starts compiling a
-    kernel: loading one from its on-disk cache (``cache=True``) says nothing. A new install (or a
-    new version of the kernels) compiles for about a minute on two cores, which would otherwise look
-    like a hang."""
-    told = []
-
-    class _Notice(event.Listener):
-        def on_start(self, ev):
-            if not told:
-                told.append(True)
-                say("compiling the solver's kernels for this machine (once after an install, about a minute; "
-                    "later runs load them from the cache)")
-
-        def on_end(self, ev):
-            pass
-
-    with event.install_listener("numba:compile", _Notice()):
-        yield

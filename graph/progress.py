@@ -1,4 +1,5 @@
-"""Progress on a terminal: one line redrawn in place, for the commands' long work.
+"""Progress on a terminal: one line redrawn in place, for the commands' long work; and the note
+that the kernels are being compiled (:func:`compile_notice`).
 
 :class:`ProgressBar` draws ``[#####-----]  50% text`` and is called with a
 :class:`graph.types.Progress` (a solve's stage, iteration and cost); :class:`FrameProgress` is called
@@ -9,6 +10,8 @@ with ``(done, total)`` frames and adds the rate. Both draw at most every ``min_i
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from contextlib import contextmanager
 
 
 class ProgressBar:
@@ -61,3 +64,38 @@ class FrameProgress(ProgressBar):
     def __call__(self, done: int, total: int) -> None:
         rate = done / max(time.monotonic() - self._t0, 1e-9)
         self.show(done / max(total, 1), f"{done}/{total} {self.label}, {rate:.0f}/s")
+
+
+@contextmanager
+def compile_notice(say: Callable[[str], None]):
+    """Within this context, ``say`` is called with one line when numba starts compiling a kernel,
+    and with one more when the context ends, giving the time the compiles took; loading a kernel
+    from its on-disk cache (``cache=True``) says nothing. A new install (or a new version of the
+    kernels) compiles for one to two minutes on two cores (an ``fte`` solve: 100-130 s measured),
+    which would otherwise look like a hang."""
+    from numba.core import event
+
+    started: list[bool] = []
+    compiling = [0.0, 0]  # seconds in outermost compiles; how deep the compile under way is
+
+    class _Notice(event.Listener):
+        def on_start(self, ev):
+            if not started:
+                started.append(True)
+                say("compiling the solver's kernels for this machine (once after an install, a minute or two; "
+                    "later runs load them from the cache)")
+            if compiling[1] == 0:
+                compiling[0] -= time.perf_counter()
+            compiling[1] += 1
+
+        def on_end(self, ev):
+            compiling[1] -= 1
+            if compiling[1] == 0:
+                compiling[0] += time.perf_counter()
+
+    try:
+        with event.install_listener("numba:compile", _Notice()):
+            yield
+    finally:
+        if started:
+            say(f"kernels compiled in {compiling[0]:.0f} s (cached for later runs)")
