@@ -30,7 +30,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -347,12 +347,16 @@ class HeldOutCamera:
     per_marker_median_px: dict[str, float]
     errors: np.ndarray
     warnings: list[str] = field(default_factory=list)  # what the reconstruction warned of
+    # the share of judged detections inside the reconstruction's own 90 % prediction ellipse
+    # (:func:`prediction_share`); None when the method gives no uncertainty
+    within_90: float | None = None
+    inside: np.ndarray | None = None  # (N, M) bool of that test, False where not judged
 
     def to_dict(self) -> dict:
         return {"camera": self.camera, "median_px": self.median_px, "p90_px": self.p90_px, "mean_px": self.mean_px,
                 "count": self.count, "confident": self.confident, "coverage": self.coverage,
                 "seconds": self.seconds, "per_marker_median_px": self.per_marker_median_px,
-                "warnings": self.warnings}
+                "warnings": self.warnings, "within_90": self.within_90}
 
 
 @dataclass
@@ -371,16 +375,71 @@ class LeaveOneCameraOut:
     coverage: float
     seconds: float  # all the reconstructions together
     notes: list[str] = field(default_factory=list)
+    within_90: float | None = None  # pooled share inside the 90 % prediction ellipse (None: no uncertainty)
 
     def to_dict(self) -> dict:
         return {"method": self.method, "confidence": self.confidence, "median_px": self.median_px,
                 "p90_px": self.p90_px, "mean_px": self.mean_px, "count": self.count, "coverage": self.coverage,
-                "seconds": self.seconds, "cameras": [c.to_dict() for c in self.cameras], "notes": self.notes}
+                "seconds": self.seconds, "within_90": self.within_90, "cameras": [c.to_dict() for c in self.cameras],
+                "notes": self.notes}
 
 
-# reconstruct(keypoints of the kept cameras, their calibration) -> (marker names, positions (N, M, 3)),
-# the positions in the world frame and units of the calibration it is given
-Reconstructor = Callable[[list, "Calibration"], tuple[list[str], np.ndarray]]
+class Reconstruction(NamedTuple):
+    """What a reconstructor returns: marker names and positions (N, M, 3) in the world frame and
+    units of the calibration it was given; with, when the method has them, the positions' standard
+    deviations (N, M, 3, same units) and the detection noise it assumed (px), which
+    :func:`prediction_share` checks against the held-out camera. A plain ``(markers, positions)``
+    pair is accepted too."""
+
+    markers: list[str]
+    positions: np.ndarray
+    std: np.ndarray | None = None
+    sigma_px: float | None = None
+
+
+# reconstruct(keypoints of the kept cameras, their calibration) -> Reconstruction or (markers, positions)
+Reconstructor = Callable[[list, "Calibration"], "Reconstruction | tuple[list[str], np.ndarray]"]
+PREDICTION_LEVEL = 0.9
+
+
+def prediction_share(camera, positions: np.ndarray, std: np.ndarray, sigma_px: float, markers: list[str],
+                     detections, judged: np.ndarray, level: float = PREDICTION_LEVEL) -> tuple[float, np.ndarray]:
+    """Is the reconstruction's uncertainty honest on a recording without 3D truth? The share of the
+    held-out camera's ``judged`` detections (N, M) that fall inside the ``level`` prediction ellipse
+    the reconstruction implies for them, and which did (N, M).
+
+    A detection z of marker m at frame n, predicted at ``uv = pi(X)`` with ``J = d uv / d X``::
+
+        r = z - uv,   S = J diag(std^2) J^T + sigma_px^2 I,   inside: r^T S^-1 r <= chi2_2(level) = -2 ln(1 - level)
+
+    (the position's uncertainty carried into the image, plus the detection noise the method
+    assumed for every camera; the result keeps each position's per-axis deviations, not their
+    correlations). An honest method puts about ``level`` of them inside; far fewer: its deviations,
+    or the noise it assumed, are too small for this rig; nearly all: too large."""
+    uv, J = camera.project_with_jacobian(np.asarray(positions, dtype=np.float64))
+    z = _matched_detections(detections, markers, positions.shape[0])[0]
+    r = z - uv
+    S = np.einsum("nmai,nmi,nmbi->nmab", J, np.square(std), J) + sigma_px ** 2 * np.eye(2)
+    ok = judged & np.isfinite(r).all(axis=-1) & np.isfinite(S).all(axis=(-2, -1))
+    S[~ok] = np.eye(2)
+    r = np.where(ok[..., None], r, 0.0)
+    d2 = np.einsum("nma,nmab,nmb->nm", r, np.linalg.inv(S), r)
+    inside = ok & (d2 <= -2.0 * np.log1p(-level))
+    return (float(inside.sum() / ok.sum()) if ok.any() else float("nan")), inside
+
+
+def _matched_detections(detections, markers: list[str], frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """A camera's detections (N, M, 2) and likelihoods (N, M) of ``markers``, matched by bodypart
+    name: NaN and 0 where it has none."""
+    from graph.keypoints import match_bodyparts
+
+    match = match_bodyparts(detections, markers)
+    z = np.full((frames, len(markers), 2), np.nan)
+    lik = np.zeros((frames, len(markers)))
+    have = match.index >= 0
+    z[:, have] = detections.xy[:, match.index[have]]
+    lik[:, have] = np.nan_to_num(detections.likelihood[:, match.index[have]], nan=0.0)
+    return z, lik
 
 
 def held_out_errors(camera, positions: np.ndarray, markers: list[str], detections,
@@ -389,15 +448,7 @@ def held_out_errors(camera, positions: np.ndarray, markers: list[str], detection
     ``camera`` and the camera's own :class:`~graph.keypoints.Keypoints` ``detections``, matched by
     bodypart name, where the detection's likelihood is at least ``confidence``; NaN elsewhere. Also
     the mask (N, M) of the confident detections (judged or not: a missing prediction is not judged)."""
-    from graph.keypoints import match_bodyparts
-
-    N, M = positions.shape[:2]
-    match = match_bodyparts(detections, markers)
-    z = np.full((N, M, 2), np.nan)
-    lik = np.zeros((N, M))
-    have = match.index >= 0
-    z[:, have] = detections.xy[:, match.index[have]]
-    lik[:, have] = np.nan_to_num(detections.likelihood[:, match.index[have]], nan=0.0)
+    z, lik = _matched_detections(detections, markers, positions.shape[0])
     confident = (lik >= confidence) & np.isfinite(z).all(axis=-1)
     uv = camera.project(np.asarray(positions, dtype=np.float64))
     e = np.linalg.norm(uv - z, axis=-1)
@@ -429,6 +480,11 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
     ``keypoints``) are the detections each held-out camera is scored against: for instance one
     ensemble member's, to compare a method given the ensemble with methods given that member.
     Warnings a reconstruction gives are kept in its camera's ``warnings``, not raised.
+
+    A reconstructor that returns its uncertainty (:class:`Reconstruction`; the default one does) is
+    judged on it too: ``within_90``, the share of the judged detections inside the 90 % prediction
+    ellipse it implies (:func:`prediction_share`): the 3D truth a simulation has, replaced by a
+    camera the reconstruction did not see.
     """
     from graph.calibration import CALIBRATION_UNITS, resolve_units
     from graph.camera import Calibration
@@ -476,19 +532,26 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
         t0 = time.perf_counter()
         with warnings.catch_warnings(record=True) as said:  # kept with the camera they came from
             warnings.simplefilter("always")
-            names, positions = reconstruct([keypoints[i] for i in keep], sub)
+            out = reconstruct([keypoints[i] for i in keep], sub)
         seconds = time.perf_counter() - t0
+        names, positions = out[0], out[1]
         said = list(dict.fromkeys(str(w.message) for w in said))
         markers = list(names) if markers is None else markers
         positions = align_markers(list(names), np.asarray(positions, dtype=np.float64), markers)
         e, confident = held_out_errors(calibration.cameras[c], positions, markers, judge[c], confidence)
         n_conf = int(confident.sum())
+        share, inside = None, None
+        std, sigma_px = (out[2], out[3]) if len(out) > 3 else (None, None)
+        if std is not None and sigma_px is not None:
+            std = align_markers(list(names), np.asarray(std, dtype=np.float64), markers)
+            share, inside = prediction_share(calibration.cameras[c], positions, std, sigma_px, markers, judge[c],
+                                             np.isfinite(e))
         held.append(HeldOutCamera(
             camera=name, median_px=_stat(e, np.median), p90_px=_stat(e, lambda v: np.percentile(v, 90)),
             mean_px=_stat(e, np.mean), count=int(np.isfinite(e).sum()), confident=n_conf,
             coverage=float(np.isfinite(e).sum() / n_conf) if n_conf else float("nan"), seconds=seconds,
             per_marker_median_px={m: _stat(e[:, k], np.median) for k, m in enumerate(markers)}, errors=e,
-            warnings=said))
+            warnings=said, within_90=share, inside=inside))
     pooled = np.concatenate([h.errors.ravel() for h in held])
     n_conf = sum(h.confident for h in held)
     count = int(np.isfinite(pooled).sum())
@@ -496,7 +559,9 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
         method=method, confidence=confidence, markers=markers or [], cameras=held,
         median_px=_stat(pooled, np.median), p90_px=_stat(pooled, lambda v: np.percentile(v, 90)),
         mean_px=_stat(pooled, np.mean), count=count, coverage=count / n_conf if n_conf else float("nan"),
-        seconds=float(sum(h.seconds for h in held)), notes=notes)
+        seconds=float(sum(h.seconds for h in held)), notes=notes,
+        within_90=(float(sum(h.inside.sum() for h in held) / count) if count and all(h.inside is not None for h in held)
+                   else None))
 
 
 def _solver_reconstruct(options, scale: float) -> Reconstructor:
@@ -506,7 +571,8 @@ def _solver_reconstruct(options, scale: float) -> Reconstructor:
 
     def reconstruct(keypoints, calibration):
         result = solve(keypoints, calibration, options)
-        return list(result.markers), np.asarray(result.positions) / scale
+        return Reconstruction(list(result.markers), np.asarray(result.positions) / scale,
+                              np.asarray(result.std) / scale, float(result.report.sigma_px))
 
     return reconstruct
 

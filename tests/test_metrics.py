@@ -203,6 +203,41 @@ def test_loco_of_the_truth_is_the_detection_noise():
     part = leave_one_camera_out(run.keypoints, cal, reconstruct=lambda k, s: (run.markers[:5], gaps), confidence=0.95)
     assert part.count < score.count and part.coverage == pytest.approx(0.5, abs=0.05)
     assert part.markers == run.markers[:5]  # the markers the reconstruction has are judged
+    assert score.within_90 is None and score.to_dict()["within_90"] is None  # no uncertainty given
+
+
+def test_the_prediction_ellipse_of_the_truth_holds_its_share():
+    """Oracle: the truth, given with no 3D uncertainty and the true detection noise, puts 90 % of
+    the held-out detections inside its 90 % ellipse (|r|^2 / sigma^2 is chi-squared with 2 degrees
+    of freedom); claiming half the noise, 1 - exp(-4.605 / 8) = 44 %."""
+    from graph.metrics import Reconstruction, leave_one_camera_out
+
+    sigma = 2.0
+    run, cal = _three_camera_run(noise=sigma, frames=150)
+    zero = np.zeros_like(run.positions)
+    for claimed, share in ((sigma, 0.90), (sigma / 2, 1 - math.exp(-4.605 / 8))):
+        score = leave_one_camera_out(run.keypoints, cal, method="truth",
+                                     reconstruct=lambda k, s: Reconstruction(run.markers, run.positions, zero, claimed))
+        assert score.within_90 == pytest.approx(share, abs=0.02)
+        assert all(c.within_90 == pytest.approx(share, abs=0.04) for c in score.cameras)
+        assert score.within_90 == pytest.approx(sum(c.within_90 * c.count for c in score.cameras) / score.count)
+
+
+def test_the_solvers_uncertainty_is_honest_for_a_camera_it_did_not_see():
+    """The solve's 3D deviations with the detection noise it is given (the true one), carried into
+    a held-out camera: about 90 % of that camera's detections inside the 90 % ellipse, in metres and
+    in millimetres alike; told a fifth of the noise, far fewer."""
+    from graph.metrics import leave_one_camera_out
+
+    run, cal = _three_camera_run(noise=2.0)
+    opts = SolveOptions(method="fte", skeleton="points", fps=run.fps, measurement_std_px=2.0)
+    m = leave_one_camera_out(run.keypoints, cal, opts)
+    assert 0.82 <= m.within_90 <= 0.96, m.within_90
+    mm = leave_one_camera_out(run.keypoints, _in_mm(cal), opts)
+    assert mm.within_90 == pytest.approx(m.within_90, abs=0.005)
+    low = leave_one_camera_out(run.keypoints, cal, SolveOptions(method="fte", skeleton="points", fps=run.fps,
+                                                                measurement_std_px=0.4))
+    assert low.within_90 < 0.4, low.within_90
 
 
 def test_loco_with_the_solver_in_metres_and_millimetres():
