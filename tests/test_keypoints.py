@@ -165,6 +165,25 @@ def test_single_animal_csv_literal_text(tmp_path):
     np.testing.assert_array_equal(kp.likelihood, [[0.998, 0.0], [0.0, 0.9]])
 
 
+def test_csv_numbers_read_to_the_last_bit(tmp_path):
+    """Rows of plain numbers are read at once, the rest cell by cell: both give exactly what
+    ``float`` gives each cell (17-digit values, exponents, 'nan', and Python's '1_5' that the
+    fast reader leaves to the slow one)."""
+    rng = np.random.default_rng(5)
+    values = rng.normal(0, 1e3, size=(40, 6)) * 10.0 ** rng.integers(-8, 8, size=(40, 6))
+    values[:, [2, 5]] = rng.random((40, 2))  # likelihoods
+    rows = [",".join([str(i), *(repr(float(x)) for x in v)]) for i, v in enumerate(values)]
+    rows[7] = "7,1e-300,2.5E+3,nan,-0.0,1.7976931348623157e308,0.5"
+    rows[9] = "9,1_5,2,0.25,4,5,0.75"
+    path = tmp_path / "cam.csv"
+    path.write_text("scorer" + ",S" * 6 + "\nbodyparts,a,a,a,b,b,b\ncoords,x,y,likelihood,x,y,likelihood\n"
+                    + "\n".join(rows) + "\n")
+    kp = read_keypoints(path)
+    expected = np.array([[float(c) for c in r.split(",")[1:]] for r in rows]).reshape(40, 2, 3)
+    np.testing.assert_array_equal(kp.xy, expected[..., :2])
+    np.testing.assert_array_equal(kp.likelihood, np.nan_to_num(expected[..., 2], nan=0.0))
+
+
 def test_multi_animal_csv_literal_text(tmp_path):
     """The multi-animal layout as text (runs without pandas): 4 header rows, a 'single' block."""
     text = ("scorer,S,S,S,S,S,S,S,S,S\n"
