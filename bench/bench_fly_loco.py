@@ -9,7 +9,9 @@ The data (``/work/shared/data/eks_fly``, see its SOURCE.md): a tethered fly, 3 c
 3D truth, so every method is scored by :func:`graph.metrics.leave_one_camera_out`: for each camera,
 reconstruct from the other two and predict that camera's detections of likelihood >= 0.9 (of
 member 1, the one every single-member method gets); median and 90th percentile pixel error pooled
-over the three held-out cameras, and the coverage (share of those detections that got a position).
+over the three held-out cameras, and the coverage (share of those detections that got a position);
+for acinoset, ``in 90 %``: the share of them inside the 90 % prediction ellipse of its own
+uncertainty (:func:`graph.metrics.prediction_share`; about 0.9 when it is honest).
 
 What runs, on the same data in one run:
 
@@ -195,10 +197,11 @@ def main() -> int:
     rows = []
     for name, s in summary.items():
         rows.append([name, s["median_px"], s["p90_px"], s["coverage"],
+                     "-" if s.get("within_90") is None else s["within_90"],
                      *[c["median_px"] for c in s["cameras"]], s["median_s"],
                      ref["median_s"] / s["median_s"] if ref else float("nan")])
     print()
-    print(h.markdown_table(["method", "median px", "p90 px", "coverage", *[f"median {n}" for n in cal.names],
+    print(h.markdown_table(["method", "median px", "p90 px", "coverage", "in 90 %", *[f"median {n}" for n in cal.names],
                             "s (3 solves)", "speed-up vs aniposelib"], rows))
     # each acinoset row against aniposelib given the same inputs (one member, or the ensemble's
     # combined rows): the paired difference of the pooled median and p90, with 95 % block-bootstrap
