@@ -71,7 +71,7 @@ def compile_notice(say: Callable[[str], None]):
     """Within this context, ``say`` is called with one line when numba starts compiling a kernel,
     and with one more when the context ends, giving the time the compiles took; loading a kernel
     from its on-disk cache (``cache=True``) says nothing. A new install (or a new version of the
-    kernels) compiles for one to two minutes on two cores (an ``fte`` solve: 100-130 s measured),
+    kernels) compiles for one to two minutes on two cores (an ``fte`` solve: 120-132 s measured),
     which would otherwise look like a hang."""
     from numba.core import event
 
