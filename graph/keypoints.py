@@ -254,7 +254,7 @@ def _csv_numbers(block: list[tuple[int, str | list[str]]], n_index: int, path: P
             warnings.simplefilter("error")  # NumPy stops at a cell it cannot read, with a warning
             try:
                 flat = np.fromstring(",".join(data for _, data in block), dtype=np.float64, sep=",")
-            except (ValueError, DeprecationWarning):
+            except (ValueError, Warning):
                 flat = None
         if flat is not None and flat.size == len(block) * width:
             return flat.reshape(len(block), width)

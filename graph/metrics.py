@@ -350,7 +350,7 @@ class HeldOutCamera:
     # the share of judged detections inside the reconstruction's own 90 % prediction ellipse
     # (:func:`prediction_share`); None when the method gives no uncertainty
     within_90: float | None = None
-    inside: np.ndarray | None = None  # (N, M) bool of that test, False where not judged
+    inside: np.ndarray | None = None  # (N, M) that test: 1 inside, 0 outside, NaN where not made
 
     def to_dict(self) -> dict:
         return {"camera": self.camera, "median_px": self.median_px, "p90_px": self.p90_px, "mean_px": self.mean_px,
@@ -406,7 +406,8 @@ def prediction_share(camera, positions: np.ndarray, std: np.ndarray, sigma_px: f
                      detections, judged: np.ndarray, level: float = PREDICTION_LEVEL) -> tuple[float, np.ndarray]:
     """Is the reconstruction's uncertainty honest on a recording without 3D truth? The share of the
     held-out camera's ``judged`` detections (N, M) that fall inside the ``level`` prediction ellipse
-    the reconstruction implies for them, and which did (N, M).
+    the reconstruction implies for them, and which did (N, M: 1 inside, 0 outside, NaN where not
+    tested: not judged, or no deviation to test with).
 
     A detection z of marker m at frame n, predicted at ``uv = pi(X)`` with ``J = d uv / d X``::
 
@@ -424,8 +425,8 @@ def prediction_share(camera, positions: np.ndarray, std: np.ndarray, sigma_px: f
     S[~ok] = np.eye(2)
     r = np.where(ok[..., None], r, 0.0)
     d2 = np.einsum("nma,nmab,nmb->nm", r, np.linalg.inv(S), r)
-    inside = ok & (d2 <= -2.0 * np.log1p(-level))
-    return (float(inside.sum() / ok.sum()) if ok.any() else float("nan")), inside
+    inside = np.where(ok, (d2 <= -2.0 * np.log1p(-level)).astype(np.float64), np.nan)
+    return (float(np.nanmean(inside)) if ok.any() else float("nan")), inside
 
 
 def _matched_detections(detections, markers: list[str], frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -560,8 +561,8 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
         median_px=_stat(pooled, np.median), p90_px=_stat(pooled, lambda v: np.percentile(v, 90)),
         mean_px=_stat(pooled, np.mean), count=count, coverage=count / n_conf if n_conf else float("nan"),
         seconds=float(sum(h.seconds for h in held)), notes=notes,
-        within_90=(float(sum(h.inside.sum() for h in held) / count) if count and all(h.inside is not None for h in held)
-                   else None))
+        within_90=(float(np.nanmean(np.concatenate([h.inside.ravel() for h in held])))
+                   if count and all(h.inside is not None for h in held) else None))
 
 
 def _solver_reconstruct(options, scale: float) -> Reconstructor:
