@@ -332,7 +332,11 @@ def solve(rig: Rig, obs: Observations, settings: Settings) -> Solution:
                 floor = 1e-9 * max(float(d.max()), 1e-12)  # a variable its (down-weighted) data barely see
                 g.push_back(gtsam.JacobianFactor(key, np.diag(np.sqrt(lam * np.maximum(d, floor))), np.zeros(n),
                                                  gtsam.noiseModel.Unit.Create(n)))
-            delta = g.optimize()
+            try:
+                delta = g.optimize()
+            except RuntimeError:  # GTSAM: a nearly indeterminate system at this damping; damp more
+                lam *= 10.0
+                continue
             trial = _apply(rig, delta, settings)
             new_cost = total_cost(trial, obs, settings)
             if new_cost < cost:
