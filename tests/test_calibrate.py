@@ -493,6 +493,30 @@ def test_refine_improves_a_perturbed_rig_and_leaves_a_good_one(rig, tmp_path):
     assert len(load_calibration(tmp_path / "new.toml")) == 6
 
 
+def test_refine_on_a_real_recording_in_millimetres(tmp_path):
+    """The fly of the EKS repository (three near-telecentric cameras, a rig in millimetres, 40
+    frames): GTSAM once found a step's linear system indeterminate there and the command died with
+    its traceback; a damped step is now tried instead. The changes are reported in millimetres of
+    the rig's own units (they had been read as metres: a camera 'moved 15 m' on a rig 0.11 m across)."""
+    fly = next((b / "shared" / "data" / "eks_fly" for b in Path(__file__).resolve().parents
+                if (b / "shared" / "data" / "eks_fly").is_dir()), None)
+    if fly is None:
+        pytest.skip("the shared eks_fly data is not here")
+    paths = []
+    for cam in "ABC":
+        lines = (fly / f"cam{cam}.rng1.csv").read_text().splitlines()
+        paths.append(tmp_path / f"cam{cam}.csv")
+        paths[-1].write_text("\n".join(lines[:3 + 40]) + "\n")
+    p = run_cli("calibrate", "refine", fly / "calibration.toml", *paths, "--out", tmp_path / "new.toml",
+                "--report", tmp_path / "r.json")
+    assert p.returncode == 0 and "Traceback" not in p.stderr, p.stderr
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert any("millimetres" in n for n in rep["notes"])
+    moved = [c["position_change_mm"] for c in rep["cameras"]]
+    assert moved[0] < 1e-9 and all(m < 100 for m in moved), moved  # the cameras are about 113 mm from the centre
+    assert len(load_calibration(tmp_path / "new.toml")) == 3
+
+
 def test_refined_intrinsics_stay_anchored_by_their_prior():
     """Ex1's ten views cannot hold a focal length on their own; refined under the prior their
     intrinsic calibration (AcinoSet's 2021 views of the same cameras) gives them, focal lengths move

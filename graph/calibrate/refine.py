@@ -28,6 +28,7 @@ import numpy as np
 from graph.calibrate import bundle
 from graph.calibrate.model import intrinsics_of
 from graph.calibrate.poses import rotation_angle
+from graph.calibration import CALIBRATION_UNITS, resolve_units
 from graph.camera import Calibration, Camera
 from graph.errors import InputError
 
@@ -148,11 +149,13 @@ def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float 
     loo_old = leave_one_out(calibration, meas, valid)
     loo_new = leave_one_out(refined, meas, valid)
     accepted = bool(np.nanmean(loo_new) <= (1 - MIN_GAIN) * np.nanmean(loo_old))
-    changes = [{"name": name, "position_change_mm": float(np.linalg.norm(a.center - b.center) * 1000),
+    units, units_note = resolve_units(calibration, "auto")  # the rig's own units: metres or millimetres
+    mm_per_unit = CALIBRATION_UNITS[units] * 1000.0
+    changes = [{"name": name, "position_change_mm": float(np.linalg.norm(a.center - b.center) * mm_per_unit),
                 "rotation_change_deg": float(np.degrees(rotation_angle(a.R @ b.R.T))),
                 "leave_one_out_old_px": lo, "leave_one_out_new_px": ln}
                for name, a, b, lo, ln in zip(calibration.names, calibration.cameras, cams, loo_old, loo_new)]
-    notes = []
+    notes = [units_note] if units_note else []
     if not accepted:
         notes.append(f"kept the old rig: leave-one-camera-out error {np.nanmean(loo_new):.3f} px refined vs "
                      f"{np.nanmean(loo_old):.3f} px before (needs {MIN_GAIN * 100:.0f} % better)")
