@@ -216,7 +216,8 @@ def main() -> int:
         print()
         print(h.markdown_table(
             ["acinoset row", "against", "median diff px (95 %)", "p90 diff px (95 %)", "share p90 lower", "blocks"],
-            [[name, v["against"], f"{v['median_px']:+.3f} [{v['median_interval'][0]:+.3f}, {v['median_interval'][1]:+.3f}]",
+            [[name, v["against"],
+              f"{v['median_px']:+.3f} [{v['median_interval'][0]:+.3f}, {v['median_interval'][1]:+.3f}]",
               f"{v['p90_px']:+.3f} [{v['p90_interval'][0]:+.3f}, {v['p90_interval'][1]:+.3f}]",
               f"{v['share_b_p90_lower']:.2f}", f"{v['blocks']} x {v['block_frames']} frames"]
              for name, v in versus.items()]))

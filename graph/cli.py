@@ -274,10 +274,11 @@ def _motion_options(scale: str | None, order: str | None):
     number nor ``auto`` names an earlier run's report or result (:func:`graph.io.read_motion`): its
     scales per group, with the orders they were fitted for (an order given too must agree)."""
     given_order = None if order is None else ("auto" if order == "auto" else int(order))
+    plain_order = 3 if given_order is None else given_order  # with a scale that is not a file's
     if scale is None:
-        return None, 3 if given_order is None else given_order
+        return None, plain_order
     if scale.strip().lower() == "auto" or _is_number(scale):
-        return _auto_option(scale, "--motion-scale", "a positive number"), 3 if given_order is None else given_order
+        return _auto_option(scale, "--motion-scale", "a positive number"), plain_order
     if not Path(scale).exists():
         raise ValueError(f"--motion-scale takes a positive number, 'auto', or the report JSON or result H5 of a run "
                          f"that fitted it; {scale!r} is none of these")

@@ -242,8 +242,9 @@ def chain_forward(band, B, r, stop):
     :func:`banded_marginals`, coupled by ``B`` (N, d, G) to unknowns W shared by every frame) and
     right-hand side ``r`` (N, d; (N, 0) for the factorisation alone, ``y`` then zero): the block
     Cholesky factorisation in time order of frames ``0 .. stop - 1`` (``stop = N``: every frame, the
-    chain's last ones too), and the forward substitution with it. Frame n's factor is ``C_n = chol(D_n)`` with ``D_n`` its block once the
-    frames before it are eliminated, ``W_n = C_n^-1 [band[n, 1..3], B_n]`` its coupling to the next
+    chain's last ones too), and the forward substitution with it. Frame n's factor is
+    ``C_n = chol(D_n)`` with ``D_n`` its block once the frames before it are eliminated,
+    ``W_n = C_n^-1 [band[n, 1..3], B_n]`` its coupling to the next
     three frames and W, and ``y_n = C_n^-1 r_n``; later blocks lose ``W_ni^T W_nj``, later
     couplings ``W_ni^T W_ng`` and right-hand sides ``W_ni^T y_n``. Returns ``C`` (stop, d, d), ``W``
     (stop, d, 3d + G), ``y`` (stop, d), what those frames take off W's information and right-hand

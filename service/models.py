@@ -89,7 +89,8 @@ class ResultSummary(BaseModel):
     seconds: dict[str, float | None] = Field(default_factory=dict)
     motion_scales: dict[str, float] | None = Field(
         None, description="the smoothing fitted to the data (motion_scale \"auto\"), per group; give it back as "
-                          "options.motion_scale, with motion_orders as options.motion_order, to solve other runs with it")
+                          "options.motion_scale, with motion_orders as options.motion_order, to solve other runs "
+                          "with it")
     motion_orders: dict[str, int] | None = Field(None, description="the order each fitted scale is for")
     warnings: list[str] = Field(default_factory=list)
     formats: list[ResultFormat] = Field(default_factory=offered_formats)
