@@ -50,7 +50,9 @@ Protocol: one Unix stream connection per solve.
    was killed before it could; the client takes the first line and exits the same way
    (re-raising the signal on itself).
 
-Ctrl-C and SIGTERM/SIGHUP/SIGQUIT sent to the client are forwarded to the child's pid; Ctrl-Z
+Ctrl-C and SIGTERM/SIGHUP/SIGQUIT sent to the client are forwarded to the child's pid (held until
+the child has said ``run``, and held blocked in the child from then until its solve's own handlers
+are in place: one that comes at once ends the solve as 'interrupted', never lost); Ctrl-Z
 (SIGTSTP) stops the child with the client, and SIGCONT resumes both. A client that dies without a
 word (SIGKILL, a crashed shell) ends its child too: the child watches its connection and, when the
 client's end closes before the solve has, kills itself as the client was killed. Anything that
@@ -659,8 +661,17 @@ def _reap():
 
 
 def _child(conn: socket.socket, close: tuple[int, ...], log) -> None:
-    """A forked child of the resident: steps 2-4 of the protocol; ends the process. A request it
-    cannot take is one line in the resident's log (and the client solves in its own process)."""
+    """A forked child of the resident: steps 2-4 of the protocol; ends the process, whatever is
+    raised (never back into the resident's loop, which it shares the code of)."""
+    try:
+        _serve_request(conn, close, log)
+    finally:
+        os._exit(1)
+
+
+def _serve_request(conn: socket.socket, close: tuple[int, ...], log) -> None:
+    """Steps 2-4 in a forked child, ending with ``os._exit``. A request it cannot take is one line
+    in the resident's log (and the client solves in its own process)."""
     try:
         _detach(close)
         conn.settimeout(ANSWER_TIMEOUT_S)
@@ -668,6 +679,9 @@ def _child(conn: socket.socket, close: tuple[int, ...], log) -> None:
         conn.sendall(f"pid {os.getpid()}\n".encode())
         if not _take_descriptors(conn):
             os._exit(NOT_TAKEN)
+        # from 'run' the client forwards its signals here: held until the solve's own try below
+        # (a Ctrl-C handled here, before it, would read as a request not taken: exit 75, no answer)
+        signal.pthread_sigmask(signal.SIG_BLOCK, FORWARDED)
         conn.sendall(b"run\n")
     except BaseException as e:  # noqa: BLE001 - the client solves in its own process
         try:
@@ -676,12 +690,15 @@ def _child(conn: socket.socket, close: tuple[int, ...], log) -> None:
         except BaseException:  # noqa: BLE001
             pass
         os._exit(NOT_TAKEN)
-    watch = _ClientWatch(conn)
+    watch = _ClientWatch(conn)  # its thread keeps the signals blocked: they reach the main thread
     try:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, FORWARDED)  # one that came meanwhile lands here
         code = _run(request, log)
     except KeyboardInterrupt:  # forwarded the moment the client heard ``run``, before the solve began
         print("acinoset: interrupted", file=sys.stderr, flush=True)
         code = 130
+    finally:
+        signal.pthread_sigmask(signal.SIG_BLOCK, FORWARDED)  # a second Ctrl-C cannot cut the answer short
     code = code if code != NOT_TAKEN else 1
     watch.finished = True
     for fd in (0, 1, 2):  # flushed by _run: the client's pipes are not held open through the teardown
@@ -833,9 +850,10 @@ def _idle_seconds(env: dict[str, str]) -> float:
 
 
 def _write_info(fd: int, info: dict) -> None:
+    """Overwrite the lock file's JSON in place, padded with spaces to the file's length: never
+    truncated first, so that a reader (:func:`residents`) never finds it empty in between."""
     data = json.dumps(info).encode()
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, data, 0)
+    os.pwrite(fd, data.ljust(os.fstat(fd).st_size), 0)
 
 
 def _unlink_if(path: Path, ino: int) -> None:

@@ -37,13 +37,14 @@ def acinoset(env: dict, *args, cwd: Path | None = None, **kw) -> subprocess.Comp
                           env=env, cwd=cwd, timeout=300, **kw)
 
 
-def wait_for(condition, timeout: float, what: str):
+def wait_for(condition, timeout: float, what: str, every: float = 0.05):
+    """``condition()``'s first true value, asked every ``every`` seconds (0: without a pause)."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         value = condition()
         if value:
             return value
-        time.sleep(0.05)
+        time.sleep(every)
     raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
 
 
@@ -229,26 +230,61 @@ def test_ctrl_c_reaches_the_served_solve(env, warm, run_dir, tmp_path):
     assert "exit 130" in served_since(env, before)[-1]
 
 
+def test_a_ctrl_c_as_the_child_takes_the_solve_is_never_lost(env, warm, run_dir, tmp_path):
+    """Ctrl-C to the client the moment the resident's child has its request, on a busy machine: the
+    client holds it until the child says 'run', then forwards it at once. Every round ends
+    'interrupted' (130), or finished (0, its output written) if the small solve won. Before the
+    child held the signals across 'run', a Ctrl-C there was lost: read as a request not taken (no
+    answer, exit 1; 3 of 16 rounds here), or it ended the child outside its solve (exit 0, nothing
+    written)."""
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    ends = []
+    try:
+        for i in range(16):
+            folder = tmp_path / f"round{i}"
+            folder.mkdir()
+            for name in ("cam1.csv", "cam2.csv", "cam3.csv", "calibration.toml"):
+                (folder / name).symlink_to(run_dir / name)
+            proc, _ = start_served_solve(env, folder, every=0)
+            proc.send_signal(signal.SIGINT)
+            _, stderr = proc.communicate(timeout=120)
+            ended = stderr.splitlines()[-1] if proc.returncode else f"wrote run.csv: {(folder / 'run.csv').exists()}"
+            ends.append((proc.returncode, ended))
+    finally:
+        for p in busy:
+            p.kill()
+            p.wait()
+    assert set(ends) <= {(130, "acinoset: interrupted"), (0, "wrote run.csv: True")}, ends
+    assert (130, "acinoset: interrupted") in ends
+
+
 def start_long_solve(env: dict, folder: Path, **popen) -> tuple[subprocess.Popen, int]:
     """A served solve of some seconds (20000 frames), begun: the client process and the resident's
     child that took it (it has entered the client's folder). ``popen``: more of Popen's arguments."""
     big = write_run(folder, 20000)
+    return start_served_solve(env, big, **popen)
+
+
+def start_served_solve(env: dict, folder: Path, every: float = 0.05, **popen) -> tuple[subprocess.Popen, int]:
+    """The solve of the run in ``folder``, begun: the client process and the resident's child that
+    took it, once it has entered the client's folder (it then answers 'pid', then 'run'), looked for
+    every ``every`` seconds (0: seen within microseconds)."""
     pid = resident.residents(env)[0].pid
-    proc = subprocess.Popen([sys.executable, "-m", "graph.cli", *map(str, solve_args(big, big))], env=env,
-                            cwd=big, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
+    proc = subprocess.Popen([sys.executable, "-m", "graph.cli", *map(str, solve_args(folder, folder))], env=env,
+                            cwd=folder, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
 
     def serving() -> list[int]:
         found = []
         for c in resident_children(pid):
             try:
-                if os.readlink(f"/proc/{c}/cwd") == str(big):
+                if os.readlink(f"/proc/{c}/cwd") == str(folder):
                     found.append(c)
             except OSError:  # gone meanwhile
                 pass
         return found
 
     try:
-        return proc, wait_for(serving, 60, "the resident's child serving this solve")[0]
+        return proc, wait_for(serving, 60, "the resident's child serving this solve", every)[0]
     except BaseException:
         proc.kill()
         raise
