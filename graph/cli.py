@@ -125,10 +125,13 @@ def main(argv: list[str] | None = None, commands: tuple[Command, ...] = COMMANDS
     argv = sys.argv[1:] if argv is None else list(argv)
     commands = tuple(Command(*c) for c in commands)
     if _command_named(argv) == "solve":  # handed to a warm resident process when one is up
-        from graph import resident
+        try:
+            from graph import resident
 
-        return resident.solve(argv, commands, lambda: _run(argv, commands), exit_when_served=command_line,
-                              entry="graph.cli:main")
+            return resident.solve(argv, commands, lambda: _run(argv, commands), exit_when_served=command_line,
+                                  entry="graph.cli:main")
+        except KeyboardInterrupt:  # in the hand-over's first milliseconds (importing, finding the resident)
+            return _interrupted()
     return _run(argv, commands)
 
 
@@ -150,8 +153,25 @@ def _run(argv: list[str], commands: tuple[Command, ...]) -> int:
         where = f"{Path(e.filename).name}: " if e.filename else ""
         return _fail(f"{where}{e.strerror or e}")
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
+        return _interrupted()
+    except SystemError as e:
+        if _caused_by_ctrl_c(e):
+            return _interrupted()
+        raise
+
+
+def _caused_by_ctrl_c(e: BaseException) -> bool:
+    """A Ctrl-C inside a compiled kernel's call reaches us as numba's dispatcher reports it: a
+    ``SystemError`` ('returned a result with an exception set') caused by (a chain ending in) it."""
+    while e.__cause__ is not None:
+        e = e.__cause__
+    return isinstance(e, KeyboardInterrupt)
+
+
+def _interrupted() -> int:
+    """Ctrl-C: one line and the shell's status for SIGINT, 130 (no traceback)."""
+    print(f"{PROG}: interrupted", file=sys.stderr)
+    return 130
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:

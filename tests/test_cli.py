@@ -419,3 +419,31 @@ def test_solve_an_ensemble_per_camera(run_dir, tmp_path):
     proc = run_cli("solve", f"{cams(run_dir)[0]}+{tmp_path / 'nope.csv'}", *cams(run_dir)[1:], "--calibration",
                    run_dir / "calibration.toml", "--out", tmp_path / "out.csv")
     assert_user_error(proc, "nope.csv")
+
+
+def test_a_ctrl_c_numba_wrapped_reads_as_interrupted():
+    """A Ctrl-C that lands inside a compiled kernel's first call (numba unpickling its constants)
+    surfaces as numba's dispatcher reports it, seen on a served solve: SystemError ('returned a
+    result with an exception set') caused by SystemError caused by the KeyboardInterrupt. The
+    command reads that as Ctrl-C ('interrupted', 130), and any other SystemError as what it is."""
+    from graph.cli import _caused_by_ctrl_c
+
+    def raised(*chain: BaseException) -> BaseException:
+        try:
+            try:
+                try:
+                    raise chain[0]
+                except BaseException as first:
+                    raise chain[1] from first
+            except BaseException as second:
+                raise chain[2] from second
+        except BaseException as last:
+            return last
+
+    numba = raised(KeyboardInterrupt(), SystemError("<function _numba_unpickle> returned a result with an "
+                                                    "exception set"),
+                   SystemError("CPUDispatcher(<function triangulate_points>) returned a result with an exception set"))
+    assert isinstance(numba, SystemError) and _caused_by_ctrl_c(numba)
+    other = raised(ValueError("bad"), SystemError("x"), SystemError("y"))
+    assert not _caused_by_ctrl_c(other)
+    assert not _caused_by_ctrl_c(SystemError("plain"))
