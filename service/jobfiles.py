@@ -22,7 +22,8 @@ and becomes the job's directory only once it is accepted. Input layout, named by
     skeleton/<uploaded name>.toml      optional
 
 Both sides use it: the API stores uploads in this layout and serves results from it, the workers read
-and write it (for RQ, as zip archives in Redis under :func:`input_key` and :func:`result_key`).
+and write it (for RQ, as zip archives in Redis under :func:`input_key` and :func:`result_key`,
+each a list of chunks: :func:`put_archive`, :func:`get_archive`).
 """
 
 from __future__ import annotations
@@ -215,6 +216,39 @@ def input_key(token: str) -> str:
 def result_key(token: str) -> str:
     """Redis key of the result files of the RQ job ``token``."""
     return f"acinoset:result:{token}"
+
+
+ARCHIVE_CHUNK_BYTES = 1_000_000  # one Redis value: under the smallest proto-max-bulk-len Redis takes (1 MB)
+PARTIAL = ":partial"  # an archive being written lies under its key plus this, then is renamed
+
+
+def put_archive(redis, key: str, archive: bytes) -> None:
+    """Store ``archive`` under ``key`` as a Redis list of chunks of :data:`ARCHIVE_CHUNK_BYTES`.
+
+    One Redis value holds at most ``proto-max-bulk-len`` bytes (512 MB by default, 1 MB at the
+    least), and a job's footage or labelled videos can be larger: whole, such an archive could not be
+    stored at all. The chunks go under ``key`` + :data:`PARTIAL` and the list is renamed to ``key``
+    at the end, so that a reader finds the whole archive or none."""
+    partial = key + PARTIAL
+    view = memoryview(archive)
+    step = ARCHIVE_CHUNK_BYTES
+    chunks = [view[i:i + step] for i in range(0, len(view), step)] or [view]
+    with redis.pipeline(transaction=False) as pipe:
+        pipe.delete(partial)
+        for i in range(0, len(chunks), 16):  # a few MB a command
+            pipe.rpush(partial, *chunks[i:i + 16])
+        pipe.rename(partial, key)
+        pipe.execute()
+
+
+def get_archive(redis, key: str) -> bytes | None:
+    """The archive :func:`put_archive` stored under ``key`` (a plain string value too, as earlier
+    versions stored it); None if there is none."""
+    kind = redis.type(key)
+    if kind in (b"string", "string"):
+        return redis.get(key)
+    chunks = redis.lrange(key, 0, -1)
+    return b"".join(chunks) if chunks else None
 
 
 def written_outputs(out_dir: Path) -> list[str]:

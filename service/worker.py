@@ -34,8 +34,8 @@ from typing import Callable
 import numpy as np
 
 from service import jobfiles
-from service.jobfiles import (ERROR_LOG, INPUT, RESULT, RESULT_FILES, VIDEOS_DIR, input_key, input_videos, inside,
-                              install_result, pack_files, read_manifest, result_key, result_tmp,
+from service.jobfiles import (ERROR_LOG, INPUT, RESULT, RESULT_FILES, VIDEOS_DIR, get_archive, input_key, input_videos,
+                              inside, install_result, pack_files, put_archive, read_manifest, result_key, result_tmp,
                               unpack_files, video_result_name)
 from service.store import READING, RENDERING, WRITING
 
@@ -326,7 +326,7 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -
 
     t0 = time.time()
     token = rq_job.id if rq_job is not None else job_id
-    archive = rq_job.connection.get(input_key(token)) if rq_job is not None else None
+    archive = get_archive(rq_job.connection, input_key(token)) if rq_job is not None else None
     if archive is None:
         return {"status": "failed", "error": "the job's input files are no longer in Redis", "worker": worker}
     with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-") as tmp:
@@ -337,5 +337,5 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -
         except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
             traceback.print_exc()
             return {"status": "failed", "error": one_line(e), "error_kind": error_kind(e), "worker": worker}
-        rq_job.connection.set(result_key(token), pack_files(out_dir, jobfiles.written_outputs(out_dir)))
+        put_archive(rq_job.connection, result_key(token), pack_files(out_dir, jobfiles.written_outputs(out_dir)))
         return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker}

@@ -213,11 +213,12 @@ class Server(Proc):
 
 
 class Redis(Proc):
-    def __init__(self, workdir: Path, log: Path, port: int | None = None):
+    def __init__(self, workdir: Path, log: Path, port: int | None = None, config: tuple[str, ...] = ()):
+        """``config``: more of redis-server's options (``("--proto-max-bulk-len", "1mb")``)."""
         self.port = port or free_port()
         workdir.mkdir(parents=True, exist_ok=True)
         super().__init__(["redis-server", "--port", str(self.port), "--bind", "127.0.0.1", "--dir", str(workdir),
-                          "--appendonly", "yes", "--appendfsync", "always", "--save", ""], log)
+                          "--appendonly", "yes", "--appendfsync", "always", "--save", "", *config], log)
 
     @property
     def url(self) -> str:

@@ -3,7 +3,8 @@
 Redis carries the work, the job table stays the record of truth. Each attempt chain of a job is
 one RQ job whose id is the job's *run token* in the table. Its input files travel as one zip
 archive in the Redis key ``acinoset:input:<token>`` (workers need no shared disk), its result files
-come back in ``acinoset:result:<token>``; the server's collector thread copies them into the data
+come back in ``acinoset:result:<token>`` (each a list of 1 MB chunks, so that footage and labelled
+videos are not bounded by the largest value Redis takes: :func:`service.jobfiles.put_archive`); the server's collector thread copies them into the data
 dir and the table, then deletes them and the RQ job from Redis. RQ is used with
 ``Retry`` (a work horse that dies is queued again by its worker), ``result_ttl=-1`` (a result
 waits in Redis until the server has stored it, even across a server restart), a job timeout above
@@ -178,13 +179,13 @@ class RQBackend(Backend):
         from rq import Retry
         from rq.job import Job as RQJob
 
-        from service.jobfiles import INPUT, input_archive, input_key, job_dir
+        from service.jobfiles import INPUT, input_archive, input_key, job_dir, put_archive
 
         with self._lock:
             remaining = max(1, job.max_attempts - job.attempts)
             token = f"{job.id}-{job.attempts + 1}"
             if RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0] is None:
-                self.redis.set(input_key(token), input_archive(job_dir(self.settings.jobs_dir, job.id) / INPUT))
+                put_archive(self.redis, input_key(token), input_archive(job_dir(self.settings.jobs_dir, job.id) / INPUT))
                 self.queue.enqueue_call(
                     RQ_FUNCTION,
                     args=(job.id, self.settings.progress_interval_seconds, self.settings.solve_niceness),
@@ -221,12 +222,12 @@ class RQBackend(Backend):
 
     def _delete(self, token: str) -> None:
         """The RQ job and its files in Redis."""
-        from service.jobfiles import input_key, result_key
+        from service.jobfiles import PARTIAL, input_key, result_key
 
         rj = self._full(token)
         if rj is not None:
             rj.delete()
-        self.redis.delete(input_key(token), result_key(token))
+        self.redis.delete(input_key(token), result_key(token), input_key(token) + PARTIAL, result_key(token) + PARTIAL)
 
     def _collect(self) -> None:
         from rq.job import JobStatus
@@ -324,10 +325,11 @@ class RQBackend(Backend):
             self._enqueue(fresh)
 
     def _finished(self, row: Job, rj, attempt: int) -> None:
-        from service.jobfiles import install_result, is_result_name, job_dir, result_key, result_tmp, unpack_files
+        from service.jobfiles import (get_archive, install_result, is_result_name, job_dir, result_key, result_tmp,
+                                      unpack_files)
 
         rv = rj.return_value()
-        archive = self.redis.get(result_key(rj.id))
+        archive = get_archive(self.redis, result_key(rj.id))
         if not isinstance(rv, dict) or rv.get("status") not in ("succeeded", "failed"):
             self.store.mirror_finished(row.id, rj.id, "failed", attempt, error="the worker returned no result")
         elif rv["status"] == "failed":
@@ -370,7 +372,7 @@ class RQBackend(Backend):
         from rq.job import Job as RQJob
         from rq.registry import CanceledJobRegistry, FailedJobRegistry, FinishedJobRegistry
 
-        from service.jobfiles import input_key, result_key
+        from service.jobfiles import PARTIAL, input_key, result_key
 
         live = {r.run_token for r in self.store.active_jobs(self.name) if r.run_token}
         for reg in (FinishedJobRegistry, FailedJobRegistry, CanceledJobRegistry):
@@ -386,6 +388,6 @@ class RQBackend(Backend):
         # files of RQ jobs that no active row runs
         for prefix in (input_key(""), result_key("")):
             for key in self.redis.scan_iter(match=prefix + "*", count=500):
-                token = key.decode().removeprefix(prefix)
+                token = key.decode().removeprefix(prefix).removesuffix(PARTIAL)  # a partial one is its token's
                 if token not in live and self._full(token) is None:
                     self.redis.delete(key)
