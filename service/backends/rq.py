@@ -175,7 +175,9 @@ class RQBackend(Backend):
     def _enqueue(self, job: Job) -> None:
         """One RQ job for the job's remaining attempts; its id, ``<job id>-<first attempt>``, becomes
         the row's run token. If the server died after enqueueing it but before recording it, the RQ
-        job is found again by that id instead of being enqueued twice."""
+        job is found again by that id instead of being enqueued twice. A job whose stored files
+        cannot be read is failed, saying why (it would otherwise end every dispatch pass at itself
+        and hold back the jobs after it); Redis' own errors propagate (the backend waits for Redis)."""
         from rq import Retry
         from rq.job import Job as RQJob
 
@@ -185,7 +187,12 @@ class RQBackend(Backend):
             remaining = max(1, job.max_attempts - job.attempts)
             token = f"{job.id}-{job.attempts + 1}"
             if RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0] is None:
-                put_archive(self.redis, input_key(token), input_archive(job_dir(self.settings.jobs_dir, job.id) / INPUT))
+                try:
+                    archive = input_archive(job_dir(self.settings.jobs_dir, job.id) / INPUT)
+                except Exception as e:  # noqa: BLE001 - this job's files, not the service
+                    self._unsendable(job, token, e)
+                    return
+                put_archive(self.redis, input_key(token), archive)
                 self.queue.enqueue_call(
                     RQ_FUNCTION,
                     args=(job.id, self.settings.progress_interval_seconds, self.settings.solve_niceness),
@@ -195,6 +202,14 @@ class RQBackend(Backend):
                     description=f"acinoset job {job.id} ({job.owner})")
             if not self.store.assign_run(job.id, token):  # cancelled meanwhile
                 self._delete(token)
+
+    def _unsendable(self, job: Job, token: str, e: Exception) -> None:
+        """Fail a queued job whose input files cannot be read from the data dir."""
+        why = f"{type(e).__name__}: {' '.join(str(e).split())}"
+        log.error("job %s: its input files cannot be sent to the workers: %s", job.id, why)
+        if self.store.assign_run(job.id, token):
+            self.store.mirror_finished(job.id, token, "failed", job.attempts,
+                                       error=f"the job's stored input files cannot be read: {why}")
 
     # -- the collector -----------------------------------------------------------------------
 

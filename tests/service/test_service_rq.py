@@ -239,6 +239,35 @@ def test_rq_jobs_wait_in_the_table_while_redis_is_down(tmp_path, small_run):
         pool.stop()
 
 
+def test_rq_a_job_whose_files_cannot_be_read_fails_alone(tmp_path, small_run):
+    """Two jobs wait in the table while Redis is down; one of them loses a stored input file. When
+    Redis is back, that one fails saying why, and the other runs (an exception of one job's
+    enqueue had ended every dispatch pass, holding back the jobs picked after it)."""
+    from service.jobfiles import job_dir
+
+    pool = Pool(tmp_path)
+    pool.start_redis()
+    token = add_user(tmp_path / "data", "kim")
+    srv = Server(tmp_path / "data", tmp_path / "server.log", backend="rq", redis_url=pool.redis.url, env=ENV).start()
+    try:
+        pool.redis.kill9()
+        with srv.client(token) as c:
+            broken, fine = submit_ok(c, small_run, FAST), submit_ok(c, small_run, FAST)
+            lost = next((job_dir(tmp_path / "data" / "jobs", broken) / "input" / "keypoints").rglob("*.csv"))
+            lost.unlink()
+            pool.redis = Redis(tmp_path / "redis", tmp_path / "redis2.log", port=pool.redis.port)
+            pool.start_redis()
+            pool.start_workers(["w1"])
+            assert wait_finished(c, fine)["status"] == "succeeded"
+            failed = wait_finished(c, broken)
+            assert failed["status"] == "failed" and failed["error_kind"] == "internal", failed
+            assert failed["error"].startswith("the job's stored input files cannot be read: FileNotFoundError")
+            assert lost.name in failed["error"] and "\n" not in failed["error"]
+    finally:
+        srv.stop()
+        pool.stop()
+
+
 def test_rq_queue_is_fair_between_users(tmp_path, long_run):
     """One worker, one user's five jobs queued first: another user's job, submitted after them,
     does not wait for all five (Redis is handed only a few jobs at a time, the fewest-jobs user's
