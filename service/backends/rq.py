@@ -117,6 +117,7 @@ class RQBackend(Backend):
         self._stopping: dict[str, float] = {}  # RQ job ids told to stop -> when
         self._last_sweep = 0.0
         self._redis_error: str | None = None
+        self._row_errors: dict[str, str] = {}  # job id -> the error its collection keeps meeting (logged once)
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -245,7 +246,7 @@ class RQBackend(Backend):
         self.redis.delete(input_key(token), result_key(token), input_key(token) + PARTIAL, result_key(token) + PARTIAL)
 
     def _collect(self) -> None:
-        from rq.job import JobStatus
+        from redis.exceptions import RedisError
 
         rows = self.store.active_jobs(self.name)
         tokens = [r.run_token for r in rows if r.run_token]
@@ -253,54 +254,85 @@ class RQBackend(Backend):
         now = time.time()
         waiting: list[Job] = []  # queued rows Redis does not hold yet
         for row in rows:
-            rj = fetched.get(row.run_token) if row.run_token else None
-            if rj is None:
-                if row.status == "queued":
+            try:
+                if self._collect_row(row, fetched.get(row.run_token) if row.run_token else None, now):
                     waiting.append(row)
-                else:
-                    status = self.store.interrupt(row.id, row.run_token, "the queue lost the job "
-                                                  "(Redis restarted without its data?)")
-                    fresh = self.store.job(row.id)
-                    if status == "queued" and fresh is not None:
-                        self._enqueue(fresh)
-                continue
-            token = rj.id
-            status = rj.status
-            attempt = _attempts(rj, status, row.attempts)
-            if status == JobStatus.STARTED:
-                hb = rj.last_heartbeat or rj.started_at
-                if hb is not None and now - hb > self.settings.lease_seconds:
-                    self._lost(row, rj, attempt)
-                else:
-                    self.store.mirror_running(row.id, token, attempt, rj.worker_name, rj.started_at,
-                                              self.settings.lease_seconds, rj.meta.get("progress"))
-            elif status == JobStatus.FINISHED:
-                full = self._full(token)
-                if full is not None:
-                    self._finished(row, full, attempt)
-            elif status == JobStatus.FAILED:
-                rj = self._full(token)
-                if rj is None:
-                    continue
-                res = rj.latest_result()
-                exc = (res.exc_string if res is not None else None) or "unknown error"
-                last = [ln for ln in exc.strip().splitlines() if ln.strip()][-1:] or ["unknown error"]
-                reason = " ".join(last[0].split())
-                if "terminated unexpectedly" in exc or "Abandoned" in exc:
-                    reason = f"the worker's solve process died ({reason})"
-                self.store.mirror_finished(row.id, token, "failed", attempt,
-                                           error=f"gave up after {max(attempt, 1)} attempts; last: {reason}"
-                                           if attempt >= row.max_attempts else reason)
-                self._delete(token)
-            elif status in (JobStatus.STOPPED, JobStatus.CANCELED):
-                self.store.cancel(row.id)
-                self._delete(token)
-            elif status in (JobStatus.QUEUED, JobStatus.SCHEDULED, JobStatus.DEFERRED):
-                if row.status == "running":  # RQ retries it: its work horse died
-                    self.store.mirror_requeued(row.id, token, attempt,
-                                               f"attempt {attempt} of {row.max_attempts} interrupted: "
-                                               "the worker's solve process died")
+            except RedisError:  # Redis itself: the whole pass waits for it
+                raise
+            except Exception as e:  # noqa: BLE001 - this row's own trouble: the rows after it go on
+                self._row_trouble(row, e)
+        self._row_errors = {k: v for k, v in self._row_errors.items() if any(r.id == k for r in rows)}
         self._dispatch(waiting, rows, fetched)
+
+    def _row_trouble(self, row: Job, e: Exception) -> None:
+        """A row whose collection raised (its result archive cannot be read or stored). A full disk
+        may be freed: the row is tried again on the next pass. Anything else fails the row, saying
+        why, instead of stopping every pass at it."""
+        import errno
+
+        why = f"{type(e).__name__}: {' '.join(str(e).split())}"
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+            if self._row_errors.get(row.id) != why:
+                log.error("job %s: its results cannot be stored yet: %s", row.id, why)
+            self._row_errors[row.id] = why
+            return
+        log.error("job %s: failed while collecting its run: %s", row.id, why)
+        if row.run_token and self.store.mirror_finished(row.id, row.run_token, "failed", row.attempts,
+                                                        error=f"the run's result files could not be stored: {why}"):
+            self._delete(row.run_token)
+        self._row_errors.pop(row.id, None)
+
+    def _collect_row(self, row: Job, rj, now: float) -> bool:
+        """Mirror one active row from its RQ job ``rj`` (None: Redis holds none); True if the row
+        waits to be handed to Redis."""
+        from rq.job import JobStatus
+
+        if rj is None:
+            if row.status == "queued":
+                return True
+            status = self.store.interrupt(row.id, row.run_token, "the queue lost the job "
+                                          "(Redis restarted without its data?)")
+            fresh = self.store.job(row.id)
+            if status == "queued" and fresh is not None:
+                self._enqueue(fresh)
+            return False
+        token = rj.id
+        status = rj.status
+        attempt = _attempts(rj, status, row.attempts)
+        if status == JobStatus.STARTED:
+            hb = rj.last_heartbeat or rj.started_at
+            if hb is not None and now - hb > self.settings.lease_seconds:
+                self._lost(row, rj, attempt)
+            else:
+                self.store.mirror_running(row.id, token, attempt, rj.worker_name, rj.started_at,
+                                          self.settings.lease_seconds, rj.meta.get("progress"))
+        elif status == JobStatus.FINISHED:
+            full = self._full(token)
+            if full is not None:
+                self._finished(row, full, attempt)
+        elif status == JobStatus.FAILED:
+            rj = self._full(token)
+            if rj is None:
+                return False
+            res = rj.latest_result()
+            exc = (res.exc_string if res is not None else None) or "unknown error"
+            last = [ln for ln in exc.strip().splitlines() if ln.strip()][-1:] or ["unknown error"]
+            reason = " ".join(last[0].split())
+            if "terminated unexpectedly" in exc or "Abandoned" in exc:
+                reason = f"the worker's solve process died ({reason})"
+            self.store.mirror_finished(row.id, token, "failed", attempt,
+                                       error=f"gave up after {max(attempt, 1)} attempts; last: {reason}"
+                                       if attempt >= row.max_attempts else reason)
+            self._delete(token)
+        elif status in (JobStatus.STOPPED, JobStatus.CANCELED):
+            self.store.cancel(row.id)
+            self._delete(token)
+        elif status in (JobStatus.QUEUED, JobStatus.SCHEDULED, JobStatus.DEFERRED):
+            if row.status == "running":  # RQ retries it: its work horse died
+                self.store.mirror_requeued(row.id, token, attempt,
+                                           f"attempt {attempt} of {row.max_attempts} interrupted: "
+                                           "the worker's solve process died")
+        return False
 
     def _dispatch(self, waiting: list[Job], rows: list[Job], fetched: dict) -> None:
         """Hand queued jobs to Redis, fairly between users. RQ runs its queue in order, so one user's
@@ -357,11 +389,13 @@ class RQBackend(Backend):
             dest = job_dir(self.settings.jobs_dir, row.id)
             tmp = result_tmp(dest, rj.id)
             shutil.rmtree(tmp, ignore_errors=True)
-            unpack_files(archive, tmp, allowed=is_result_name)
-            self.store.mirror_finished(row.id, rj.id, "succeeded", attempt, summary=rv.get("report"),
-                                       solve_seconds=rv.get("seconds"), worker=rv.get("worker"),
-                                       commit=lambda: install_result(dest, tmp))
-            shutil.rmtree(tmp, ignore_errors=True)
+            try:
+                unpack_files(archive, tmp, allowed=is_result_name)
+                self.store.mirror_finished(row.id, rj.id, "succeeded", attempt, summary=rv.get("report"),
+                                           solve_seconds=rv.get("seconds"), worker=rv.get("worker"),
+                                           commit=lambda: install_result(dest, tmp))
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
         self._delete(rj.id)
 
     def _finish_stopping(self) -> None:

@@ -268,6 +268,48 @@ def test_rq_a_job_whose_files_cannot_be_read_fails_alone(tmp_path, small_run):
         pool.stop()
 
 
+def test_rq_a_result_that_cannot_be_read_fails_its_job_alone(tmp_path, long_run, small_run):
+    """A worker's result archive that cannot be unpacked (overwritten here while the server is
+    stopped with SIGSTOP): that job fails saying why, and the server goes on collecting and
+    dispatching the others (the exception had ended every pass at that row: the job stayed
+    'running' and every later job 'queued')."""
+    import redis as redis_lib
+    from rq.job import Job as RQJob
+    from rq.serializers import JSONSerializer
+
+    from service.jobfiles import put_archive, result_key
+
+    pool = Pool(tmp_path)
+    pool.start_redis()
+    token = add_user(tmp_path / "data", "lee")
+    srv = Server(tmp_path / "data", tmp_path / "server.log", backend="rq", redis_url=pool.redis.url, env=ENV).start()
+    pool.start_workers(["w1"])
+    r = redis_lib.Redis.from_url(pool.redis.url)
+    try:
+        with srv.client(token) as c:
+            broken = submit_ok(c, long_run, LONG)
+            wait_solving(c, broken)
+            os.kill(srv.pid, signal.SIGSTOP)
+            try:
+                rq_id = f"{broken}-1"
+                deadline = time.time() + 120
+                while RQJob.fetch(rq_id, connection=r, serializer=JSONSerializer).get_status() != "finished":
+                    assert time.time() < deadline, "the worker did not finish"
+                    time.sleep(0.1)
+                put_archive(r, result_key(rq_id), b"not a zip archive")
+            finally:
+                os.kill(srv.pid, signal.SIGCONT)
+            after = submit_ok(c, small_run, FAST)
+            assert wait_finished(c, after)["status"] == "succeeded"
+            failed = wait_finished(c, broken)
+            assert failed["status"] == "failed", failed
+            assert failed["error"].startswith("the run's result files could not be stored: BadZipFile"), failed
+            assert r.keys(f"acinoset:*{broken}*") == []
+    finally:
+        srv.stop()
+        pool.stop()
+
+
 def test_rq_queue_is_fair_between_users(tmp_path, long_run):
     """One worker, one user's five jobs queued first: another user's job, submitted after them,
     does not wait for all five (Redis is handed only a few jobs at a time, the fewest-jobs user's
