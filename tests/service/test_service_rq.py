@@ -35,6 +35,11 @@ class Pool:
     def start_redis(self):
         self.redis.start()
 
+    def redis_back(self):
+        """A new redis-server on the killed one's port and folder (its append-only file kept)."""
+        self.redis = Redis(self.base / "redis", self.base / "redis2.log", port=self.redis.port, config=SMALL_VALUES)
+        self.start_redis()
+
     def start_workers(self, names=("w1", "w2")):
         for n in names:
             self.workers[n] = worker(self.redis.url, self.base / f"{n}.log", n, ENV).start()
@@ -85,6 +90,15 @@ def pool(tmp_path_factory):
     yield p
     p.server.stop()
     p.stop()
+
+
+def rq_server(base, user: str) -> tuple[Pool, str, Server]:
+    """Redis and a server on the RQ backend over it, no worker yet: the pool, a user's token, the server."""
+    pool = Pool(base)
+    pool.start_redis()
+    token = add_user(base / "data", user)
+    return pool, token, Server(base / "data", base / "server.log", backend="rq", redis_url=pool.redis.url,
+                               env=ENV).start()
 
 
 @pytest.fixture
@@ -198,8 +212,7 @@ def test_rq_kill_9_of_everything_loses_nothing(tmp_path, long_run, small_run):
         srv.kill9()
         pool.redis.kill9()
 
-        pool.redis = Redis(tmp_path / "redis", tmp_path / "redis2.log", port=pool.redis.port)
-        pool.start_redis()
+        pool.redis_back()
         srv = Server(tmp_path / "data", tmp_path / "server2.log", backend="rq", redis_url=pool.redis.url,
                      env=ENV).start()
         pool.workers = {}
@@ -219,17 +232,13 @@ def test_rq_kill_9_of_everything_loses_nothing(tmp_path, long_run, small_run):
 
 
 def test_rq_jobs_wait_in_the_table_while_redis_is_down(tmp_path, small_run):
-    pool = Pool(tmp_path)
-    pool.start_redis()
-    token = add_user(tmp_path / "data", "judy")
-    srv = Server(tmp_path / "data", tmp_path / "server.log", backend="rq", redis_url=pool.redis.url, env=ENV).start()
+    pool, token, srv = rq_server(tmp_path, "judy")
     try:
         pool.redis.kill9()
         with srv.client(token) as c:
             assert c.get("/healthz").status_code == 503
             job_id = submit_ok(c, small_run, FAST)  # accepted: the table is the record
-            pool.redis = Redis(tmp_path / "redis", tmp_path / "redis2.log", port=pool.redis.port)
-            pool.start_redis()
+            pool.redis_back()
             pool.start_workers(["w1"])
             assert wait_finished(c, job_id)["status"] == "succeeded"
             wait_for(c, job_id, lambda j: True)
@@ -245,18 +254,14 @@ def test_rq_a_job_whose_files_cannot_be_read_fails_alone(tmp_path, small_run):
     enqueue had ended every dispatch pass, holding back the jobs picked after it)."""
     from service.jobfiles import job_dir
 
-    pool = Pool(tmp_path)
-    pool.start_redis()
-    token = add_user(tmp_path / "data", "kim")
-    srv = Server(tmp_path / "data", tmp_path / "server.log", backend="rq", redis_url=pool.redis.url, env=ENV).start()
+    pool, token, srv = rq_server(tmp_path, "kim")
     try:
         pool.redis.kill9()
         with srv.client(token) as c:
             broken, fine = submit_ok(c, small_run, FAST), submit_ok(c, small_run, FAST)
             lost = next((job_dir(tmp_path / "data" / "jobs", broken) / "input" / "keypoints").rglob("*.csv"))
             lost.unlink()
-            pool.redis = Redis(tmp_path / "redis", tmp_path / "redis2.log", port=pool.redis.port)
-            pool.start_redis()
+            pool.redis_back()
             pool.start_workers(["w1"])
             assert wait_finished(c, fine)["status"] == "succeeded"
             failed = wait_finished(c, broken)
@@ -279,10 +284,7 @@ def test_rq_a_result_that_cannot_be_read_fails_its_job_alone(tmp_path, long_run,
 
     from service.jobfiles import put_archive, result_key
 
-    pool = Pool(tmp_path)
-    pool.start_redis()
-    token = add_user(tmp_path / "data", "lee")
-    srv = Server(tmp_path / "data", tmp_path / "server.log", backend="rq", redis_url=pool.redis.url, env=ENV).start()
+    pool, token, srv = rq_server(tmp_path, "lee")
     pool.start_workers(["w1"])
     r = redis_lib.Redis.from_url(pool.redis.url)
     try:
