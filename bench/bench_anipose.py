@@ -39,7 +39,7 @@ import harness as h  # noqa: E402
 
 from graph.anipose import load_project  # noqa: E402
 from graph.anipose.simulate import CONSTRAINTS, simulated_trials, write_project  # noqa: E402
-from graph.io import read_anipose_csv  # noqa: E402
+from graph.io.results import read_anipose_csv  # noqa: E402
 
 EXE = Path(sys.executable).with_name("acinoset")
 

@@ -10,7 +10,7 @@ bench/harness.py), written as a user brings it (``cam1.csv`` ... and ``calibrati
   filled numba's cache (every default: ``fte``, the cheetah, the body estimated), the median of
   ``--repeats``; the solve's own ``seconds.total`` from its report beside it. Twice: solved in the
   process itself (``ACINOSET_RESIDENT=0``), and handed to the warm resident process that an earlier
-  ``acinoset solve`` started (graph.resident; in a private runtime directory of this run, stopped at
+  ``acinoset solve`` started (graph.app.resident; in a private runtime directory of this run, stopped at
   the end; every timed run checked to have been served, and its CSV to equal the in-process one);
 * aniposelib's ``triangulate_optim`` call alone on the same detections, in this process (its
   import, the camera group and the threshold not counted), with every bone a limb constraint;
@@ -46,8 +46,8 @@ from pathlib import Path
 
 import harness as h
 
-from graph.calibration import write_anipose_toml
-from graph.keypoints import write_dlc_csv
+from graph.io.calibration import write_anipose_toml
+from graph.io.keypoints import write_dlc_csv
 
 ACINOSET = str(Path(sys.executable).with_name("acinoset"))
 

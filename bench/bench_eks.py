@@ -64,7 +64,7 @@ import numpy as np
 
 from graph.api import SolveOptions, solve
 from graph.camera import undistort_points
-from graph.keypoints import Keypoints
+from graph.io.keypoints import Keypoints
 from graph.metrics import uncertainty_calibration
 from graph.simulate import simulate_run
 

@@ -19,7 +19,7 @@ What runs, on the same data in one run:
   with the fixed process noise (``motion_scale=1``) and every other option at its default, on
   member 1; then with ``motion_scale="auto"`` (the default for free points since 12a; and with
   ``measurement_std_px="auto"`` too); then given both members as one ensemble per camera
-  (:func:`graph.ensemble.combine`: their median, their spread weighing cameras and markers), with
+  (:func:`graph.solve.ensemble.combine`: their median, their spread weighing cameras and markers), with
   the same three settings; then with the motion prior's order chosen from the data
   (``motion_order="auto"``, member 1 and the ensemble) and with the first order given (the
   ensemble). The three reconstructions timed in process (wall clock around
@@ -63,10 +63,10 @@ import harness as h
 import numpy as np
 
 from graph.api import SolveOptions
-from graph.calibration import load_calibration
-from graph.ensemble import combine
-from graph.keypoints import read_keypoints
+from graph.io.calibration import load_calibration
+from graph.io.keypoints import read_keypoints
 from graph.metrics import leave_one_camera_out, loco_difference
+from graph.solve.ensemble import combine
 
 DATA = Path("/work/shared/data/eks_fly")
 FPS = 300.0  # assumed (SOURCE.md)

@@ -2,9 +2,9 @@
 
     python bench/bench_graduated.py [--steps 1 3] [--seeds 2]
 
-``fte`` (graph.fte.optimise) first minimises the robust loss with its knots stretched by 4, so that
+``fte`` (graph.solve.fte.optimise) first minimises the robust loss with its knots stretched by 4, so that
 detections far from a rough start are not rejected before the pose comes to them, then the loss
-itself. This bench solves the same simulated runs with each value of ``graph.fte.STRETCHED_STEPS``
+itself. This bench solves the same simulated runs with each value of ``graph.solve.fte.STRETCHED_STEPS``
 (the stretched stage's step budget) and compares the mean 3D error against the truth, the number
 of Gauss-Newton steps taken (accepted or not) and the wall time of the solve:
 
@@ -28,9 +28,9 @@ import bench_body_sync as bbs
 import harness as h
 import numpy as np
 
-from graph import fte, joint
 from graph.api import SolveOptions, solve
 from graph.simulate import simulate_run
+from graph.solve import fte, joint
 
 
 def main() -> int:

@@ -6,8 +6,8 @@ One simulated run on the AcinoSet rig in the target protocol (bench/harness.py: 
 10 % outliers of sigma 100 px), solved by ``fte`` with the fixed default (``motion_scale=1``) and
 with ``motion_scale="auto"``, alternately (so that the machine's load falls on both alike), after
 an untimed warm-up of each. For every solve the wall time and where it went: the fits
-(:func:`graph.fte.fit_motion`, and how many evaluations of the evidence), the optimisations
-(:func:`graph.fte.optimise`), the result with its uncertainty; and the 3D error against the truth.
+(:func:`graph.solve.fte.fit_motion`, and how many evaluations of the evidence), the optimisations
+(:func:`graph.solve.fte.optimise`), the result with its uncertainty; and the 3D error against the truth.
 Prints medians and the ratio auto / fixed; writes bench/results/motion_auto_cost.json.
 """
 
@@ -19,8 +19,8 @@ import time
 
 import harness as h
 
-import graph.fte as fte
-import graph.smoothing as smoothing
+import graph.solve.fte as fte
+import graph.solve.smoothing as smoothing
 
 TIMED = {"fit_motion": (fte, "fit_motion"), "optimise": (fte, "optimise"),
          "result": (fte, "trajectory_result")}

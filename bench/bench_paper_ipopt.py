@@ -43,10 +43,10 @@ import harness as h
 import numpy as np
 import paper_nlp as pn
 
-from graph import problem as gp
 from graph.api import SolveOptions, solve
-from graph.initial import initial_poses
-from graph.triangulate import robust_points
+from graph.solve import problem as gp
+from graph.solve.initial import initial_poses
+from graph.solve.triangulate import robust_points
 
 METHODS = ["acinoset fte", "acinoset fte, no uncertainty", "IPOPT, paper program, fte cost",
            "IPOPT, paper program, paper cost"]

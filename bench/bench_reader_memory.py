@@ -29,7 +29,7 @@ from test_keypoints import _columns, _h5py_fixed, _Pickled, _set_attrs  # noqa: 
 PROBE = r"""
 import json, resource, sys, time, warnings
 warnings.simplefilter("ignore")
-from graph.keypoints import ReadLimits, read_keypoints
+from graph.io.keypoints import ReadLimits, read_keypoints
 limits = ReadLimits(50_000, 100) if sys.argv[2] == "limits" else ReadLimits()
 t = time.perf_counter()
 try:

@@ -76,7 +76,8 @@ def stop(p: subprocess.Popen) -> None:
 
 
 def write_run(out: Path, frames: int, seed: int):
-    from graph.simulate import simulate_run, write_run as write
+    from graph.simulate import simulate_run
+    from graph.simulate import write_run as write
 
     cal = harness.rig()
     write(simulate_run(cal, frames=frames, seed=seed), out)

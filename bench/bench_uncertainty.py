@@ -6,7 +6,7 @@ The 3D standard deviations every method returns scale with the detection noise i
 (``measurement_std_px``, 5 px by default, the AcinoSet paper's), but DeepLabCut's noise depends on
 the cameras and the network. For each pixel noise level (10 % confident outliers of sigma 100 px,
 120 fps, the AcinoSet rig; bench/harness.py) and seed, every method solves the same run twice:
-with the default 5 px, and with ``measurement_std_px="auto"`` (graph.noise: the noise measured
+with the default 5 px, and with ``measurement_std_px="auto"`` (graph.solve.noise: the noise measured
 from the robust triangulation's residuals, and for ``fte`` again from its own). Each answer is
 judged against the simulated truth with :func:`graph.metrics.uncertainty_calibration`: the share
 of coordinates within 1 and 2 stated sd (0.683 and 0.954 when calibrated), RMS z (1), the Gaussian

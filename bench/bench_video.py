@@ -117,7 +117,7 @@ def make_input(work: Path, frames: int) -> Path:
 def looped(work: Path, inp: Path, loops: int, name: str) -> tuple[Path, list[Path]]:
     """The footage played ``loops`` times in a row (stream copy: no re-encoding) and the result
     repeated to match, under ``work/name``."""
-    from graph.io import read_result, write_h5
+    from graph.io.results import read_result, write_h5
     from graph.video import ffmpeg_exe
 
     d = work / name

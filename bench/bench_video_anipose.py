@@ -58,10 +58,10 @@ def main() -> None:
             os.symlink(imageio_ffmpeg.get_ffmpeg_exe(), bin_dir / name)
     skvideo.setFFmpegPath(str(bin_dir))
     import skvideo.io
-    from aniposelib.cameras import CameraGroup
     from anipose.anipose import DEFAULT_CONFIG
     from anipose.label_videos import visualize_labels
     from anipose.project_2d import get_projected_points
+    from aniposelib.cameras import CameraGroup
 
     class Frame(np.ndarray):
         """An ndarray view with numpy 1's ``tostring`` (scikit-video 1.1.11 calls it)."""
@@ -72,7 +72,7 @@ def main() -> None:
     write_frame = skvideo.io.FFmpegWriter.writeFrame
     skvideo.io.FFmpegWriter.writeFrame = lambda self, im: write_frame(self, np.asarray(im).view(Frame))
 
-    from graph.io import read_result
+    from graph.io.results import read_result
 
     result = read_result(args.work / "result.h5")
     config = {**DEFAULT_CONFIG, "labeling": {"scheme": [list(b) for b in result.bones]},

@@ -34,7 +34,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from graph.api import SolveOptions, solve  # noqa: E402
-from graph.calibration import default_rig_path, load_calibration, write_anipose_toml  # noqa: E402
+from graph.io.calibration import default_rig_path, load_calibration, write_anipose_toml  # noqa: E402
 from graph.metrics import position_error  # noqa: E402
 from graph.simulate import simulate_run  # noqa: E402
 

@@ -25,7 +25,7 @@ Cost, on the slacks::
 
     sum_j rho(|e[j]| / sigma)  +  motion(w)  [+  1/2 sum_n |(q[n] - q0[n]) / 10|^2]
 
-``rho`` is :func:`graph.robust.redescending` (a, b, c = 3, 10, 20; sigma = 5 px), as in ``fte``.
+``rho`` is :func:`graph.solve.robust.redescending` (a, b, c = 3, 10, 20; sigma = 5 px), as in ``fte``.
 Two motion costs:
 
 * ``cost="paper"``: the paper's ``1/2 sum_n sum_p (w[n,p] / sigma_p)^2`` with sigma_p the skeleton's
@@ -51,9 +51,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from graph.fte import PRIOR_SIGMA
-from graph.robust import A as RA, B as RB, C as RC, redescending
-
+from graph.solve.fte import PRIOR_SIGMA
+from graph.solve.robust import A as RA
+from graph.solve.robust import B as RB
+from graph.solve.robust import C as RC
+from graph.solve.robust import redescending
 
 # ------------------------------------------------------------------------- per-frame projections
 
@@ -158,7 +160,7 @@ def frame_model(skeleton, calibration) -> FrameModel:
 
 
 def _rho_derivatives(s):
-    """rho(s), w(s) = rho'(s)/s (:func:`graph.robust.redescending`) and rho''(s) of the redescending
+    """rho(s), w(s) = rho'(s)/s (:func:`graph.solve.robust.redescending`) and rho''(s) of the redescending
     loss, vectorised (s >= 0)."""
     a, b, c = RA, RB, RC
     rho, w = redescending(s, a, b, c)
@@ -170,7 +172,7 @@ def _rho_derivatives(s):
 
 
 class PaperNLP:
-    """The program above for one :class:`graph.problem.Problem`, as cyipopt's callbacks.
+    """The program above for one :class:`graph.solve.problem.Problem`, as cyipopt's callbacks.
 
     ``x = [q (N P), qd (N P), qdd (N P), w ((N-1) P), e (2 V)]``, each block frame-major.
     """
@@ -488,8 +490,8 @@ def solve_paper(prob, model: FrameModel, cost: str = "fte", ipopt_options: dict 
     then solve the program with IPOPT."""
     import cyipopt
 
-    from graph.initial import initial_poses
-    from graph.triangulate import robust_points
+    from graph.solve.initial import initial_poses
+    from graph.solve.triangulate import robust_points
 
     t0 = time.perf_counter()
     if Q0 is None:
@@ -521,9 +523,9 @@ def solve_paper(prob, model: FrameModel, cost: str = "fte", ipopt_options: dict 
 
 
 def common_cost(prob, Q0: np.ndarray, Q: np.ndarray) -> dict:
-    """acinoset ``fte``'s cost of trajectories Q (:meth:`graph.fte.TrajectoryProblem.cost`: robust
+    """acinoset ``fte``'s cost of trajectories Q (:meth:`graph.solve.fte.TrajectoryProblem.cost`: robust
     reprojection + third-difference motion + weak anchor to Q0), with its parts."""
-    from graph.fte import TrajectoryProblem
+    from graph.solve.fte import TrajectoryProblem
 
     tp = TrajectoryProblem(prob, Q0)
     *_, dc = tp.normals(np.ascontiguousarray(Q), 1.0)

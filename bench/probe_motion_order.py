@@ -3,7 +3,7 @@
     python bench/probe_motion_order.py [--data DIR]
 
 acinoset's smoother puts its prior on the third differences of each coordinate by default
-(constant acceleration; graph.fte, graph.smoothing); aniposelib's ``triangulate_optim`` penalises
+(constant acceleration; graph.solve.fte, graph.solve.smoothing); aniposelib's ``triangulate_optim`` penalises
 first differences. This probe solves the fly (bench_fly_loco.py) with the prior on the k-th
 differences (``motion_order`` k = 1, 2, 3, and ``"auto"``), the scale fitted by the evidence as
 ``motion_scale="auto"`` does, at the library's stiffness bound and at 100x it, and scores each by
@@ -23,13 +23,13 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-
 from bench_fly_loco import DATA, FPS, member_files
-from graph import fte, smoothing
-from graph.calibration import load_calibration
-from graph.ensemble import combine
-from graph.keypoints import read_keypoints
+
+from graph.io.calibration import load_calibration
+from graph.io.keypoints import read_keypoints
 from graph.metrics import leave_one_camera_out
+from graph.solve import fte, smoothing
+from graph.solve.ensemble import combine
 from graph.types import SolveOptions
 
 ORDERS = (3, 2, 1, "auto")
@@ -55,6 +55,7 @@ def main() -> int:
                 print(f"| {k} | {b:g} | {name} | {r.median_px:.3f} | {r.p90_px:.3f} |", flush=True)
     smoothing.MAX_STIFFNESS = fte.MAX_STIFFNESS = bound
     import harness as h
+
     from graph.api import solve
 
     rig = h.rig()

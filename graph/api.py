@@ -10,13 +10,13 @@ from __future__ import annotations
 import time
 from typing import Protocol
 
-from graph import problem
 from graph.camera import Calibration
-from graph.joint import solve_fte_joint
-from graph.keypoints import Keypoints
-from graph.online import solve_ekf
-from graph.problem import Problem
-from graph.tri import solve_tri
+from graph.io.keypoints import Keypoints
+from graph.solve import problem
+from graph.solve.joint import solve_fte_joint
+from graph.solve.online import solve_ekf
+from graph.solve.problem import Problem
+from graph.solve.tri import solve_tri
 from graph.types import METHODS, Method, Progress, ProgressCallback, Result, SolveOptions, SolveReport
 
 __all__ = ["solve", "SOLVERS", "Solver", "METHODS", "Method", "Progress", "ProgressCallback", "Result",
@@ -27,7 +27,7 @@ class Solver(Protocol):
     def __call__(self, prob: Problem, progress: ProgressCallback | None = None) -> Result: ...
 
 
-# fte: graph.fte.solve_fte, with the body and the clocks as unknowns where the options ask (graph.joint)
+# fte: graph.solve.fte.solve_fte, with the body and the clocks as unknowns where the options ask (graph.solve.joint)
 SOLVERS: dict[str, Solver] = {"tri": solve_tri, "ekf": solve_ekf, "fte": solve_fte_joint}
 assert tuple(SOLVERS) == METHODS, "graph.types.Method and SOLVERS must name the same methods"
 

@@ -15,7 +15,7 @@ Pinhole (``cv2.projectPoints``), with ``r2 = x^2 + y^2``::
 
 Pixels: ``u = fx x' + cx, v = fy y' + cy``.
 
-The same maths runs compiled in :mod:`graph.kernels`; this module is the readable reference and
+The same maths runs compiled in :mod:`graph.solve.kernels`; this module is the readable reference and
 the vectorised numpy path used by readers, the simulator and metrics.
 """
 
@@ -24,6 +24,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+# the units a calibration's translations may be in, as metres per unit ("auto": read from the file or guessed)
+CALIBRATION_UNITS: dict[str, float] = {"auto": 0.0, "m": 1.0, "cm": 0.01, "mm": 0.001}
 
 FISHEYE = "fisheye"
 PINHOLE = "pinhole"

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-
 # what a reader says of a file whose arrays or tables nest deeper than the parser can follow
 NESTED_TOO_DEEPLY = "arrays or tables nested too deeply (hundreds of levels inside each other)"
 

@@ -432,7 +432,7 @@ def prediction_share(camera, positions: np.ndarray, std: np.ndarray, sigma_px: f
 def _matched_detections(detections, markers: list[str], frames: int) -> tuple[np.ndarray, np.ndarray]:
     """A camera's detections (N, M, 2) and likelihoods (N, M) of ``markers``, matched by bodypart
     name: NaN and 0 where it has none."""
-    from graph.keypoints import match_bodyparts
+    from graph.io.keypoints import match_bodyparts
 
     match = match_bodyparts(detections, markers)
     z = np.full((frames, len(markers), 2), np.nan)
@@ -446,7 +446,7 @@ def _matched_detections(detections, markers: list[str], frames: int) -> tuple[np
 def held_out_errors(camera, positions: np.ndarray, markers: list[str], detections,
                     confidence: float = LOCO_CONFIDENCE) -> tuple[np.ndarray, np.ndarray]:
     """Pixel distances (N, M) between ``positions`` (N, M, 3; the camera's world units) projected by
-    ``camera`` and the camera's own :class:`~graph.keypoints.Keypoints` ``detections``, matched by
+    ``camera`` and the camera's own :class:`~graph.io.keypoints.Keypoints` ``detections``, matched by
     bodypart name, where the detection's likelihood is at least ``confidence``; NaN elsewhere. Also
     the mask (N, M) of the confident detections (judged or not: a missing prediction is not judged)."""
     z, lik = _matched_detections(detections, markers, positions.shape[0])
@@ -477,7 +477,7 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
     metres when the whole one is in millimetres) and every reconstruction is given them. Another
     method is scored the same way by passing ``reconstruct(keypoints, calibration) -> (markers,
     positions)``, which gets the kept cameras in the calibration's own units and returns positions
-    in those units. ``judge`` (one :class:`~graph.keypoints.Keypoints` per camera, default
+    in those units. ``judge`` (one :class:`~graph.io.keypoints.Keypoints` per camera, default
     ``keypoints``) are the detections each held-out camera is scored against: for instance one
     ensemble member's, to compare a method given the ensemble with methods given that member.
     Warnings a reconstruction gives are kept in its camera's ``warnings``, not raised.
@@ -487,10 +487,10 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
     ellipse it implies (:func:`prediction_share`): the 3D truth a simulation has, replaced by a
     camera the reconstruction did not see.
     """
-    from graph.calibration import CALIBRATION_UNITS, resolve_units
-    from graph.camera import Calibration
+    from graph.camera import CALIBRATION_UNITS, Calibration
     from graph.errors import InputError
-    from graph.keypoints import check_same_frames
+    from graph.io.calibration import resolve_units
+    from graph.io.keypoints import check_same_frames
 
     C = len(calibration)
     if C < 3:

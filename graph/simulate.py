@@ -58,10 +58,10 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.calibration import default_rig_path, load_calibration, write_acinoset_json, write_anipose_toml
 from graph.camera import PINHOLE, Calibration, Camera
 from graph.errors import InputError
-from graph.keypoints import Keypoints, write_dlc_csv
+from graph.io.calibration import default_rig_path, load_calibration, write_acinoset_json, write_anipose_toml
+from graph.io.keypoints import Keypoints, write_dlc_csv
 from graph.skeleton import Skeleton, load_skeleton
 from graph.types import jsonable
 
@@ -511,7 +511,7 @@ def random_jerk_run(calibration: Calibration, frames: int = 300, fps: float = 12
 
 def write_truth_csv(path: str | Path, markers: list[str], positions: np.ndarray,
                     ncams: np.ndarray | None = None) -> None:
-    """Ground truth in Anipose's 3D CSV layout (as :func:`graph.io.write_anipose_csv`): per marker
+    """Ground truth in Anipose's 3D CSV layout (as :func:`graph.io.results.write_anipose_csv`): per marker
     ``<m>_x, _y, _z, _error, _ncams, _score``, then ``M_00 .. M_22``, ``center_0 .. center_2`` and
     ``fnum``. Truth has error 0 and score 1; ``ncams`` is how many cameras have the marker in view."""
     N, M, _ = positions.shape
@@ -669,8 +669,8 @@ def _film(run: SimulatedRun, out: str | Path) -> list[Path]:
     progress bar on a terminal."""
     import sys
 
-    from graph.video import write_simulated_videos
     from graph.progress import FrameProgress
+    from graph.video import write_simulated_videos
 
     bar = FrameProgress(sys.stderr, label="camera-frames filmed") if sys.stderr.isatty() else None
     try:

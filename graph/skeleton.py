@@ -21,7 +21,7 @@ The *points* skeleton makes every marker a root point of its own: the same motio
 loss, no kinematics; optional soft bone-length terms tie pairs of markers.
 
 The tree is flattened to integer arrays (:class:`Skeleton.arrays`) that the compiled kernels in
-:mod:`graph.kernels` walk.
+:mod:`graph.solve.kernels` walk.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ class SkeletonArrays:
             self.marker_dep = _marker_dependencies(self)
 
     def kernel_args(self) -> tuple:
-        """The arrays in the order the kernels in :mod:`graph.kernels` take them."""
+        """The arrays in the order the kernels in :mod:`graph.solve.kernels` take them."""
         return (self.seg_parent, self.seg_axis, self.seg_param, self.pt_base, self.pt_seg, self.pt_root,
                 self.pt_offset, self.marker_point, self.marker_dep)
 
@@ -148,7 +148,7 @@ class Skeleton:
 
     def positions(self, q: np.ndarray) -> np.ndarray:
         """Marker positions (..., M, 3) for pose parameters (..., P), by forward kinematics."""
-        from graph.kernels import fk_batch
+        from graph.kinematics import fk_batch
 
         q = np.asarray(q, dtype=np.float64)
         flat = q.reshape(-1, q.shape[-1])
@@ -157,7 +157,7 @@ class Skeleton:
 
     def positions_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Marker positions (M, 3) and ``d p / d q`` (M, 3, P) for one pose."""
-        from graph.kernels import fk_jacobian
+        from graph.kinematics import fk_jacobian
 
         return fk_jacobian(np.asarray(q, dtype=np.float64), *self.arrays.kernel_args())
 

@@ -12,7 +12,7 @@ from typing import Callable, Literal, get_args
 
 import numpy as np
 
-from graph.calibration import CALIBRATION_UNITS
+from graph.camera import CALIBRATION_UNITS
 
 Method = Literal["tri", "ekf", "fte"]
 Body = Literal["model", "estimate", "given"]
@@ -60,14 +60,14 @@ class SolveOptions:
     robust: bool = True  # the redescending loss; False gives plain least squares
     max_iterations: int = 50
     # multiplies every process-noise std (larger: follows the data more); "auto": fitted to the data by
-    # the marginal likelihood (graph.smoothing), per marker for free points, one scale for a skeleton;
+    # the marginal likelihood (graph.solve.smoothing), per marker for free points, one scale for a skeleton;
     # {group: scale}: a scale per group as a report's motion_scales gives them ({marker: s} for free
     # points, {"all": s}), to solve more runs with the smoothing one run fitted;
     # None: the default for the skeleton and method (default_motion_scale)
     motion_scale: float | Literal["auto"] | dict[str, float] | None = None
     # the order k of the motion prior, white k-th differences of each parameter: 3 (constant
     # acceleration with white jerk, the paper's), 2 (white changes of velocity), 1 (a random walk of
-    # positions), or "auto": chosen per group from the data (graph.smoothing: the fractional Bayes
+    # positions), or "auto": chosen per group from the data (graph.solve.smoothing: the fractional Bayes
     # factor); "fte" with motion_scale "auto" only; {group: k}: per group, as a report's motion_orders
     motion_order: int | Literal["auto"] | dict[str, int] = 3
     bone_lengths: list[tuple[str, str]] | None = None  # soft bone-length terms for "points"
@@ -164,7 +164,7 @@ class SolveReport:
     unconstrained_frames: list[int] = field(default_factory=list)  # frames with no marker seen twice
     bounds_active: int = 0
     sigma_px: float = float("nan")  # the detection noise the loss and the uncertainties assumed (px)
-    noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.noise)
+    noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.solve.noise)
     # motion_scale "auto": the scale fitted per group ({marker: scale} for free points, {"all": scale}),
     # and the order of each group's prior it was fitted for (chosen with motion_order "auto", else given);
     # give both back (SolveOptions.motion_scale / motion_order) to solve more runs with the same smoothing

@@ -21,10 +21,20 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 import graph
 from service import jobfiles
 from service.backends import make_backend
-from service.errors import (DISK_FULL, Forbidden, JobError, NoSpace, NotFound, NotReady, TooLarge, TooMany,
-                            Unprocessable, storage_full)
-from service.jobs import JobService
+from service.errors import (
+    DISK_FULL,
+    Forbidden,
+    JobError,
+    NoSpace,
+    NotFound,
+    NotReady,
+    TooLarge,
+    TooMany,
+    Unprocessable,
+    storage_full,
+)
 from service.headers import SecurityHeaders
+from service.jobs import JobService
 from service.limits import UploadGuard
 from service.settings import Settings
 from service.store import Store

@@ -113,9 +113,9 @@ class BatchService:
     def _submit_trial(self, user: User, project, trial, overrides: dict, tmp: Path) -> dict:
         """One trial as a job: ``{"trial", "job_id"}``, or ``{"trial", "error"}`` if it was refused."""
         from graph.anipose.batch import trial_options
-        from graph.calibration import load_calibration, write_anipose_toml
         from graph.camera import Calibration
-        from graph.keypoints import read_keypoints, write_dlc_csv
+        from graph.io.calibration import load_calibration, write_anipose_toml
+        from graph.io.keypoints import read_keypoints, write_dlc_csv
         from graph.types import jsonable
 
         tmp.mkdir(parents=True)

@@ -14,8 +14,8 @@ from service.calibrations import CalibrationService
 from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
 from service.jobs import Upload
 from service.models import CalibrationList, CalibrationOut, calibration_out
-from service.store import JobStatus
 from service.routes import AUTH_ERRORS, BAD_REQUEST, BEARER, SERVER_ERROR, UPLOAD_ERRORS, CurrentUser, Jobs, _err
+from service.store import JobStatus
 
 router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR}, dependencies=[Security(BEARER)],
                    tags=["calibrations"])

@@ -20,7 +20,7 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
     from graph.calibrate.cli import load_camera_json
     from graph.calibrate.detect import detect_views
     from graph.calibrate.report import write_figures
-    from graph.calibration import write_acinoset_json, write_anipose_toml
+    from graph.io.calibration import write_acinoset_json, write_anipose_toml
     from graph.types import Progress, jsonable
 
     progress.report(READING, 0.0)

@@ -1,4 +1,4 @@
-"""The ``acinoset`` command: the library's subcommands (:data:`graph.cli.COMMANDS`) and the service's,
+"""The ``acinoset`` command: the library's subcommands (:data:`graph.app.cli.COMMANDS`) and the service's,
 ``serve``, ``worker``, ``users`` and ``jobs``, which :func:`register` adds. ``python -m service``
 runs the same command. Every flag left out falls back to the environment
 (``ACINOSET_*``, see :mod:`service.settings`), then to the defaults.
@@ -12,7 +12,9 @@ import os
 import sys
 from pathlib import Path
 
-from graph.cli import COMMANDS as LIBRARY_COMMANDS, Command, main as cli_main
+from graph.app.cli import COMMANDS as LIBRARY_COMMANDS
+from graph.app.cli import Command
+from graph.app.cli import main as cli_main
 
 WORKER_TTL = 60  # seconds a dead worker's name stays registered in Redis (idle workers renew it)
 
@@ -125,13 +127,13 @@ def register(subparsers) -> None:
 
 @_refusing("serve")
 def serve(args: argparse.Namespace) -> int:
+    import logging
+    import socket
+
     import uvicorn
 
     from service.app import DataDirInUse, DataDirLock, create_app
     from service.store import Store
-
-    import logging
-    import socket
 
     s = _settings(args, "host", "port", "data_dir", "backend", "redis_url", "workers", "log_level")
     logging.basicConfig(level=s.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -182,13 +184,13 @@ def _version() -> str:
 
 @_refusing("worker")
 def worker(args: argparse.Namespace) -> int:
-    from redis import Redis
-    from rq import Queue, Worker
-    from rq.serializers import JSONSerializer
-
     import logging
     import secrets
     import socket
+
+    from redis import Redis
+    from rq import Queue, Worker
+    from rq.serializers import JSONSerializer
 
     s = _settings(args, "redis_url", "queue_name", "log_level")
     logging.basicConfig(level=s.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")

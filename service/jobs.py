@@ -26,10 +26,18 @@ from typing import BinaryIO
 from graph.errors import NESTED_TOO_DEEPLY
 from service import jobfiles
 from service.backends.base import Backend
-from service.errors import (DISK_FULL, Forbidden, NoSpace, NotFound, NotReady, TooLarge, TooMany, Unprocessable,
-                            storage_full)
-from service.jobfiles import (CALIBRATION_DIR, INPUT, JOB_ID, SKELETON_DIR, keypoints_dir,
-                              result_path, video_dir)
+from service.errors import (
+    DISK_FULL,
+    Forbidden,
+    NoSpace,
+    NotFound,
+    NotReady,
+    TooLarge,
+    TooMany,
+    Unprocessable,
+    storage_full,
+)
+from service.jobfiles import CALIBRATION_DIR, INPUT, JOB_ID, SKELETON_DIR, keypoints_dir, result_path, video_dir
 from service.settings import Settings
 from service.store import STATUSES, Job, QuotaExceeded, Store, User
 from service.uploads import UploadReader
@@ -413,7 +421,7 @@ class JobService:
         import tempfile
 
         from graph.errors import InputError
-        from graph.io import read_result
+        from graph.io.results import read_result
         from graph.video import camera_frame_png
 
         job = self.visible(user, job_id)

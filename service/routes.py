@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 import time
-import re
 from datetime import datetime, timezone
 from typing import Annotated
 
@@ -15,18 +15,32 @@ from pydantic import BeforeValidator
 
 import graph
 from graph.errors import InputError
-from graph.types import Method
 from graph.skeleton import available_skeletons, load_skeleton
+from graph.types import Method
 from service import media, metrics
 from service.auth import current_user
+from service.backends.base import Backend
 from service.batches import BatchService
 from service.calibrations import calibration_upload
-from service.jobs import JobService, Upload
-from service.errors import NotFound
 from service.jobfiles import DOWNLOADS, JOB_ID, download_name
-from service.models import (BatchOut, Disk, ErrorBody, Health, JobList, JobOut, JobStatus, Limits, Me, ResultFormat,
-                            SkeletonOut, VideoList, VideoOut, batch_out, job_out)
-from service.backends.base import Backend
+from service.jobs import JobService, Upload
+from service.models import (
+    BatchOut,
+    Disk,
+    ErrorBody,
+    Health,
+    JobList,
+    JobOut,
+    JobStatus,
+    Limits,
+    Me,
+    ResultFormat,
+    SkeletonOut,
+    VideoList,
+    VideoOut,
+    batch_out,
+    job_out,
+)
 from service.settings import Settings
 from service.store import Store, User
 

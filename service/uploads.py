@@ -27,12 +27,12 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
                    videos: list[str] | None = None) -> dict:
     """Read the stored files (paths relative to ``input_dir``) and describe them for the job table.
     Each keypoint file's frames and columns are checked before its data are read
-    (:class:`graph.keypoints.ReadLimits`). ``videos`` (absolute paths, one per camera) are probed:
+    (:class:`graph.io.keypoints.ReadLimits`). ``videos`` (absolute paths, one per camera) are probed:
     each must hold a video with one frame per keypoint row. Raises :class:`~service.errors.TooLarge` or
     :class:`~service.errors.Unprocessable`."""
-    from graph.calibration import load_calibration
     from graph.errors import NESTED_TOO_DEEPLY, InputError, TooLargeInput
-    from graph.keypoints import ReadLimits, check_same_frames, read_keypoints, require_a_marker
+    from graph.io.calibration import load_calibration
+    from graph.io.keypoints import ReadLimits, check_same_frames, read_keypoints, require_a_marker
     from graph.skeleton import load_skeleton
 
     base = Path(input_dir)

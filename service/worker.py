@@ -34,9 +34,25 @@ from typing import Callable
 import numpy as np
 
 from service import jobfiles
-from service.jobfiles import (ERROR_LOG, INPUT, RESULT, RESULT_FILES, VIDEOS_DIR, get_archive, input_key, input_videos,
-                              inside, install_result, pack_files, put_archive, read_manifest, result_key, result_tmp,
-                              unpack_files, video_result_name)
+from service.jobfiles import (
+    ERROR_LOG,
+    INPUT,
+    RESULT,
+    RESULT_FILES,
+    VIDEOS_DIR,
+    get_archive,
+    input_key,
+    input_videos,
+    inside,
+    install_result,
+    pack_files,
+    put_archive,
+    read_manifest,
+    result_key,
+    result_tmp,
+    unpack_files,
+    video_result_name,
+)
 from service.store import READING, RENDERING, WRITING
 
 SOLVER_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
@@ -58,9 +74,9 @@ def prepare_solver_environment() -> None:
 
 
 # imported by every process that forks solves (missing ones are skipped)
-SOLVER_MODULES = ("gtsam", "numba", "graph.types", "graph.api", "graph.calibration", "graph.keypoints",
-                  "graph.skeleton", "graph.problem", "graph.kernels", "graph.triangulate", "graph.tri", "graph.fte",
-                  "graph.sync", "graph.joint", "graph.online", "graph.io", "graph.plot")
+SOLVER_MODULES = ("gtsam", "numba", "graph.types", "graph.api", "graph.io.calibration", "graph.io.keypoints",
+                  "graph.skeleton", "graph.solve.problem", "graph.solve.kernels", "graph.solve.triangulate", "graph.solve.tri", "graph.solve.fte",
+                  "graph.solve.sync", "graph.solve.joint", "graph.solve.online", "graph.io.results", "graph.viewer.plot")
 
 
 def preload_modules(warm: bool) -> list[str]:
@@ -93,8 +109,8 @@ def load_inputs(input_dir: Path):
     from pydantic import TypeAdapter
 
     from graph.api import SolveOptions
-    from graph.calibration import load_calibration
-    from graph.keypoints import read_keypoints
+    from graph.io.calibration import load_calibration
+    from graph.io.keypoints import read_keypoints
 
     m = read_manifest(input_dir)
     options = dict(m["options"])
@@ -111,8 +127,8 @@ def load_inputs(input_dir: Path):
 def write_results(result, out_dir: Path, calibration=None) -> dict:
     """Write every result format into ``out_dir`` (the H5 with the calibration solved with, so the
     exports carry the rig); return the report as a dict."""
-    from graph.io import write_anipose_csv, write_h5
-    from graph.plot import result_payload  # what the job page draws: one definition for both sides
+    from graph.io.results import write_anipose_csv, write_h5
+    from graph.viewer.plot import result_payload  # what the job page draws: one definition for both sides
 
     out_dir.mkdir(parents=True, exist_ok=True)
     name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}

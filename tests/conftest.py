@@ -14,7 +14,7 @@ import pytest
 # behind or serves a test (tests/test_resident.py turns it on for its own, in a private directory).
 os.environ["ACINOSET_RESIDENT"] = "0"
 
-from graph.calibration import default_rig_path, load_calibration
+from graph.io.calibration import default_rig_path, load_calibration
 from graph.simulate import simulate_run
 
 

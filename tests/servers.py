@@ -46,8 +46,8 @@ class Run:
 def make_run(out: Path, frames: int, cameras: int = 6, seed: int = 0) -> Run:
     """A simulated cheetah run on the AcinoSet rig (its first ``cameras`` cameras), written as
     DeepLabCut CSVs plus the calibration in both formats."""
-    from graph.calibration import default_rig_path, load_calibration, write_acinoset_json
     from graph.camera import Calibration
+    from graph.io.calibration import default_rig_path, load_calibration, write_acinoset_json
     from graph.simulate import simulate_run, write_run
 
     cal = load_calibration(default_rig_path())
@@ -64,8 +64,8 @@ def make_run(out: Path, frames: int, cameras: int = 6, seed: int = 0) -> Run:
 def make_filmed_run(out: Path, frames: int, cameras: int = 3, fps: float = 30.0) -> tuple[Run, list[Path]]:
     """A simulated run on the first ``cameras`` cameras of the AcinoSet rig, scaled down, with each
     camera's footage (``acinoset simulate --videos``' renderer)."""
-    from graph.calibration import default_rig_path, load_calibration
     from graph.camera import Calibration
+    from graph.io.calibration import default_rig_path, load_calibration
     from graph.simulate import simulate_run, write_run
     from graph.video import scaled_rig, write_simulated_videos
 

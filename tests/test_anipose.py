@@ -16,7 +16,7 @@ import pytest
 from graph.anipose import load_project
 from graph.anipose.simulate import CONSTRAINTS, write_project
 from graph.errors import InputError
-from graph.io import read_anipose_csv, read_result
+from graph.io.results import read_anipose_csv, read_result
 
 pytest.importorskip("tables")
 EXE = Path(sys.executable).with_name("acinoset")
@@ -132,9 +132,8 @@ def test_the_project_is_read_as_anipose_reads_it(tmp_path):
 def test_offsets_are_added_to_the_cameras_points(tmp_path):
     """[cameras.B] offset: B's points are in a crop; adding the offset gives the full frame's."""
     from graph.anipose import run_project
-    from graph.keypoints import read_keypoints
-
     from graph.anipose.simulate import write_dlc_h5
+    from graph.io.keypoints import read_keypoints
 
     plain = write_project(tmp_path / "plain", sessions={"s": ["t"]}, frames=20, optim=False)
     cropped = write_project(tmp_path / "crop", sessions={"s": ["t"]}, frames=20, optim=False,
@@ -193,7 +192,7 @@ def test_the_csv_is_in_the_axes_frame(tmp_path):
 def test_a_session_is_solved_with_the_smoothing_one_trial_fitted(tmp_path):
     import shutil
 
-    from graph.io import read_motion
+    from graph.io.results import read_motion
 
     root = write_project(tmp_path / "p", sessions={"s1": ["t1", "t2"]}, frames=40,
                          extra_config='motion_scale = "auto"\n')

@@ -22,9 +22,9 @@ from graph.calibrate.model import intrinsics_of
 from graph.calibrate.poses import rotation_angle
 from graph.calibrate.simulate import render_board, rig_views
 from graph.calibrate.views import BoardViews, read_detections
-from graph.calibration import load_calibration
 from graph.camera import FISHEYE, PINHOLE, Camera
 from graph.errors import InputError
+from graph.io.calibration import load_calibration
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data" / "acinoset_calib"  # AcinoSet's public detections and results (SOURCE.md)
@@ -369,7 +369,7 @@ def test_video_source_every_n_frames(tmp_path):
 
 def run_cli(*args, cwd=None) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.run([sys.executable, "-m", "graph.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "graph.app.cli", *map(str, args)], capture_output=True, text=True,
                           env=env, cwd=cwd, timeout=300)
 
 
@@ -453,9 +453,9 @@ def test_refine_improves_a_perturbed_rig_and_leaves_a_good_one(rig, tmp_path):
     near the error the true rig gives and is accepted; from the true rig it is refused by the
     leave-one-camera-out check and the rig comes back unchanged."""
     from graph.calibrate.refine import refine_rig
-    from graph.keypoints import write_dlc_csv
+    from graph.io.keypoints import write_dlc_csv
     from graph.simulate import simulate_run
-    from graph.triangulate import robust_points
+    from graph.solve.triangulate import robust_points
 
     run = simulate_run(rig, frames=200, noise=3.0, outliers=0.05, seed=1)
     meas = np.stack([k.xy for k in run.keypoints], axis=1)
@@ -482,7 +482,7 @@ def test_refine_improves_a_perturbed_rig_and_leaves_a_good_one(rig, tmp_path):
     for k, kp in enumerate(run.keypoints):
         paths.append(tmp_path / f"cam{k + 1}.csv")
         write_dlc_csv(paths[-1], kp)
-    from graph.calibration import write_anipose_toml
+    from graph.io.calibration import write_anipose_toml
 
     write_anipose_toml(tmp_path / "bad.toml", bad)
     p = run_cli("calibrate", "refine", tmp_path / "bad.toml", *paths, "--out", tmp_path / "new.toml",

@@ -10,10 +10,17 @@ import cv2
 import numpy as np
 import pytest
 
-from graph.calibration import (default_rig_path, load_calibration, matrix_to_rodrigues, rodrigues_to_matrix,
-                               save_calibration, write_acinoset_json, write_anipose_toml)
 from graph.camera import FISHEYE, PINHOLE, Calibration, Camera
 from graph.errors import InputError
+from graph.io.calibration import (
+    default_rig_path,
+    load_calibration,
+    matrix_to_rodrigues,
+    rodrigues_to_matrix,
+    save_calibration,
+    write_acinoset_json,
+    write_anipose_toml,
+)
 
 RNG = np.random.default_rng(7)
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from graph.camera import FISHEYE, PINHOLE, Camera
-from graph.kernels import project_point
+from graph.solve.kernels import project_point
 
 
 def _points_in_front(cam, n=200, seed=0):

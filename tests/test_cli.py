@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from graph.calibration import default_rig_path, load_calibration, write_anipose_toml
 from graph.camera import Calibration
-from graph.io import read_anipose_csv, read_result
-from graph.keypoints import Keypoints, read_keypoints, write_dlc_csv
+from graph.io.calibration import default_rig_path, load_calibration, write_anipose_toml
+from graph.io.keypoints import Keypoints, read_keypoints, write_dlc_csv
+from graph.io.results import read_anipose_csv, read_result
 
 ROOT = Path(__file__).resolve().parents[1]
 MARKERS = ["nose", "l_eye", "r_eye", "neck_base", "spine"]
@@ -28,7 +28,7 @@ FPS = 90.0
 
 def run_cli(*args: str | Path, cwd: Path | None = None) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.run([sys.executable, "-m", "graph.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "graph.app.cli", *map(str, args)], capture_output=True, text=True,
                           env=env, cwd=cwd, timeout=300)
 
 
@@ -174,9 +174,9 @@ def test_help_and_version(tmp_path):
 
 def test_registered_subcommands_follow_the_contract():
     """Every registered subcommand sets ``func``; modules that do not exist are skipped."""
-    from graph.cli import _optional_module, build_parser
-
     import argparse
+
+    from graph.app.cli import _optional_module, build_parser
 
     def leaves(parser, path=()):
         """Every runnable command: a parser without subcommands of its own."""
@@ -236,7 +236,7 @@ def test_progress_bar_on_a_terminal(run_dir, tmp_path):
 
     leader, follower = pty.openpty()
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-m", "graph.cli", *map(str, solve_args(run_dir, tmp_path))],
+    proc = subprocess.Popen([sys.executable, "-m", "graph.app.cli", *map(str, solve_args(run_dir, tmp_path))],
                             stdout=subprocess.PIPE, stderr=follower, env=env)
     os.close(follower)
     chunks = []
@@ -426,7 +426,7 @@ def test_a_ctrl_c_numba_wrapped_reads_as_interrupted():
     surfaces as numba's dispatcher reports it, seen on a served solve: SystemError ('returned a
     result with an exception set') caused by SystemError caused by the KeyboardInterrupt. The
     command reads that as Ctrl-C ('interrupted', 130), and any other SystemError as what it is."""
-    from graph.cli import _caused_by_ctrl_c
+    from graph.app.cli import _caused_by_ctrl_c
 
     def raised(*chain: BaseException) -> BaseException:
         try:

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from graph.api import SolveOptions, solve
-from graph.calibration import default_rig_path, load_calibration
 from graph.camera import Calibration
-from graph.ensemble import combine, relative_noise
 from graph.errors import InputError
-from graph.keypoints import Keypoints
+from graph.io.calibration import default_rig_path, load_calibration
+from graph.io.keypoints import Keypoints
 from graph.simulate import simulate_run
+from graph.solve.ensemble import combine, relative_noise
 
 NAN = float("nan")
 

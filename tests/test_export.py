@@ -33,9 +33,10 @@ def _shared_data() -> Path:
 @pytest.fixture(scope="module")
 def fly(tmp_path_factory) -> Path:
     """The fly's result H5 (with its calibration), as ``acinoset solve --h5`` writes it."""
-    from graph import api, io
-    from graph.calibration import load_calibration
-    from graph.keypoints import read_keypoints
+    from graph import api
+    from graph.io import results
+    from graph.io.calibration import load_calibration
+    from graph.io.keypoints import read_keypoints
 
     data = _shared_data()
     cal = load_calibration(data / "calibration.toml")
@@ -46,12 +47,12 @@ def fly(tmp_path_factory) -> Path:
     result.positions[7, 3] = np.nan  # a marker without an estimate in one frame, as real runs have
     result.std[7, 3] = np.nan
     path = tmp_path_factory.mktemp("fly") / "fly.h5"
-    io.write_h5(path, result, calibration=cal)
+    results.write_h5(path, result, calibration=cal)
     return path
 
 
 def test_the_h5_keeps_the_calibration_in_metres(fly):
-    from graph.calibration import load_calibration
+    from graph.io.calibration import load_calibration
 
     run = load_input(fly)
     given = load_calibration(_shared_data() / "calibration.toml")
@@ -213,7 +214,7 @@ def test_movement_loads_our_anipose_csv(fly, tmp_path):
     pytest.importorskip("movement")
     from movement.io import load_poses
 
-    from graph.io import write_anipose_csv
+    from graph.io.results import write_anipose_csv
 
     res = load_input(fly).result
     path = tmp_path / "fly.csv"
@@ -254,7 +255,7 @@ def test_a_result_file_without_its_calibration(fly, tmp_path):
     devices; given the calibration file, both are as with it stored."""
     ezc3d = pytest.importorskip("ezc3d")
     pynwb = pytest.importorskip("pynwb")
-    from graph.io import read_result, write_h5
+    from graph.io.results import read_result, write_h5
 
     old = tmp_path / "old.h5"
     write_h5(old, read_result(fly))

@@ -14,8 +14,8 @@ import pytest
 
 from graph.api import SolveOptions, solve
 from graph.errors import InputError
-from graph.problem import camera_order_from_names, check_camera_order
-from graph.result import implausible_motion
+from graph.solve.problem import camera_order_from_names, check_camera_order
+from graph.solve.result import implausible_motion
 
 SIMULATION = dict(frames=90, seed=3)
 
@@ -47,7 +47,7 @@ def test_the_command_refuses_files_named_for_other_cameras(tmp_path):
     fly = Path(__file__).resolve().parents[2] / "shared" / "data" / "eks_fly"
     if not fly.is_dir():
         pytest.skip("the shared real recording is not beside the project")
-    proc = subprocess.run([sys.executable, "-m", "graph.cli", "solve", str(fly / "camB.rng1.csv"),
+    proc = subprocess.run([sys.executable, "-m", "graph.app.cli", "solve", str(fly / "camB.rng1.csv"),
                            str(fly / "camA.rng1.csv"), str(fly / "camC.rng1.csv"), "--calibration",
                            str(fly / "calibration.toml"), "--method", "tri", "--skeleton", "points", "--fps", "300",
                            "--out", str(tmp_path / "x.csv")], capture_output=True, text=True, timeout=300)

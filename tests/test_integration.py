@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from graph.api import SolveOptions, solve
-from graph.cli import main
-from graph.io import read_anipose_csv
+from graph.app.cli import main
+from graph.io.results import read_anipose_csv
 from graph.metrics import evaluate, position_error
 from graph.simulate import load_truth, simulate_run
 
@@ -107,7 +107,7 @@ def test_simulate_then_solve_through_files(tmp_path, capsys):
 
 def test_demo_command(tmp_path, capsys):
     out = tmp_path / "demo"
-    # each method's figures come from graph.plot (tested there); the comparison is drawn here
+    # each method's figures come from graph.viewer.plot (tested there); the comparison is drawn here
     assert main(["demo", "--out", str(out), "--frames", "60", "--no-figures"]) == 0
     text = capsys.readouterr().out
     lines = {line.split()[0]: line.split() for line in text.splitlines() if line.split()[:1] in

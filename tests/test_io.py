@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from graph.api import Result, SolveOptions, SolveReport
-from graph.calibration import default_rig_path, load_calibration
 from graph.errors import InputError
-from graph.io import read_anipose_csv, read_result, write_anipose_csv, write_h5, write_reprojections_dlc
-from graph.keypoints import read_keypoints
+from graph.io.calibration import default_rig_path, load_calibration
+from graph.io.keypoints import read_keypoints
+from graph.io.results import read_anipose_csv, read_result, write_anipose_csv, write_h5, write_reprojections_dlc
 
 MARKERS = ["nose", "l_eye", "r_eye", "neck_base", "spine"]
 

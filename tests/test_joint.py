@@ -1,4 +1,4 @@
-"""The body's proportions and the cameras' clocks estimated with the trajectory (graph.joint, graph.sync)."""
+"""The body's proportions and the cameras' clocks estimated with the trajectory (graph.solve.joint, graph.solve.sync)."""
 
 import json
 import subprocess
@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from graph.api import SolveOptions, solve
-from graph.fte import TrajectoryProblem
-from graph.joint import JointState, JointTrajectoryProblem, SharedUnknowns
-from graph.problem import build
 from graph.simulate import simulate_run
-from graph.sync import coarse_offsets
+from graph.solve.fte import TrajectoryProblem
+from graph.solve.joint import JointState, JointTrajectoryProblem, SharedUnknowns
+from graph.solve.problem import build
+from graph.solve.sync import coarse_offsets
 
 OFFSETS = [0.0, 0.4, -0.9, 1.3, -0.3, 0.7]
 
@@ -159,7 +159,7 @@ def test_given_body_must_name_the_skeletons_lengths(rig):
 
 
 def _cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "graph.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "graph.app.cli", *map(str, args)], capture_output=True, text=True,
                           cwd=cwd, timeout=600)
 
 
@@ -232,7 +232,7 @@ def test_the_compiled_joint_step_is_gtsams_elimination(rig):
     differ by a few 1e-9 of W, either nearer the exact one)."""
     import gtsam
 
-    from graph import joint
+    from graph.solve import joint
 
     taken = []
     original = joint.JointTrajectoryProblem.step

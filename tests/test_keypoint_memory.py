@@ -16,7 +16,6 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-
 from test_keypoints import _columns, _detections, _h5py_fixed, _h5py_table, _Pickled, _set_attrs
 
 MEMORY_CAP = 1 << 30  # bytes of address space for the reading process (imports take about 160 MB)
@@ -27,7 +26,7 @@ import json, resource, sys, warnings
 resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[1]), int(sys.argv[1])))
 warnings.simplefilter("ignore")
 from graph.errors import InputError
-from graph.keypoints import ReadLimits, read_keypoints
+from graph.io.keypoints import ReadLimits, read_keypoints
 limits = ReadLimits(max_frames=int(sys.argv[2]), max_bodyparts=int(sys.argv[3]))
 out = {}
 for path in sys.argv[4:]:

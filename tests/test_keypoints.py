@@ -20,8 +20,15 @@ import numpy as np
 import pytest
 
 from graph.errors import InputError
-from graph.keypoints import (Keypoints, _literal_unpickle, check_same_frames, match_bodyparts, read_keypoints,
-                             select_markers, write_dlc_csv)
+from graph.io.keypoints import (
+    Keypoints,
+    _literal_unpickle,
+    check_same_frames,
+    match_bodyparts,
+    read_keypoints,
+    select_markers,
+    write_dlc_csv,
+)
 
 SCORER = "DLC_resnet50_cheetahJun1shuffle1_200000"
 BODYPARTS = ["nose", "l_eye", "r_eye", "neck_base"]
@@ -396,8 +403,8 @@ BAD_FILES = {
     "text_value.csv": (_dlc_text(["0,1.0,abc,0.9"]), "line 4, column 3: not a number: 'abc'"),
     "ragged_header.csv": (f"scorer,{SCORER},{SCORER},{SCORER}\nbodyparts,nose,nose\ncoords,x,y,likelihood\n0,1,2,3\n",
                           "ragged header"),
-    "bad_coord.csv": (f"scorer,S,S,S\nbodyparts,nose,nose,nose\ncoords,x,y,z\n0,1,2,3\n", "unknown coordinate 'z'"),
-    "no_y.csv": (f"scorer,S,S\nbodyparts,nose,nose\ncoords,x,likelihood\n0,1,0.5\n", "has no 'y' column"),
+    "bad_coord.csv": ("scorer,S,S,S\nbodyparts,nose,nose,nose\ncoords,x,y,z\n0,1,2,3\n", "unknown coordinate 'z'"),
+    "no_y.csv": ("scorer,S,S\nbodyparts,nose,nose\ncoords,x,likelihood\n0,1,0.5\n", "has no 'y' column"),
     "two_scorers.csv": ("scorer,A,A,B\nbodyparts,nose,nose,nose\ncoords,x,y,likelihood\n0,1,2,3\n", "several scorers"),
     "infinite.csv": (_dlc_text(["0,inf,2.0,0.9"]), "infinite"),
     "binary.csv": (b"\x00\xff\xfe\x01garbage\x9c", "binary"),

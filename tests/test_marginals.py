@@ -1,4 +1,4 @@
-"""graph.marginals against dense linear algebra: the chain's and the arrow-head's marginal
+"""graph.solve.marginals against dense linear algebra: the chain's and the arrow-head's marginal
 covariances equal the blocks of the inverse of the whole information matrix."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from graph.marginals import banded_marginals, chain_band, chain_marginals
+from graph.solve.marginals import banded_marginals, chain_band, chain_marginals
 
 
 def _arrow(N: int, d: int, G: int, seed: int, stiff: float):
@@ -55,7 +55,7 @@ def test_banded_marginals_are_the_blocks_of_the_inverse(N, d, G, stiff):
 def test_chain_marginals_of_a_lower_order_prior_are_the_blocks_of_the_inverse(order):
     """The first- and second-difference priors (motion_order 1, 2) leave the band's outer blocks
     zero; the same recursion gives the blocks of the dense inverse."""
-    from graph.smoothing import STENCILS
+    from graph.solve.smoothing import STENCILS
 
     N, d, stiff = 25, 3, 1e3
     rng = np.random.default_rng(order)

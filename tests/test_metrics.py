@@ -8,9 +8,16 @@ import numpy as np
 import pytest
 
 from graph.api import Result, SolveOptions, SolveReport
-from graph.calibration import default_rig_path, load_calibration
-from graph.metrics import (bounding_box_area, evaluate, nose_to_eye_px, pck, position_error,
-                           reprojection_error, uncertainty_calibration)
+from graph.io.calibration import default_rig_path, load_calibration
+from graph.metrics import (
+    bounding_box_area,
+    evaluate,
+    nose_to_eye_px,
+    pck,
+    position_error,
+    reprojection_error,
+    uncertainty_calibration,
+)
 from graph.simulate import simulate_run
 
 NAN = float("nan")

@@ -6,8 +6,8 @@ import pytest
 
 from graph.api import SolveOptions, solve
 from graph.metrics import uncertainty_calibration
-from graph.noise import scatter_px, triangulation_dof
 from graph.simulate import simulate_run
+from graph.solve.noise import scatter_px, triangulation_dof
 
 
 def residual_lengths(rng, sigma, n, outliers=0.0, outlier_std=100.0):
@@ -72,7 +72,7 @@ def test_matching_noise_gives_no_warning_and_calibrated_sd_from_both_smoothers(r
 
 def test_auto_noise_needs_something_seen_twice(rig):
     from graph.errors import InputError
-    from graph.keypoints import Keypoints
+    from graph.io.keypoints import Keypoints
 
     run = simulate_run(rig, frames=20, noise=1.0, seed=1)
     # one camera sees everything, the others nothing: no residual to measure the noise by

@@ -14,11 +14,11 @@ import re
 import numpy as np
 import pytest
 
-from graph import plot
 from graph.api import Result, SolveOptions, SolveReport, solve
-from graph.calibration import default_rig_path, load_calibration
-from graph.keypoints import Keypoints
+from graph.io.calibration import default_rig_path, load_calibration
+from graph.io.keypoints import Keypoints
 from graph.skeleton import load_skeleton
+from graph.viewer import plot
 
 FPS = 120.0
 
@@ -145,8 +145,8 @@ def test_payload_without_camera_positions_says_so(solved):
 
 
 def test_camera_count_mismatch_is_a_one_line_input_error(solved):
-    from graph.calibration import Calibration
     from graph.errors import InputError
+    from graph.io.calibration import Calibration
 
     result, calib = solved
     bare = Result(**{**result.__dict__, "camera_centers": None})
@@ -221,7 +221,7 @@ def test_plot_command_on_a_result_file(solved, tmp_path, capsys):
     """`acinoset plot RESULT.h5 --out DIR` on a file written by the result writer."""
     import argparse
 
-    from graph.io import write_h5
+    from graph.io.results import write_h5
 
     result, calib = solved
     h5 = tmp_path / "run.h5"

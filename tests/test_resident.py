@@ -1,4 +1,4 @@
-"""The warm resident process behind ``acinoset solve`` (graph.resident), with real processes.
+"""The warm resident process behind ``acinoset solve`` (graph.app.resident), with real processes.
 
 Each test module's resident lives in its own runtime directory (``XDG_RUNTIME_DIR``) with the switch
 turned on only for these tests' commands (conftest.py turns it off for the suite); every resident
@@ -19,10 +19,10 @@ import h5py
 import numpy as np
 import pytest
 
-from graph import resident
-from graph.calibration import default_rig_path, load_calibration, write_anipose_toml
+from graph.app import resident
 from graph.camera import Calibration
-from graph.keypoints import write_dlc_csv
+from graph.io.calibration import default_rig_path, load_calibration, write_anipose_toml
+from graph.io.keypoints import write_dlc_csv
 from graph.simulate import simulate_run
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,7 +33,7 @@ WARM_UP_S = 240  # a resident's warm-up: seconds here once the kernels are cache
 
 
 def acinoset(env: dict, *args, cwd: Path | None = None, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "graph.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "graph.app.cli", *map(str, args)], capture_output=True, text=True,
                           env=env, cwd=cwd, timeout=300, **kw)
 
 
@@ -204,7 +204,7 @@ def test_concurrent_clients_each_get_a_child(env, warm, run_dir, tmp_path):
     procs = []
     for out in outs:
         out.mkdir()
-        procs.append(subprocess.Popen([sys.executable, "-m", "graph.cli", *map(str, solve_args(run_dir, out))],
+        procs.append(subprocess.Popen([sys.executable, "-m", "graph.app.cli", *map(str, solve_args(run_dir, out))],
                                       env=env, cwd=run_dir, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     for p in procs:
         stdout, stderr = p.communicate(timeout=300)
@@ -270,7 +270,7 @@ def start_served_solve(env: dict, folder: Path, every: float = 0.05, **popen) ->
     took it, once it has entered the client's folder (it then answers 'pid', then 'run'), looked for
     every ``every`` seconds (0: seen within microseconds)."""
     pid = resident.residents(env)[0].pid
-    proc = subprocess.Popen([sys.executable, "-m", "graph.cli", *map(str, solve_args(folder, folder))], env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "graph.app.cli", *map(str, solve_args(folder, folder))], env=env,
                             cwd=folder, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
 
     def serving() -> list[int]:
@@ -435,7 +435,7 @@ def test_two_clients_at_once_start_one_resident(run_dir, tmp_path_factory, tmp_p
         procs = []
         for i in range(2):
             (tmp_path / f"p{i}").mkdir()
-            procs.append(subprocess.Popen([sys.executable, "-m", "graph.cli",
+            procs.append(subprocess.Popen([sys.executable, "-m", "graph.app.cli",
                                            *map(str, solve_args(run_dir, tmp_path / f"p{i}"))],
                                           env=e, cwd=run_dir, stdout=subprocess.PIPE, stderr=subprocess.PIPE))
         for p in procs:
@@ -453,7 +453,7 @@ def test_the_client_imports_nothing_heavy(tmp_path):
     code = (
         "import os, sys\n"
         "from graph import resident\n"
-        "from graph.cli import COMMANDS\n"
+        "from graph.app.cli import COMMANDS\n"
         "env = dict(os.environ)\n"
         "assert resident.wanted(['solve', 'a.csv'], env)\n"
         "place = resident.place_of(env)\n"
@@ -476,7 +476,7 @@ def test_the_directory_must_be_private(tmp_path):
 def test_a_resident_runs_only_the_command_lines_it_knows():
     """The request names the command line to run as module:function; only those of ENTRIES are
     imported (a request is the user's own, but a resident runs nothing it was not made for)."""
-    assert resident._entry("graph.cli:main").__module__ == "graph.cli"
-    for name in ("os:system", "graph.cli:_run", "graph.cli"):
+    assert resident._entry("graph.app.cli:main").__module__ == "graph.app.cli"
+    for name in ("os:system", "graph.app.cli:_run", "graph.app.cli"):
         with pytest.raises(ValueError):
             resident._entry(name)

@@ -8,14 +8,21 @@ import json
 import numpy as np
 import pytest
 
-from graph.calibration import load_calibration
-from graph.cli import main
-from graph.io import read_anipose_csv
-from graph.keypoints import read_keypoints
-from graph.simulate import (GOOD_LIKELIHOOD, LOW_LIKELIHOOD, ObservationModel, left_right_pairs, load_truth,
-                            observe, rig_stage, simulate_run)
+from graph.app.cli import main
+from graph.io.calibration import load_calibration
+from graph.io.keypoints import read_keypoints
+from graph.io.results import read_anipose_csv
+from graph.simulate import (
+    GOOD_LIKELIHOOD,
+    LOW_LIKELIHOOD,
+    ObservationModel,
+    left_right_pairs,
+    load_truth,
+    observe,
+    rig_stage,
+    simulate_run,
+)
 from graph.skeleton import load_skeleton
-
 
 # the run of the ``run`` fixture (tests/conftest.py)
 SIMULATION = dict(frames=240, fps=120.0, noise=5.0, outliers=0.1, outlier_std=100.0, seed=7)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from graph.api import SolveOptions, solve
-from graph.calibration import default_rig_path, load_calibration
-from graph.skeleton import POINTS_PROCESS_NOISE
+from graph.io.calibration import default_rig_path, load_calibration
 from graph.simulate import random_jerk_run, simulate_run
-from graph.smoothing import STENCILS, ChainEvidence, GroupEvidence, best_scale, difference_gram, motion_band
+from graph.skeleton import POINTS_PROCESS_NOISE
+from graph.solve.smoothing import STENCILS, ChainEvidence, GroupEvidence, best_scale, difference_gram, motion_band
 
 
 def _dk(N: int, order: int = 3) -> np.ndarray:
@@ -168,13 +168,13 @@ def test_ekf_fits_the_motion_over_its_start_and_stays_a_filter():
 def test_independent_chains_solve_as_gtsam_and_at_the_stiffest_fitted_smoothing():
     """Free points without bones are independent chains, solved by banded Cholesky: the same
     solution as GTSAM's elimination of the same linear graph; and at the stiffest smoothing the fit
-    may choose (graph.smoothing.stiffest_scale), with a marker unseen for 40 frames, the solve
+    may choose (graph.solve.smoothing.stiffest_scale), with a marker unseen for 40 frames, the solve
     needs no retry and equals a dense solve of the same system."""
-    from graph import problem
-    from graph.fte import PRIOR_SIGMA, TrajectoryProblem, optimise
-    from graph.initial import initial_poses
-    from graph.smoothing import stiffest_scale
-    from graph.triangulate import robust_points
+    from graph.solve import problem
+    from graph.solve.fte import PRIOR_SIGMA, TrajectoryProblem, optimise
+    from graph.solve.initial import initial_poses
+    from graph.solve.smoothing import stiffest_scale
+    from graph.solve.triangulate import robust_points
 
     cal = load_calibration(default_rig_path())
     run = random_jerk_run(cal, frames=80, markers=3, seed=1)
@@ -227,7 +227,7 @@ def test_the_stiffest_smoothing_is_the_solvers_bound():
     Cholesky) stop at MAX_STIFFNESS times the data's information, ekf's stream (GTSAM, whose clique
     Cholesky gives up at a 2^24 spread of pivots) at GTSAM_MAX_STIFFNESS, so its scales are
     sqrt(MAX_STIFFNESS / GTSAM_MAX_STIFFNESS) looser; both solve."""
-    from graph.smoothing import GTSAM_MAX_STIFFNESS, MAX_STIFFNESS
+    from graph.solve.smoothing import GTSAM_MAX_STIFFNESS, MAX_STIFFNESS
 
     cal = load_calibration(default_rig_path())
     run = random_jerk_run(cal, frames=240, process_noise=1e-4, noise=2.0, markers=4, seed=3)

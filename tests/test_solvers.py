@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from graph.api import SolveOptions, solve
-from graph.fte import TrajectoryProblem
-from graph.problem import build
-from graph.robust import redescending
 from graph.simulate import simulate_run
-
+from graph.solve.fte import TrajectoryProblem
+from graph.solve.problem import build
+from graph.solve.robust import redescending
 
 # the run of the ``run`` fixture (tests/conftest.py)
 SIMULATION = dict(frames=90, fps=120, noise=3.0, outliers=0.1, outlier_std=100, seed=11)
@@ -144,7 +143,7 @@ def test_initial_poses_from_exact_points_are_exact(rig):
     """Inverse kinematics on the true 3D points gives back the true pose: under a millimetre on
     average (the weak pull towards the previous frame costs at most a few millimetres where the
     legs swing fastest)."""
-    from graph.initial import initial_poses
+    from graph.solve.initial import initial_poses
 
     run = simulate_run(rig, frames=120, fps=120, noise=0.0, outliers=0.0, seed=2)
     prob = build(run.keypoints, run.calibration, SolveOptions(method="fte", fps=run.fps))
@@ -171,9 +170,9 @@ def test_fte_keeps_the_tail_on_one_branch_through_many_outliers(rig, seed):
 def test_marginal_covariances_are_the_bayes_trees(rig, skeleton, bones):
     """The compiled chain recursion gives GTSAM's numbers: the Bayes tree of the same undamped
     linear graph, queried frame by frame (long enough for rounding to show if it compounded)."""
-    from graph import fte
-    from graph.initial import initial_poses
-    from graph.triangulate import triangulate
+    from graph.solve import fte
+    from graph.solve.initial import initial_poses
+    from graph.solve.triangulate import triangulate
 
     run = simulate_run(rig, frames=150, fps=120, noise=5.0, outliers=0.1, outlier_std=100, seed=4)
     opts = SolveOptions(method="fte", fps=run.fps, skeleton=skeleton,
@@ -196,9 +195,9 @@ def test_marginal_covariances_are_the_bayes_trees(rig, skeleton, bones):
 def test_the_compiled_chain_solve_is_gtsams_elimination(rig, skeleton, order):
     """One group (the cheetah, or free points joined by bones): the damped step by the compiled
     block Cholesky equals GTSAM's elimination of the same linear graph, in each order."""
-    from graph import fte
-    from graph.initial import initial_poses
-    from graph.triangulate import triangulate
+    from graph.solve import fte
+    from graph.solve.initial import initial_poses
+    from graph.solve.triangulate import triangulate
 
     run = simulate_run(rig, frames=150, fps=120, noise=5.0, outliers=0.1, outlier_std=100, seed=4)
     opts = SolveOptions(method="fte", fps=run.fps, skeleton=skeleton, motion_order=order,
@@ -217,7 +216,7 @@ def test_the_compiled_chain_solve_is_gtsams_elimination(rig, skeleton, order):
 def test_running_median_and_mean_equal_scipy_ndimage_with_nearest_ends():
     from scipy.ndimage import median_filter, uniform_filter1d
 
-    from graph.initial import running
+    from graph.solve.initial import running
 
     rng = np.random.default_rng(0)
     for shape in [(3,), (30,), (50, 3), (40, 20, 3)]:
@@ -232,11 +231,11 @@ def test_the_start_leaves_a_wrong_tail_branch_a_frame_of_outliers_put_it_on():
     the inverse kinematics restarts a frame that fits its points badly."""
     from dataclasses import replace
 
-    from graph import problem
-    from graph.initial import initial_poses
     from graph.simulate import ring_rig
-    from graph.sync import on_reference_clock
-    from graph.triangulate import robust_points
+    from graph.solve import problem
+    from graph.solve.initial import initial_poses
+    from graph.solve.sync import on_reference_clock
+    from graph.solve.triangulate import robust_points
 
     cal = ring_rig()
     offsets = [0.0, -1.3296629253961518, 0.0006468124238119266, 0.6361422587418959]  # the bench's draw, seed 1

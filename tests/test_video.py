@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from graph.calibration import default_rig_path, load_calibration, write_acinoset_json
-from graph.io import write_h5
+from graph.io.calibration import default_rig_path, load_calibration, write_acinoset_json
+from graph.io.results import write_h5
 from graph.simulate import simulate_run, write_run
 from graph.types import Result, SolveOptions, SolveReport
 from graph.video import FrameWriter, YuvFrame, ffmpeg_exe, probe, render_videos, scaled_rig, write_simulated_videos
@@ -28,7 +28,7 @@ SCALE = 0.125  # the AcinoSet rig's 2704x1520 cameras filmed at 338x190
 
 def run_cli(*args) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.run([sys.executable, "-m", "graph.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "graph.app.cli", *map(str, args)], capture_output=True, text=True,
                           env=env, timeout=300)
 
 

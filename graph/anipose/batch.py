@@ -86,7 +86,7 @@ def run_project(project: Project, jobs: int = 1, force: bool = False,
             outcomes[i] = _finish(project.trials[i], solve_trial(*args[i], progress=report), report)
     else:
         ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["graph.api", "graph.io"])
+        ctx.set_forkserver_preload(["graph.api", "graph.io.results"])
         workers = min(jobs, len(todo))
         threads = max(1, (os.cpu_count() or 1) // workers)
         with multiprocessing.Manager() as manager:
@@ -150,7 +150,7 @@ def solve_trial(trial: Trial, options: SolveOptions, offsets: dict[str, tuple[fl
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             result, calibration = _solve(trial, options, offsets, emit)
-        from graph import io
+        from graph.io import results
 
         trial.csv.parent.mkdir(parents=True, exist_ok=True)
         tmp_csv, tmp_h5 = (p.with_name(f".{p.name}.partial") for p in (trial.csv, trial.h5))
@@ -159,8 +159,8 @@ def solve_trial(trial: Trial, options: SolveOptions, offsets: dict[str, tuple[fl
             from graph.anipose.frame import anipose_frame
 
             csv_frame = anipose_frame(result.positions, result.markers, *frame)
-        io.write_anipose_csv(tmp_csv, result, frame=csv_frame)
-        io.write_h5(tmp_h5, result, calibration=calibration)
+        results.write_anipose_csv(tmp_csv, result, frame=csv_frame)
+        results.write_h5(tmp_h5, result, calibration=calibration)
         os.replace(tmp_h5, trial.h5)
         os.replace(tmp_csv, trial.csv)  # the CSV last: it is what Anipose's tools look for
         rep = result.report
@@ -181,9 +181,9 @@ def _solve(trial: Trial, options: SolveOptions, offsets, emit):
     import warnings
 
     from graph import api
-    from graph.calibration import load_calibration
     from graph.camera import Calibration
-    from graph.keypoints import read_keypoints
+    from graph.io.calibration import load_calibration
+    from graph.io.keypoints import read_keypoints
 
     keypoints = [read_keypoints(p, individual=options.individual) for p in trial.pose_files]
     n = min(k.frames for k in keypoints)

@@ -24,7 +24,7 @@ def register(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from graph.anipose import load_project, run_project, up_to_date
-    from graph.cli import UsageError
+    from graph.app.cli import UsageError
 
     if args.jobs is not None and args.jobs < 1:
         raise UsageError("--jobs must be at least 1")

@@ -28,7 +28,7 @@ an ``[acinoset]`` table: ``method``, ``skeleton`` (a name or a TOML file relativ
 ``body`` (model, estimate or a file), ``sync``, ``fps`` (else each trial's video frame rate when its
 ``videos-raw`` file is readable, else 120), and any other :class:`SolveOptions` field;
 ``motion_scale`` may name an earlier solve's report or result, whose fitted smoothing every trial
-is then solved with (:func:`graph.io.given_motion`). Files named there are relative to the project
+is then solved with (:func:`graph.io.results.given_motion`). Files named there are relative to the project
 and count as every trial's inputs: a trial is solved again when one of them changes. Keys of
 Anipose's 3D step that have no equivalent here are listed in :attr:`Project.ignored`.
 ``axes`` with ``reference_point`` turn the CSVs into Anipose's frame (:mod:`graph.anipose.frame`);
@@ -221,11 +221,11 @@ def solve_options(config: dict, root: Path, config_path: Path) -> tuple[SolveOpt
     if isinstance(kw["skeleton"], str) and kw["skeleton"] not in ("cheetah", "points"):
         kw["skeleton"] = str(project_file(kw["skeleton"]))
     if isinstance(kw.get("body"), str) and kw["body"] not in ("model", "estimate", "given"):
-        from graph.io import read_body
+        from graph.io.results import read_body
 
         kw["body"], kw["body_lengths"] = "given", read_body(project_file(kw["body"]))
     if isinstance(kw.get("motion_scale"), str) and kw["motion_scale"].strip().lower() != "auto":
-        from graph.io import given_motion
+        from graph.io.results import given_motion
 
         kw["motion_scale"], kw["motion_order"] = given_motion(project_file(kw["motion_scale"]),
                                                               kw.get("motion_order"))

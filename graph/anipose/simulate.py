@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.calibration import default_rig_path, load_calibration, write_anipose_toml
 from graph.camera import Calibration
+from graph.io.calibration import default_rig_path, load_calibration, write_anipose_toml
 
 BODYPARTS = ["nose", "l_eye", "r_eye", "neck_base", "spine", "tail_base", "l_shoulder", "r_shoulder"]
 CONSTRAINTS = [("nose", "l_eye"), ("nose", "r_eye"), ("neck_base", "spine"), ("spine", "tail_base")]

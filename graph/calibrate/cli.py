@@ -145,8 +145,8 @@ def _warn_mm(board) -> None:
 def load_camera_json(path: str):
     """A camera from AcinoSet's camera JSON (``camera_resolution``, ``k``, ``d``; ``model`` if written by
     acinoset, else fisheye for 4 coefficients and pinhole otherwise)."""
-    from graph.calibration import _array, _intrinsic_matrix, _size
     from graph.camera import FISHEYE, PINHOLE, Camera
+    from graph.io.calibration import _array, _intrinsic_matrix, _size
 
     p = Path(path)
     try:
@@ -168,7 +168,7 @@ def load_camera_json(path: str):
 
 def run_extrinsics(args: argparse.Namespace) -> int:
     from graph.calibrate import calibrate_extrinsics, parse_board
-    from graph.calibration import write_acinoset_json, write_anipose_toml
+    from graph.io.calibration import write_acinoset_json, write_anipose_toml
 
     board = parse_board(args.board)
     intrinsics = None

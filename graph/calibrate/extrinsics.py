@@ -27,8 +27,7 @@ import numpy as np
 
 from graph.calibrate import bundle
 from graph.calibrate.board import Board
-from graph.calibrate.intrinsics import (MIN_CORNERS, IntrinsicsResult, calibrate_intrinsics, observations,
-                                        outlier_views)
+from graph.calibrate.intrinsics import MIN_CORNERS, IntrinsicsResult, calibrate_intrinsics, observations, outlier_views
 from graph.calibrate.model import camera_with, intrinsics_of
 from graph.calibrate.poses import board_in_camera, compose, inverse, medoid
 from graph.calibrate.views import BoardViews, frame_key

@@ -1,7 +1,7 @@
 """Refining a rig's extrinsics from an animal's keypoints (``acinoset calibrate refine``).
 
 1. Confident keypoints (likelihood at least ``min_likelihood``) seen by three or more cameras are
-   triangulated robustly with the old rig (:func:`graph.triangulate.robust_points`); at most
+   triangulated robustly with the old rig (:func:`graph.solve.triangulate.robust_points`); at most
    :data:`MAX_POINTS` of them, spread evenly over the run, become unknowns.
 2. A bundle adjustment (:mod:`graph.calibrate.bundle`, the points as 3-dof "boards") over the camera
    poses and the 3D points, under Huber's loss: camera 1 is held, and so is its distance to camera 2
@@ -28,9 +28,9 @@ import numpy as np
 from graph.calibrate import bundle
 from graph.calibrate.model import intrinsics_of
 from graph.calibrate.poses import rotation_angle
-from graph.calibration import CALIBRATION_UNITS, resolve_units
-from graph.camera import Calibration, Camera
+from graph.camera import CALIBRATION_UNITS, Calibration, Camera
 from graph.errors import InputError
+from graph.io.calibration import resolve_units
 
 MAX_POINTS = 1500  # 3D points in the adjustment (the rig has 6 unknowns a camera; more points add little)
 ROUNDS = 3  # trim the detections that do not fit, solve; three times, as the rig (and the noise) settles
@@ -81,7 +81,7 @@ def _measurements(calibration: Calibration, keypoints, min_likelihood: float):
 def leave_one_out(calibration: Calibration, meas: np.ndarray, valid: np.ndarray) -> list[float]:
     """For each camera: the median error (px) of its confident detections predicted by the points the
     other cameras triangulate (two or more of them)."""
-    from graph.triangulate import robust_points
+    from graph.solve.triangulate import robust_points
 
     out = []
     for c, cam in enumerate(calibration.cameras):
@@ -100,7 +100,7 @@ def leave_one_out(calibration: Calibration, meas: np.ndarray, valid: np.ndarray)
 
 def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float = 0.9, seed: int = 0) -> RefineResult:
     """See the module."""
-    from graph.triangulate import robust_points
+    from graph.solve.triangulate import robust_points
 
     start = time.perf_counter()
     C = len(calibration)
@@ -167,8 +167,8 @@ def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float 
 
 
 def run(args: argparse.Namespace) -> int:
-    from graph.calibration import load_calibration, write_anipose_toml
-    from graph.keypoints import read_keypoints
+    from graph.io.calibration import load_calibration, write_anipose_toml
+    from graph.io.keypoints import read_keypoints
 
     calibration = load_calibration(args.calibration)
     keypoints = [read_keypoints(p, individual=args.individual) for p in args.keypoints]

@@ -49,7 +49,7 @@ def available(format: str) -> bool:
 
 def export(source: str | Path | Result, format: str, out: str | Path, *,
            calibration: str | Path | Calibration | None = None, **options) -> Path:
-    """Write the run ``source`` (a result H5 written by ``graph.io.write_h5``, or a :class:`Result`)
+    """Write the run ``source`` (a result H5 written by ``graph.io.results.write_h5``, or a :class:`Result`)
     to ``out`` in ``format`` (one of :data:`FORMATS`). ``calibration`` (a file or a
     :class:`Calibration`) overrides the one stored in the H5; the per-format ``options`` are the
     keyword arguments of that module's ``write``. Returns ``out`` as a Path."""

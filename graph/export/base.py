@@ -26,8 +26,8 @@ class ExportInput:
 def load_input(source: str | Path | Result, calibration: str | Path | Calibration | None = None) -> ExportInput:
     """A result H5 (with the rig stored in it, if any) or a :class:`Result`, plus an explicit
     calibration file or object, which wins over the stored one."""
-    from graph.calibration import in_metres, load_calibration
-    from graph.io import read_calibration, read_result
+    from graph.io.calibration import in_metres, load_calibration
+    from graph.io.results import read_calibration, read_result
 
     stored = None
     if isinstance(source, Result):

@@ -26,7 +26,7 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from graph.cli import UsageError
+    from graph.app.cli import UsageError
     from graph.export import export
 
     options = {}

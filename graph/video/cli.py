@@ -34,7 +34,7 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from graph.io import read_result
+    from graph.io.results import read_result
     from graph.video import render_videos
 
     if not Path(args.result).is_file():

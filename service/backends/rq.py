@@ -139,7 +139,8 @@ class RQBackend(Backend):
         if not run_token:
             return
         from rq.command import send_stop_job_command
-        from rq.job import Job as RQJob, JobStatus
+        from rq.job import Job as RQJob
+        from rq.job import JobStatus
 
         try:
             rj = RQJob.fetch(run_token, connection=self.redis, serializer=self.serializer)
@@ -372,8 +373,15 @@ class RQBackend(Backend):
             self._enqueue(fresh)
 
     def _finished(self, row: Job, rj, attempt: int) -> None:
-        from service.jobfiles import (get_archive, install_result, is_result_name, job_dir, result_key, result_tmp,
-                                      unpack_files)
+        from service.jobfiles import (
+            get_archive,
+            install_result,
+            is_result_name,
+            job_dir,
+            result_key,
+            result_tmp,
+            unpack_files,
+        )
 
         rv = rj.return_value()
         archive = get_archive(self.redis, result_key(rj.id))
@@ -400,8 +408,9 @@ class RQBackend(Backend):
 
     def _finish_stopping(self) -> None:
         """Delete stopped RQ jobs of cancelled rows once their work horse is gone."""
-        from rq.job import Job as RQJob, JobStatus
         from rq.command import send_stop_job_command
+        from rq.job import Job as RQJob
+        from rq.job import JobStatus
 
         for token, since in list(self._stopping.items()):
             rj = RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0]

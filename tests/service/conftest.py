@@ -4,7 +4,6 @@ users ``alice`` and ``bob`` of the module's ``server`` (:func:`servers.server_wi
 from __future__ import annotations
 
 import pytest
-
 from servers import Run, make_run
 
 

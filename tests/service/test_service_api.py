@@ -8,8 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from servers import (PY, ROOT, Server, add_user, server_with_users, submit, submit_ok, wait_finished)
+from servers import PY, ROOT, Server, add_user, server_with_users, submit, submit_ok, wait_finished
 
 
 @pytest.fixture(scope="module")
@@ -65,13 +64,13 @@ def test_a_simulated_run_through_rest_gives_the_cli_csv(alice, small_run, tmp_pa
     rest_csv = alice.get(done["links"]["result"]["csv"])
     assert rest_csv.status_code == 200 and rest_csv.headers["content-type"].startswith("text/csv")
     cli_csv = tmp_path / "cli.csv"
-    cli = subprocess.run([PY, "-m", "graph.cli", "solve", *map(str, small_run.cams), "--calibration",
+    cli = subprocess.run([PY, "-m", "graph.app.cli", "solve", *map(str, small_run.cams), "--calibration",
                           str(small_run.calibration), "--method", "fte", "--skeleton", "cheetah",
                           "--fps", str(small_run.fps), "--out", str(cli_csv)], cwd=ROOT, capture_output=True, text=True)
     assert cli.returncode == 0, cli.stderr
     assert rest_csv.content == cli_csv.read_bytes()
 
-    from graph.io import read_anipose_csv, read_result
+    from graph.io.results import read_anipose_csv, read_result
 
     h5 = tmp_path / "rest.h5"
     h5.write_bytes(alice.get(f"/v1/jobs/{job['id']}/result", params={"format": "h5"}).content)
@@ -257,8 +256,8 @@ def test_uploaded_names_cannot_leave_the_job_directory(server, alice, small_run)
 # -- limits ----------------------------------------------------------------------------------------
 
 def test_upload_and_frame_limits_answer_413(tmp_path, small_run):
-    from graph.calibration import load_calibration, write_anipose_toml
     from graph.camera import Calibration
+    from graph.io.calibration import load_calibration, write_anipose_toml
 
     data = tmp_path / "data"
     token = add_user(data, "carol")
@@ -312,7 +311,7 @@ def _dlc_h5(path: Path, kp) -> None:
 
 def test_dlc_h5_uploads_solve_like_the_csvs(alice, small_run, tmp_path):
     pytest.importorskip("tables")
-    from graph.keypoints import read_keypoints
+    from graph.io.keypoints import read_keypoints
 
     h5s = []
     for p in small_run.cams:
@@ -332,7 +331,7 @@ def test_an_h5_upload_carrying_a_pickle_is_refused_without_running_it(alice, sma
     pytest.importorskip("tables")
     import h5py
 
-    from graph.keypoints import read_keypoints
+    from graph.io.keypoints import read_keypoints
 
     marker = tmp_path / "pwned"
     evil = tmp_path / "evil.h5"
@@ -350,7 +349,6 @@ def test_an_upload_after_the_api_threads_idled_out_is_read(alice, small_run):
     that thread (PR_SET_PDEATHSIG); the thread pool retires a thread idle for 10 s, so the next
     upload after a quiet spell found its readers killed: 422 'reading the upload crashed a reader'."""
     import time
-
     from concurrent.futures import ThreadPoolExecutor
 
     def busy() -> None:  # calls answered in the API's thread pool, at once: it grows, then retires the idle

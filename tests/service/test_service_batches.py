@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from servers import Server, add_user
 
 pytest.importorskip("tables")
@@ -47,7 +46,7 @@ def wait_batch(client, url: str, timeout: float = 300.0) -> dict:
 def test_a_project_becomes_a_job_per_trial(server, tmp_path):
     from graph.anipose import load_project, run_project
     from graph.anipose.simulate import write_dlc_h5, write_project
-    from graph.io import read_result
+    from graph.io.results import read_result
 
     root = write_project(tmp_path / "project", frames=40, optim=False,
                          extra_config="\n[cameras.B]\noffset = [12, -7]\n")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-
 from servers import Server, add_user, submit, submit_ok, wait_finished
 
 

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from servers import Redis, Server, add_user, have_redis, server_with_users, wait_finished, worker
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "acinoset_calib"
@@ -62,7 +61,7 @@ def ex1(server):
 
 
 def test_ex1_detections_give_acinoset_baseline(ex1, alice, tmp_path):
-    from graph.calibration import load_calibration
+    from graph.io.calibration import load_calibration
 
     assert ex1["status"] == "succeeded", ex1["error"]
     assert ex1["label"] == "Ex1 static pair" and ex1["options"]["board"] == "checkerboard:9x6:0.031"
@@ -89,9 +88,9 @@ def test_ex1_detections_give_acinoset_baseline(ex1, alice, tmp_path):
 def test_a_solve_job_names_the_calibration(ex1, alice, bob, tmp_path):
     """Points moving 2-3 m in front of the calibrated pair, projected through the downloaded rig with
     1 px noise and solved with the calibration named by id: they come back where they were."""
-    from graph.calibration import load_calibration
-    from graph.io import read_result
-    from graph.keypoints import Keypoints, write_dlc_csv
+    from graph.io.calibration import load_calibration
+    from graph.io.keypoints import Keypoints, write_dlc_csv
+    from graph.io.results import read_result
 
     (tmp_path / "calibration.toml").write_bytes(alice.get(ex1["links"]["calibration.toml"]).content)
     cal = load_calibration(tmp_path / "calibration.toml")

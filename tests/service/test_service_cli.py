@@ -6,9 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import httpx
-
-from servers import (PY, ROOT, Proc, acinoset, free_port, submit_ok, wait_answering, wait_dead, wait_for,
-                     wait_solving)
+from servers import PY, ROOT, Proc, acinoset, free_port, submit_ok, wait_answering, wait_dead, wait_for, wait_solving
 
 
 def serve(data: str, log: Path) -> tuple[Proc, str]:

@@ -10,8 +10,8 @@ import subprocess
 from pathlib import Path
 
 import pytest
-
 from servers import Server, add_user, submit, submit_ok, wait_finished
+
 from service.backends.embedded import EmbeddedBackend, _Run
 from service.settings import Settings
 from service.store import Store

@@ -8,9 +8,7 @@ import signal
 import time
 
 import pytest
-
-from servers import (Server, add_user, pid_alive, submit_ok, wait_dead, wait_finished, wait_for,
-                     wait_solving)
+from servers import Server, add_user, pid_alive, submit_ok, wait_dead, wait_finished, wait_for, wait_solving
 
 LONG = {"method": "fte", "skeleton": "cheetah"}
 FAST = {"method": "tri", "skeleton": "points"}

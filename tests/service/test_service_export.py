@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from servers import Server, add_user, submit, wait_finished
 
 EXPORTS = ("nwb", "trc", "c3d", "csv-var")
@@ -38,10 +37,10 @@ def test_each_export_is_what_the_command_writes(job, small_run, tmp_path):
     h5 = tmp_path / "job.h5"
     h5.write_bytes(client.get(done["links"]["result"]["h5"]).content)
     from graph.export import export
-    from graph.io import read_result
+    from graph.io.results import read_result
 
     res = read_result(h5)
-    from graph.io import read_calibration
+    from graph.io.results import read_calibration
 
     assert read_calibration(h5).names == res.camera_names  # the job's H5 carries its rig
     for fmt in EXPORTS:

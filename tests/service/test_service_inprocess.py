@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from servers import add_user
 
 import graph
-from servers import add_user
 from service.app import create_app
 from service.openapi import spec
 from service.settings import Settings
@@ -231,7 +231,7 @@ def _wait(client, job_id: str, timeout: float = 300) -> dict:
 def test_labels_filters_warnings_without_paths_and_what_failed(app_client, small_run, tmp_path):
     """Issue items 3 and 15: a run's label, a filter beyond status, 'succeeded with warnings', warnings
     that named the server's absolute paths, and a failed job that says whether its input was at fault."""
-    from graph.keypoints import Keypoints, read_keypoints, write_dlc_csv
+    from graph.io.keypoints import Keypoints, read_keypoints, write_dlc_csv
 
     lured = []  # each camera with one more bodypart, 'lure', which the cheetah skeleton does not have
     for p in small_run.cams:

@@ -10,9 +10,20 @@ import time
 
 import numpy as np
 import pytest
-
-from servers import (Redis, Server, add_user, children, have_redis, make_run, submit_ok, wait_dead, wait_finished,
-                     wait_for, wait_solving, worker)
+from servers import (
+    Redis,
+    Server,
+    add_user,
+    children,
+    have_redis,
+    make_run,
+    submit_ok,
+    wait_dead,
+    wait_finished,
+    wait_for,
+    wait_solving,
+    worker,
+)
 
 pytestmark = pytest.mark.skipif(not have_redis(), reason="needs Debian's redis-server (.ci/run installs it)")
 
@@ -142,7 +153,7 @@ def test_rq_files_larger_than_a_redis_value_go_and_come_back_in_chunks(pool, cli
     comes back in chunks, and Redis keeps nothing of it afterwards (no chunk, no partial list)."""
     import redis as redis_lib
 
-    from graph.io import read_result
+    from graph.io.results import read_result
     from service.jobfiles import input_archive, job_dir, pack_files, written_outputs
 
     big = make_run(tmp_path_factory.mktemp("big_run"), frames=3000, cameras=3, seed=4)

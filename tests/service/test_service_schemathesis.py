@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from servers import PY, ROOT, Server, add_user
 
 pytest.importorskip("schemathesis", reason="the contract test needs schemathesis (pip install -e .[test])")

@@ -11,10 +11,8 @@ import socket
 import sys
 import threading
 import time
-from pathlib import Path
 
 import pytest
-
 from servers import ROOT, Server, add_user, submit
 
 sys.path.insert(0, str(ROOT / "bench"))

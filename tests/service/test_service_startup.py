@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 
 from servers import Server, add_user, submit_ok, wait_finished
+
 from service.backends.embedded import EmbeddedBackend
 from service.settings import Settings
 from service.store import Store

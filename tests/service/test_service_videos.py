@@ -12,7 +12,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from servers import Redis, Server, add_user, have_redis, make_filmed_run, submit_with_videos, wait_finished, worker
 from test_video import decode_cv2
 

@@ -6,7 +6,6 @@ import re
 
 import httpx
 import pytest
-
 from servers import Server
 
 

@@ -13,7 +13,6 @@ import subprocess
 from pathlib import Path
 
 import pytest
-
 from servers import PY, ROOT, Server, acinoset
 
 CHROMIUM = os.environ.get("ACINOSET_TEST_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
@@ -40,7 +39,7 @@ def server(tmp_path_factory):
 def simulated_run(tmp_path_factory) -> Path:
     """Six cameras' DeepLabCut CSVs and the calibration of a simulated run on the AcinoSet rig."""
     out = tmp_path_factory.mktemp("sim")
-    done = subprocess.run([PY, "-m", "graph.cli", "simulate", "--frames", "60", "--seed", "5", "--out", str(out)],
+    done = subprocess.run([PY, "-m", "graph.app.cli", "simulate", "--frames", "60", "--seed", "5", "--out", str(out)],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     return out

@@ -124,8 +124,8 @@ def test_calibrate_on_the_form_then_solve_with_it(page, server, simulated_run, t
 def _points_seen_by(base: str, token: str, cal_id: str, tmp: Path) -> list[Path]:
     """Two DeepLabCut CSVs of points 2-3 m in front of calibration ``cal_id``'s pair, projected
     through the rig the server made (1 px noise)."""
-    from graph.calibration import load_calibration
-    from graph.keypoints import Keypoints, write_dlc_csv
+    from graph.io.calibration import load_calibration
+    from graph.io.keypoints import Keypoints, write_dlc_csv
 
     r = httpx.get(f"{base}/v1/calibrations/{cal_id}/calibration.toml", headers={"Authorization": f"Bearer {token}"})
     assert r.status_code == 200, r.text

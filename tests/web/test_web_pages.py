@@ -229,12 +229,12 @@ def test_offline_playback_file(browser, simulated_run, tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     cams = [str(simulated_run / f"cam{i}.csv") for i in range(1, 7)]
     h5 = tmp_path / "run.h5"
-    solved = subprocess.run([sys.executable, "-m", "graph.cli", "solve", *cams, "--calibration",
+    solved = subprocess.run([sys.executable, "-m", "graph.app.cli", "solve", *cams, "--calibration",
                              str(simulated_run / "calibration.toml"), "--method", "tri", "--out",
                              str(tmp_path / "run.csv"), "--h5", str(h5)],
                             cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert solved.returncode == 0, solved.stderr
-    drawn = subprocess.run([sys.executable, "-m", "graph.cli", "plot", str(h5), "--out", str(tmp_path / "pics")],
+    drawn = subprocess.run([sys.executable, "-m", "graph.app.cli", "plot", str(h5), "--out", str(tmp_path / "pics")],
                            cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert drawn.returncode == 0, drawn.stderr
     html = tmp_path / "pics" / "playback.html"
@@ -305,7 +305,7 @@ def test_the_list_shows_dates_labels_warnings_and_filters(page, server, simulate
     status; a job whose report has warnings looked like any success; warnings named the server's paths."""
     import httpx
 
-    from graph.keypoints import Keypoints, read_keypoints, write_dlc_csv
+    from graph.io.keypoints import Keypoints, read_keypoints, write_dlc_csv
 
     base, token = server
     files = []

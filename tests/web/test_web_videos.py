@@ -9,7 +9,6 @@ import time
 
 import httpx
 import pytest
-
 from servers import make_filmed_run, submit_with_videos, wait_finished
 
 pytest.importorskip("imageio_ffmpeg", reason="videos need the video extra")

@@ -2,7 +2,7 @@
 (``motion_scale="auto"``).
 
 The smoother's prior on a group of parameters x (one free point's x, y, z over N frames, or a whole
-kinematic pose) is the constant-acceleration model of :mod:`graph.fte`: the third differences
+kinematic pose) is the constant-acceleration model of :mod:`graph.solve.fte`: the third differences
 ``D3 x_i`` of each parameter i are independent ``N(0, (s sigma_i)^2)`` with ``sigma_i = h^2 w_i``
 (``w_i`` the skeleton's process noise, h the frame interval) and s the scale to fit. As a precision::
 
@@ -12,7 +12,7 @@ an improper prior (flat along the quadratics, which the third difference does no
 by its pseudo-determinant ``pdet A(s) = prod_i c_i^(N-3) pdet(D3^T D3)^d``. The detections enter
 through the robust cost f(x), which about a trajectory x* near the data is the Gauss-Newton quadratic
 ``f(x) ~ f* + g^T (x - x*) + 1/2 (x - x*)^T H (x - x*)`` (H block-diagonal in frames, the
-IRLS-weighted information of :func:`graph.kernels.all_normals`); the smoother's weak anchor
+IRLS-weighted information of :func:`graph.solve.kernels.all_normals`); the smoother's weak anchor
 ``|x - x0|^2 / (2 sigma_p^2)`` counts with the data (it does not depend on s). With that quadratic
 the evidence ``p(z | s) = int exp(-f(x) - |x - x0|^2 / (2 sigma_p^2)) p(x | s) dx`` is Gaussian
 (Laplace's approximation)::
@@ -28,7 +28,7 @@ by parabolic interpolation on log s (:func:`best_scales`). Groups whose chains a
 one scale each; a kinematic skeleton (or free points joined by bones) one scale.
 
 The fit is local: it is made at the smoother's optimum, the smoother solved again with the scales
-found and the fit repeated (:func:`graph.fte.refit_motion`), since H and the robust weights depend
+found and the fit repeated (:func:`graph.solve.fte.refit_motion`), since H and the robust weights depend
 on the trajectory. The same banded band form solves the smoother's own steps for free points
 without bones (:func:`solve_chains`).
 

@@ -1,4 +1,4 @@
-"""``--method tri``: every marker of every frame triangulated on its own (:mod:`graph.triangulate`),
+"""``--method tri``: every marker of every frame triangulated on its own (:mod:`graph.solve.triangulate`),
 with its 3D standard deviations from the refinement's information ``sigma^2 H^-1``."""
 
 from __future__ import annotations
@@ -7,10 +7,10 @@ import time
 
 import numpy as np
 
-from graph.problem import Problem
-from graph.result import build_result
-from graph.robust import OUTLIER_S
-from graph.triangulate import triangulate
+from graph.solve.problem import Problem
+from graph.solve.result import build_result
+from graph.solve.robust import OUTLIER_S
+from graph.solve.triangulate import triangulate
 from graph.types import Progress, ProgressCallback, Result
 
 

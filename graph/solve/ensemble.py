@@ -7,9 +7,9 @@ K detections of a bodypart in one camera and frame, ``z_1 .. z_K``, become one d
 * the likelihood: the members' mean;
 * the spread: the sample sd per coordinate about their mean,
   ``spread = sqrt( sum_k |z_k - mean z|^2 / (2 (K - 1)) )`` (px), which the combined
-  :class:`~graph.keypoints.Keypoints` carries as ``spread_px``.
+  :class:`~graph.io.keypoints.Keypoints` carries as ``spread_px``.
 
-How the spread is used (:func:`relative_noise`, by :func:`graph.problem.build`): members disagree
+How the spread is used (:func:`relative_noise`, by :func:`graph.solve.problem.build`): members disagree
 most where detection is hard, and that differs between cameras (a camera that sees the animal larger,
 blurred or from an odd angle) and bodyparts. One frame's spread of two members is one draw, too noisy
 to weigh that detection by, so each camera c and marker m gets its typical spread, the median over
@@ -27,7 +27,7 @@ import warnings
 import numpy as np
 
 from graph.errors import InputError
-from graph.keypoints import Keypoints
+from graph.io.keypoints import Keypoints
 
 RELATIVE_RANGE = (0.25, 4.0)
 

@@ -27,11 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from graph import __version__
-from graph.calibration import in_metres
 from graph.camera import Calibration, Camera
 from graph.errors import InputError
-from graph.keypoints import spreadsheet_safe
-from graph.keypoints import Keypoints, write_dlc_csv
+from graph.io.calibration import in_metres
+from graph.io.keypoints import Keypoints, spreadsheet_safe, write_dlc_csv
 from graph.types import Result, SolveOptions, SolveReport, jsonable
 
 RESULT_FORMAT = "acinoset.result"

@@ -22,10 +22,10 @@ Per frame n:
    with standard deviations 2x too narrow; relinearised, the lag-smoothed trajectory is within a few
    per cent of ``fte`` (bench/RESULTS.md).
 
-The first few frames are solved as a small batch (:mod:`graph.fte`) to start from a good pose: a
+The first few frames are solved as a small batch (:mod:`graph.solve.fte`) to start from a good pose: a
 per-frame start from nothing diverges. With ``motion_scale="auto"`` the batch is the first
 ``SHARED_START_SECONDS`` (or a quarter of a shorter run) and fits the motion model's scales
-(:func:`graph.fte.fit_motion`, the marginal likelihood), which the stream then keeps. The default
+(:func:`graph.solve.fte.fit_motion`, the marginal likelihood), which the stream then keeps. The default
 process noise is a cheetah's, some 10^4 times too loose for a fly's legs: with it every frame is
 its own triangulation, and the lag-smoothed and causal trajectories equal fte's to 1e-11 m.
 """
@@ -38,16 +38,17 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from graph import kernels
-from graph.fte import (PRIOR_SIGMA, TrajectoryProblem, bone_lengths, optimise, refit_motion,
-                       trajectory_result)
-from graph.initial import initial_poses
-from graph.joint import shares_unknowns, solve_fte_joint
-from graph.problem import Problem
-from graph.robust import A as RA, B as RB, C as RC
-from graph.smoothing import GTSAM_MAX_STIFFNESS
-from graph.sync import off_reference_clock, on_reference_clock
-from graph.triangulate import robust_points
+from graph.solve import kernels
+from graph.solve.fte import PRIOR_SIGMA, TrajectoryProblem, bone_lengths, optimise, refit_motion, trajectory_result
+from graph.solve.initial import initial_poses
+from graph.solve.joint import shares_unknowns, solve_fte_joint
+from graph.solve.problem import Problem
+from graph.solve.robust import A as RA
+from graph.solve.robust import B as RB
+from graph.solve.robust import C as RC
+from graph.solve.smoothing import GTSAM_MAX_STIFFNESS
+from graph.solve.sync import off_reference_clock, on_reference_clock
+from graph.solve.triangulate import robust_points
 from graph.types import Progress, ProgressCallback, Result
 
 START_FRAMES = 10
@@ -70,7 +71,7 @@ class _Frame:
 class OnlineSmoother:
     """A fixed-lag smoother over poses, fed frame by frame after a batch start.
 
-    ``tp`` supplies the cameras, skeleton and noise levels (a :class:`graph.fte.TrajectoryProblem`
+    ``tp`` supplies the cameras, skeleton and noise levels (a :class:`graph.solve.fte.TrajectoryProblem`
     over the start frames); ``Q_start`` (S, P) is the batch solution of those frames.
     """
 
@@ -235,7 +236,7 @@ def solve_ekf(prob: Problem, progress: ProgressCallback | None = None) -> Result
     """``--method ekf``: batch start on the first frames, then one smoother update per frame.
 
     With the body or the clocks to estimate, the first :data:`SHARED_START_SECONDS` are solved as
-    one joint batch first (:func:`graph.joint.solve_fte_joint`); the stream then runs on that
+    one joint batch first (:func:`graph.solve.joint.solve_fte_joint`); the stream then runs on that
     body, each camera's detections taken on the nearest frame of the reference clock (the
     sub-frame remainder, at most half a frame, is not modelled online). Given lengths and offsets
     are used the same way."""
@@ -311,7 +312,7 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     per_frame_ms = ({"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "max": float(ms.max())}
                     if len(ms) else {"median": float("nan"), "p95": float("nan"), "max": float("nan")})
     # per-marker std from the marginals of the whole run's information at the smoothed trajectory
-    # (the chain of graph.marginals, as fte); a per-frame inverse with the motion prior as a stiff
+    # (the chain of graph.solve.marginals, as fte); a per-frame inverse with the motion prior as a stiff
     # local term had claimed 4-9x too little spread
     whole = TrajectoryProblem(prob, Q, tp.bone_len)
     if auto:

@@ -35,9 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.calibration import load_calibration
 from graph.errors import InputError
-from graph.io import read_result
+from graph.io.calibration import load_calibration
+from graph.io.results import read_result
 from graph.types import Result, jsonable
 from graph.viewer import SCRIPTS, STYLES, viewer_dir
 

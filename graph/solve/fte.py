@@ -6,14 +6,14 @@ Variables: the pose ``q_n`` (P,) of every frame n (GTSAM key n). The cost is
          + 1/2 sum_n || (q_{n+3} - 3 q_{n+2} + 3 q_{n+1} - q_n) / sigma_3 ||^2  constant acceleration
          + 1/2 sum_n || (q_n - q0_n) / sigma_prior ||^2                      a weak anchor (sigma 10)
 
-subject to the joint bounds. ``rho`` is the AcinoSet redescending loss (:mod:`graph.robust`).
+subject to the joint bounds. ``rho`` is the AcinoSet redescending loss (:mod:`graph.solve.robust`).
 The third difference is the constant-acceleration model with white jerk: with the paper's
 discretisation ``q_{n+1} = q_n + h qdot_n + h^2/2 qddot_n``, ``qddot_{n+1} = qddot_n + w_n``, the third
 difference of q is ``h^2/2 (w_{n+1} + w_n)``, so ``sigma_3 = h^2 sigma_w`` with ``sigma_w`` the
 skeleton's per-parameter process noise.
 
 Solver: Levenberg-Marquardt driven from Python. Each iteration linearises the measurement part
-of all frames in one compiled call (:func:`graph.kernels.all_normals`: the IRLS-weighted normal
+of all frames in one compiled call (:func:`graph.solve.kernels.all_normals`: the IRLS-weighted normal
 equations ``H_n, g_n`` of every frame). The damped system is the :class:`gtsam.GaussianFactorGraph`
 of :meth:`TrajectoryProblem.linear_graph`:
 
@@ -33,7 +33,7 @@ loss with its knots a, b, c stretched by 4, so that detections far from a rough 
 rejected before the pose comes to them.
 
 Uncertainty: the marginal covariance ``Sigma_n`` of each ``q_n`` under the final (undamped)
-linearisation, the Bayes tree's numbers in one compiled pass (:mod:`graph.marginals`), and
+linearisation, the Bayes tree's numbers in one compiled pass (:mod:`graph.solve.marginals`), and
 per-marker ``Sigma_p = J_p Sigma_n J_p^T``.
 """
 
@@ -46,16 +46,20 @@ from typing import NamedTuple
 import gtsam
 import numpy as np
 
-from graph import kernels
+from graph import kinematics
 from graph.errors import InputError
-from graph.initial import initial_poses
-from graph.marginals import chain_band, chain_marginals, solve_band
-from graph.noise import scatter_px
-from graph.problem import AUTO_RANGE_PX, Problem
-from graph.result import build_result
-from graph.robust import A as RA, B as RB, C as RC, OUTLIER_S
-from graph.smoothing import MAX_STIFFNESS
-from graph.triangulate import robust_points
+from graph.solve import kernels
+from graph.solve.initial import initial_poses
+from graph.solve.marginals import chain_band, chain_marginals, solve_band
+from graph.solve.noise import scatter_px
+from graph.solve.problem import AUTO_RANGE_PX, Problem
+from graph.solve.result import build_result
+from graph.solve.robust import OUTLIER_S
+from graph.solve.robust import A as RA
+from graph.solve.robust import B as RB
+from graph.solve.robust import C as RC
+from graph.solve.smoothing import MAX_STIFFNESS
+from graph.solve.triangulate import robust_points
 from graph.types import Progress, ProgressCallback, Result
 
 PRIOR_SIGMA = 10.0
@@ -84,12 +88,12 @@ class Normals(NamedTuple):
 
 
 class TrajectoryProblem:
-    """The FTE cost for one :class:`graph.problem.Problem`, and its Gauss-Newton systems.
+    """The FTE cost for one :class:`graph.solve.problem.Problem`, and its Gauss-Newton systems.
 
     The linear systems are written in absolute form, for the new trajectory ``Q'`` rather than
     the step: the motion factors ``D3 Q' = 0`` are then constant and built once, and only the
     per-frame factors change between iterations. For frame n with normal equations ``H, g``
-    (gradient of the robust cost, see :func:`graph.kernels.frame_normal`) the frame's quadratic
+    (gradient of the robust cost, see :func:`graph.solve.kernels.frame_normal`) the frame's quadratic
     model ``1/2 d^T H d + g^T d`` with ``d = q' - q`` becomes the ``HessianFactor``
 
         G = H + I/sigma_prior^2 + lambda I,    gvec = H q - g + q0/sigma_prior^2 + lambda q
@@ -137,7 +141,7 @@ class TrajectoryProblem:
                                self._per_group(prob.options.motion_order, "motion_order", 3, int))
         # free points without bones: independent chains, solved by banded Cholesky (solve_linear)
         self.chains = len(self.groups) > 1
-        # the stiffest smoothing a fit may choose (graph.smoothing.stiffest_scale); ekf's stream, which
+        # the stiffest smoothing a fit may choose (graph.solve.smoothing.stiffest_scale); ekf's stream, which
         # GTSAM eliminates with all markers in one key, takes GTSAM_MAX_STIFFNESS
         self.max_stiffness = MAX_STIFFNESS
         self._motion_graph: list | None = None
@@ -202,7 +206,7 @@ class TrajectoryProblem:
         of the group's order k): a GaussianConditional on ``q_{n+k}`` given the k before it, as a
         (k+1)-key JacobianFactor, kept in Hessian form (elimination is then Cholesky throughout, a
         third faster than mixing in QR)."""
-        from graph.smoothing import STENCILS
+        from graph.solve.smoothing import STENCILS
 
         out = []
         for gi, idx in enumerate(self.groups):
@@ -297,7 +301,7 @@ class TrajectoryProblem:
     def solve_chain(self, Q, H, g, lam: float) -> np.ndarray:
         """The damped system of :meth:`linear_graph` for one group, by the block Cholesky
         factorisation of its chain in time order and two substitutions
-        (:func:`graph.marginals.chain_forward`, :func:`~graph.marginals.chain_backward`), compiled:
+        (:func:`graph.solve.marginals.chain_forward`, :func:`~graph.solve.marginals.chain_backward`), compiled:
         the elimination GTSAM makes of the same graph, in the same order, without building the
         graph's N + N - k factors (motion factors that took 22 ms to build at 150 frames, and 10 ms a
         step to eliminate where this takes 5: bench/RESULTS.md, section 13c)."""
@@ -310,16 +314,16 @@ class TrajectoryProblem:
             raise RuntimeError(f"the smoother's system is not positive definite: {e}") from None
 
     def chain_band(self, G: np.ndarray) -> np.ndarray:
-        """The one group's information as chain blocks (:func:`graph.marginals.chain_band`): the
+        """The one group's information as chain blocks (:func:`graph.solve.marginals.chain_band`): the
         per-frame ``G`` (N, P, P) and the motion prior of the group's order."""
-        from graph.smoothing import STENCILS
+        from graph.solve.smoothing import STENCILS
 
         return chain_band(np.ascontiguousarray(G), 1.0 / self.sigma3**2, STENCILS[int(self.orders[0])])
 
     def solve_chains(self, Q, H, g, lam: float) -> np.ndarray:
         """The same system as :meth:`linear_graph` for free points without bones, whose markers are
         independent chains, by LAPACK's banded Cholesky on all chains at once
-        (:func:`graph.smoothing.solve_chains`): ``K Q'_g = gvec_g`` per chain g, with
+        (:func:`graph.solve.smoothing.solve_chains`): ``K Q'_g = gvec_g`` per chain g, with
         ``K = blockdiag(H_n + (w + lambda) I) + D3^T D3 / sigma_3^2`` (bandwidth 4 frames).
 
         Why not GTSAM's elimination here: with the smoothing fitted to a slow animal
@@ -329,7 +333,7 @@ class TrajectoryProblem:
         about 2e10 and LAPACK factors the same matrix (measured: bench/RESULTS.md, section 12).
         The elimination order is the same, frame by frame, so the numbers are GTSAM's otherwise
         (tests), in a few milliseconds instead of a graph of N (M + 1) factors per iteration."""
-        from graph.smoothing import data_band, motion_band, solve_chains
+        from graph.solve.smoothing import data_band, motion_band, solve_chains
 
         idx = np.stack(self.groups)  # (G, d)
         w = 1.0 / PRIOR_SIGMA**2
@@ -364,7 +368,7 @@ class TrajectoryProblem:
         """Markers at ``Q`` by forward kinematics and, with ``uncertainty``, the marginal covariance
         ``Sigma_n`` of every pose (:meth:`marginal_covariances`), each marker's 3D sd
         (:func:`marker_std`) and each parameter's ``sqrt(diag Sigma_n)``."""
-        pos, dpos = kernels.fk_jacobian_batch(Q, *self.sk_args)
+        pos, dpos = kinematics.fk_jacobian_batch(Q, *self.sk_args)
         if not uncertainty:
             return Estimate(pos, np.full(pos.shape, np.nan), None)
         Sigma = self.marginal_covariances(normals.H)
@@ -373,12 +377,12 @@ class TrajectoryProblem:
     def marginal_covariances(self, H: np.ndarray) -> np.ndarray:
         """Marginal covariance of each frame's pose (N, P, P) at the optimum, from the undamped
         information (``H`` from :meth:`normals` there, the anchor and the motion factors) by
-        :func:`graph.marginals.chain_marginals`, one chain per group: for free points without bones
+        :func:`graph.solve.marginals.chain_marginals`, one chain per group: for free points without bones
         the per-marker blocks (markers are then independent chains, so the covariance between them
         is zero). The same numbers as GTSAM's Bayes tree of :meth:`linear_graph` (tests)."""
         G = H + np.eye(self.P)[None] / PRIOR_SIGMA**2
         w2 = 1.0 / self.sigma3**2
-        from graph.smoothing import STENCILS
+        from graph.solve.smoothing import STENCILS
 
         if len(self.groups) == 1:
             return chain_marginals(G, w2, STENCILS[int(self.orders[0])])
@@ -454,7 +458,7 @@ NOISE_ROUNDS = 2
 
 def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, cost: float, max_iterations: int):
     """``measurement_std_px="auto"``: measure the noise again on the smoother's own residuals
-    (:func:`graph.noise.scatter_px`; the trajectory's fit takes few degrees of freedom per
+    (:func:`graph.solve.noise.scatter_px`; the trajectory's fit takes few degrees of freedom per
     detection, so no correction) and, while it differs from the sigma solved with by more than
     ``NOISE_TOLERANCE``, solve again from ``Q`` (whose cost is ``cost``) with it. Returns
     (Q, iterations, cost)."""
@@ -476,20 +480,20 @@ MOTION_ROUNDS = 2  # fits at an optimum, each followed by a solve when it moved
 
 def fit_motion(tp: TrajectoryProblem, X, choose_orders: bool = False) -> float:
     """Set each group's motion scale to the one of largest marginal likelihood given the data's
-    quadratic model at ``X`` (:func:`graph.smoothing.fit_motion_scales`), and with
+    quadratic model at ``X`` (:func:`graph.solve.smoothing.fit_motion_scales`), and with
     ``choose_orders`` its prior's order first (1, 2 or 3, by the evidence compared across orders).
     The evidence solves the linearised smoother for every scale tried, so ``X`` need not be its
     optimum: a start near the data will do. Returns how far the scales moved (largest
     ``|log(new / old)|``; infinite when an order changed).
 
     The orders are compared at the detection noise measured on the residuals at ``X``
-    (:func:`graph.noise.scatter_px`), whatever noise the solve assumes: the data's information and
+    (:func:`graph.solve.noise.scatter_px`), whatever noise the solve assumes: the data's information and
     gradient scale as ``1 / sigma^2``, so the comparison takes ``H`` and ``g`` times
     ``(sigma_px / measured)^2``. At a noise stated too small the evidence prefers a low order (a
     first-order walk follows the noise the data then claim as signal): on the simulated cheetah as
     free points at 10 px, solved assuming 5 px, it chose the first order for every marker, 2.6x the
     3D error of the third (bench/RESULTS.md, section 12d)."""
-    from graph.smoothing import ORDERS, fit_motion_scales
+    from graph.solve.smoothing import ORDERS, fit_motion_scales
 
     nrm = tp.normals_at(X)
     fit_args = (tp.poses(X), tp.Q0, PRIOR_SIGMA, tp.base_sigma3, tp.groups)

@@ -1,6 +1,6 @@
 """Compile the solver's kernels before the first timed or served solve.
 
-numba compiles the compiled kernels (:mod:`graph.kernels`) the first time a process uses them
+numba compiles the compiled kernels (:mod:`graph.solve.kernels`) the first time a process uses them
 (about a minute on a 2-core machine for every method together) and caches them on disk
 (``cache=True``): a later process loads them in well under a second. :func:`warm_up` pays that cost
 on a tiny simulated run, so that a demo's timings and a server's first job measure the solve alone.
@@ -12,7 +12,7 @@ import logging
 import time
 
 from graph.api import solve
-from graph.calibration import default_rig_path, load_calibration
+from graph.io.calibration import default_rig_path, load_calibration
 from graph.simulate import simulate_run
 from graph.types import SolveOptions
 

@@ -1,7 +1,7 @@
 """The cameras' clocks: per-camera time offsets, found in whole frames before the joint solve.
 
 Camera c's frame ``m`` was taken at time ``m + tau_c`` frames on the trajectory's clock (camera 1's:
-``tau_1 = 0``). The joint solve (:mod:`graph.joint`) refines every ``tau_c`` below a frame with the
+``tau_1 = 0``). The joint solve (:mod:`graph.solve.joint`) refines every ``tau_c`` below a frame with the
 trajectory; it needs a start within about a frame, which this module finds for offsets of any size
 from the calibration alone.
 
@@ -26,8 +26,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
-from graph import kernels
 from graph.camera import Calibration, undistort_points
 
 DECISIVE = 0.6  # a lag counts when its cost is below this fraction of the median lag's
@@ -60,9 +60,9 @@ def _essential(calibration: Calibration, a: int, c: int) -> np.ndarray:
 def lag_costs(xa: np.ndarray, xc: np.ndarray, E: np.ndarray, lags: np.ndarray) -> np.ndarray:
     """Median Sampson distance (normalised units) of camera a's points ``xa`` (N, M, 2) paired with
     camera c's ``xc`` (N, M, 2) ``d`` frames later, for each lag d; NaN where too few pairs
-    (:func:`graph.kernels.lag_sampson`, every ``max(1, N M / PAIRS_PER_LAG)``-th frame)."""
+    (:func:`graph.solve.lag_sampson`, every ``max(1, N M / PAIRS_PER_LAG)``-th frame)."""
     N, M = xa.shape[:2]
-    return kernels.lag_sampson(np.ascontiguousarray(xa, dtype=np.float64), np.ascontiguousarray(xc, dtype=np.float64),
+    return lag_sampson(np.ascontiguousarray(xa, dtype=np.float64), np.ascontiguousarray(xc, dtype=np.float64),
                                np.ascontiguousarray(E, dtype=np.float64), np.asarray(lags, dtype=np.int64),
                                max(1, N * M // PAIRS_PER_LAG), MIN_PAIRS)
 
@@ -114,7 +114,7 @@ def coarse_offsets(calibration: Calibration, meas: np.ndarray, valid: np.ndarray
 
 def shift_and_fraction(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Camera frame ``m`` is at time ``m + tau`` = window ``n + f``: ``m = n + shift``,
-    ``shift = -floor(tau)``, ``f = tau - floor(tau)`` in [0, 1) (what :func:`graph.kernels.window_normals` takes)."""
+    ``shift = -floor(tau)``, ``f = tau - floor(tau)`` in [0, 1) (what :func:`graph.solve.kernels.window_normals` takes)."""
     whole = np.floor(tau)
     return (-whole).astype(np.int64), (tau - whole).astype(np.float64)
 
@@ -145,4 +145,39 @@ def off_reference_clock(a: np.ndarray, tau: np.ndarray) -> np.ndarray:
         lo, hi = max(0, k), min(N, N + k)
         if hi > lo:
             out[c, lo - k:hi - k] = a[c, lo:hi]
+    return out
+
+
+@njit(cache=True)
+def lag_sampson(xa, xc, E, lags, stride, min_pairs):
+    """For each lag d of ``lags``, the median over camera a's frames n (every ``stride``-th) and
+    markers of the Sampson distance of ``xa[n]`` (normalised points, (N, M, 2), NaN where unseen)
+    paired with camera c's ``xc[n + d]`` under the essential matrix ``E`` (:mod:`graph.solve.sync`)::
+
+        sqrt(e),  e = (x_c^T E x_a)^2 / ((E x_a)_1^2 + (E x_a)_2^2 + (E^T x_c)_1^2 + (E^T x_c)_2^2)
+
+    NaN for a lag with fewer than ``min_pairs`` pairs."""
+    N, M = xa.shape[0], xa.shape[1]
+    out = np.full(lags.shape[0], np.nan)
+    buf = np.empty(((N + stride - 1) // stride + 1) * M)
+    for i in range(lags.shape[0]):
+        d = lags[i]
+        k = 0
+        for n in range(max(0, -d), min(N, N - d), stride):
+            for m in range(M):
+                ax, ay = xa[n, m, 0], xa[n, m, 1]
+                cx, cy = xc[n + d, m, 0], xc[n + d, m, 1]
+                if not (np.isfinite(ax) and np.isfinite(ay) and np.isfinite(cx) and np.isfinite(cy)):
+                    continue
+                e0 = E[0, 0] * ax + E[0, 1] * ay + E[0, 2]
+                e1 = E[1, 0] * ax + E[1, 1] * ay + E[1, 2]
+                e2 = E[2, 0] * ax + E[2, 1] * ay + E[2, 2]
+                f0 = E[0, 0] * cx + E[1, 0] * cy + E[2, 0]
+                f1 = E[0, 1] * cx + E[1, 1] * cy + E[2, 1]
+                num = cx * e0 + cy * e1 + e2
+                den = e0 * e0 + e1 * e1 + f0 * f0 + f1 * f1
+                buf[k] = np.sqrt(num * num / max(den, 1e-300))
+                k += 1
+        if k >= min_pairs:
+            out[i] = np.median(buf[:k])
     return out

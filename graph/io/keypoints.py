@@ -52,6 +52,7 @@ import numpy as np
 
 from graph.errors import InputError, TooLargeInput
 
+
 @dataclass(frozen=True)
 class ReadLimits:
     """What a reader accepts, checked before the data are read. ``max_bodyparts`` counts each
@@ -99,7 +100,7 @@ class Keypoints:
     likelihood: np.ndarray
     scorer: str = "acinoset"
     source: str = ""
-    spread_px: np.ndarray | None = None  # (N, M) an ensemble's disagreement (graph.ensemble), else None
+    spread_px: np.ndarray | None = None  # (N, M) an ensemble's disagreement (graph.solve.ensemble), else None
 
     def __post_init__(self) -> None:
         self.xy = np.asarray(self.xy, dtype=np.float64)

@@ -11,7 +11,7 @@ Lifecycle.
 * If there is none, it solves in its own process as before, then starts one: ``python -c`` this
   module's :func:`serve`, detached (a new session, stdin/stdout/stderr on /dev/null, every other
   inherited file closed), so that a shell pipeline or a CI job never waits for it.
-* The resident imports the solver, runs tiny solves (:func:`graph.warmup.warm_up`, and one tiny
+* The resident imports the solver, runs tiny solves (:func:`graph.app.warmup.warm_up`, and one tiny
   ``acinoset solve`` from files to files) so that its kernels and the command's readers and
   writers are loaded, then listens. It exits after ``ACINOSET_RESIDENT_IDLE`` seconds without a solve (default
   600), on SIGTERM (``acinoset resident stop``; a solve being served finishes first), or when the
@@ -34,7 +34,7 @@ Protocol: one Unix stream connection per solve.
 
 1. client -> resident: an 8-byte big-endian length and a JSON object ``{argv, cwd, env, umask,
    entry, commands}`` (``entry``: the command line's ``main`` as ``module:function``, one of
-   :data:`ENTRIES`; ``commands``: the :class:`graph.cli.Command` table it is called with).
+   :data:`ENTRIES`; ``commands``: the :class:`graph.app.cli.Command` table it is called with).
 2. The resident hands the connection to a child: the one it forked ahead while no solve ran (it
    waits on a socket pair for the connection; a fork of the resident takes 5-7 ms), or, when
    solves overlap, one forked on the spot. The child reads the request, enters ``cwd``, takes
@@ -73,8 +73,8 @@ import struct
 import sys
 import time
 from collections import namedtuple
-from pathlib import Path
 from collections.abc import Callable
+from pathlib import Path
 
 from graph import __version__
 
@@ -96,7 +96,7 @@ _serving = False  # True in a resident's forked child: its solve runs there, not
 
 class Place(namedtuple("Place", "dir key")):
     """Where the resident of one key lives: its directory (a Path) and key. (Named tuples here and
-    in :class:`Resident`: the client imports no ``dataclasses``, 10 ms; see :class:`graph.cli.Command`.)"""
+    in :class:`Resident`: the client imports no ``dataclasses``, 10 ms; see :class:`graph.app.cli.Command`.)"""
 
     __slots__ = ()
 
@@ -183,7 +183,7 @@ def wanted(argv: list[str], env: dict[str, str]) -> bool:
 # --------------------------------------------------------------------------------- the client
 
 
-ENTRIES = ("graph.cli:main",)  # the command lines a resident runs (named, so that it imports no CLI)
+ENTRIES = ("graph.app.cli:main",)  # the command lines a resident runs (named, so that it imports no CLI)
 
 
 def _entry(name: str) -> Callable[..., int]:
@@ -398,7 +398,7 @@ def start(place: Place, env: dict[str, str]) -> bool:
     try:
         import subprocess
 
-        code = "import sys; from graph.resident import serve; serve(int(sys.argv[1]), sys.argv[2])"
+        code = "import sys; from graph.app.resident import serve; serve(int(sys.argv[1]), sys.argv[2])"
         subprocess.Popen([sys.executable, "-c", code, str(fd), place.key], stdin=subprocess.DEVNULL,
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, close_fds=True, pass_fds=(fd,),
                          start_new_session=True, cwd=str(place.dir), env=env)
@@ -445,13 +445,13 @@ def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> 
     t0 = time.perf_counter()
     import importlib
 
-    for module in ("graph.cli", "graph.api", "graph.io", "graph.kernels", "graph.calibration", "graph.keypoints",
-                   "graph.ensemble", "h5py"):
+    for module in ("graph.app.cli", "graph.api", "graph.io.results", "graph.solve.kernels", "graph.kinematics", "graph.io.calibration", "graph.io.keypoints",
+                   "graph.solve.ensemble", "h5py"):
         try:
             importlib.import_module(module)
         except ImportError:
             pass
-    from graph.warmup import warm_up
+    from graph.app.warmup import warm_up
 
     warm_up()
     _warm_cli(place.dir)
@@ -622,8 +622,8 @@ def _warm_cli(where: Path) -> None:
     global _serving
     import tempfile
 
-    from graph.calibration import default_rig_path, load_calibration, write_anipose_toml
-    from graph.keypoints import write_dlc_csv
+    from graph.io.calibration import default_rig_path, load_calibration, write_anipose_toml
+    from graph.io.keypoints import write_dlc_csv
     from graph.simulate import simulate_run
 
     _serving = True  # this process's own solve: not handed over

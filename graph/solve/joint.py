@@ -10,18 +10,18 @@ Unknowns: the poses ``q_n`` and one vector ``W`` shared by all frames:
   (``BONE_PRIOR_SD``);
 * ``tau_c``, the time offset (frames) of each camera but the first: camera c's frame m was taken at
   time ``m + tau_c``; its detections are projections of the pose interpolated between the two
-  frames around that time (:func:`graph.kernels.window_normals`). The prior ``N(tau0_c, 1)``
-  centres each on the whole-frame search (:mod:`graph.sync`).
+  frames around that time (:func:`graph.solve.kernels.window_normals`). The prior ``N(tau0_c, 1)``
+  centres each on the whole-frame search (:mod:`graph.solve.sync`).
 
-The cost is ``fte``'s (:mod:`graph.fte`) with the detections so evaluated, plus
+The cost is ``fte``'s (:mod:`graph.solve.fte`) with the detections so evaluated, plus
 ``1/2 |(W - W0) / sd|^2``. Each Gauss-Newton system is one GTSAM graph
 (:meth:`JointTrajectoryProblem.joint_graph`): per frame a ``HessianFactor`` on ``(q_n, q_{n+1}, W)``
 (``(q_n, W)`` without time offsets), the motion factors, and one factor on ``W``, eliminated in time
 order with ``W`` last: the arrow-head on the banded chain, linear in frames. The step makes that
 elimination compiled, without building the graph (:meth:`JointTrajectoryProblem.step`,
-:func:`graph.marginals.chain_forward`; equal to GTSAM's to 1e-9 in the tests). The marginals, of
+:func:`graph.solve.marginals.chain_forward`; equal to GTSAM's to 1e-9 in the tests). The marginals, of
 the poses and of ``W``, come from the same structure in one compiled pass
-(:func:`graph.marginals.banded_marginals`); a marker's sd includes the lengths' own uncertainty,
+(:func:`graph.solve.marginals.banded_marginals`); a marker's sd includes the lengths' own uncertainty,
 ``Var p = [J_q J_l] Cov(q_n, l) [J_q J_l]^T``.
 
 An offset is *not identified* when no whole-frame lag stands out for its camera (a still animal, a
@@ -39,16 +39,19 @@ from typing import NamedTuple
 import gtsam
 import numpy as np
 
-from graph import kernels
+from graph import kinematics
 from graph.errors import InputError
-from graph.fte import PRIOR_SIGMA, Estimate, TrajectoryProblem, bone_lengths, solve_fte, solve_from
-from graph.initial import initial_poses
-from graph.marginals import banded_marginals, chain_band, information_taken, solve_band
-from graph.smoothing import STENCILS
-from graph.problem import Problem
-from graph.robust import A as RA, B as RB, C as RC
-from graph.sync import coarse_offsets, on_reference_clock, shift_and_fraction
-from graph.triangulate import robust_points
+from graph.solve import kernels
+from graph.solve.fte import PRIOR_SIGMA, Estimate, TrajectoryProblem, bone_lengths, solve_from, solve_fte
+from graph.solve.initial import initial_poses
+from graph.solve.marginals import banded_marginals, chain_band, information_taken, solve_band
+from graph.solve.problem import Problem
+from graph.solve.robust import A as RA
+from graph.solve.robust import B as RB
+from graph.solve.robust import C as RC
+from graph.solve.smoothing import STENCILS
+from graph.solve.sync import coarse_offsets, on_reference_clock, shift_and_fraction
+from graph.solve.triangulate import robust_points
 from graph.types import Progress, ProgressCallback, Result
 
 LENGTH_PRIOR_SD = 0.22  # log-normal sd of a length group's scale about the model's
@@ -96,7 +99,7 @@ class JointState(NamedTuple):
 
 
 class JointNormals(NamedTuple):
-    """The robust measurement cost at a :class:`JointState` (:func:`graph.kernels.window_normals`,
+    """The robust measurement cost at a :class:`JointState` (:func:`graph.solve.kernels.window_normals`,
     assembled per frame)."""
 
     H: np.ndarray  # (N, P, P) each frame's information
@@ -128,7 +131,7 @@ def _marker_columns(pt_base: np.ndarray, marker_point: np.ndarray, pt_col: np.nd
 
 
 class JointTrajectoryProblem(TrajectoryProblem):
-    """:class:`graph.fte.TrajectoryProblem` with the shared unknowns ``W`` (module docstring).
+    """:class:`graph.solve.fte.TrajectoryProblem` with the shared unknowns ``W`` (module docstring).
     ``bone_len`` are the bones' starting lengths (their sds stay those of the start)."""
 
     def __init__(self, prob: Problem, Q0: np.ndarray, unknowns: SharedUnknowns, bone_len: np.ndarray | None = None):
@@ -185,7 +188,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
 
     def _system(self, X: JointState, nrm: JointNormals, lam: float, prior: bool = True):
         """The frames' and W's blocks of the damped system over the new state, in absolute form
-        (:class:`graph.fte.TrajectoryProblem`): ``G x' = gvec`` with ``gvec = G_data x - g + ...``."""
+        (:class:`graph.solve.fte.TrajectoryProblem`): ``G x' = gvec`` with ``gvec = G_data x - g + ...``."""
         Q, W = X
         w = 1.0 / PRIOR_SIGMA**2
         Gd = nrm.H + (w + lam) * np.eye(self.P)
@@ -199,7 +202,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
         return Gd, gv, GW, gW
 
     def _chains(self, Gd: np.ndarray, nrm: JointNormals) -> tuple[list, list]:
-        """Each group's chain blocks (:func:`graph.marginals.chain_band`: the per-frame ``Gd``
+        """Each group's chain blocks (:func:`graph.solve.marginals.chain_band`: the per-frame ``Gd``
         (N, P, P), the motion prior of its order, the neighbouring frames' coupling ``Hx``) and its
         coupling to W (N, d, G): what the step solves and the marginals invert."""
         w2 = 1.0 / self.sigma3**2
@@ -215,7 +218,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
     def step(self, X: JointState, nrm: JointNormals, lam: float) -> JointState:
         """The damped Gauss-Newton step: each group's chain (with the neighbouring frames' coupling
         ``Hx``) eliminated in time order by the compiled block Cholesky
-        (:func:`graph.marginals.solve_band`), W's system reduced by every chain and solved, then
+        (:func:`graph.solve.marginals.solve_band`), W's system reduced by every chain and solved, then
         each chain's back substitution: the elimination GTSAM makes of :meth:`joint_graph` (tests)."""
         Gd, gv, GW, gW = self._system(X, nrm, lam)
         bands, Bs = self._chains(Gd, nrm)
@@ -267,7 +270,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
         """Marginal covariances of every pose (N, P, P), between each pose and W (N, P, G), and of
         W (G, G), at the optimum (undamped; module docstring). For free points without bones, one
         chain per marker: each marker's marginals use W's information with every other marker's
-        chain eliminated (:func:`graph.marginals.information_taken`)."""
+        chain eliminated (:func:`graph.solve.marginals.information_taken`)."""
         G = self.G
         DW = nrm.HWW + np.diag(self.prior_info)
         bands, Bs = self._chains(nrm.H + np.eye(self.P)[None] / PRIOR_SIGMA**2, nrm)
@@ -293,7 +296,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
         scales, bone_len, tau = self.unknowns.split(X.W)
         args = self._kernel_skeleton(scales)
         G = self.G
-        pos, dpos, dlen = kernels.fk_body_jacobian_batch(X.Q, *args[:8], self.pt_col, G)
+        pos, dpos, dlen = kinematics.fk_body_jacobian_batch(X.Q, *args[:8], self.pt_col, G)
         if not uncertainty:
             return Estimate(pos, np.full(pos.shape, np.nan), None, self._report(X, None))
         Sigma, cross, SW = self.joint_marginals(normals)
@@ -448,9 +451,9 @@ def shared_unknowns(prob: Problem, X: np.ndarray, tau0: np.ndarray, bone_len: np
 
 
 def solve_fte_joint(prob: Problem, progress: ProgressCallback | None = None) -> Result:
-    """``--method fte`` (the registry's): :func:`graph.fte.solve_fte` when the body is the model's
+    """``--method fte`` (the registry's): :func:`graph.solve.fte.solve_fte` when the body is the model's
     and the clocks are in sync, else the joint solve of this module: the whole-frame offsets
-    (:mod:`graph.sync`), the triangulation on the reference clock, a start of the body's size and
+    (:mod:`graph.solve.sync`), the triangulation on the reference clock, a start of the body's size and
     the poses, then one optimisation of the trajectory with W."""
     if not shares_unknowns(prob):
         return solve_fte(prob, progress)

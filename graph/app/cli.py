@@ -1,6 +1,6 @@
 """The ``acinoset`` command line: one-line errors and lazily loaded subcommands.
 
-The library's own subcommands are :data:`COMMANDS` (``python -m graph.cli`` runs them); the
+The library's own subcommands are :data:`COMMANDS` (``python -m graph.app.cli`` runs them); the
 ``acinoset`` script adds the service's (``service/cli.py``), which knows both layers. Only the
 module of the subcommand given is imported, so ``acinoset --help`` and ``--version`` load no solver.
 
@@ -43,18 +43,18 @@ class Command(namedtuple("Command", "name module help")):
 
 
 COMMANDS: tuple[Command, ...] = (
-    Command("solve", "graph.cli", "3D trajectories from DeepLabCut files of calibrated cameras"),
+    Command("solve", "graph.app.cli", "3D trajectories from DeepLabCut files of calibrated cameras"),
     Command("simulate", "graph.simulate",
             "simulate a cheetah run on a rig and write DeepLabCut CSVs, calibration and truth"),
-    Command("demo", "graph.demo", "simulate a cheetah run on the AcinoSet rig and solve it with every method"),
-    Command("plot", "graph.plot", "draw a solved run: PNG figures and an HTML playback file"),
+    Command("demo", "graph.app.demo", "simulate a cheetah run on the AcinoSet rig and solve it with every method"),
+    Command("plot", "graph.viewer.plot", "draw a solved run: PNG figures and an HTML playback file"),
     Command("anipose", "graph.anipose.cli",
             "solve an Anipose project's trials unchanged (config.toml, pose-2d, calibration) into pose-3d"),
     Command("export", "graph.export.cli", "write a solved run as NWB (ndx-pose), OpenSim TRC, C3D or EKS's CSV"),
     Command("video", "graph.video.cli", "draw a solved run over each camera's video, with a 3D view (H.264 MP4)"),
     Command("calibrate", "graph.calibrate.cli", "calibrate cameras from board views, or refine a rig from keypoints"),
-    Command("evaluate", "graph.evaluate", "score a 3D method on a recording: leave one camera out"),
-    Command("resident", "graph.resident", "the warm background process that serves 'acinoset solve': status, stop"),
+    Command("evaluate", "graph.app.evaluate", "score a 3D method on a recording: leave one camera out"),
+    Command("resident", "graph.app.resident", "the warm background process that serves 'acinoset solve': status, stop"),
 )
 
 
@@ -126,10 +126,10 @@ def main(argv: list[str] | None = None, commands: tuple[Command, ...] = COMMANDS
     commands = tuple(Command(*c) for c in commands)
     if _command_named(argv) == "solve":  # handed to a warm resident process when one is up
         try:
-            from graph import resident
+            from graph.app import resident
 
             return resident.solve(argv, commands, lambda: _run(argv, commands), exit_when_served=command_line,
-                                  entry="graph.cli:main")
+                                  entry="graph.app.cli:main")
         except KeyboardInterrupt:  # in the hand-over's first milliseconds (importing, finding the resident)
             return _interrupted()
     return _run(argv, commands)
@@ -210,15 +210,15 @@ KEYPOINTS_HELP = ("DeepLabCut CSV or H5, one per camera in the calibration's ord
 
 
 def read_cameras(paths: list[str], individual: str | None = None) -> list:
-    """One :class:`~graph.keypoints.Keypoints` per camera argument: a file, or an ensemble's files
-    joined by ``+`` (combined by :func:`graph.ensemble.combine`; a file whose own name has a ``+``
+    """One :class:`~graph.io.keypoints.Keypoints` per camera argument: a file, or an ensemble's files
+    joined by ``+`` (combined by :func:`graph.solve.ensemble.combine`; a file whose own name has a ``+``
     is read as one file)."""
-    from graph.keypoints import read_keypoints
+    from graph.io.keypoints import read_keypoints
 
     out = []
     for arg in paths:
         if "+" in arg and not Path(arg).exists():
-            from graph.ensemble import combine
+            from graph.solve.ensemble import combine
 
             out.append(combine([read_keypoints(p, individual=individual) for p in arg.split("+") if p]))
         else:
@@ -229,7 +229,7 @@ def read_cameras(paths: list[str], individual: str | None = None) -> list:
 def add_solve_options(p) -> None:
     """The options of a solve (``--method`` .. ``--time-offsets``), for ``solve`` and the commands
     that solve as it does; :func:`solve_options` reads them back."""
-    from graph.calibration import CALIBRATION_UNITS
+    from graph.camera import CALIBRATION_UNITS
     from graph.types import METHODS, SolveOptions
 
     defaults = SolveOptions()
@@ -281,17 +281,17 @@ def _auto_option(text: str, option: str = "--measurement-std", unit: str = "a nu
 
 
 def _body_option(text: str) -> tuple[str, dict[str, float] | None]:
-    """``--body``: ``model``, ``estimate``, or a file holding ``body_lengths`` (:func:`graph.io.read_body`)."""
+    """``--body``: ``model``, ``estimate``, or a file holding ``body_lengths`` (:func:`graph.io.results.read_body`)."""
     if text in ("model", "estimate"):
         return text, None
-    from graph.io import read_body
+    from graph.io.results import read_body
 
     return "given", read_body(text)
 
 
 def _motion_options(scale: str | None, order: str | None):
     """``--motion-scale`` and ``--motion-order`` as SolveOptions values. A scale that is neither a
-    number nor ``auto`` names an earlier run's report or result (:func:`graph.io.read_motion`): its
+    number nor ``auto`` names an earlier run's report or result (:func:`graph.io.results.read_motion`): its
     scales per group, with the orders they were fitted for (an order given too must agree)."""
     given_order = None if order is None else ("auto" if order == "auto" else int(order))
     plain_order = 3 if given_order is None else given_order  # with a scale that is not a file's
@@ -302,7 +302,7 @@ def _motion_options(scale: str | None, order: str | None):
     if not Path(scale).exists():
         raise ValueError(f"--motion-scale takes a positive number, 'auto', or the report JSON or result H5 of a run "
                          f"that fitted it; {scale!r} is none of these")
-    from graph.io import given_motion
+    from graph.io.results import given_motion
 
     return given_motion(scale, given_order)
 
@@ -354,8 +354,8 @@ def solve_options(args: argparse.Namespace):
 
 def run_solve(args: argparse.Namespace) -> int:
     from graph import api
-    from graph.calibration import load_calibration
-    from graph.keypoints import check_same_frames
+    from graph.io.calibration import load_calibration
+    from graph.io.keypoints import check_same_frames
 
     options = solve_options(args)
     for out in (args.out, args.h5, args.report):
@@ -379,19 +379,19 @@ def run_solve(args: argparse.Namespace) -> int:
         if bar is not None:
             bar.close()
 
-    from graph import io
+    from graph.io import results
 
     written = [args.out]
-    io.write_anipose_csv(args.out, result)
+    results.write_anipose_csv(args.out, result)
     if args.h5:
-        io.write_h5(args.h5, result, calibration=calibration)
+        results.write_h5(args.h5, result, calibration=calibration)
         written.append(args.h5)
     if args.report:
         Path(args.report).write_text(json.dumps(result.report.to_dict(), indent=2) + "\n", encoding="utf-8")
         written.append(args.report)
     if args.reprojections:
         stems = [f"{Path(p.split('+')[0] if not Path(p).exists() else p).stem}_reprojected" for p in args.keypoints]
-        io.write_reprojections_dlc(args.reprojections, result, stems=stems)
+        results.write_reprojections_dlc(args.reprojections, result, stems=stems)
         written.append(args.reprojections)
     rep = result.report
     rmse = "n/a" if rep.reprojection_rmse_px != rep.reprojection_rmse_px else f"{rep.reprojection_rmse_px:.2f} px"
@@ -408,7 +408,7 @@ def run_solve(args: argparse.Namespace) -> int:
     return 0
 
 
-if __name__ == "__main__":  # ``python -m graph.cli``: the library's commands, from the module proper
-    from graph.cli import main as library_main
+if __name__ == "__main__":  # ``python -m graph.app.cli``: the library's commands, from the module proper
+    from graph.app.cli import main as library_main
 
     sys.exit(library_main())

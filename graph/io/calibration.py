@@ -31,10 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.camera import FISHEYE, PINHOLE, Calibration, Camera
+from graph.camera import CALIBRATION_UNITS, FISHEYE, PINHOLE, Calibration, Camera
 from graph.errors import NESTED_TOO_DEEPLY, InputError
-
-CALIBRATION_UNITS: dict[str, float] = {"auto": 0.0, "m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per unit
 
 ROTATION_TOLERANCE = 1e-5  # max |R^T R - I| and |det R - 1| accepted (files rounded to ~6 digits pass)
 

@@ -1,7 +1,7 @@
 """Assemble a :class:`graph.types.Result` from a solver's arrays, with the diagnostics every method shares.
 
 Reprojection RMSE is over the detections used (valid and not flagged as outliers):
-``sqrt(mean |uv - z|^2)`` in pixels. The measured noise is :func:`graph.noise.scatter_px` of the
+``sqrt(mean |uv - z|^2)`` in pixels. The measured noise is :func:`graph.solve.noise.scatter_px` of the
 residuals (for ``tri`` scaled for the three coordinates each point took); when it is far from the
 sigma a smoother assumed, the report says so: the 3D standard deviations scale with that sigma.
 """
@@ -12,8 +12,8 @@ import warnings
 
 import numpy as np
 
-from graph.noise import scatter_px, triangulation_dof
-from graph.problem import Problem
+from graph.solve.noise import scatter_px, triangulation_dof
+from graph.solve.problem import Problem
 from graph.types import Result, SolveReport
 
 

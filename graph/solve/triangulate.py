@@ -21,15 +21,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from graph import kernels
 from graph.camera import Calibration, undistort_points
+from graph.solve import kernels
 
 
 def robust_points(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, sigma_px: float = 5.0,
                   iterations: int = 10):
     """The triangulated points alone: ``X`` (N, M, 3), NaN with fewer than two views, the
     Gauss-Newton information ``H`` (N*M, 3, 3) of each and the views used, ``ok`` (N*M, C). The
-    per-point work runs compiled (:func:`graph.kernels.triangulate_points`); the smoothers start
+    per-point work runs compiled (:func:`graph.solve.kernels.triangulate_points`); the smoothers start
     from ``X``."""
     N, C, M, _ = meas.shape
     K = N * M

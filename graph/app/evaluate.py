@@ -23,7 +23,7 @@ from graph.errors import InputError
 
 def register(sub) -> None:
     """``acinoset evaluate`` and its subcommands."""
-    from graph.cli import KEYPOINTS_HELP, add_solve_options
+    from graph.app.cli import KEYPOINTS_HELP, add_solve_options
     from graph.metrics import LOCO_CONFIDENCE
 
     p = sub.add_parser("evaluate", description="Score a 3D method on a recording without 3D truth.")
@@ -50,7 +50,7 @@ def _variant(args: argparse.Namespace, text: str):
     import copy
     import shlex
 
-    from graph.cli import UsageError, add_solve_options, solve_options
+    from graph.app.cli import UsageError, add_solve_options, solve_options
 
     parser = argparse.ArgumentParser(prog=f"--versus {text!r}", add_help=False, exit_on_error=False)
     add_solve_options(parser)
@@ -83,8 +83,8 @@ def _table(score) -> None:
 
 
 def run_loco(args: argparse.Namespace) -> int:
-    from graph.calibration import load_calibration
-    from graph.cli import UsageError, read_cameras, solve_options
+    from graph.app.cli import UsageError, read_cameras, solve_options
+    from graph.io.calibration import load_calibration
     from graph.metrics import leave_one_camera_out, loco_difference
     from graph.types import jsonable
 

@@ -11,7 +11,7 @@ Written to ``--out``::
     summary.json      the same with per-marker errors and the simulation settings
     comparison.png    3D error against the truth over time and per marker, every method
     <method>/         result.csv (Anipose 3D layout), result.h5, report.json, the figures of
-                      graph.plot and playback.html
+                      graph.viewer.plot and playback.html
 
 With ``--videos`` (the ``video`` extra) the run is also filmed (``input/cam1.mp4`` ..., at the rig's
 2704x1520, about a minute a camera on two cores) and ``fte/videos/`` gets the labelled videos of the
@@ -28,14 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
-from graph import io
 from graph.api import solve
-from graph.calibration import default_rig_path, load_calibration
+from graph.app.warmup import warm_up
 from graph.errors import InputError
+from graph.io import results as result_files
+from graph.io.calibration import default_rig_path, load_calibration
 from graph.metrics import evaluate
 from graph.simulate import simulate_run, write_run
 from graph.types import SolveOptions
-from graph.warmup import warm_up
 
 DEMO_METHODS = ("tri", "ekf", "fte")
 
@@ -70,8 +70,8 @@ def run_demo(out: str | Path, frames: int = 200, fps: float = 120.0, noise: floa
         results.append(result)
         d = out / method
         d.mkdir(exist_ok=True)
-        io.write_anipose_csv(d / "result.csv", result)
-        io.write_h5(d / "result.h5", result)
+        result_files.write_anipose_csv(d / "result.csv", result)
+        result_files.write_h5(d / "result.h5", result)
         (d / "report.json").write_text(json.dumps(result.report.to_dict(), indent=2) + "\n", encoding="utf-8")
         if figures:
             _draw(result, d, calibration, log)
@@ -91,8 +91,8 @@ def _videos(run, result, out: Path, log) -> None:
     """Film the run into ``input/`` and draw the fte estimate over it into ``fte/videos/``."""
     import sys
 
-    from graph.video import render_videos, write_simulated_videos
     from graph.progress import FrameProgress
+    from graph.video import render_videos, write_simulated_videos
 
     log(f"filming the run: {len(run.keypoints)} cameras x {run.frames} frames ...")
     bar = FrameProgress(sys.stderr, label="camera-frames filmed") if sys.stderr.isatty() else None
@@ -111,13 +111,13 @@ def _videos(run, result, out: Path, log) -> None:
 
 
 def _draw(result, folder: Path, calibration, log) -> None:
-    """The figures and playback file of :mod:`graph.plot`, when that module is there."""
+    """The figures and playback file of :mod:`graph.viewer.plot`, when that module is there."""
     try:
-        from graph import plot
+        from graph.viewer import plot
     except ModuleNotFoundError as e:
-        if e.name != "graph.plot":
+        if e.name != "graph.viewer.plot":
             raise
-        log("note: graph.plot is not available; no per-method figures")
+        log("note: graph.viewer.plot is not available; no per-method figures")
         return
     plot.write_figures(result, folder, calibration)
     if hasattr(plot, "write_playback_html"):

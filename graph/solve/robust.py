@@ -8,7 +8,7 @@
              = a b - a^2/2 + a (c-b)/2   (= 40.5)          s >= c
 
   IRLS weight ``w(s) = rho'(s)/s``: 1, a/s, a (c-s)/((c-b) s), 0. The compiled version used by the
-  solvers is :func:`graph.kernels.redescending`.
+  solvers is :func:`graph.solve.kernels.redescending`.
 * Cauchy: ``rho(s) = log(1 + s^2)/2``, ``w(s) = 1/(1 + s^2)`` (triangulation refinement).
 
 A detection is called an *outlier* when ``s >= OUTLIER_S`` (beyond b: the loss is redescending

@@ -13,14 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.calibration import in_metres
 from graph.camera import Calibration
-from graph.ensemble import relative_noise
 from graph.errors import InputError
-from graph.keypoints import Keypoints, check_same_frames, match_bodyparts, no_marker_matched
-from graph.noise import scatter_px, triangulation_dof
+from graph.io.calibration import in_metres
+from graph.io.keypoints import Keypoints, check_same_frames, match_bodyparts, no_marker_matched
 from graph.skeleton import Skeleton, load_skeleton
-from graph.triangulate import triangulate
+from graph.solve.ensemble import relative_noise
+from graph.solve.noise import scatter_px, triangulation_dof
+from graph.solve.triangulate import triangulate
 from graph.types import SolveOptions, default_motion_scale
 
 
@@ -37,7 +37,7 @@ class Problem:
     sigma_px: float = 5.0  # detection noise (px per coordinate): the option, or measured when "auto"
     warnings: list[str] = field(default_factory=list)
     # (C, M) each camera's and marker's noise relative to sigma_px, from an ensemble's spread
-    # (graph.ensemble.relative_noise); None: all alike
+    # (graph.solve.ensemble.relative_noise); None: all alike
     noise_scale: np.ndarray | None = None
 
     def sigma_cm(self, sigma_px: float | None = None) -> np.ndarray:
@@ -193,9 +193,9 @@ AUTO_CAUCHY_SCALE = 3.0  # later rounds triangulate with a Cauchy scale of this 
 
 def measured_noise(calibration: Calibration, meas: np.ndarray, valid: np.ndarray,
                    noise_scale: np.ndarray | None = None) -> float:
-    """The detection noise (px) for ``measurement_std_px="auto"``: :func:`graph.noise.scatter_px` of
+    """The detection noise (px) for ``measurement_std_px="auto"``: :func:`graph.solve.noise.scatter_px` of
     the robust triangulation's residuals, each scaled for the three coordinates the point took
-    (:func:`graph.noise.triangulation_dof`). A Cauchy refinement whose scale is the noise itself
+    (:func:`graph.solve.noise.triangulation_dof`). A Cauchy refinement whose scale is the noise itself
     pulls the points towards the views that agree and leaves residuals 10-25 % short, so after a
     first round at 5 px the points are triangulated again with a scale of 3 sigma (within 10 % of
     the simulated noise at 1-20 px with 20 % outliers). With ``noise_scale`` (C, M; an ensemble's

@@ -12,7 +12,7 @@ From robust triangulation ``X`` (N, M, 3):
   median-filtered over time.
 * **Joint angles** by per-frame inverse kinematics on the triangulated points (Huber loss, bounds),
   each frame started from, and weakly pulled towards, the previous one
-  (:func:`graph.kernels.inverse_kinematics`).
+  (:func:`graph.solve.kernels.inverse_kinematics`).
 * A *points* skeleton starts from the triangulated points themselves, gaps interpolated.
 """
 
@@ -21,9 +21,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from graph import kernels
-from graph.problem import Problem
-
+from graph.solve import kernels
+from graph.solve.problem import Problem
 
 IK_ITERATIONS = 5  # Gauss-Newton steps per frame: the smoother refines the start; with 5 instead of 15
 # the 3D error of fte (body and clocks estimated) on 20 simulated runs of two rigs moved by 0.04 mm at most
