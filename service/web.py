@@ -2,7 +2,7 @@
 
 Plain HTML and JavaScript (``service/templates``, ``service/static``) that call the REST API v1 with
 the user's token, which the browser keeps in localStorage. Nothing is fetched from outside the
-server: plotly.js comes from the plotly wheel (:func:`graph.viewer.plot.plotly_js_path`), the result view
+server: plotly.js comes from the plotly wheel (:func:`graph.viewer.playback.plotly_js_path`), the result view
 and its stylesheet from the library (:mod:`graph.viewer`), both under ``/static/``. The app includes
 :data:`router` with ``include_in_schema=False``: pages are not part of the REST contract.
 
@@ -26,7 +26,7 @@ from fastapi import APIRouter, HTTPException, Request, Response
 from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 
 from graph import viewer
-from graph.viewer.plot import plotly_js_path
+from graph.viewer.playback import plotly_js_path
 from service.store import ACTIVE, STATUSES
 
 HERE = Path(__file__).resolve().parent

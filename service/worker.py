@@ -76,7 +76,7 @@ def prepare_solver_environment() -> None:
 # imported by every process that forks solves (missing ones are skipped)
 SOLVER_MODULES = ("gtsam", "numba", "graph.types", "graph.api", "graph.io.calibration", "graph.io.keypoints",
                   "graph.skeleton", "graph.solve.problem", "graph.solve.kernels", "graph.solve.triangulate", "graph.solve.tri", "graph.solve.fte",
-                  "graph.solve.sync", "graph.solve.joint", "graph.solve.online", "graph.io.results", "graph.viewer.plot")
+                  "graph.solve.sync", "graph.solve.joint", "graph.solve.online", "graph.io.results", "graph.viewer.payload")
 
 
 def preload_modules(warm: bool) -> list[str]:
@@ -128,7 +128,7 @@ def write_results(result, out_dir: Path, calibration=None) -> dict:
     """Write every result format into ``out_dir`` (the H5 with the calibration solved with, so the
     exports carry the rig); return the report as a dict."""
     from graph.io.results import write_anipose_csv, write_h5
-    from graph.viewer.plot import result_payload  # what the job page draws: one definition for both sides
+    from graph.viewer.payload import result_payload  # what the job page draws: one definition for both sides
 
     out_dir.mkdir(parents=True, exist_ok=True)
     name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}

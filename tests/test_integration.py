@@ -107,7 +107,7 @@ def test_simulate_then_solve_through_files(tmp_path, capsys):
 
 def test_demo_command(tmp_path, capsys):
     out = tmp_path / "demo"
-    # each method's figures come from graph.viewer.plot (tested there); the comparison is drawn here
+    # each method's figures come from graph.viewer.figures (tested there); the comparison is drawn here
     assert main(["demo", "--out", str(out), "--frames", "60", "--no-figures"]) == 0
     text = capsys.readouterr().out
     lines = {line.split()[0]: line.split() for line in text.splitlines() if line.split()[:1] in

@@ -18,7 +18,8 @@ from graph.api import Result, SolveOptions, SolveReport, solve
 from graph.io.calibration import default_rig_path, load_calibration
 from graph.io.keypoints import Keypoints
 from graph.skeleton import load_skeleton
-from graph.viewer import plot
+from graph.viewer import cli as plot_cli
+from graph.viewer import figures, payload, playback
 
 FPS = 120.0
 
@@ -111,7 +112,7 @@ def kinematic_result() -> Result:
 
 def test_payload_is_strict_json_with_the_result_numbers(solved):
     result, calib = solved
-    p = plot.result_payload(result, calib)
+    p = payload.result_payload(result, calib)
     text = json.dumps(p, allow_nan=False)  # raises on NaN or infinity
     back = json.loads(text)
     N, M = result.positions.shape[:2]
@@ -141,7 +142,7 @@ def test_payload_is_strict_json_with_the_result_numbers(solved):
 def test_payload_without_camera_positions_says_so(solved):
     result, _ = solved
     bare = Result(**{**result.__dict__, "camera_centers": None})
-    assert plot.result_payload(bare)["camera_centers"] is None
+    assert payload.result_payload(bare)["camera_centers"] is None
 
 
 def test_camera_count_mismatch_is_a_one_line_input_error(solved):
@@ -151,7 +152,7 @@ def test_camera_count_mismatch_is_a_one_line_input_error(solved):
     result, calib = solved
     bare = Result(**{**result.__dict__, "camera_centers": None})
     with pytest.raises(InputError, match="calibration has 2 cameras but the result has 6"):
-        plot.result_payload(bare, Calibration(cameras=calib.cameras[:2]))
+        payload.result_payload(bare, Calibration(cameras=calib.cameras[:2]))
 
 
 def test_error_table_median_and_counts():
@@ -162,15 +163,15 @@ def test_error_table_median_and_counts():
                  std=np.zeros((3, 2, 3)), reprojections=np.zeros((1, 3, 2, 2)), residuals=r,
                  ncams=np.ones((3, 2)), score=np.ones((3, 2)), outlier=out, camera_names=["c"], fps=1.0,
                  report=SolveReport("tri", "points", 3, 1, 2), options=SolveOptions(method="tri"))
-    t = plot.error_table(res)
+    t = payload.error_table(res)
     assert t.median[0, 0] == 2.0 and math.isnan(t.median[0, 1])
     assert t.observations.tolist() == [[3, 0]] and t.outliers.tolist() == [[1, 0]]
-    np.testing.assert_allclose(plot.frame_error(res), [1.0, 3.0, np.nan])
+    np.testing.assert_allclose(payload.frame_error(res), [1.0, 3.0, np.nan])
 
 
 def test_frame_ranges():
-    assert plot.frame_ranges([7, 1, 2, 3, 3]) == [(1, 3), (7, 7)]
-    assert plot.frame_ranges([]) == []
+    assert payload.frame_ranges([7, 1, 2, 3, 3]) == [(1, 3), (7, 7)]
+    assert payload.frame_ranges([]) == []
 
 
 def _png_size(path):
@@ -188,7 +189,7 @@ def _ink(path) -> float:
 
 
 def test_figures_of_a_kinematic_result(kinematic, tmp_path):
-    written = plot.write_figures(kinematic, tmp_path)
+    written = figures.write_figures(kinematic, tmp_path)
     names = sorted(p.name for p in written)
     assert names == ["coordinates.png", "flags.png", "parameters.png", "reprojection_error.png", "skeleton.png"]
     for p in written:
@@ -199,13 +200,13 @@ def test_figures_of_a_kinematic_result(kinematic, tmp_path):
 
 def test_figures_of_a_triangulation_have_no_parameter_figure(solved, tmp_path):
     result, calib = solved
-    written = plot.write_figures(result, tmp_path, calib)
+    written = figures.write_figures(result, tmp_path, calib)
     assert "parameters.png" not in {p.name for p in written}
     assert (tmp_path / "skeleton.png").is_file() and (tmp_path / "flags.png").is_file()
 
 
 def test_playback_html_is_self_contained(kinematic, tmp_path):
-    path = plot.write_playback_html(kinematic, tmp_path / "playback.html")
+    path = playback.write_playback_html(kinematic, tmp_path / "playback.html")
     text = path.read_text(encoding="utf-8")
     # No file or address outside the page is referenced: scripts and styles are inline.
     assert not re.search(r"<script[^>]+src=", text)
@@ -227,7 +228,7 @@ def test_plot_command_on_a_result_file(solved, tmp_path, capsys):
     h5 = tmp_path / "run.h5"
     write_h5(h5, result)
     parser = argparse.ArgumentParser(prog="acinoset")
-    plot.register(parser.add_subparsers(dest="command"))
+    plot_cli.register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["plot", str(h5), "--out", str(tmp_path / "pics")])
     assert args.func(args) == 0
     printed = capsys.readouterr().out.split()
@@ -243,7 +244,7 @@ def test_plot_command_names_a_missing_file(tmp_path):
     from graph.errors import InputError
 
     parser = argparse.ArgumentParser(prog="acinoset")
-    plot.register(parser.add_subparsers(dest="command"))
+    plot_cli.register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["plot", str(tmp_path / "nope.h5"), "--out", str(tmp_path)])
     with pytest.raises(InputError, match=r"^nope\.h5: no such file$"):
         args.func(args)

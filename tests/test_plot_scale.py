@@ -6,7 +6,7 @@ import numpy as np
 
 from graph.api import SolveOptions, solve
 from graph.simulate import simulate_run
-from graph.viewer.plot import animal_size, result_payload
+from graph.viewer.payload import animal_size, result_payload
 
 
 def test_a_fly_sized_result_keeps_its_detail_and_units(rig):

@@ -22,14 +22,14 @@ def _python(code: str) -> subprocess.CompletedProcess:
 
 def test_the_library_works_without_the_service(tmp_path):
     code = BLOCK_SERVICE + textwrap.dedent(f"""
-        import graph.api, graph.app.cli, graph.io.results, graph.viewer.plot
+        import graph.api, graph.app.cli, graph.io.results, graph.viewer.playback
         from graph.io.calibration import default_rig_path, load_calibration
         from graph.simulate import simulate_run
         from graph.types import SolveOptions
         cal = load_calibration(default_rig_path())
         run = simulate_run(cal, frames=20, seed=0)
         result = graph.api.solve(run.keypoints, cal, SolveOptions(method="tri", fps=run.fps))
-        html = graph.viewer.plot.playback_html(result)
+        html = graph.viewer.playback.playback_html(result)
         assert "AcinoResultView" in html and "AcinoDom" in html
         graph.io.results.write_h5({str(tmp_path / 'r.h5')!r}, result)
         assert graph.app.cli.main(["plot", {str(tmp_path / 'r.h5')!r}, "--out", {str(tmp_path / 'pics')!r}]) == 0

@@ -47,7 +47,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("simulate", "graph.simulate",
             "simulate a cheetah run on a rig and write DeepLabCut CSVs, calibration and truth"),
     Command("demo", "graph.app.demo", "simulate a cheetah run on the AcinoSet rig and solve it with every method"),
-    Command("plot", "graph.viewer.plot", "draw a solved run: PNG figures and an HTML playback file"),
+    Command("plot", "graph.viewer.cli", "draw a solved run: PNG figures and an HTML playback file"),
     Command("anipose", "graph.anipose.cli",
             "solve an Anipose project's trials unchanged (config.toml, pose-2d, calibration) into pose-3d"),
     Command("export", "graph.export.cli", "write a solved run as NWB (ndx-pose), OpenSim TRC, C3D or EKS's CSV"),

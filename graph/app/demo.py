@@ -11,7 +11,7 @@ Written to ``--out``::
     summary.json      the same with per-marker errors and the simulation settings
     comparison.png    3D error against the truth over time and per marker, every method
     <method>/         result.csv (Anipose 3D layout), result.h5, report.json, the figures of
-                      graph.viewer.plot and playback.html
+                      graph.viewer.figures and playback.html
 
 With ``--videos`` (the ``video`` extra) the run is also filmed (``input/cam1.mp4`` ..., at the rig's
 2704x1520, about a minute a camera on two cores) and ``fte/videos/`` gets the labelled videos of the
@@ -111,17 +111,12 @@ def _videos(run, result, out: Path, log) -> None:
 
 
 def _draw(result, folder: Path, calibration, log) -> None:
-    """The figures and playback file of :mod:`graph.viewer.plot`, when that module is there."""
-    try:
-        from graph.viewer import plot
-    except ModuleNotFoundError as e:
-        if e.name != "graph.viewer.plot":
-            raise
-        log("note: graph.viewer.plot is not available; no per-method figures")
-        return
-    plot.write_figures(result, folder, calibration)
-    if hasattr(plot, "write_playback_html"):
-        plot.write_playback_html(result, folder / getattr(plot, "HTML_NAME", "playback.html"), calibration)
+    """The figures (:mod:`graph.viewer.figures`) and the playback file (:mod:`graph.viewer.playback`)."""
+    from graph.viewer.figures import write_figures
+    from graph.viewer.playback import HTML_NAME, write_playback_html
+
+    write_figures(result, folder, calibration)
+    write_playback_html(result, folder / HTML_NAME, calibration)
 
 
 def format_table(evaluations) -> list[str]:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.calibrate.extrinsics import RigResult
-from graph.viewer.plot import _figure, _set_equal_3d
+from graph.viewer.figures import _figure, _set_equal_3d
 
 
 def rig_figure(result: RigResult, path: Path, board_outline: np.ndarray) -> Path:

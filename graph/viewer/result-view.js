@@ -1,7 +1,7 @@
 /* The result view: 3D skeleton playback, reprojection error per marker and camera, coordinates
  * and pose parameters over time with their uncertainty, and what the solver flagged.
  *
- * Draws from the payload of graph.viewer.plot.result_payload (the service's result?format=json). Used by
+ * Draws from the payload of graph.viewer.payload.result_payload (the service's result?format=json). Used by
  * the job page and inlined into the HTML file `acinoset plot` writes; needs Plotly and dom.js.
  *
  *   const view = AcinoResultView.render(containerElement, payload, { onFrame(n, fromPlayback) {}, onPlaying(on, speed) {} });

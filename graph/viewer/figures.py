@@ -1,5 +1,4 @@
-"""Pictures of a solved run: PNG figures (matplotlib), a self-contained HTML playback file, and the
-JSON payload the web job page draws from.
+"""PNG figures of a solved run (matplotlib).
 
 People judge a 3D reconstruction by looking at it. Every picture here answers one question:
 
@@ -17,235 +16,25 @@ People judge a 3D reconstruction by looking at it. Every picture here answers on
 - ``flags.png``: what did the solver flag? Per frame and marker, how many cameras saw it (grey
   level), the detections rejected as outliers (crosses) and the frames no marker was seen twice in
   (hatched), above the per-frame reprojection error.
-
-The HTML playback file holds plotly.js, the result view script and the payload in one file, so it
-opens offline from a laptop, a shared drive or an e-mail attachment. :func:`result_payload` is the
-one definition of that payload; the REST service returns it as ``GET /v1/jobs/{id}/result?format=json``.
 """
 
 from __future__ import annotations
 
-import argparse
-import html
-import importlib.util
-import json
-import warnings
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from graph.errors import InputError
-from graph.io.calibration import load_calibration
-from graph.io.results import read_result
-from graph.types import Result, jsonable
-from graph.viewer import SCRIPTS, STYLES, viewer_dir
-
-PAYLOAD_VERSION = 1
-HTML_NAME = "playback.html"
-
-# Decimal places kept in the payload: 10 micrometres, 0.01 px, 0.001 likelihood, 1e-5 rad.
-_POS_DECIMALS = 5
-_PX_DECIMALS = 2
-_SCORE_DECIMALS = 3
-_PARAM_DECIMALS = 5
-
-
-# ----------------------------------------------------------------------------------- summaries
-
-
-@dataclass
-class ErrorTable:
-    """Reprojection error per camera and marker over the whole run (C, M).
-
-    ``median``: median over frames of the pixel residual of the detections the solver used
-    (observed, above the likelihood threshold, not rejected), NaN where there were none.
-    ``observations``: detections above the likelihood threshold. ``outliers``: those the robust loss
-    rejected.
-    """
-
-    median: np.ndarray
-    observations: np.ndarray
-    outliers: np.ndarray
-
-
-def error_table(result: Result) -> ErrorTable:
-    r = np.asarray(result.residuals, dtype=np.float64)
-    out = np.asarray(result.outlier, dtype=bool) & np.isfinite(r)
-    used = np.where(out, np.nan, r)
-    has = np.isfinite(used).any(axis=1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN cells: NaN, as documented
-        med = np.nanmedian(used, axis=1)
-    med[~has] = np.nan
-    return ErrorTable(median=med, observations=np.isfinite(r).sum(axis=1).astype(int),
-                      outliers=out.sum(axis=1).astype(int))
-
-
-def frame_error(result: Result) -> np.ndarray:
-    """Per-frame reprojection RMSE (N,) over the detections used, NaN where none:
-    ``sqrt(mean_{c,m} r_cnm^2)``."""
-    r = np.where(np.asarray(result.outlier, dtype=bool), np.nan, np.asarray(result.residuals, float))
-    cnt = np.isfinite(r).sum(axis=(0, 2))
-    ss = np.nansum(r ** 2, axis=(0, 2))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(cnt > 0, np.sqrt(ss / np.maximum(cnt, 1)), np.nan)
-
-
-def frame_ranges(frames) -> list[tuple[int, int]]:
-    """Sorted frame numbers as inclusive runs: ``[1, 2, 3, 7] -> [(1, 3), (7, 7)]``."""
-    fs = sorted({int(f) for f in frames})
-    runs: list[tuple[int, int]] = []
-    for f in fs:
-        if runs and f == runs[-1][1] + 1:
-            runs[-1] = (runs[-1][0], f)
-        else:
-            runs.append((f, f))
-    return runs
-
-
-def _ranges_text(frames, limit: int = 8) -> str:
-    runs = frame_ranges(frames)
-    parts = [f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:limit]]
-    if len(runs) > limit:
-        parts.append(f"and {len(runs) - limit} more")
-    return ", ".join(parts)
-
-
-def camera_centers(result: Result, calibration=None) -> np.ndarray | None:
-    """World positions of the cameras (C, 3): from the result, else from ``calibration``."""
-    cc = getattr(result, "camera_centers", None)
-    if cc is not None:
-        cc = np.asarray(cc, dtype=np.float64).reshape(-1, 3)
-        if cc.shape[0] == len(result.camera_names):
-            return cc
-    if calibration is not None:
-        if len(calibration) != len(result.camera_names):
-            raise InputError(f"the calibration has {len(calibration)} cameras but the result has "
-                             f"{len(result.camera_names)}", getattr(calibration, "source", None) or None)
-        return np.stack([c.center for c in calibration.cameras])
-    return None
-
-
-def _camera_directions(result: Result, calibration=None) -> np.ndarray | None:
-    """Unit optical axes in the world frame (C, 3), ``R^T [0, 0, 1]``, when a calibration is given."""
-    if calibration is None or len(calibration) != len(result.camera_names):
-        return None
-    return np.stack([c.R[2] for c in calibration.cameras])
-
-
-def _is_length_param(name: str) -> bool:
-    """Positions in metres: a kinematic skeleton's ``x_*``, ``y_*``, ``z_*`` (the root) and a points
-    skeleton's ``<marker>_x``, ``_y``, ``_z``; the rest are angles."""
-    return name.split("_", 1)[0] in ("x", "y", "z") or name.rsplit("_", 1)[-1] in ("x", "y", "z")
-
-
-def animal_size(result: Result) -> float:
-    """The animal's size (m): the median over frames of the largest extent of its markers (a fly's
-    is a fraction of a millimetre, a cheetah's a metre or two); the pictures scale with it."""
-    pos = np.asarray(result.positions)
-    ext = []
-    for P in pos[:: max(1, len(pos) // 50)]:
-        P = P[np.isfinite(P).all(axis=1)]
-        if len(P) >= 2:
-            ext.append(float(np.ptp(P, axis=0).max()))
-    size = float(np.median(ext)) if ext else 0.0
-    return size if size > 0 else 1.0
-
-
-def _position_decimals(result: Result) -> int:
-    """Decimals of metres that keep 1e-4 of the animal's size: 5 (10 um) for a cheetah, 8 for a fly."""
-    return int(np.clip(4 - np.floor(np.log10(animal_size(result))), _POS_DECIMALS, 10))
-
-
-# ------------------------------------------------------------------------------------ payload
-
-
-def _json_array(a, decimals: int | None = None):
-    """An array as nested lists, NaN and infinities as ``None``."""
-    if a is None:
-        return None
-    a = np.asarray(a)
-    if a.dtype == bool:
-        return a.tolist()
-    if np.issubdtype(a.dtype, np.integer):
-        return a.astype(np.int64).tolist()
-    a = a.astype(np.float64)
-    finite = np.isfinite(a)
-    if decimals is not None:
-        a = np.round(a, decimals)
-    if finite.all():
-        return a.tolist()
-    obj = a.astype(object)
-    obj[~finite] = None
-    return obj.tolist()
-
-
-def assumed_noise_px(result: Result) -> float:
-    """The detection noise the solve assumed (px): the report's, which is the measured one when the
-    option was ``"auto"``; the option itself for results written before the report had it."""
-    sigma = getattr(result.report, "sigma_px", float("nan"))
-    if not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma > 0):
-        opt = getattr(result.options, "measurement_std_px", 5.0)
-        sigma = float(opt) if isinstance(opt, (int, float)) and opt > 0 else 5.0
-    return float(sigma)
-
-
-def result_payload(result: Result, calibration=None) -> dict:
-    """Everything the result view draws, as JSON-safe data (NaN -> ``null``). Shapes: N frames,
-    M markers, C cameras, P pose parameters.
-
-    ``markers`` and ``cameras`` are names; ``bones`` pairs of marker names. ``positions``, ``std`` (N, M, 3) metres; ``ncams`` (N, M) cameras that saw each marker;
-    ``score`` (N, M) mean likelihood; ``reprojection_error_px`` (N, M) the mean over the cameras
-    whose detection was used; ``residuals`` (C, N, M) px per camera; ``outliers`` a list of
-    ``[camera, frame, marker]`` index triples; ``error_table`` {median, observations, outliers}
-    (C, M); ``frame_error`` (N,) px; ``camera_centers`` (C, 3) or null; ``params``, ``params_std``
-    (N, P) or null, with ``param_units`` "m" or "rad"; ``report``
-    the solver's report; ``options`` the options the run was solved with.
-    """
-    N, M = result.positions.shape[:2]
-    bones = [[a, b] for a, b in result.bones if a in result.markers and b in result.markers]
-    table = error_table(result)
-    out = np.argwhere(np.asarray(result.outlier, dtype=bool) & np.isfinite(result.residuals))
-    report = result.report.to_dict() if hasattr(result.report, "to_dict") else dict(result.report)
-    options = result.options.to_dict() if hasattr(result.options, "to_dict") else dict(result.options or {})
-    cc = camera_centers(result, calibration)
-    cd = _camera_directions(result, calibration)
-    params = result.params
-    pos_dec = _position_decimals(result)
-    return {
-        "version": PAYLOAD_VERSION,
-        "method": result.method,
-        "skeleton": result.skeleton,
-        "fps": float(result.fps),
-        "frames": int(N),
-        "markers": list(result.markers),
-        "bones": bones,
-        "cameras": list(result.camera_names),
-        "camera_centers": _json_array(cc, pos_dec),
-        "camera_directions": _json_array(cd, 4),
-        "positions": _json_array(result.positions, pos_dec),
-        "std": _json_array(result.std, pos_dec),
-        "ncams": _json_array(np.asarray(result.ncams).astype(np.int64)),
-        "score": _json_array(result.score, _SCORE_DECIMALS),
-        "reprojection_error_px": _json_array(result.error, _PX_DECIMALS),
-        "residuals": _json_array(result.residuals, _PX_DECIMALS),
-        "outliers": out.astype(np.int64).tolist(),
-        "error_table": {"median": _json_array(table.median, _PX_DECIMALS),
-                        "observations": _json_array(table.observations),
-                        "outliers": _json_array(table.outliers)},
-        "frame_error": _json_array(frame_error(result), _PX_DECIMALS),
-        "param_names": list(result.param_names or []),
-        "param_units": ["m" if _is_length_param(p) else "rad" for p in (result.param_names or [])],
-        "params": _json_array(params, max(pos_dec, _PARAM_DECIMALS)) if params is not None else None,
-        "params_std": (_json_array(result.params_std, max(pos_dec, _PARAM_DECIMALS))
-                       if result.params_std is not None else None),
-        "report": jsonable(report),
-        "options": jsonable(options),
-    }
-
-
-# ------------------------------------------------------------------------------------ figures
+from graph.types import Result
+from graph.viewer.payload import (
+    animal_size,
+    assumed_noise_px,
+    camera_centers,
+    error_table,
+    frame_error,
+    frame_ranges,
+    is_length_param,
+    ranges_text,
+)
 
 
 def _figure(width: float, height: float, layout: str | None = "constrained"):
@@ -501,7 +290,7 @@ def plot_parameters(result: Result, path: Path) -> Path | None:
     if result.params is None or not result.param_names:
         return None
     names = list(result.param_names)
-    if all(_is_length_param(n) for n in names):
+    if all(is_length_param(n) for n in names):
         return None
     q = np.asarray(result.params, float)
     qs = np.asarray(result.params_std, float) if result.params_std is not None else np.full_like(q, np.nan)
@@ -520,7 +309,7 @@ def plot_parameters(result: Result, path: Path) -> Path | None:
         if p >= P:
             ax.set_visible(False)
             continue
-        scale, unit = (1.0, "m") if _is_length_param(names[p]) else (180 / np.pi, "\u00b0")
+        scale, unit = (1.0, "m") if is_length_param(names[p]) else (180 / np.pi, "\u00b0")
         y = q[:, p] * scale
         s = 2 * qs[:, p] * scale
         _shade_frames(ax, getattr(result.report, "unconstrained_frames", []) or [])
@@ -591,7 +380,7 @@ def plot_flags(result: Result, path: Path) -> Path:
     if bad_markers:
         lines.append("* never seen by two cameras: " + ", ".join(bad_markers))
     if unconstrained:
-        lines.append("frames with no marker seen twice: " + _ranges_text(unconstrained))
+        lines.append("frames with no marker seen twice: " + ranges_text(unconstrained))
     lines.append(f"{int(out.sum())} detections rejected as outliers in {int((nout > 0).sum())} frames")
     ax.set_title("; ".join(lines), fontsize=8.5)
     fig.savefig(path)
@@ -657,131 +446,3 @@ def write_figures(result: Result, out_dir: str | Path, calibration=None, snapsho
     if p is not None:
         written.append(p)
     return written
-
-
-# --------------------------------------------------------------------------------------- HTML
-
-
-def plotly_js_path() -> Path:
-    """plotly.min.js as shipped inside the plotly wheel (no network needed)."""
-    spec = importlib.util.find_spec("plotly")
-    if spec is None or not spec.submodule_search_locations:
-        raise FileNotFoundError("the plotly package is not installed")
-    p = Path(list(spec.submodule_search_locations)[0]) / "package_data" / "plotly.min.js"
-    if not p.is_file():
-        raise FileNotFoundError(f"{p} is missing from the plotly package")
-    return p
-
-
-def _script_text(text: str) -> str:
-    """Make text safe inside ``<script>``: no ``</script`` or ``<!--`` can end it early."""
-    return text.replace("</", "<\\/").replace("<!--", "<\\!--")
-
-
-def playback_html(result: Result, calibration=None, title: str | None = None) -> str:
-    """One self-contained HTML page: plotly.js, the result view and the payload inlined."""
-    d = viewer_dir()
-    payload = json.dumps(result_payload(result, calibration), separators=(",", ":"), allow_nan=False)
-    css = "\n".join((d / name).read_text(encoding="utf-8") for name in STYLES)
-    view = "\n".join((d / name).read_text(encoding="utf-8") for name in SCRIPTS)
-    plotly = plotly_js_path().read_text(encoding="utf-8")
-    title = title or f"acinoset: {result.method} / {result.skeleton}, {result.positions.shape[0]} frames"
-    return f"""<!doctype html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>{html.escape(title)}</title>
-<style>{css}</style>
-<script>{_script_text(plotly)}</script>
-<script>{_script_text(view)}</script>
-</head>
-<body>
-<header class="top"><span class="brand">acinoset</span></header>
-<main id="main">
-<h1>{html.escape(title)}</h1>
-<div id="result"><p>Loading the result view&hellip;</p></div>
-</main>
-<script type="application/json" id="payload">{_script_text(payload)}</script>
-<script>
-AcinoResultView.render(document.getElementById("result"),
-  JSON.parse(document.getElementById("payload").textContent), {{}});
-</script>
-</body>
-</html>
-"""
-
-
-def write_playback_html(result: Result, path: str | Path, calibration=None) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(playback_html(result, calibration), encoding="utf-8")
-    return path
-
-
-# ---------------------------------------------------------------------------------------- CLI
-
-
-def register(subparsers) -> None:
-    """Add ``acinoset plot RESULT.h5 --out DIR``."""
-    p = subparsers.add_parser(
-        "plot",
-        description="Write PNG figures (skeleton with cameras, reprojection error per marker and "
-                    "camera, coordinates and pose parameters over time with uncertainty, flagged "
-                    f"frames) and {HTML_NAME}, a self-contained 3D playback that opens offline.")
-    p.add_argument("result", type=Path, help="RESULT.h5 written by `acinoset solve --h5`")
-    p.add_argument("--out", type=Path, required=True, help="folder to write the pictures into")
-    p.add_argument("--calibration", type=Path, default=None,
-                   help="calibration file, to draw the cameras when the result file holds no camera positions")
-    p.add_argument("--snapshots", type=int, default=5, help="frames drawn in skeleton.png (default 5)")
-    p.add_argument("--no-html", action="store_true", help=f"PNG figures only, no {HTML_NAME}")
-    pick = p.add_argument_group("frame picker", "one camera's video frame with the estimate drawn on it, as a PNG "
-                                "(instead of the figures; needs the 'video' extra)")
-    pick.add_argument("--frame", type=int, default=None, metavar="N", help="the frame (counting from 0)")
-    pick.add_argument("--camera", default=None, metavar="K", help="the camera: its number (from 1) or its name")
-    pick.add_argument("--video", type=Path, default=None, metavar="CAM.mp4", help="that camera's video")
-    p.set_defaults(func=run)
-
-
-def run(args: argparse.Namespace) -> int:
-    if not Path(args.result).is_file():
-        raise InputError("no such file", args.result)
-    if args.snapshots < 1:
-        raise InputError("--snapshots must be at least 1")
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        raise InputError("--out must be a folder, and this is a file", args.out)
-    result = read_result(args.result)
-    if args.frame is not None or args.camera is not None or args.video is not None:
-        print(_pick_frame(result, args))
-        return 0
-    calibration = None
-    if args.calibration is not None:
-        calibration = load_calibration(args.calibration)
-    written = write_figures(result, args.out, calibration, snapshots=args.snapshots)
-    if not args.no_html:
-        written.append(write_playback_html(result, Path(args.out) / HTML_NAME, calibration))
-    for p in written:
-        print(p)
-    return 0
-
-
-def _pick_frame(result: Result, args: argparse.Namespace) -> Path:
-    """``--frame N --camera K --video CAM.mp4``: ``<camera>_frame<N>.png`` in ``--out``."""
-    if args.frame is None or args.camera is None or args.video is None:
-        raise InputError("the frame picker needs all of --frame N, --camera K and --video CAM.mp4")
-    names = list(result.camera_names)
-    if args.camera in names:
-        camera = names.index(args.camera)
-    else:
-        try:
-            camera = int(args.camera) - 1
-        except ValueError:
-            raise InputError(f"--camera {args.camera}: not a camera number or one of {', '.join(names)}") from None
-    if not Path(args.video).is_file():
-        raise InputError("no such video file", args.video)
-    from graph.video import camera_frame_png
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    name = names[camera] if 0 <= camera < len(names) else f"camera{camera + 1}"
-    return camera_frame_png(result, camera, args.video, args.frame, out / f"{name}_frame{args.frame}.png")
