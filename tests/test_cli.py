@@ -305,10 +305,24 @@ def test_evaluate_loco(run_dir, tmp_path):
                    "--method", "tri", "--skeleton", "points", "--fps", FPS, "--json", out)
     assert proc.returncode == 0, proc.stderr
     assert "leave one camera out" in proc.stdout and "all" in proc.stdout
+    assert "judged against: each held-out camera's detections in the files given" in proc.stdout, proc.stdout
     doc = json.loads(out.read_text())
     assert [c["camera"] for c in doc["cameras"]] == load_calibration(run_dir / "calibration.toml").names
     assert doc["options"]["method"] == "tri" and doc["confidence"] == 0.9
     assert 0.3 < doc["median_px"] < 5.0 and doc["p90_px"] > doc["median_px"] and doc["coverage"] > 0.9
+    # an ensemble per camera: judged against its members' median, and the output says so
+    second = []
+    for c, path in enumerate(cams(run_dir)):
+        k = read_keypoints(path)
+        k.xy = k.xy + np.random.default_rng(c).normal(0, 0.5, k.xy.shape)
+        write_dlc_csv(tmp_path / f"cam{c + 1}_b.csv", k)
+        second.append(f"{path}+{tmp_path / f'cam{c + 1}_b.csv'}")
+    ens = run_cli("evaluate", "loco", *second, "--calibration", run_dir / "calibration.toml", "--method", "tri",
+                  "--skeleton", "points", "--fps", FPS)
+    assert ens.returncode == 0, ens.stderr
+    judged = [line.strip() for line in ens.stdout.splitlines() if line.strip().startswith("judged against:")]
+    assert judged == ["judged against: each held-out camera's detections as given; an ensemble's are its members' "
+                      "median position with their mean likelihood, not one member's"], ens.stdout
     two = run_cli("evaluate", "loco", *cams(run_dir)[:2], "--calibration", run_dir / "calibration.toml")
     assert_user_error(two, "calibration.toml", "3 cameras but 2 keypoint files")
     proc = run_cli("evaluate", "loco", *cams(run_dir), "--calibration", run_dir / "calibration.toml",

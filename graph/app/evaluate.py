@@ -3,7 +3,11 @@
 ``acinoset evaluate loco CAM1.csv CAM2.csv CAM3.csv ... --calibration FILE [solve options] [--json OUT]``
 reconstructs from every set of all cameras but one, projects into the camera left out and compares
 with its confident detections (:func:`graph.metrics.leave_one_camera_out`): the median and 90th
-percentile of that pixel error, per camera and over all, for the solve options given.
+percentile of that pixel error, per camera and over all, for the solve options given. Each held-out
+camera is judged against the detections it was given, and the output says so: an ensemble's
+(``CAM_a.csv+CAM_b.csv``) are its members' median with their mean likelihood, so its scores are not
+those of a comparison judged against one member's detections (``bench/bench_fly_loco.py`` judges
+every row against member 1).
 
 ``--versus "OPTIONS"`` (repeatable) scores the same recording again with those solve options
 changed (``--versus "--motion-order 1"``) and gives each one's difference from the first with its
@@ -82,6 +86,15 @@ def _table(score) -> None:
             print(f"acinoset: warning: {c.camera} held out: {w}", file=sys.stderr)
 
 
+def _judged(keypoints: list) -> str:
+    """What each held-out camera is scored against: the detections it was given. An ensemble's
+    (``CAM_a.csv+CAM_b.csv``) are those :func:`graph.solve.ensemble.combine` makes of its members."""
+    if any(k.spread_px is not None for k in keypoints):
+        return ("judged against: each held-out camera's detections as given; an ensemble's are its members' "
+                "median position with their mean likelihood, not one member's")
+    return "judged against: each held-out camera's detections in the files given"
+
+
 def run_loco(args: argparse.Namespace) -> int:
     from graph.app.cli import UsageError, read_cameras, solve_options
     from graph.io.calibration import load_calibration
@@ -104,6 +117,7 @@ def run_loco(args: argparse.Namespace) -> int:
     for note in score.notes:
         print(f"acinoset: note: {note}", file=sys.stderr)
     print(f"leave one camera out, {score.method}, detections of likelihood >= {score.confidence:g}:")
+    print(f"  {_judged(keypoints)}")
     _table(score)
     versus = []
     for text, other in variants:
