@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 import pytest
 
-from graph.app import resident
+from graph.app.resident import client, protocol, status
 from graph.camera import Calibration
 from graph.io.calibration import default_rig_path, load_calibration, write_anipose_toml
 from graph.io.keypoints import write_dlc_csv
@@ -48,12 +48,12 @@ def wait_for(condition, timeout: float, what: str, every: float = 0.05):
     raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
 
 
-def ready(env: dict) -> list[resident.Resident]:
-    return [r for r in resident.residents(env) if r.ready and r.current]
+def ready(env: dict) -> list[status.Resident]:
+    return [r for r in status.residents(env) if r.ready and r.current]
 
 
 def served_lines(env: dict) -> list[str]:
-    place = resident.place_of(env)
+    place = protocol.place_of(env)
     return [line for line in place.log.read_text().splitlines() if " served child " in line]
 
 
@@ -95,7 +95,7 @@ def make_env(runtime: Path, **extra: str) -> dict:
 def stop_all(env: dict) -> None:
     proc = acinoset(env, "resident", "stop")
     assert proc.returncode == 0, proc.stderr
-    assert not resident.residents(env)
+    assert not status.residents(env)
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +111,7 @@ def env(tmp_path_factory):
 def warm(env, run_dir, tmp_path_factory):
     """A resident started by a first solve (which ran in its own process), warm and listening;
     that first solve's output folder."""
-    assert not resident.residents(env)
+    assert not status.residents(env)
     out = tmp_path_factory.mktemp("first")
     proc = acinoset(env, *solve_args(run_dir, out), cwd=run_dir)
     assert proc.returncode == 0, proc.stderr
@@ -155,7 +155,7 @@ def test_a_second_solve_is_served_and_equals_an_in_process_one(env, warm, run_di
     assert proc.stderr == alone.stderr  # the same warnings, on the client's stderr
     lines = served_since(env, before)
     assert len(lines) == before + 1 and lines[-1].endswith(" s") and "exit 0" in lines[-1]
-    wait_for(lambda: resident.residents(env)[0].served == before + 1, 10, "the resident's count")
+    wait_for(lambda: status.residents(env)[0].served == before + 1, 10, "the resident's count")
     same_outputs(here, served)
     same_outputs(warm, served)
 
@@ -175,7 +175,7 @@ def gone(pid: int) -> bool:
 def test_the_next_solve_runs_in_a_child_forked_ahead(env, warm, run_dir, tmp_path):
     """Between solves the resident keeps one child forked ahead; the next solve runs in it (its pid
     is the one the log names), and a new one is forked once that solve has ended."""
-    pid = resident.residents(env)[0].pid
+    pid = status.residents(env)[0].pid
     spare = wait_for(lambda: resident_children(pid), 30, "a child forked ahead")
     assert len(spare) == 1
     before = len(served_lines(env))
@@ -269,7 +269,7 @@ def start_served_solve(env: dict, folder: Path, every: float = 0.05, **popen) ->
     """The solve of the run in ``folder``, begun: the client process and the resident's child that
     took it, once it has entered the client's folder (it then answers 'pid', then 'run'), looked for
     every ``every`` seconds (0: seen within microseconds)."""
-    pid = resident.residents(env)[0].pid
+    pid = status.residents(env)[0].pid
     proc = subprocess.Popen([sys.executable, "-m", "graph.app.cli", *map(str, solve_args(folder, folder))], env=env,
                             cwd=folder, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
 
@@ -353,13 +353,13 @@ def test_a_changed_key_starts_a_new_resident(env, warm, run_dir, tmp_path):
     """An environment variable that may change what is imported or compiled (here an ACINOSET_ one)
     makes a new key: that solve runs in its own process and starts a second resident."""
     other = dict(env, ACINOSET_KEY_PROBE="1")
-    assert resident.key_of(other) != resident.key_of(env)
+    assert protocol.key_of(other) != protocol.key_of(env)
     before = len(served_lines(env))
     proc = acinoset(other, *solve_args(run_dir, tmp_path), cwd=run_dir)
     assert proc.returncode == 0, proc.stderr
     assert len(served_lines(env)) == before  # not served by the first one
     new = wait_for(lambda: ready(other), WARM_UP_S, "a second resident")
-    assert len(resident.residents(env)) == 2 and new[0].key != ready(env)[0].key
+    assert len(status.residents(env)) == 2 and new[0].key != ready(env)[0].key
     proc = acinoset(other, "resident", "status")
     assert proc.returncode == 0 and len(proc.stdout.splitlines()) == 2
     assert sum("(this install)" in line for line in proc.stdout.splitlines()) == 1
@@ -378,19 +378,19 @@ def test_a_hung_resident_leaves_the_solve_to_the_client(env, warm, run_dir, tmp_
     finally:
         os.kill(pid, signal.SIGCONT)
     assert proc.returncode == 0, proc.stderr
-    assert waited >= resident.ANSWER_TIMEOUT_S and proc.stdout.startswith("fte: 60 frames")
+    assert waited >= protocol.ANSWER_TIMEOUT_S and proc.stdout.startswith("fte: 60 frames")
     same_outputs(warm, tmp_path)
-    log = resident.place_of(env).log
+    log = protocol.place_of(env).log
     wait_for(lambda: "ran no solve" in log.read_text(), 30, "the resident to drop the request")
     assert len(served_lines(env)) == before
 
 
 def test_a_killed_resident_is_replaced(env, warm, run_dir, tmp_path):
     """SIGKILL leaves its socket file behind: the next solve runs in its own process and starts a new one."""
-    place = resident.place_of(env)
+    place = protocol.place_of(env)
     old = ready(env)[0].pid
     os.kill(old, signal.SIGKILL)
-    wait_for(lambda: not any(r.current for r in resident.residents(env)), 30, "its lock to be free")
+    wait_for(lambda: not any(r.current for r in status.residents(env)), 30, "its lock to be free")
     assert place.socket.exists()
     proc = acinoset(env, *solve_args(run_dir, tmp_path), cwd=run_dir)
     assert proc.returncode == 0, proc.stderr
@@ -399,13 +399,13 @@ def test_a_killed_resident_is_replaced(env, warm, run_dir, tmp_path):
 
 
 def test_resident_stop(env, warm, run_dir, tmp_path):
-    place = resident.place_of(env)
-    pid = resident.residents(env)[0].pid
+    place = protocol.place_of(env)
+    pid = status.residents(env)[0].pid
     spare = wait_for(lambda: resident_children(pid), 30, "a child forked ahead")
     proc = acinoset(env, "resident", "stop")
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith("stopped pid ")
-    assert not resident.residents(env) and not place.socket.exists()
+    assert not status.residents(env) and not place.socket.exists()
     assert "exit: stopped (SIGTERM)" in place.log.read_text()
     wait_for(lambda: all(gone(c) for c in spare), 10, "the child forked ahead to end with the resident")
     proc = acinoset(env, "resident", "status")
@@ -421,9 +421,9 @@ def test_a_resident_exits_when_idle(run_dir, tmp_path_factory, tmp_path):
     try:
         proc = acinoset(e, *solve_args(run_dir, tmp_path), cwd=run_dir)
         assert proc.returncode == 0, proc.stderr
-        place = resident.place_of(e)
+        place = protocol.place_of(e)
         wait_for(lambda: place.log.exists() and "listening" in place.log.read_text(), WARM_UP_S, "warm")
-        wait_for(lambda: not resident.residents(e), 30, "the idle exit")
+        wait_for(lambda: not status.residents(e), 30, "the idle exit")
         assert "exit: idle for 1 s" in place.log.read_text() and not place.socket.exists()
     finally:
         stop_all(e)
@@ -443,7 +443,7 @@ def test_two_clients_at_once_start_one_resident(run_dir, tmp_path_factory, tmp_p
             assert p.returncode == 0
         wait_for(lambda: ready(e), WARM_UP_S, "warm")
         time.sleep(0.5)
-        assert len(resident.residents(e)) == 1
+        assert len(status.residents(e)) == 1
     finally:
         stop_all(e)
 
@@ -452,12 +452,12 @@ def test_the_client_imports_nothing_heavy(tmp_path):
     """Deciding, computing the key and trying the socket load neither numpy nor the solver."""
     code = (
         "import os, sys\n"
-        "from graph import resident\n"
+        "from graph.app.resident import client, protocol\n"
         "from graph.app.cli import COMMANDS\n"
         "env = dict(os.environ)\n"
-        "assert resident.wanted(['solve', 'a.csv'], env)\n"
-        "place = resident.place_of(env)\n"
-        "assert resident._hand_over(place, ['solve', 'a.csv'], COMMANDS, env, resident.ENTRIES[0]) is None\n"
+        "assert client.wanted(['solve', 'a.csv'], env)\n"
+        "place = protocol.place_of(env)\n"
+        "assert client._hand_over(place, ['solve', 'a.csv'], COMMANDS, env, protocol.ENTRIES[0]) is None\n"
         "print([m for m in ('numpy', 'numba', 'gtsam', 'scipy', 'h5py', 'cv2', 'graph.api') if m in sys.modules])\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=make_env(tmp_path))
     assert proc.returncode == 0, proc.stderr
@@ -468,15 +468,15 @@ def test_the_directory_must_be_private(tmp_path):
     (tmp_path / "acinoset").mkdir(mode=0o755)
     os.chmod(tmp_path / "acinoset", 0o755)
     with pytest.raises(OSError):
-        resident.runtime_dir({"XDG_RUNTIME_DIR": str(tmp_path)})
-    assert not resident.wanted(["solve", "--help"], {}) and not resident.wanted(["solve"], {"ACINOSET_RESIDENT": "0"})
-    assert not resident.wanted(["solve"], {"NUMBA_THREADING_LAYER": "omp"}) and resident.wanted(["solve"], {})
+        protocol.runtime_dir({"XDG_RUNTIME_DIR": str(tmp_path)})
+    assert not client.wanted(["solve", "--help"], {}) and not client.wanted(["solve"], {"ACINOSET_RESIDENT": "0"})
+    assert not client.wanted(["solve"], {"NUMBA_THREADING_LAYER": "omp"}) and client.wanted(["solve"], {})
 
 
 def test_a_resident_runs_only_the_command_lines_it_knows():
     """The request names the command line to run as module:function; only those of ENTRIES are
     imported (a request is the user's own, but a resident runs nothing it was not made for)."""
-    assert resident._entry("graph.app.cli:main").__module__ == "graph.app.cli"
+    assert protocol.entry_function("graph.app.cli:main").__module__ == "graph.app.cli"
     for name in ("os:system", "graph.app.cli:_run", "graph.app.cli"):
         with pytest.raises(ValueError):
-            resident._entry(name)
+            protocol.entry_function(name)

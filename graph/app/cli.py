@@ -50,11 +50,11 @@ COMMANDS: tuple[Command, ...] = (
     Command("plot", "graph.viewer.cli", "draw a solved run: PNG figures and an HTML playback file"),
     Command("anipose", "graph.anipose.cli",
             "solve an Anipose project's trials unchanged (config.toml, pose-2d, calibration) into pose-3d"),
-    Command("export", "graph.export.cli", "write a solved run as NWB (ndx-pose), OpenSim TRC, C3D or EKS's CSV"),
+    Command("export", "graph.export.cli", "write a solved run in a format other tools read (listed by its -h)"),
     Command("video", "graph.video.cli", "draw a solved run over each camera's video, with a 3D view (H.264 MP4)"),
     Command("calibrate", "graph.calibrate.cli", "calibrate cameras from board views, or refine a rig from keypoints"),
     Command("evaluate", "graph.app.evaluate", "score a 3D method on a recording: leave one camera out"),
-    Command("resident", "graph.app.resident", "the warm background process that serves 'acinoset solve': status, stop"),
+    Command("resident", "graph.app.resident.status", "the warm background process that serves 'acinoset solve': status, stop"),
 )
 
 
@@ -126,9 +126,9 @@ def main(argv: list[str] | None = None, commands: tuple[Command, ...] = COMMANDS
     commands = tuple(Command(*c) for c in commands)
     if _command_named(argv) == "solve":  # handed to a warm resident process when one is up
         try:
-            from graph.app import resident
+            from graph.app.resident import client
 
-            return resident.solve(argv, commands, lambda: _run(argv, commands), exit_when_served=command_line,
+            return client.solve(argv, commands, lambda: _run(argv, commands), exit_when_served=command_line,
                                   entry="graph.app.cli:main")
         except KeyboardInterrupt:  # in the hand-over's first milliseconds (importing, finding the resident)
             return _interrupted()
