@@ -37,6 +37,8 @@ from contextlib import contextmanager
 from pathlib import Path, PurePosixPath
 from typing import Iterator
 
+from graph.export import REGISTRY
+
 JOB_ID = re.compile(r"^[0-9a-f]{32}$")  # what :func:`new_job_id` makes
 INPUT = "input"
 RESULT = "result"
@@ -53,14 +55,13 @@ RESULT_FILES: dict[str, tuple[str, str]] = {  # download format: (file in the jo
     "report": ("report.json", "application/json"),
 }
 RESULT_NAMES: tuple[str, ...] = tuple(file for file, _ in RESULT_FILES.values())
-# formats written from result.h5 when first asked for (graph.export), then kept beside it
-EXPORT_FILES: dict[str, tuple[str, str]] = {
-    "nwb": ("result.nwb", "application/x-hdf5"),
-    "trc": ("result.trc", "text/plain"),
-    "c3d": ("result.c3d", "application/octet-stream"),
-    "csv-var": ("result.var.csv", "text/csv"),
-}
+# the export formats (graph.export.REGISTRY), written from result.h5 when first asked for, then kept beside it
+EXPORT_FILES: dict[str, tuple[str, str]] = {name: (RESULT + f.extension, f.media_type) for name, f in REGISTRY.items()}
 DOWNLOADS: dict[str, tuple[str, str]] = {**RESULT_FILES, **EXPORT_FILES}
+_SUFFIXES = [file.removeprefix(RESULT + ".") for file, _ in DOWNLOADS.values()]  # of the downloaded files' names
+if len(DOWNLOADS) < len(RESULT_FILES) + len(EXPORT_FILES) or len(set(_SUFFIXES)) < len(_SUFFIXES):
+    raise RuntimeError(f"an export format takes the name or the file of one of a job's own results: formats "
+                       f"{[*RESULT_FILES]} + {[*EXPORT_FILES]}, files {[file for file, _ in DOWNLOADS.values()]}")
 # what a calibration job writes in its result dir (service.calibrations): file name -> media type
 CALIBRATION_FILES: dict[str, str] = {
     "calibration.toml": "application/toml", "scene.json": "application/json", "report.json": "application/json",

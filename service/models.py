@@ -12,19 +12,40 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
+from graph.export import REGISTRY, available
 from graph.types import STAGES as SOLVER_STAGES
-from service.jobfiles import DOWNLOADS, RESULT_FILES
+from service.jobfiles import DOWNLOADS, EXPORT_FILES, RESULT_FILES, download_name
 from service.store import COMPILING, DONE, READING, RENDERING, STARTING, WRITING, ErrorKind, Job, JobStatus
 
 ResultFormat = Literal[tuple(DOWNLOADS)]  # type: ignore[valid-type]  # the download formats
+
+# a job's own result files as the API and the job page name them: format -> (label, what the file holds);
+# the export formats say it themselves (graph.export.Format's label and help)
+RESULT_LABELS: dict[str, tuple[str, str]] = {
+    "csv": ("CSV", "Anipose 3D table: x, y, z, error, cameras and score per marker and frame"),
+    "h5": ("HDF5", "everything: positions, uncertainty, reprojections, residuals, pose parameters"),
+    "json": ("JSON", "what the job page draws (positions and their sd), for your own plots"),
+    "report": ("Report", "the solver's report (JSON)"),
+}
+DOWNLOAD_LABELS: dict[str, tuple[str, str]] = {
+    name: RESULT_LABELS[name] if name in RESULT_FILES else (REGISTRY[name].label, REGISTRY[name].help)
+    for name in DOWNLOADS}
 
 
 def offered_formats() -> list[str]:
     """The download formats this server can give: its own files, and the exports whose libraries
     are installed here."""
-    from graph.export import available
-
     return [f for f in DOWNLOADS if f in RESULT_FILES or available(f)]
+
+
+def formats_help() -> str:
+    """Every download format with its label and what its file holds, for the API's documentation of
+    ``?format=``."""
+    extra = [name for name in EXPORT_FILES if REGISTRY[name].needs]
+    return ("; ".join(f"{name}: {label}, {what}" for name, (label, what) in DOWNLOAD_LABELS.items()) +
+            f". {', '.join(EXPORT_FILES)} are made on the first download" +
+            (f" ({', '.join(extra)} where the server has acinoset[export])" if extra else "") +
+            "; GET /v1/formats lists them and which this server gives")
 
 
 # What a job's progress can say it is doing, in order: the service's own stages around the solver's
@@ -145,6 +166,28 @@ class JobList(BaseModel):
     next: str | None = Field(None, description="the next page's URL")
 
 
+class FormatOut(BaseModel):
+    """A download format of a succeeded job's result: ``GET /v1/jobs/{id}/result?format=<name>``."""
+
+    name: str = Field(examples=["nwb"])
+    label: str = Field(description="a short name for it, as on a button", examples=["NWB"])
+    description: str = Field(description="what the file holds")
+    extension: str = Field(description="the downloaded file is named <job id><extension>", examples=[".var.csv"])
+    media_type: str = Field(examples=["application/x-hdf5"])
+    export: bool = Field(description="made from the job's result on its first download, as `acinoset export` "
+                                     "writes it (else written by the solve)")
+    offered: bool = Field(description="whether this server gives it (an export needs its libraries installed "
+                                      "here); a succeeded job's links.result has a link for each one offered")
+
+
+def download_formats() -> list[FormatOut]:
+    """Every download format, in the order of :data:`service.jobfiles.DOWNLOADS`."""
+    offered = set(offered_formats())
+    return [FormatOut(name=name, label=label, description=what, extension=download_name("", name),
+                      media_type=DOWNLOADS[name][1], export=name in EXPORT_FILES, offered=name in offered)
+            for name, (label, what) in DOWNLOAD_LABELS.items()]
+
+
 class SkeletonOut(BaseModel):
     name: str
     kind: str = Field(description="kinematic (a tree with pose parameters) or points (free 3D points)")
@@ -244,7 +287,8 @@ def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
         error_kind=job.error_kind if job.status == "failed" else None, interruption=without_paths(job.interruption),
         worker=job.worker, result=result,
         links=Links(self=href,
-                    result={f: f"{href}/result?format={f}" for f in offered_formats()} if job.status == "succeeded" else None,
+                    result={f: f"{href}/result?format={f}" for f in offered_formats()}
+                    if job.status == "succeeded" else None,
                     cancel=href,
                     videos=f"{href}/videos" if job.status == "succeeded" and (job.inputs or {}).get("videos")
                     else None))

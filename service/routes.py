@@ -28,6 +28,7 @@ from service.models import (
     BatchOut,
     Disk,
     ErrorBody,
+    FormatOut,
     Health,
     JobList,
     JobOut,
@@ -39,6 +40,8 @@ from service.models import (
     VideoList,
     VideoOut,
     batch_out,
+    download_formats,
+    formats_help,
     job_out,
 )
 from service.settings import Settings
@@ -128,7 +131,10 @@ def submit_job(
     options: Annotated[str, Form(
         description='JSON object of solve options, e.g. {"method": "fte", "fps": 120, "skeleton": "cheetah", '
                     '"likelihood_threshold": 0.5, "measurement_std_px": 5}; measurement_std_px "auto" measures '
-                    'the detection noise from the data, motion_scale "auto" fits the smoothing to it (the default for fte on free points; 1 otherwise), motion_order 1, 2, 3 (the default) or "auto" the order of the motion prior (an earlier report\'s motion_scales and motion_orders given back reuse its fitted smoothing); body "estimate" (the default), "model" or "given" with '
+                    'the detection noise from the data, motion_scale "auto" fits the smoothing to it (the default '
+                    'for fte on free points; 1 otherwise), motion_order 1, 2, 3 (the default) or "auto" the order '
+                    'of the motion prior (an earlier report\'s motion_scales and motion_orders given back reuse its '
+                    'fitted smoothing); body "estimate" (the default), "model" or "given" with '
                     'body_lengths {group: metres}; sync "given" (the default, with time_offsets in frames per '
                     'camera) or "estimate"; see GET /v1/skeletons')] = "{}",
     # a file or nothing: declared as a file only (a form field "null" is no file, and is refused)
@@ -159,11 +165,14 @@ def submit_job(
             responses={403: _err("A non-admin asked for another user's jobs"), 422: _err("Bad filter")})
 def list_jobs(
     user: CurrentUser, jobs: Jobs, request: Request,
-    status: Annotated[list[JobStatus] | None, Query(description="only jobs in these states (repeat for several)")] = None,
+    status: Annotated[list[JobStatus] | None,
+                      Query(description="only jobs in these states (repeat for several)")] = None,
     limit: Annotated[int, Query(ge=1, description="jobs per page (at most 500)")] = 50,
-    cursor: Annotated[str | None, Query(pattern=r"^[0-9]{1,18}$", description="next_cursor of the previous page")] = None,
+    cursor: Annotated[str | None,
+                      Query(pattern=r"^[0-9]{1,18}$", description="next_cursor of the previous page")] = None,
     owner: Annotated[str | None, Query(description="admins: only this user's jobs")] = None,
-    label: Annotated[str | None, Query(max_length=200, description="only jobs whose label contains this (any case)")] = None,
+    label: Annotated[str | None,
+                     Query(max_length=200, description="only jobs whose label contains this (any case)")] = None,
     method: Annotated[Method | None, Query(description="only jobs solved with this method")] = None,
     since: Annotated[IsoTime | None, Query(description="only jobs submitted at or after this time (ISO 8601)")] = None,
     warnings: Annotated[bool | None, Query(
@@ -202,23 +211,20 @@ async def get_job(job_id: str, user: CurrentUser, jobs: Jobs) -> JobOut:
     return job_out(jobs.visible(user, job_id))
 
 
+def _file_schema(media_type: str) -> dict:
+    if media_type == "application/json":
+        return {"type": "object"}
+    return {"type": "string"} if media_type.startswith("text/") else {"type": "string", "format": "binary"}
+
+
 @router.get(
     "/v1/jobs/{job_id}/result", tags=["jobs"], summary="Download the result",
     response_class=FileResponse,
     responses={200: {"description": "The result file", "content": {
-                   "text/csv": {"schema": {"type": "string"}},
-                   "application/x-hdf5": {"schema": {"type": "string", "format": "binary"}},
-                   "application/json": {"schema": {"type": "object"}},
-                   "text/plain": {"schema": {"type": "string"}},
-                   "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}},
+                   media_type: {"schema": _file_schema(media_type)} for _, media_type in DOWNLOADS.values()}},
                **NOT_FOUND, 409: _err("The job has not succeeded (yet)")})
 def get_result(job_id: str, user: CurrentUser, jobs: Jobs,
-               format: Annotated[ResultFormat, Query(
-                   description="csv: Anipose 3D CSV; h5: everything, HDF5; json: positions and std as JSON; "
-                               "report: the solve report; nwb: NWB with ndx-pose; trc: OpenSim TRC (m); c3d: C3D "
-                               "(mm); csv-var: EKS's 3D CSV with posterior variances. The last four are made "
-                               "on the first download (nwb and c3d where the server has acinoset[export])")
-               ] = "csv") -> FileResponse:
+               format: Annotated[ResultFormat, Query(description=formats_help())] = "csv") -> FileResponse:
     path = jobs.result_file(user, job_id, format)
     return FileResponse(path, media_type=DOWNLOADS[format][1], filename=download_name(job_id, format))
 
@@ -308,7 +314,8 @@ Batches = Annotated[BatchService, Depends(_batches)]
 def submit_batch(
     user: CurrentUser, batches: Batches, response: Response,
     project: Annotated[UploadFile, File(description="zip archive of an Anipose project: config.toml at its top "
-                                                    "(or in its one top folder), sessions, pose-2d/*.h5, calibration/")],
+                                                    "(or in its one top folder), sessions, pose-2d/*.h5, "
+                                                    "calibration/")],
     options: Annotated[str, Form(description="JSON object of solve options overriding the project's "
                                              "(config.toml [triangulation] and [acinoset])")] = "{}",
 ) -> BatchOut:
@@ -344,6 +351,13 @@ def list_skeletons(user: CurrentUser) -> list[SkeletonOut]:
         out.append(SkeletonOut(name=name, kind=sk.kind, markers=list(sk.markers), parameters=sk.n_params,
                                description=sk.description))
     return out
+
+
+@router.get("/v1/formats", response_model=list[FormatOut], tags=["reference"], summary="Result formats")
+def list_formats(user: CurrentUser) -> list[FormatOut]:
+    """Every format a succeeded job's result can be downloaded in (``GET /v1/jobs/{id}/result?format=``):
+    its label, what the file holds, its file extension and media type, and whether this server gives it."""
+    return download_formats()
 
 
 @router.get("/v1/me", response_model=Me, tags=["reference"], summary="The caller")

@@ -241,6 +241,7 @@ def test_export_command(fly, tmp_path):
     assert (tmp_path / "a.trc").read_text().startswith("PathFileType\t4")
     for args, fragment in ((["--format", "c3d", "--axes", "opensim"], "--axes applies to --format trc"),
                            (["--format", "xls"], "invalid choice"),
+                           (["--format", "csv-var", "--units", "mm"], "--units applies to --format trc and c3d only"),
                            (["--format", "trc", "--axes", "x,y,-z"], "not a rotation")):
         bad = subprocess.run([str(exe), "export", str(fly), "--out", str(tmp_path / "b"), *args],
                              capture_output=True, text=True)
@@ -248,6 +249,25 @@ def test_export_command(fly, tmp_path):
     missing = subprocess.run([str(exe), "export", str(tmp_path / "none.h5"), "--format", "nwb", "--out",
                               str(tmp_path / "c.nwb")], capture_output=True, text=True)
     assert missing.returncode == 2 and "none.h5: no such file" in missing.stderr
+
+
+def test_each_format_is_declared_once_by_its_module():
+    """The registry, the default extensions, the command's help and which formats take --axes and
+    --units all come from the modules' own Format."""
+    from graph.export import EXTENSIONS, FORMATS, REGISTRY, Format, c3d, csv_var, nwb, trc
+    from graph.export.cli import format_help
+
+    assert list(REGISTRY.values()) == [nwb.FORMAT, trc.FORMAT, c3d.FORMAT, csv_var.FORMAT]
+    assert FORMATS == ("nwb", "trc", "c3d", "csv-var")
+    assert EXTENSIONS == {"nwb": ".nwb", "trc": ".trc", "c3d": ".c3d", "csv-var": ".var.csv"}
+    assert REGISTRY["nwb"].needs == ("pynwb", "ndx_pose") and REGISTRY["c3d"].needs == ("ezc3d",)
+    assert trc.FORMAT.options == {"axes": None, "units": "m"}  # read from write's signature
+    assert c3d.FORMAT.options == {"units": "mm", "residual_step": None}
+    for name, f in REGISTRY.items():
+        assert f.write.__module__ == f"graph.export.{name.replace('-', '_')}"
+        assert f"{name}: {f.label}, {f.help}" + (" (needs acinoset[export])" if f.needs else "") in format_help()
+    with pytest.raises(ValueError, match="start with a dot"):
+        Format("markers", "json", "application/json", "Markers", "x, y, z per marker", trc.write)
 
 
 def test_a_result_file_without_its_calibration(fly, tmp_path):

@@ -7,35 +7,39 @@ The front door is :func:`export`::
     export(result, "trc", "run.trc", axes="opensim", calibration=cal)
 
 One module per format (:mod:`.nwb`, :mod:`.trc`, :mod:`.c3d`, :mod:`.csv_var`), each with
-``write(path, run, **options)`` taking an :class:`ExportInput`. NWB and C3D need libraries that are
-not part of the base install (``pip install acinoset[export]``); without them the export fails with
-one line naming the extra.
+``write(path, run, **options)`` taking an :class:`ExportInput`, and a :class:`Format` saying once its
+name, file extension, media type, label, help line and optional libraries. :data:`REGISTRY` collects
+them, and the command line (:mod:`.cli`) and the REST service read it: a new format is its module,
+its name in the import of the modules and in :data:`REGISTRY` below, and a test
+(``docs/recipe-export-format.md``). NWB and C3D need libraries that are not part of the base install
+(``pip install acinoset[export]``); without them the export fails with one line naming the extra.
 """
 
 from __future__ import annotations
 
 import functools
-import importlib
 from pathlib import Path
 
 from graph.camera import Calibration
 from graph.errors import InputError
-from graph.export.base import ExportInput, load_input
+from graph.export import c3d, csv_var, nwb, trc
+from graph.export.base import ExportInput, Format, load_input
 from graph.types import Result
 
-__all__ = ["FORMATS", "EXTENSIONS", "ExportInput", "available", "export", "load_input"]
+__all__ = ["REGISTRY", "FORMATS", "EXTENSIONS", "ExportInput", "Format", "available", "export", "load_input"]
 
-# format -> (module, default file extension)
-_MODULES: dict[str, tuple[str, str]] = {
-    "nwb": ("graph.export.nwb", ".nwb"),
-    "trc": ("graph.export.trc", ".trc"),
-    "c3d": ("graph.export.c3d", ".c3d"),
-    "csv-var": ("graph.export.csv_var", ".csv"),
-}
-FORMATS: tuple[str, ...] = tuple(_MODULES)
-EXTENSIONS: dict[str, str] = {fmt: ext for fmt, (_, ext) in _MODULES.items()}
-# the optional libraries each format needs (the ``export`` extra)
-NEEDS: dict[str, tuple[str, ...]] = {"nwb": ("pynwb", "ndx_pose"), "c3d": ("ezc3d",)}
+
+def _registry(*formats: Format) -> dict[str, Format]:
+    names = [f.name for f in formats]
+    if len(set(names)) != len(names):
+        raise ValueError(f"two export formats share a name: {names}")
+    return {f.name: f for f in formats}
+
+
+# every format, in the order they are offered (command line choices, downloads, buttons)
+REGISTRY: dict[str, Format] = _registry(nwb.FORMAT, trc.FORMAT, c3d.FORMAT, csv_var.FORMAT)
+FORMATS: tuple[str, ...] = tuple(REGISTRY)
+EXTENSIONS: dict[str, str] = {name: f.extension for name, f in REGISTRY.items()}
 
 
 @functools.lru_cache(maxsize=None)
@@ -44,7 +48,7 @@ def available(format: str) -> bool:
     looked up once per process)."""
     import importlib.util
 
-    return format in _MODULES and all(importlib.util.find_spec(m) is not None for m in NEEDS.get(format, ()))
+    return format in REGISTRY and all(importlib.util.find_spec(m) is not None for m in REGISTRY[format].needs)
 
 
 def export(source: str | Path | Result, format: str, out: str | Path, *,
@@ -52,12 +56,11 @@ def export(source: str | Path | Result, format: str, out: str | Path, *,
     """Write the run ``source`` (a result H5 written by ``graph.io.results.write_h5``, or a :class:`Result`)
     to ``out`` in ``format`` (one of :data:`FORMATS`). ``calibration`` (a file or a
     :class:`Calibration`) overrides the one stored in the H5; the per-format ``options`` are the
-    keyword arguments of that module's ``write``. Returns ``out`` as a Path."""
-    if format not in _MODULES:
+    keyword arguments of its ``write`` (:attr:`Format.options`). Returns ``out`` as a Path."""
+    if format not in REGISTRY:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, not {format!r}")
     out = Path(out)
     if not out.parent.is_dir():
         raise InputError("the output folder does not exist", out)
-    module = importlib.import_module(_MODULES[format][0])
-    module.write(out, load_input(source, calibration), **options)
+    REGISTRY[format].write(out, load_input(source, calibration), **options)
     return out

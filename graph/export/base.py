@@ -1,11 +1,14 @@
-"""What every exporter is given (:class:`ExportInput`), and the shared pieces: the optional
-libraries, the axes of the output frame, and the per-marker pixel error turned into a length."""
+"""What every exporter is given (:class:`ExportInput`) and declares (:class:`Format`), and the shared
+pieces: the optional libraries, the axes of the output frame, and the per-marker pixel error turned
+into a length."""
 
 from __future__ import annotations
 
 import importlib
+import inspect
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
@@ -21,6 +24,39 @@ class ExportInput:
     result: Result
     calibration: Calibration | None = None
     source: str = ""  # the file it came from, for descriptions
+
+
+@dataclass(frozen=True)
+class Format:
+    """One export format, declared once by its module (``FORMAT = Format(...)``) and read by everything
+    that offers it: :func:`graph.export.export`, ``acinoset export``, the REST API's downloads and the
+    job page (through the API's list of formats).
+
+    ``write(path, run, **options)`` writes ``run`` (an :class:`ExportInput`) to ``path``; its keyword
+    parameters after those two are the format's :attr:`options`. ``extension`` is the file-name
+    suffix with its dot, and may hold several parts (``.var.csv``): a job's export is kept as
+    ``result`` + extension beside its own ``result.csv``, ``result.h5`` and ``result.json``, so it
+    must be none of those. ``needs`` are the importable names of the optional libraries the writer
+    imports (the ``export`` extra); without them the format is not :func:`graph.export.available`.
+    """
+
+    name: str  # what --format and ?format= take: "nwb"
+    extension: str  # ".nwb"
+    media_type: str  # "application/x-hdf5"
+    label: str  # a short name, as on a button: "NWB"
+    help: str  # one line: what the file holds, for whom
+    write: Callable[..., None]
+    needs: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.extension.startswith(".") or len(self.extension) < 2:
+            raise ValueError(f"{self.name}: extension must start with a dot, not {self.extension!r}")
+
+    @property
+    def options(self) -> dict[str, Any]:
+        """The keyword options of :attr:`write` and their defaults (``inspect.Parameter.empty`` for none)."""
+        params = list(inspect.signature(self.write).parameters.values())[2:]
+        return {p.name: p.default for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
 
 
 def load_input(source: str | Path | Result, calibration: str | Path | Calibration | None = None) -> ExportInput:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.export.base import ExportInput, error_as_length, require
+from graph.export.base import ExportInput, Format, error_as_length, require
 
 UNITS_SCALE = {"mm": 1000.0, "m": 1.0}
 RESIDUAL_STEPS = 255  # the residual is one byte of the 4th word
@@ -79,3 +79,7 @@ def _step_for(largest: float, default: float) -> float:
     need = largest / RESIDUAL_STEPS
     k = np.floor(np.log10(need))
     return float(next(f * 10.0 ** k for f in (1.0, 2.0, 5.0, 10.0) if f * 10.0 ** k >= need))
+
+
+FORMAT = Format("c3d", ".c3d", "application/octet-stream", "C3D", "biomechanics point data, mm, with residuals",
+                write, needs=("ezc3d",))

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.export.base import ExportInput
+from graph.export.base import ExportInput, Format
 
 COORDS = ("x", "y", "z", "x_posterior_var", "y_posterior_var", "z_posterior_var")
 
@@ -43,3 +43,7 @@ def write(path: str | Path, run: ExportInput, scorer: str | None = None) -> None
         w.writerow(["coords"] + list(COORDS) * m)
         for i in range(n):
             w.writerow([str(i)] + ["" if not np.isfinite(v) else repr(float(v)) for v in values[i]])
+
+
+FORMAT = Format("csv-var", ".var.csv", "text/csv", "EKS CSV", "EKS's 3D layout: x, y, z and their posterior variances",
+                write)

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from graph import __version__
-from graph.export.base import ExportInput, require
+from graph.export.base import ExportInput, Format, require
 
 
 def reference_frame(run: ExportInput) -> str:
@@ -58,9 +58,10 @@ def write(path: str | Path, run: ExportInput, session_description: str | None = 
     )
     if run.calibration is not None:
         for cam, name in zip(run.calibration.cameras, run.calibration.names):
+            coefficients = "k1..k4 (OpenCV fisheye)" if cam.model == "fisheye" else "k1, k2, p1, p2, k3 (OpenCV)"
             nwb.add_device(ndx_pose.CalibratedCamera(
                 name=name, description=f"{cam.model} camera, {cam.size[0]}x{cam.size[1]} px; distortion "
-                f"coefficients {'k1..k4 (OpenCV fisheye)' if cam.model == 'fisheye' else 'k1, k2, p1, p2, k3 (OpenCV)'}",
+                f"coefficients {coefficients}",
                 intrinsic_matrix=cam.K, rotation_matrix=cam.R, translation_vector=cam.t,
                 distortion_coefficients=cam.dist))
     else:
@@ -93,3 +94,8 @@ def write(path: str | Path, run: ExportInput, session_description: str | None = 
     behavior.add(sds)
     with pynwb.NWBHDF5IO(str(path), mode="w") as io:
         io.write(nwb)
+
+
+FORMAT = Format("nwb", ".nwb", "application/x-hdf5", "NWB",
+                "Neurodata Without Borders with ndx-pose: markers, skeleton, cameras' calibration, sd", write,
+                needs=("pynwb", "ndx_pose"))

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.export.base import ExportInput, axes_matrix
+from graph.export.base import ExportInput, Format, axes_matrix
 
 UNITS_SCALE = {"m": 1.0, "mm": 1000.0}
 
@@ -49,3 +49,6 @@ def write(path: str | Path, run: ExportInput, axes: str | None = None, units: st
         cells = ["" if not np.isfinite(v) else repr(float(v)) for v in flat[i]]
         lines.append("\t".join([str(i + 1), repr(i / float(res.fps))] + cells))
     Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+FORMAT = Format("trc", ".trc", "text/plain", "TRC", "OpenSim marker file, metres", write)

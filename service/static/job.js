@@ -20,16 +20,12 @@
   const downloadButtons = document.getElementById("download-buttons");
   const downloadError = document.getElementById("download-error");
   const resultBox = document.getElementById("result");
-  const FORMATS = {
-    csv: ["CSV", "Anipose 3D table: x, y, z, error, cameras and score per marker and frame", "csv"],
-    h5: ["HDF5", "everything: positions, uncertainty, reprojections, residuals, pose parameters", "h5"],
-    json: ["JSON", "what this page draws, for your own plots", "json"],
-    report: ["Report", "the solver's report (JSON)", "report.json"],
-    nwb: ["NWB", "Neurodata Without Borders with ndx-pose: markers, skeleton, cameras' calibration, sd", "nwb"],
-    trc: ["TRC", "OpenSim marker file, metres", "trc"],
-    c3d: ["C3D", "biomechanics point data, mm, with residuals", "c3d"],
-    "csv-var": ["EKS CSV", "EKS's 3D layout: x, y, z and their posterior variances", "var.csv"],
-  };
+  // Each download format's label, what its file holds and its extension, as the server lists them
+  // (GET /v1/formats); if the list cannot be had, a button names its format by the format's name.
+  let formatInfo = {};
+  const formatsLoaded = A.api("/v1/formats").then(
+    (list) => { formatInfo = Object.fromEntries(list.map((f) => [f.name, f])); },
+    () => {});
   let lastStatus = null;
   let timer = null;
   let resultShown = false;
@@ -141,11 +137,12 @@
     const formats = Object.keys(links);
     downloads.hidden = !formats.length;
     downloadButtons.replaceChildren(...formats.map((f) => {
-      const [label, what, ext] = FORMATS[f] || [f.toUpperCase(), "", f];
+      const { label, description: what, extension } = formatInfo[f] ||
+        { label: f.toUpperCase(), description: "", extension: `.${f}` };
       return el("button", { type: "button", "data-format": f, "aria-describedby": null, onclick: async (ev) => {
         downloadError.hidden = true;
         ev.target.disabled = true;
-        try { await A.download(links[f], `${id}.${ext}`); }
+        try { await A.download(links[f], `${id}${extension}`); }
         catch (e) { downloadError.textContent = `The ${label} file could not be downloaded: ${e.message}`; downloadError.hidden = false; }
         finally { ev.target.disabled = false; }
       } }, el("strong", { text: `Download ${label}` }), what ? el("span", { class: "muted", text: ` — ${what}` }) : null);
@@ -196,6 +193,7 @@
     }
     drawProgress(job);
     drawFacts(job);
+    await formatsLoaded;
     drawDownloads(job);
     if (job.status === "succeeded" && !resultShown) showResult(job);
     if (A.isActive(job.status)) timer = setTimeout(refresh, 1000);

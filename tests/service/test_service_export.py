@@ -32,8 +32,26 @@ def test_the_job_offers_the_export_formats(job):
         assert fmt in done["result"]["formats"]
 
 
+def test_the_formats_are_listed_as_the_library_declares_them(job):
+    """GET /v1/formats, which the job page names its buttons and files from: every download, the
+    exports as graph.export declares them, and those offered are the job's links."""
+    from graph.export import REGISTRY
+
+    client, done = job
+    r = client.get("/v1/formats")
+    assert r.status_code == 200, r.text
+    listed = {f["name"]: f for f in r.json()}
+    assert list(listed) == ["csv", "h5", "json", "report", *REGISTRY]
+    for name, f in REGISTRY.items():
+        assert listed[name] == {"name": name, "label": f.label, "description": f.help, "extension": f.extension,
+                                "media_type": f.media_type, "export": True, "offered": True}
+    assert listed["report"]["extension"] == ".report.json" and listed["csv"]["export"] is False
+    assert [name for name, f in listed.items() if f["offered"]] == list(done["links"]["result"])
+
+
 def test_each_export_is_what_the_command_writes(job, small_run, tmp_path):
     client, done = job
+    formats = {f["name"]: f for f in client.get("/v1/formats").json()}
     h5 = tmp_path / "job.h5"
     h5.write_bytes(client.get(done["links"]["result"]["h5"]).content)
     from graph.export import export
@@ -46,8 +64,10 @@ def test_each_export_is_what_the_command_writes(job, small_run, tmp_path):
     for fmt in EXPORTS:
         r = client.get(done["links"]["result"][fmt])
         assert r.status_code == 200, r.text
-        ext = {"csv-var": ".var.csv"}.get(fmt, f".{fmt}")
+        ext = formats[fmt]["extension"]
+        assert ext == {"csv-var": ".var.csv"}.get(fmt, f".{fmt}")  # the file names downloads have had
         assert r.headers["content-disposition"].endswith(f'filename="{done["id"]}{ext}"')
+        assert r.headers["content-type"].split(";")[0] == formats[fmt]["media_type"]
         got = tmp_path / f"rest{ext}"
         got.write_bytes(r.content)
         mine = export(h5, fmt, tmp_path / f"lib{ext}", calibration=small_run.calibration)

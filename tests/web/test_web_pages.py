@@ -129,6 +129,13 @@ def test_sign_in_submit_watch_scrub_and_download(page, server, simulated_run, tm
     assert len(rows) == 61
     nose = np.array([[float(r[rows[0].index(f"nose_{a}")]) for a in "xyz"] for r in rows[1:]])
     assert np.isfinite(nose).all() and np.ptp(nose[:, :2], axis=0).max() > 0.1  # the animal moved
+    # An export: its button and file named as the server lists the format (GET /v1/formats).
+    eks = page.get_by_role("button", name=re.compile(r"^Download EKS CSV"))
+    assert "posterior variances" in eks.inner_text()
+    with page.expect_download() as dl:
+        eks.click()
+    assert dl.value.suggested_filename == f"{job_id}.var.csv"
+    assert open(dl.value.path(), encoding="utf-8").readline().startswith("scorer,")
 
     # Its fitted smoothing, reused: the job page offers it for a new job, which is solved with it.
     from playwright.sync_api import expect
