@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import statistics
 import sys
 import tempfile
@@ -21,43 +20,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from servers import Server, add_user, make_run, submit  # noqa: E402
+from servers import Server, add_user, make_run, multipart, slow_upload, submit  # noqa: E402
 
 FAST = {"method": "tri", "skeleton": "points"}
-
-
-def multipart(run, boundary: str = "acinoset-slow-boundary") -> bytes:
-    parts = []
-    for p in run.cams:
-        parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="keypoints"; filename="{p.name}"\r\n'
-                     f"Content-Type: text/csv\r\n\r\n".encode() + p.read_bytes() + b"\r\n")
-    parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="calibration"; '
-                 f'filename="calibration.toml"\r\nContent-Type: text/plain\r\n\r\n'.encode()
-                 + run.calibration.read_bytes() + b"\r\n")
-    parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="options"\r\n\r\n{json.dumps(FAST)}\r\n'
-                 .encode())
-    parts.append(f"--{boundary}--\r\n".encode())
-    return b"".join(parts)
-
-
-def slow_upload(port: int, token: str, body: bytes, seconds: float, result: dict) -> None:
-    """Send ``body`` spread evenly over ``seconds``; record the answer's status line and when."""
-    t0 = time.perf_counter()
-    head = (f"POST /v1/jobs HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nAuthorization: Bearer {token}\r\n"
-            f"Content-Type: multipart/form-data; boundary=acinoset-slow-boundary\r\n"
-            f"Content-Length: {len(body)}\r\n\r\n").encode()
-    chunk = max(1, len(body) // max(1, int(seconds / 0.1)))
-    try:
-        with socket.create_connection(("127.0.0.1", port), timeout=seconds + 60) as s:
-            s.sendall(head)
-            for i in range(0, len(body), chunk):
-                s.sendall(body[i:i + chunk])
-                time.sleep(0.1)
-            answer = s.recv(4096).decode(errors="replace")
-        result["status"] = answer.split("\r\n", 1)[0]
-    except OSError as e:
-        result["status"] = f"{type(e).__name__}: {e}"
-    result["seconds"] = time.perf_counter() - t0
 
 
 def measure(run, env: dict, trickle: float, log: Path) -> dict:
@@ -74,7 +39,7 @@ def measure(run, env: dict, trickle: float, log: Path) -> dict:
                 assert submit(c, run, FAST).status_code == 202
                 alone.append(time.perf_counter() - t)
             slow: dict = {}
-            th = threading.Thread(target=slow_upload, args=(srv.port, token, multipart(run), trickle, slow))
+            th = threading.Thread(target=slow_upload, args=(srv.port, token, multipart(run, FAST), trickle, slow))
             th.start()
             time.sleep(0.5)
             during = []

@@ -265,6 +265,48 @@ def submit_ok(client: httpx.Client, run: Run, options: dict | None = None) -> st
     return r.json()["id"]
 
 
+# -- a client that trickles its upload over a raw socket --------------------------------------------
+
+BOUNDARY = "acinoset-slow-boundary"
+
+
+def multipart(run: Run, options: dict, boundary: str = BOUNDARY) -> bytes:
+    """The ``POST /v1/jobs`` body of ``run``'s keypoints and calibration with ``options``, as multipart form data."""
+    import json
+
+    parts = []
+    for p in run.cams:
+        parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="keypoints"; filename="{p.name}"\r\n'
+                     f"Content-Type: text/csv\r\n\r\n".encode() + p.read_bytes() + b"\r\n")
+    parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="calibration"; '
+                 f'filename="calibration.toml"\r\nContent-Type: text/plain\r\n\r\n'.encode()
+                 + run.calibration.read_bytes() + b"\r\n")
+    parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="options"\r\n\r\n{json.dumps(options)}\r\n'
+                 .encode())
+    parts.append(f"--{boundary}--\r\n".encode())
+    return b"".join(parts)
+
+
+def slow_upload(port: int, token: str, body: bytes, seconds: float, result: dict) -> None:
+    """Send ``body`` (:func:`multipart`) spread evenly over ``seconds``; record the answer's status line and when."""
+    t0 = time.perf_counter()
+    head = (f"POST /v1/jobs HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nAuthorization: Bearer {token}\r\n"
+            f"Content-Type: multipart/form-data; boundary={BOUNDARY}\r\n"
+            f"Content-Length: {len(body)}\r\n\r\n").encode()
+    chunk = max(1, len(body) // max(1, int(seconds / 0.1)))
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=seconds + 60) as s:
+            s.sendall(head)
+            for i in range(0, len(body), chunk):
+                s.sendall(body[i:i + chunk])
+                time.sleep(0.1)
+            answer = s.recv(4096).decode(errors="replace")
+        result["status"] = answer.split("\r\n", 1)[0]
+    except OSError as e:
+        result["status"] = f"{type(e).__name__}: {e}"
+    result["seconds"] = time.perf_counter() - t0
+
+
 def wait_for(client: httpx.Client, job_id: str, pred, timeout: float = 120, what: str = "") -> dict:
     deadline = time.time() + timeout
     job = None

@@ -8,15 +8,11 @@ bench/bench_slow_uploader.py), and a client that stopped sending held a turn for
 from __future__ import annotations
 
 import socket
-import sys
 import threading
 import time
 
 import pytest
-from servers import ROOT, Server, add_user, submit
-
-sys.path.insert(0, str(ROOT / "bench"))
-from bench_slow_uploader import multipart, slow_upload  # noqa: E402
+from servers import BOUNDARY, Server, add_user, multipart, slow_upload, submit
 
 FAST = {"method": "tri", "skeleton": "points"}
 
@@ -25,7 +21,8 @@ FAST = {"method": "tri", "skeleton": "points"}
 def server(tmp_path_factory):
     data = tmp_path_factory.mktemp("slow_data")
     token = add_user(data, "una")
-    env = {"ACINOSET_WARM_START": "0", "ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS": "1.5", "ACINOSET_MAX_RECEIVING_UPLOADS": "2"}
+    env = {"ACINOSET_WARM_START": "0", "ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS": "1.5",
+           "ACINOSET_MAX_RECEIVING_UPLOADS": "2"}
     srv = Server(data, data.parent / "slow_server.log", workers=1, env=env).start(ready=(200,))
     srv.token = token
     yield srv
@@ -35,7 +32,7 @@ def server(tmp_path_factory):
 def _open_upload(port: int, token: str, length: int) -> socket.socket:
     s = socket.create_connection(("127.0.0.1", port), timeout=30)
     s.sendall((f"POST /v1/jobs HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
-               f"Content-Type: multipart/form-data; boundary=acinoset-slow-boundary\r\n"
+               f"Content-Type: multipart/form-data; boundary={BOUNDARY}\r\n"
                f"Content-Length: {length}\r\n\r\n").encode())
     return s
 
@@ -44,7 +41,8 @@ def test_other_submissions_do_not_wait_for_a_slow_uploader(server, small_run):
     with server.client(server.token) as c:
         assert submit(c, small_run, FAST).status_code == 202  # the readers started
         slow: dict = {}
-        th = threading.Thread(target=slow_upload, args=(server.port, server.token, multipart(small_run), 6.0, slow))
+        body = multipart(small_run, FAST)
+        th = threading.Thread(target=slow_upload, args=(server.port, server.token, body, 6.0, slow))
         th.start()
         time.sleep(0.5)
         took = []
@@ -59,7 +57,7 @@ def test_other_submissions_do_not_wait_for_a_slow_uploader(server, small_run):
 
 
 def test_an_upload_that_stalls_is_answered_408_and_frees_its_place(server, small_run):
-    body = multipart(small_run)
+    body = multipart(small_run, FAST)
     s = _open_upload(server.port, server.token, len(body))
     s.sendall(body[:1000])  # then nothing
     t = time.perf_counter()
@@ -78,7 +76,7 @@ def test_an_upload_that_stalls_is_answered_408_and_frees_its_place(server, small
 
 
 def test_more_uploads_arriving_at_once_than_allowed_get_503(server, small_run):
-    body = multipart(small_run)
+    body = multipart(small_run, FAST)
     held = [_open_upload(server.port, server.token, len(body)) for _ in range(2)]
     try:
         for s in held:
