@@ -1,27 +1,34 @@
-"""Camera models: OpenCV fisheye (4 coefficients) and OpenCV pinhole with radial-tangential distortion.
+"""Camera models, one :class:`CameraModel` entry per model in :data:`CAMERA_MODELS`, and the
+calibrated :class:`Camera` and :class:`Calibration`.
 
-World to camera: ``X_c = R X_w + t`` (metres). Normalised coordinates ``x = X_c/Z_c, y = Y_c/Z_c``.
+World to camera: ``X_c = R X_w + t`` (metres). Normalised coordinates ``x = X_c/Z_c, y = Y_c/Z_c``;
+each model maps them to distorted ones ``(x', y')``, and pixels are ``u = fx x' + cx, v = fy y' + cy``.
 
-Fisheye (``cv2.fisheye``), with ``r = sqrt(x^2 + y^2)`` and ``theta = atan(r)``::
+Fisheye (``cv2.fisheye``; 4 coefficients k1..k4), with ``r = sqrt(x^2 + y^2)`` and ``theta = atan(r)``::
 
     theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)
     x' = (theta_d / r) x,   y' = (theta_d / r) y
 
-Pinhole (``cv2.projectPoints``), with ``r2 = x^2 + y^2``::
+Pinhole (``cv2.projectPoints``; 5 coefficients k1, k2, p1, p2, k3), with ``r2 = x^2 + y^2``::
 
     radial = 1 + k1 r2 + k2 r2^2 + k3 r2^3
     x' = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
     y' = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
 
-Pixels: ``u = fx x' + cx, v = fy y' + cy``.
-
-The same maths runs compiled in :mod:`graph.solve.kernels`; this module is the readable reference and
-the vectorised numpy path used by readers, the simulator and metrics.
+A model's entry holds everything the rest of the library asks of it: its name, the integer code
+the compiled kernels branch on (intrinsics packed as ``[code, fx, fy, cx, cy, d_0 .. d_{S-1}]``,
+``S =`` :data:`DISTORTION_SLOTS`), its distortion coefficients, the distortion with its Jacobians,
+OpenCV's projection (the definition the distortion reproduces), inverse and calibration, and the
+keys that mark it in an Anipose ``calibration.toml``. The same maths runs compiled in
+:mod:`graph.solve.kernels` (one branch per code); this module is the readable reference and the
+vectorised numpy path used by readers, the simulator, metrics and the calibration.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -32,11 +39,82 @@ FISHEYE = "fisheye"
 PINHOLE = "pinhole"
 
 
+class IllConditionedView(Exception):
+    """OpenCV's calibration found board view ``index`` (of those it was given) ill-conditioned."""
+
+    def __init__(self, index: int) -> None:
+        super().__init__(f"view {index} is ill-conditioned")
+        self.index = index
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """One camera model: what every part of the library needs to know of it.
+
+    * ``code``: the model's number in packed intrinsics (:meth:`Camera.packed`), the branch the
+      compiled :func:`graph.solve.kernels.project_point` takes; never reused.
+    * ``coefficients``: the names of its distortion coefficients, in order (``Camera.dist``).
+    * ``min_coefficients``: the fewest a calibration file may give (the rest are zero).
+    * ``summary``: the coefficients in words, for file descriptions.
+    * ``distort(x, y, d, jacobian)``: ``(x', y')`` of normalised ``(x, y)`` and, with ``jacobian``,
+      ``d(x', y')/d(x, y)`` (..., 2, 2) (else None).
+    * ``coefficient_jacobian(x, y, d, fx, fy)``: ``d(u, v)/d(coefficients)`` (M, 2, n).
+    * ``opencv_project(Xc, K, d)``: OpenCV's pixels (N, 2) of camera-frame points (N, 3), the
+      definition ``distort`` reproduces.
+    * ``undistort(pts, K, d)``: OpenCV's inverse, pixels (N, 1, 2) to normalised coordinates (N, 1, 2).
+    * ``opencv_calibrate(objs, imgs, size, criteria)``: OpenCV's intrinsic calibration from board
+      views (per view, points (1, P, 3) and pixels (1, P, 2), float64), ``(K, D)``; raises
+      :class:`IllConditionedView` for a view it can name as the trouble.
+    * ``anipose_keys``: the ``(key, value)`` pairs that mark the model in an Anipose table (none:
+      aniposelib's default, the pinhole).
+    """
+
+    name: str
+    code: int
+    coefficients: tuple[str, ...]
+    min_coefficients: int
+    summary: str
+    distort: Callable
+    coefficient_jacobian: Callable
+    opencv_project: Callable
+    undistort: Callable
+    opencv_calibrate: Callable
+    anipose_keys: tuple[tuple[str, object], ...] = ()
+
+    @property
+    def n_coefficients(self) -> int:
+        return len(self.coefficients)
+
+    def coefficient_problem(self, n: int) -> str | None:
+        """Why ``n`` distortion coefficients (as read from a file) do not fit this model, or None."""
+        top = self.n_coefficients
+        if self.min_coefficients <= n <= top:
+            return None
+        if self.min_coefficients == top:
+            return f"{self.name} needs {top} coefficients, got {n}"
+        span = f"up to {top}" if self.min_coefficients == 0 else f"{self.min_coefficients} to {top}"
+        return f"{self.name} takes {span} coefficients ({', '.join(self.coefficients)}), got {n}"
+
+
+def camera_model(name: str) -> CameraModel:
+    """The registry entry of the model called ``name`` (ValueError for an unknown one)."""
+    try:
+        return CAMERA_MODELS[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown camera model {name!r}") from None
+
+
+def model_names() -> str:
+    """The models' names in words: ``"fisheye or pinhole"``."""
+    return " or ".join(CAMERA_MODELS)
+
+
 @dataclass
 class Camera:
     """One calibrated camera.
 
-    ``dist`` holds 4 fisheye coefficients (k1..k4) or 5 pinhole ones (k1, k2, p1, p2, k3).
+    ``model`` names its :class:`CameraModel`; ``dist`` holds that model's coefficients (fisheye:
+    k1..k4; pinhole: k1, k2, p1, p2, k3), padded with zeros or cut to their number.
     ``size`` is (width, height) in pixels.
     """
 
@@ -53,13 +131,14 @@ class Camera:
         self.R = np.asarray(self.R, dtype=np.float64).reshape(3, 3)
         self.t = np.asarray(self.t, dtype=np.float64).reshape(3)
         d = np.asarray(self.dist, dtype=np.float64).ravel()
-        if self.model == FISHEYE:
-            self.dist = np.pad(d, (0, max(0, 4 - d.size)))[:4]
-        elif self.model == PINHOLE:
-            self.dist = np.pad(d, (0, max(0, 5 - d.size)))[:5]
-        else:
-            raise ValueError(f"unknown camera model {self.model!r}")
+        n = camera_model(self.model).n_coefficients
+        self.dist = np.pad(d, (0, max(0, n - d.size)))[:n]
         self.size = (int(self.size[0]), int(self.size[1]))
+
+    @property
+    def camera_model(self) -> CameraModel:
+        """This camera's model's registry entry."""
+        return CAMERA_MODELS[self.model]
 
     @property
     def center(self) -> np.ndarray:
@@ -67,11 +146,11 @@ class Camera:
         return -self.R.T @ self.t
 
     def packed(self) -> np.ndarray:
-        """Intrinsics as one vector for the compiled kernels:
-        ``[model(0 fisheye, 1 pinhole), fx, fy, cx, cy, d0..d4]``."""
-        d = np.zeros(5)
+        """Intrinsics as one vector for the compiled kernels: ``[code, fx, fy, cx, cy, d_0 .. d_{S-1}]``
+        (the model's :attr:`CameraModel.code`, its coefficients zero-padded to :data:`DISTORTION_SLOTS`)."""
+        d = np.zeros(DISTORTION_SLOTS)
         d[: self.dist.size] = self.dist
-        return np.array([0.0 if self.model == FISHEYE else 1.0,
+        return np.array([float(self.camera_model.code),
                          self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2], *d])
 
     def project(self, X: np.ndarray) -> np.ndarray:
@@ -89,10 +168,7 @@ class Camera:
             y = Xc[..., 1] / z
         fx, fy = self.K[0, 0], self.K[1, 1]
         cx, cy = self.K[0, 2], self.K[1, 2]
-        if self.model == FISHEYE:
-            xd, yd, dxd = _fisheye_distort(x, y, self.dist, jacobian)
-        else:
-            xd, yd, dxd = _radtan_distort(x, y, self.dist, jacobian)
+        xd, yd, dxd = self.camera_model.distort(x, y, self.dist, jacobian)
         uv = np.stack([fx * xd + cx, fy * yd + cy], axis=-1)
         uv[z <= 0] = np.nan
         if not jacobian:
@@ -107,6 +183,30 @@ class Camera:
         F = np.array([[fx, 0.0], [0.0, fy]])
         J = F @ dxd @ dn @ self.R
         return uv, J
+
+
+def undistort_points(camera: Camera, uv: np.ndarray) -> np.ndarray:
+    """Pixels (..., 2) to normalised image coordinates (..., 2) with OpenCV's iterative inverse of the
+    camera's model (:attr:`CameraModel.undistort`)."""
+    uv = np.asarray(uv, dtype=np.float64)
+    shape = uv.shape
+    pts = uv.reshape(-1, 1, 2)
+    out = np.full_like(pts, np.nan)
+    ok = np.isfinite(pts).all(axis=-1).ravel()
+    if ok.any():
+        out[ok] = camera.camera_model.undistort(pts[ok], camera.K, camera.dist)
+    return out.reshape(shape)
+
+
+def opencv_fisheye_flag(name: str) -> int:
+    """A fisheye flag by name: ``cv2.fisheye.CALIB_*`` in OpenCV 4, ``cv2.CALIB_*`` in OpenCV 5."""
+    import cv2
+
+    value = getattr(cv2.fisheye, name, None)
+    return int(value if value is not None else getattr(cv2, name))
+
+
+# ------------------------------------------------------------------------------------------ fisheye
 
 
 def _fisheye_distort(x, y, d, jacobian):
@@ -137,6 +237,53 @@ def _fisheye_distort(x, y, d, jacobian):
     return xd, yd, D
 
 
+def _fisheye_coefficient_jacobian(x, y, d, fx, fy):
+    """``d(u, v)/d k_i = (fx x, fy y) th^(2i+1) / r``, i = 1..4 (``th / r -> 1`` at the centre)."""
+    r = np.hypot(x, y)
+    th = np.arctan(r)
+    small = r < 1e-12
+    ratio = np.where(small, 1.0, th / np.where(small, 1.0, r))
+    J = np.empty(np.shape(x) + (2, 4))
+    for i in range(4):
+        g = ratio * th ** (2 * i + 2)
+        J[..., 0, i] = fx * x * g
+        J[..., 1, i] = fy * y * g
+    return J
+
+
+def _fisheye_opencv_project(Xc, K, d):
+    import cv2
+
+    zero = np.zeros(3)
+    return cv2.fisheye.projectPoints(np.asarray(Xc, np.float64).reshape(-1, 1, 3), zero, zero, K, d)[0].reshape(-1, 2)
+
+
+def _fisheye_undistort(pts, K, d):
+    import cv2
+
+    return cv2.fisheye.undistortPoints(pts, K, d.reshape(-1, 1))
+
+
+def _fisheye_calibrate(objs, imgs, size, criteria):
+    """``cv2.fisheye.calibrate`` with RECOMPUTE_EXTRINSIC, CHECK_COND and FIX_SKEW; the view OpenCV
+    names ill-conditioned raises :class:`IllConditionedView`."""
+    import cv2
+
+    flags = (opencv_fisheye_flag("CALIB_RECOMPUTE_EXTRINSIC") | opencv_fisheye_flag("CALIB_CHECK_COND")
+             | opencv_fisheye_flag("CALIB_FIX_SKEW"))
+    try:
+        _, K, D, _, _ = cv2.fisheye.calibrate(objs, imgs, size, None, None, flags=flags, criteria=criteria)
+    except cv2.error as e:
+        m = re.search(r"input array (\d+)", str(e))
+        if m and int(m.group(1)) < len(objs):
+            raise IllConditionedView(int(m.group(1))) from None
+        raise
+    return K, D
+
+
+# ------------------------------------------------------------------------------------------ pinhole
+
+
 def _radtan_distort(x, y, d, jacobian):
     """Radial-tangential distortion of normalised coordinates and its 2x2 Jacobian."""
     k1, k2, p1, p2, k3 = d
@@ -155,23 +302,58 @@ def _radtan_distort(x, y, d, jacobian):
     return xd, yd, D
 
 
-def undistort_points(camera: Camera, uv: np.ndarray) -> np.ndarray:
-    """Pixels (..., 2) to normalised image coordinates (..., 2) with OpenCV's iterative inverse."""
+def _radtan_coefficient_jacobian(x, y, d, fx, fy):
+    """``d(u, v)/d k1 = (fx x, fy y) r2``, ``/d k2 = (fx x, fy y) r2^2``, ``/d k3 = (fx x, fy y) r2^3``,
+    ``/d p1 = (2 fx x y, fy (r2 + 2 y^2))``, ``/d p2 = (fx (r2 + 2 x^2), 2 fy x y)``."""
+    J = np.empty(np.shape(x) + (2, 5))
+    r2 = x * x + y * y
+    for col, p in ((0, r2), (1, r2 * r2), (4, r2 ** 3)):
+        J[..., 0, col] = fx * x * p
+        J[..., 1, col] = fy * y * p
+    J[..., 0, 2] = fx * 2 * x * y
+    J[..., 1, 2] = fy * (r2 + 2 * y * y)
+    J[..., 0, 3] = fx * (r2 + 2 * x * x)
+    J[..., 1, 3] = fy * 2 * x * y
+    return J
+
+
+def _radtan_opencv_project(Xc, K, d):
     import cv2
 
-    uv = np.asarray(uv, dtype=np.float64)
-    shape = uv.shape
-    pts = uv.reshape(-1, 1, 2)
-    out = np.full_like(pts, np.nan)
-    ok = np.isfinite(pts).all(axis=-1).ravel()
-    if ok.any():
-        if camera.model == FISHEYE:
-            und = cv2.fisheye.undistortPoints(pts[ok], camera.K, camera.dist.reshape(4, 1))
-        else:
-            und = cv2.undistortPoints(pts[ok], camera.K, camera.dist.reshape(-1, 1),
-                                      criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12))
-        out[ok] = und
-    return out.reshape(shape)
+    zero = np.zeros(3)
+    return cv2.projectPoints(np.asarray(Xc, np.float64).reshape(-1, 1, 3), zero, zero, K, d)[0].reshape(-1, 2)
+
+
+def _radtan_undistort(pts, K, d):
+    import cv2
+
+    return cv2.undistortPoints(pts, K, d.reshape(-1, 1),
+                               criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12))
+
+
+def _radtan_calibrate(objs, imgs, size, criteria):
+    """``cv2.calibrateCamera`` (k1, k2, p1, p2, k3), on float32 points as it wants them."""
+    import cv2
+
+    objs = [o.reshape(-1, 3).astype(np.float32) for o in objs]
+    imgs = [m.reshape(-1, 1, 2).astype(np.float32) for m in imgs]
+    _, K, D, _, _ = cv2.calibrateCamera(objs, imgs, size, None, None, criteria=criteria)
+    return K, D
+
+
+# ----------------------------------------------------------------------------------------- registry
+
+
+CAMERA_MODELS: dict[str, CameraModel] = {m.name: m for m in (
+    CameraModel(FISHEYE, 0, ("k1", "k2", "k3", "k4"), 4, "k1..k4 (OpenCV fisheye)", _fisheye_distort,
+                _fisheye_coefficient_jacobian, _fisheye_opencv_project, _fisheye_undistort, _fisheye_calibrate,
+                anipose_keys=(("fisheye", True),)),
+    CameraModel(PINHOLE, 1, ("k1", "k2", "p1", "p2", "k3"), 0, "k1, k2, p1, p2, k3 (OpenCV)", _radtan_distort,
+                _radtan_coefficient_jacobian, _radtan_opencv_project, _radtan_undistort, _radtan_calibrate),
+)}
+
+# distortion coefficients in packed intrinsics: the most any model has
+DISTORTION_SLOTS = max(m.n_coefficients for m in CAMERA_MODELS.values())
 
 
 @dataclass

@@ -20,7 +20,7 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
     from graph.calibrate.cli import load_camera_json
     from graph.calibrate.detect import detect_views
     from graph.calibrate.report import write_figures
-    from graph.io.calibration import write_acinoset_json, write_anipose_toml
+    from graph.io.calibration import SCENE_JSON_MODEL, write_acinoset_json, write_anipose_toml
     from graph.types import Progress, jsonable
 
     progress.report(READING, 0.0)
@@ -29,8 +29,9 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
     board = parse_board(opts["board"])
     if m.get("videos"):  # the board found in every ``every``-th frame, the progress per video
         n = len(m["videos"])
-        views = [detect_views(inside(input_dir, rel), board, every=opts.get("every", 1), cache=False, name=f"cam{i + 1}",
-                              progress=lambda done, total, i=i: progress(Progress("detect", (i + done / max(total, 1)) / n)))
+        views = [detect_views(inside(input_dir, rel), board, every=opts.get("every", 1), cache=False,
+                              name=f"cam{i + 1}", progress=lambda done, total, i=i: progress(
+                                  Progress("detect", (i + done / max(total, 1)) / n)))
                  for i, rel in enumerate(m["videos"])]
     else:
         views = [read_detections(inside(input_dir, rel), board, name=f"cam{i + 1}")
@@ -41,7 +42,7 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
     progress.report(WRITING, 1.0, result.iterations)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_anipose_toml(out_dir / "calibration.toml", result.calibration)
-    if opts["model"] == "fisheye":
+    if opts["model"] == SCENE_JSON_MODEL:
         try:
             write_acinoset_json(out_dir / "scene.json", result.calibration)
         except ValueError:  # cameras of several resolutions: AcinoSet's scene holds one

@@ -28,6 +28,7 @@ import sqlite3
 from pathlib import Path
 from typing import Iterator
 
+from graph.camera import CAMERA_MODELS
 from graph.errors import InputError
 from service import jobfiles
 from service.errors import DISK_FULL, NoSpace, NotFound, NotReady, TooLarge, Unprocessable, storage_full
@@ -38,7 +39,7 @@ from service.store import Job, QuotaExceeded, User
 DETECTIONS_DIR = "detections"
 VIDEOS_DIR = "videos"
 INTRINSICS_DIR = "intrinsics"
-MODELS = ("fisheye", "pinhole")
+MODELS = tuple(CAMERA_MODELS)  # the camera models a calibration may fit
 OPTION_NAMES = ("model", "origin", "every", "label")
 
 

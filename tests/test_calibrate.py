@@ -137,7 +137,8 @@ def test_bundle_recovers_a_perturbed_rig_exactly():
     rig, obs = _small_problem(FISHEYE, seed=3)
     obs.uv = obs.uv + bundle.residuals(rig, obs, jacobians=False)  # perfect measurements
     start = rig.copy()
-    start.R_cam[1], start.t_cam[1] = bundle.retract(rig.R_cam[1], rig.t_cam[1], np.r_[0.02, -0.01, 0.01, 0.03, 0, -0.02])
+    start.R_cam[1], start.t_cam[1] = bundle.retract(rig.R_cam[1], rig.t_cam[1],
+                                                    np.r_[0.02, -0.01, 0.01, 0.03, 0, -0.02])
     start.R_board, start.t_board = bundle.retract(rig.R_board, rig.t_board, np.full((2, 6), 0.01))
     sol = bundle.solve(start, obs, bundle.Settings(fixed_cams=frozenset({0}), huber_px=2.0))
     np.testing.assert_allclose(sol.rig.t_cam[1], rig.t_cam[1], atol=1e-8)
@@ -187,11 +188,11 @@ def _opencv_fisheye(views: BoardViews, board):
     """OpenCV's fisheye calibration of the same points (AcinoSet's flags) and its RMS residual length."""
     import cv2
 
-    from graph.calibrate.intrinsics import _cv_flag
+    from graph.camera import opencv_fisheye_flag as flag
 
     obj = [board.object_points().reshape(1, -1, 3)] * len(views)
     img = [c.reshape(1, -1, 2) for c in views.corners]
-    flags = _cv_flag("CALIB_RECOMPUTE_EXTRINSIC") | _cv_flag("CALIB_CHECK_COND") | _cv_flag("CALIB_FIX_SKEW")
+    flags = flag("CALIB_RECOMPUTE_EXTRINSIC") | flag("CALIB_CHECK_COND") | flag("CALIB_FIX_SKEW")
     _, K, D, rv, tv = cv2.fisheye.calibrate(obj, img, views.image_size, None, None, flags=flags,
                                             criteria=(3, 100, 1e-10))
     sq = []
@@ -298,7 +299,8 @@ def _poses(board, n, seed=0):
         yield R, t - R @ board.object_points().mean(axis=0)
 
 
-@pytest.mark.parametrize("spec, tolerance", [("checkerboard:9x6:0.05", 0.15), ("charuco:7x5:0.06:0.045:DICT_4X4_50", 0.3)])
+@pytest.mark.parametrize("spec, tolerance", [("checkerboard:9x6:0.05", 0.15),
+                                             ("charuco:7x5:0.06:0.045:DICT_4X4_50", 0.3)])
 def test_detection_on_rendered_images(spec, tolerance):
     board = parse_board(spec)
     detector = Detector(board)

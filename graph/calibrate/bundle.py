@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from graph.calibrate.model import N_INTRINSICS, project
+from graph.calibrate.model import MAX_INTRINSICS, N_INTRINSICS, project
 
 FIXED_DISTANCE_SD = 1e-6  # per px of residual: holds a distance to a micrometre
 HUBER_SIGMAS = 3.03  # a 2D Gaussian residual is longer than 3.03 sigma with probability 1 %
@@ -161,7 +161,8 @@ def intrinsics_key(i: int) -> int:
 
 def residuals(rig: Rig, obs: Observations, jacobians: bool = True):
     """``e`` (M, 2) and, with ``jacobians``, ``d e / d xi_cam`` (M, 2, 6), ``d e / d xi_board``
-    (M, 2, 6) and ``d e / d theta`` (a list per corner-camera model, (M, 2, P) zero-padded to 9)."""
+    (M, 2, 6) and ``d e / d theta`` (a list per corner-camera model, (M, 2, P) zero-padded to
+    :data:`~graph.calibrate.model.MAX_INTRINSICS`)."""
     c = obs.cam[obs.view]
     # per view: A = R_c^T R_b and a = R_c^T (t_b - t_c), so that X_c = A p + a
     Rc_v, tc_v = rig.R_cam[obs.cam], rig.t_cam[obs.cam]
@@ -175,7 +176,7 @@ def residuals(rig: Rig, obs: Observations, jacobians: bool = True):
     e = np.empty((M, 2))
     if jacobians:
         J_X = np.empty((M, 2, 3))
-        J_k = np.zeros((M, 2, 9))
+        J_k = np.zeros((M, 2, MAX_INTRINSICS))
     for i in np.unique(obs.cam):
         m = c == i
         model = rig.models[i]
@@ -246,7 +247,7 @@ def linearize(rig: Rig, obs: Observations, settings: Settings):
     e_w = (e[order] * sw).reshape(-1)  # corners of view v are rows 2 bounds[v] .. 2 bounds[v+1]
     Jc = (Jc[order] * sw[..., None]).reshape(-1, 6)
     Jb = (Jb[order][:, :, 6 - nb:] * sw[..., None]).reshape(-1, nb)
-    Jk = (Jk[order] * sw[..., None]).reshape(-1, 9)
+    Jk = (Jk[order] * sw[..., None]).reshape(-1, MAX_INTRINSICS)
     factors, diag = [], {}
     cam_free = np.array([i not in settings.fixed_cams for i in range(len(rig.models))])
     k_free = np.array([i in settings.free_intrinsics for i in range(len(rig.models))])

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from graph.camera import CAMERA_MODELS, FISHEYE
 from graph.errors import InputError
 
 
@@ -36,7 +37,7 @@ def register(sub) -> None:
                        help="a video, a folder of images or a detections JSON" + (", one per camera in order"
                                                                                  if many else ""))
         q.add_argument("--board", required=True, metavar="SPEC", help=board_help)
-        q.add_argument("--model", choices=["fisheye", "pinhole"], default="fisheye",
+        q.add_argument("--model", choices=list(CAMERA_MODELS), default=FISHEYE,
                        help="camera model (default fisheye: OpenCV's 4 coefficients)")
         q.add_argument("--every", type=int, default=1, metavar="N", help="use every N-th frame of a video")
         q.add_argument("--no-cache", action="store_true", help="detect again even when a cache matches")
@@ -145,7 +146,7 @@ def _warn_mm(board) -> None:
 def load_camera_json(path: str):
     """A camera from AcinoSet's camera JSON (``camera_resolution``, ``k``, ``d``; ``model`` if written by
     acinoset, else fisheye for 4 coefficients and pinhole otherwise)."""
-    from graph.camera import FISHEYE, PINHOLE, Camera
+    from graph.camera import PINHOLE, Camera
     from graph.io.calibration import _array, _intrinsic_matrix, _size
 
     p = Path(path)
@@ -160,7 +161,8 @@ def load_camera_json(path: str):
     K = _intrinsic_matrix(doc["k"], "k", p)
     d = _array(doc["d"], "d", p).ravel()
     model = doc.get("model", FISHEYE if d.size == 4 else PINHOLE)
-    if model not in (FISHEYE, PINHOLE) or (model == FISHEYE and d.size != 4) or d.size > 5:
+    spec = CAMERA_MODELS.get(model) if isinstance(model, str) else None
+    if spec is None or spec.coefficient_problem(d.size):
         raise InputError(f"d: {d.size} coefficients do not fit the {model} model", p)
     size = _size(doc["camera_resolution"], "camera_resolution", p) if "camera_resolution" in doc else (0, 0)
     return Camera(K=K, dist=d, R=np.eye(3), t=np.zeros(3), model=model, size=size, name=p.stem)

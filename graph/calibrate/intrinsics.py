@@ -1,8 +1,9 @@
 """Intrinsic calibration of one camera from its board views.
 
-1. A start from OpenCV: ``cv2.fisheye.calibrate`` (flags RECOMPUTE_EXTRINSIC, CHECK_COND, FIX_SKEW; a
-   view OpenCV finds ill-conditioned is dropped and named, and the rest calibrated again) or
-   ``cv2.calibrateCamera`` (k1, k2, p1, p2, k3).
+1. A start from OpenCV, the model's :attr:`graph.camera.CameraModel.opencv_calibrate`:
+   ``cv2.fisheye.calibrate`` (flags RECOMPUTE_EXTRINSIC, CHECK_COND, FIX_SKEW; a view OpenCV finds
+   ill-conditioned is dropped and named, and the rest calibrated again) or ``cv2.calibrateCamera``
+   (k1, k2, p1, p2, k3).
 2. The bundle adjustment of :mod:`graph.calibrate.bundle` with the camera fixed at the origin, its
    intrinsics free (the board's known geometry anchors them, focal length included) and one pose per
    view, under Huber's loss; views whose error stands out (:func:`outlier_views`) are dropped and
@@ -14,7 +15,6 @@ the extrinsic calibration may refine them under) come with the result.
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,7 +24,7 @@ from graph.calibrate.board import CHARUCO, Board
 from graph.calibrate.model import camera_with
 from graph.calibrate.poses import board_in_camera
 from graph.calibrate.views import BoardViews
-from graph.camera import FISHEYE, PINHOLE, Camera
+from graph.camera import CAMERA_MODELS, FISHEYE, Camera, IllConditionedView, camera_model, model_names
 from graph.errors import InputError
 
 MIN_VIEWS = 3  # views needed for intrinsics: OpenCV's minimum for a planar board
@@ -76,20 +76,14 @@ def usable_views(views: BoardViews, board: Board) -> tuple[list[int], dict[str, 
     return keep, dropped
 
 
-def _cv_flag(name: str) -> int:
-    """A fisheye flag by name: ``cv2.fisheye.CALIB_*`` in OpenCV 4, ``cv2.CALIB_*`` in OpenCV 5."""
-    import cv2
-
-    value = getattr(cv2.fisheye, name, None)
-    return int(value if value is not None else getattr(cv2, name))
-
-
 def opencv_start(views: BoardViews, board: Board, model: str, keep: list[int]) -> tuple[np.ndarray, list[int], dict]:
     """OpenCV's calibration of the views ``keep``: intrinsics theta, the views kept and those OpenCV
     found ill-conditioned (named)."""
     import cv2
 
     obj_all = board.object_points()
+    spec = camera_model(model)
+    n = spec.n_coefficients
     dropped: dict[str, str] = {}
     keep = list(keep)
     size = tuple(int(s) for s in views.image_size)
@@ -104,25 +98,15 @@ def opencv_start(views: BoardViews, board: Board, model: str, keep: list[int]) -
             imgs.append(np.ascontiguousarray(views.corners[i][ok], dtype=np.float64).reshape(1, -1, 2))
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
         try:
-            if model == FISHEYE:
-                flags = (_cv_flag("CALIB_RECOMPUTE_EXTRINSIC") | _cv_flag("CALIB_CHECK_COND")
-                         | _cv_flag("CALIB_FIX_SKEW"))
-                _, K, D, _, _ = cv2.fisheye.calibrate(objs, imgs, size, None, None, flags=flags, criteria=crit)
-            else:
-                objs = [o.reshape(-1, 3).astype(np.float32) for o in objs]
-                imgs = [m.reshape(-1, 1, 2).astype(np.float32) for m in imgs]
-                _, K, D, _, _ = cv2.calibrateCamera(objs, imgs, size, None, None, criteria=crit)
+            K, D = spec.opencv_calibrate(objs, imgs, size, crit)
+        except IllConditionedView as e:
+            bad = keep.pop(e.index)
+            dropped[views.frames[bad]] = "ill-conditioned (board too far, too small or too frontal)"
+            continue
         except cv2.error as e:
-            m = re.search(r"input array (\d+)", str(e))
-            if m and model == FISHEYE and int(m.group(1)) < len(keep):
-                bad = keep.pop(int(m.group(1)))
-                dropped[views.frames[bad]] = "ill-conditioned (board too far, too small or too frontal)"
-                continue
             raise InputError(f"OpenCV could not calibrate these views ({' '.join(str(e).split())[-120:]})",
                              views.source or views.name) from None
-        theta = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.ravel(D)], dtype=np.float64)
-        if model == PINHOLE:
-            theta = np.concatenate([theta[:4], np.pad(np.ravel(D), (0, 5))[:5]])
+        theta = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.pad(np.ravel(D), (0, n))[:n]], dtype=np.float64)
         return theta, keep, dropped
 
 
@@ -181,8 +165,8 @@ def coverage(views: BoardViews, keep: list[int]) -> tuple[float, np.ndarray]:
 
 def calibrate_intrinsics(views: BoardViews, board: Board, model: str = FISHEYE) -> IntrinsicsResult:
     """Intrinsics of one camera from its board views (see the module)."""
-    if model not in (FISHEYE, PINHOLE):
-        raise InputError(f"unknown camera model {model!r} (fisheye or pinhole)")
+    if model not in CAMERA_MODELS:
+        raise InputError(f"unknown camera model {model!r} ({model_names()})")
     keep, dropped = usable_views(views, board)
     theta, keep, more = opencv_start(views, board, model, keep)
     dropped.update(more)

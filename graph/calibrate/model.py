@@ -1,12 +1,15 @@
 """Projection of points in a camera's frame with its Jacobians, for the bundle adjustment.
 
-Intrinsics as one vector ``theta``:
+Intrinsics as one vector ``theta = [fx, fy, cx, cy, d...]``, ``d`` the model's distortion
+coefficients (:attr:`graph.camera.CameraModel.coefficients`):
 
 * fisheye (OpenCV, 8): ``[fx, fy, cx, cy, k1, k2, k3, k4]``
 * pinhole (OpenCV radial-tangential, 9): ``[fx, fy, cx, cy, k1, k2, p1, p2, k3]``
 
 With ``x = X/Z, y = Y/Z`` and the distorted ``(x', y')`` of :mod:`graph.camera`, pixels are
-``u = fx x' + cx, v = fy y' + cy``. Derivatives with respect to the distortion coefficients:
+``u = fx x' + cx, v = fy y' + cy``, so ``d(u, v)/d(fx, fy, cx, cy) = [[x', 0, 1, 0], [0, y', 0, 1]]``;
+the derivatives with respect to the distortion coefficients are each model's
+(:attr:`graph.camera.CameraModel.coefficient_jacobian`):
 
 * fisheye, ``r = |(x, y)|, th = atan r``: ``d x'/d k_i = x th^(2i+1) / r`` (and y alike), i = 1..4;
 * pinhole, ``r2 = x^2 + y^2``: ``d(x', y')/d k1 = (x, y) r2``, ``/d k2 = (x, y) r2^2``,
@@ -17,9 +20,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from graph.camera import FISHEYE, PINHOLE, Camera, _fisheye_distort, _radtan_distort
+from graph.camera import CAMERA_MODELS, Camera, camera_model
 
-N_INTRINSICS = {FISHEYE: 8, PINHOLE: 9}
+# the length of theta per model, and the longest
+N_INTRINSICS = {name: 4 + m.n_coefficients for name, m in CAMERA_MODELS.items()}
+MAX_INTRINSICS = max(N_INTRINSICS.values())
 
 
 def intrinsics_of(camera: Camera) -> np.ndarray:
@@ -42,10 +47,8 @@ def project(theta: np.ndarray, model: str, Xc: np.ndarray, jacobians: bool = Tru
     x, y = Xc[:, 0] / z, Xc[:, 1] / z
     fx, fy, cx, cy = theta[:4]
     d = np.asarray(theta[4:])
-    if model == FISHEYE:
-        xd, yd, D = _fisheye_distort(x, y, d, jacobians)
-    else:
-        xd, yd, D = _radtan_distort(x, y, d, jacobians)
+    spec = camera_model(model)
+    xd, yd, D = spec.distort(x, y, d, jacobians)
     uv = np.stack([fx * xd + cx, fy * yd + cy], axis=1)
     if not jacobians:
         return uv
@@ -63,22 +66,5 @@ def project(theta: np.ndarray, model: str, Xc: np.ndarray, jacobians: bool = Tru
     J_t[:, 1, 1] = yd
     J_t[:, 0, 2] = 1.0
     J_t[:, 1, 3] = 1.0
-    if model == FISHEYE:
-        r = np.hypot(x, y)
-        th = np.arctan(r)
-        small = r < 1e-12
-        ratio = np.where(small, 1.0, th / np.where(small, 1.0, r))  # th / r -> 1 at the centre
-        for i in range(4):
-            g = ratio * th ** (2 * i + 2)
-            J_t[:, 0, 4 + i] = fx * x * g
-            J_t[:, 1, 4 + i] = fy * y * g
-    else:
-        r2 = x * x + y * y
-        for col, p in ((4, r2), (5, r2 * r2), (8, r2 ** 3)):
-            J_t[:, 0, col] = fx * x * p
-            J_t[:, 1, col] = fy * y * p
-        J_t[:, 0, 6] = fx * 2 * x * y
-        J_t[:, 1, 6] = fy * (r2 + 2 * y * y)
-        J_t[:, 0, 7] = fx * (r2 + 2 * x * x)
-        J_t[:, 1, 7] = fy * 2 * x * y
+    J_t[:, :, 4:] = spec.coefficient_jacobian(x, y, d, fx, fy)
     return uv, J_X, J_t

@@ -21,7 +21,10 @@ import numpy as np
 
 from graph.calibrate.board import CHARUCO, Board, charuco_board
 from graph.calibrate.views import BoardViews
-from graph.camera import Calibration, Camera
+from graph.camera import FISHEYE, PINHOLE, Calibration, Camera
+
+# the simulated lenses' distortion per model (a model not named here: none)
+LENS_DISTORTION = {FISHEYE: (0.05, -0.01, 0.002, 0.0), PINHOLE: (-0.05, 0.01, 0.0, 0.0, 0.0)}
 
 
 def rig_centre(calibration: Calibration) -> np.ndarray:
@@ -50,7 +53,7 @@ def dome_rig(cameras: int = 6, radius: float = 3.0, height: float = 2.5, size: t
         right = _unit(np.cross(fwd, [0.0, 0.0, 1.0]))
         R = np.stack([right, np.cross(fwd, right), fwd])
         K = np.array([[focal_px, 0, size[0] / 2 + 3.0 * k], [0, focal_px, size[1] / 2 - 2.0 * k], [0, 0, 1]])
-        dist = [0.05, -0.01, 0.002, 0.0] if model == "fisheye" else [-0.05, 0.01, 0.0, 0.0, 0.0]
+        dist = LENS_DISTORTION.get(model, ())
         cams.append(Camera(K=K, dist=dist, R=R, t=-R @ C, model=model, size=size, name=f"cam{k + 1}"))
     return Calibration(cams, source=f"dome of {cameras}")
 

@@ -11,7 +11,8 @@ Both describe the same thing, a rig of cameras in one world frame with ``X_c = R
   ``[cam_0]``, ``[cam_1]``, ... with ``name``, ``size = [W, H]``, ``matrix`` (3x3), ``distortions``
   (4 fisheye coefficients, or 1..5 pinhole ones k1, k2, p1, p2, k3), ``rotation`` (a Rodrigues
   vector ``r``: ``R = exp([r]_x)``, rotation by ``|r|`` about ``r/|r|``), ``translation`` (3) and
-  ``fisheye = true`` for fisheye cameras; plus a ``[metadata]`` table. Cameras are taken in the
+  the keys that mark the camera's model (``fisheye = true`` for fisheye cameras, none for pinhole
+  ones: :attr:`graph.camera.CameraModel.anipose_keys`); plus a ``[metadata]`` table. Cameras are taken in the
   numeric order of their ``cam_N`` keys (aniposelib itself sorts the keys as text, which puts
   ``cam_10`` before ``cam_2``; with fewer than 11 cameras both orders agree).
 
@@ -31,12 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.camera import CALIBRATION_UNITS, FISHEYE, PINHOLE, Calibration, Camera
+from graph.camera import CALIBRATION_UNITS, CAMERA_MODELS, FISHEYE, Calibration, Camera, CameraModel, camera_model
 from graph.errors import NESTED_TOO_DEEPLY, InputError
 
 ROTATION_TOLERANCE = 1e-5  # max |R^T R - I| and |det R - 1| accepted (files rounded to ~6 digits pass)
 
 _CAM_KEY = re.compile(r"^cam_(\d+)$")
+
+SCENE_JSON_MODEL = FISHEYE  # the one camera model AcinoSet's scene JSON holds (it has no key naming one)
 
 
 def default_rig_path() -> Path:
@@ -99,6 +102,7 @@ def _from_acinoset(doc, path: Path) -> Calibration:
     size = (0, 0)
     if "camera_resolution" in doc:
         size = _size(doc["camera_resolution"], "camera_resolution", path)
+    spec = camera_model(SCENE_JSON_MODEL)
     cameras = []
     for i, c in enumerate(cams):
         where = f"camera {i + 1}"
@@ -109,11 +113,12 @@ def _from_acinoset(doc, path: Path) -> Calibration:
                 raise InputError(f'{where}: missing "{key}" ({what})', path)
         K = _intrinsic_matrix(c["k"], f"{where} k", path)
         d = _array(c["d"], f"{where} d", path).ravel()
-        if d.size != 4:
-            raise InputError(f"{where} d: fisheye distortion needs 4 coefficients, got {d.size}", path)
+        if d.size != spec.n_coefficients:
+            raise InputError(f"{where} d: {spec.name} distortion needs {spec.n_coefficients} coefficients, "
+                             f"got {d.size}", path)
         R = _rotation_matrix(c["r"], f"{where} r", path)
         t = _vector3(c["t"], f"{where} t", path)
-        cameras.append(Camera(K=K, dist=d, R=R, t=t, model=FISHEYE, size=size, name=f"cam{i + 1}"))
+        cameras.append(Camera(K=K, dist=d, R=R, t=t, model=spec.name, size=size, name=f"cam{i + 1}"))
     meta = {k: v for k, v in doc.items() if k not in ("cameras", "camera_resolution")
             and isinstance(v, (str, int, float, bool))}
     return Calibration(cameras=cameras, source=str(path), metadata=meta)
@@ -134,26 +139,43 @@ def _from_anipose(doc: dict, path: Path) -> Calibration:
                             ("size", "image size")):
             if field not in c:
                 raise InputError(f"{where}: missing {field} ({what})", path)
-        fisheye = c.get("fisheye", False)
-        if not isinstance(fisheye, bool):
-            raise InputError(f"{where} fisheye: must be true or false", path)
+        spec = _anipose_model(c, where, path)
         K = _intrinsic_matrix(c["matrix"], f"{where} matrix", path)
         d = _array(c["distortions"], f"{where} distortions", path).ravel()
-        if fisheye and d.size != 4:
-            raise InputError(f"{where} distortions: fisheye needs 4 coefficients, got {d.size}", path)
-        if not fisheye and not 0 <= d.size <= 5:
-            raise InputError(f"{where} distortions: pinhole takes up to 5 coefficients "
-                             f"(k1, k2, p1, p2, k3), got {d.size}", path)
+        problem = spec.coefficient_problem(d.size)
+        if problem:
+            raise InputError(f"{where} distortions: {problem}", path)
         rvec = _vector3(c["rotation"], f"{where} rotation", path)
         t = _vector3(c["translation"], f"{where} translation", path)
         name = c.get("name", key)
         if not isinstance(name, (str, int)):
             raise InputError(f"{where} name: must be a string", path)
         cameras.append(Camera(K=K, dist=d, R=rodrigues_to_matrix(rvec), t=t,
-                              model=FISHEYE if fisheye else PINHOLE,
+                              model=spec.name,
                               size=_size(c["size"], f"{where} size", path), name=str(name)))
     meta = doc.get("metadata", {})
     return Calibration(cameras=cameras, source=str(path), metadata=dict(meta) if isinstance(meta, dict) else {})
+
+
+_TOML_KINDS = {bool: "true or false", str: "a string", int: "an integer", float: "a number"}
+
+
+def _anipose_model(table: dict, where: str, path: Path) -> CameraModel:
+    """The camera model an Anipose camera table marks: of the models whose every marking key
+    (:attr:`graph.camera.CameraModel.anipose_keys`) the table has, the one with the most (a table
+    with none is a pinhole, as in aniposelib)."""
+    for m in CAMERA_MODELS.values():
+        for key, value in m.anipose_keys:
+            if key in table and type(table[key]) is not type(value):
+                raise InputError(f"{where} {key}: must be {_TOML_KINDS.get(type(value), type(value).__name__)}", path)
+    found = [m for m in CAMERA_MODELS.values() if all(key in table and table[key] == value
+                                                      for key, value in m.anipose_keys)]
+    most = max((len(m.anipose_keys) for m in found), default=0)
+    best = [m for m in found if len(m.anipose_keys) == most]
+    if len(best) != 1:
+        raise InputError(f"{where}: marks " + (" and ".join(m.name for m in best) + " cameras at once" if best
+                                               else "no camera model"), path)
+    return best[0]
 
 
 def _array(value, what: str, path: Path) -> np.ndarray:
@@ -252,16 +274,16 @@ def save_calibration(path: str | Path, calibration: Calibration) -> None:
 
 
 def write_acinoset_json(path: str | Path, calibration: Calibration) -> None:
-    """AcinoSet scene JSON. The format holds fisheye cameras of one resolution only."""
+    """AcinoSet scene JSON. The format holds fisheye cameras (:data:`SCENE_JSON_MODEL`) of one resolution only."""
     cams = calibration.cameras
-    if any(c.model != FISHEYE for c in cams):
-        raise ValueError("AcinoSet scene JSON holds fisheye cameras only; write Anipose TOML instead")
+    if any(c.model != SCENE_JSON_MODEL for c in cams):
+        raise ValueError(f"AcinoSet scene JSON holds {SCENE_JSON_MODEL} cameras only; write Anipose TOML instead")
     sizes = {tuple(c.size) for c in cams}
     if len(sizes) > 1:
         raise ValueError(f"AcinoSet scene JSON has one camera_resolution, the cameras have {sorted(sizes)}")
     doc: dict = {k: v for k, v in calibration.metadata.items() if isinstance(v, (str, int, float, bool))}
     doc["camera_resolution"] = list(sizes.pop()) if sizes else [0, 0]
-    doc["cameras"] = [{"k": c.K.tolist(), "d": c.dist.reshape(4, 1).tolist(),
+    doc["cameras"] = [{"k": c.K.tolist(), "d": c.dist.reshape(-1, 1).tolist(),
                        "r": c.R.tolist(), "t": c.t.reshape(3, 1).tolist()} for c in cams]
     Path(path).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
 
@@ -274,12 +296,10 @@ def write_anipose_toml(path: str | Path, calibration: Calibration) -> None:
         lines.append(f"name = {_toml_value(name)}")
         lines.append(f"size = {_toml_value([int(c.size[0]), int(c.size[1])])}")
         lines.append(f"matrix = {_toml_value(c.K.tolist())}")
-        dist = c.dist[:4] if c.model == FISHEYE else c.dist
-        lines.append(f"distortions = {_toml_value(dist.tolist())}")
+        lines.append(f"distortions = {_toml_value(c.dist.tolist())}")
         lines.append(f"rotation = {_toml_value(matrix_to_rodrigues(c.R).tolist())}")
         lines.append(f"translation = {_toml_value(c.t.tolist())}")
-        if c.model == FISHEYE:
-            lines.append("fisheye = true")
+        lines.extend(f"{_toml_key(key)} = {_toml_value(value)}" for key, value in c.camera_model.anipose_keys)
         lines.append("")
     lines.append("[metadata]")
     for key, value in calibration.metadata.items():

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from graph import __version__
-from graph.camera import Calibration, Camera
+from graph.camera import DISTORTION_SLOTS, Calibration, Camera
 from graph.errors import InputError
 from graph.io.calibration import in_metres
 from graph.io.keypoints import Keypoints, spreadsheet_safe, write_dlc_csv
@@ -69,7 +69,8 @@ def write_anipose_csv(path: str | Path, result: Result,
     their columns, as Anipose writes a run it turned into the frame of ``[triangulation] axes``
     (:func:`graph.anipose.frame.anipose_frame`). Without it, the calibration's frame (identity, 0)."""
     pos = np.asarray(result.positions, dtype=np.float64)
-    M, center = (np.eye(3), np.zeros(3)) if frame is None else (np.asarray(frame[0], float), np.asarray(frame[1], float))
+    M, center = ((np.eye(3), np.zeros(3)) if frame is None
+                 else (np.asarray(frame[0], float), np.asarray(frame[1], float)))
     if frame is not None:
         pos = pos @ M.T - center
     n, m = pos.shape[:2]
@@ -196,9 +197,10 @@ def write_h5(path: str | Path, result: Result, calibration: Calibration | None =
 
 
 def _write_calibration(f, calibration: Calibration) -> None:
-    """Group ``calibration``: per camera (C) ``names``, ``models`` (fisheye|pinhole), ``size`` (C, 2) px,
-    ``K`` (C, 3, 3), ``R`` (C, 3, 3) and ``t`` (C, 3) m with ``X_c = R X_w + t``, ``dist`` (C, 5)
-    (fisheye: k1..k4 then NaN; pinhole: k1, k2, p1, p2, k3)."""
+    """Group ``calibration``: per camera (C) ``names``, ``models`` (fisheye|pinhole|...: the names of
+    :data:`graph.camera.CAMERA_MODELS`), ``size`` (C, 2) px, ``K`` (C, 3, 3), ``R`` (C, 3, 3) and ``t``
+    (C, 3) m with ``X_c = R X_w + t``, ``dist`` (C, :data:`graph.camera.DISTORTION_SLOTS`, 5 today): the
+    model's coefficients then NaN (fisheye: k1..k4 then NaN; pinhole: k1, k2, p1, p2, k3)."""
     g = f.create_group("calibration")
     g.attrs["units"] = "m"
     g.attrs["source"] = calibration.source or ""
@@ -209,7 +211,7 @@ def _write_calibration(f, calibration: Calibration) -> None:
     for name in ("K", "R"):
         g.create_dataset(name, data=np.stack([getattr(c, name) for c in cams]))
     g.create_dataset("t", data=np.stack([c.t for c in cams]))
-    g.create_dataset("dist", data=np.stack([np.pad(c.dist, (0, 5 - c.dist.size), constant_values=np.nan)
+    g.create_dataset("dist", data=np.stack([np.pad(c.dist, (0, DISTORTION_SLOTS - c.dist.size), constant_values=np.nan)
                                             for c in cams]))
 
 

@@ -11,8 +11,9 @@ Rotation conventions (passive), ``c = cos a, s = sin a``::
 
     rot_x = [[1,0,0],[0,c,s],[0,-s,c]]   rot_y = [[c,0,-s],[0,1,0],[s,0,c]]   rot_z = [[c,s,0],[-s,c,0],[0,0,1]]
 
-Camera intrinsics come packed as ``[model, fx, fy, cx, cy, d0..d4]`` (model 0 fisheye, 1 pinhole),
-see :meth:`graph.camera.Camera.packed`; the maths is documented in :mod:`graph.camera`.
+Camera intrinsics come packed as ``[code, fx, fy, cx, cy, d0..d4]``, ``code`` the camera model's
+(:attr:`graph.camera.CameraModel.code`: 0 fisheye, 1 pinhole), see :meth:`graph.camera.Camera.packed`;
+:func:`project_point` has one branch per code and the maths is documented in :mod:`graph.camera`.
 """
 
 from __future__ import annotations
@@ -20,7 +21,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from graph.camera import FISHEYE, PINHOLE, camera_model
 from graph.kinematics import fk_body_jacobian_batch, fk_jacobian
+
+# the camera models' codes in packed intrinsics (compile-time constants of the kernels)
+FISHEYE_CODE = float(camera_model(FISHEYE).code)
+PINHOLE_CODE = float(camera_model(PINHOLE).code)
 
 
 @njit(cache=True)
@@ -40,7 +46,7 @@ def project_point(intr, R, t, X, uv, J):
     fx, fy, cx, cy = intr[1], intr[2], intr[3], intr[4]
     d0, d1, d2, d3, d4 = intr[5], intr[6], intr[7], intr[8], intr[9]
     r2 = x * x + y * y
-    if intr[0] == 0.0:
+    if intr[0] == FISHEYE_CODE:
         r = np.sqrt(r2)
         th = np.arctan(r)
         th2 = th * th
@@ -57,7 +63,7 @@ def project_point(intr, R, t, X, uv, J):
         a01 = x * y * dsr
         a10 = a01
         a11 = s + y * y * dsr
-    else:
+    else:  # PINHOLE_CODE
         k1, k2, p1, p2, k3 = d0, d1, d2, d3, d4
         rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
         xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
@@ -163,7 +169,6 @@ def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
     """
     C = meas.shape[0]
     M = meas.shape[1]
-    P = q.shape[0]
     pos, dpos = fk_jacobian(q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset,
                             marker_point, marker_dep)
     H[:, :] = 0.0
@@ -534,9 +539,9 @@ def triangulate_points(norm, z, ok, intr, Rc, tc, Pm, sigma, iterations):
 
 
 @njit(cache=True, parallel=True)
-def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shift, frac, tau_col, pt_group, G, marker_wdep,
-                   seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point, marker_dep,
-                   bones, bone_len, bone_sigma, bone_col):
+def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shift, frac, tau_col, pt_group, G,
+                   marker_wdep, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
+                   marker_dep, bones, bone_len, bone_sigma, bone_col):
     """The robust reprojection cost's normal equations with unknowns shared by all frames: the
     body's length scales and the cameras' time offsets (``G`` of them, the vector ``W``).
 
@@ -548,9 +553,10 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
 
     (linear between the frames' own forward kinematics: the chord of a leg turning 0.07 rad a
     frame, a gallop at 120 fps, is within 0.3 mm of its arc; at ``f = 0`` it is frame n's pose).
-    With ``Jx = d uv / d p`` / sigma_cm (``sigma`` (C, M) per camera and marker) the detection's whitened residual e has ``J_n = (1-f) Jx dp_n/dq``
-    and ``J_{n+1} = f Jx dp_{n+1}/dq``; it adds ``w J_n^T J_n`` to frame n's information,
-    ``w J_{n+1}^T J_{n+1}`` to frame n+1's and ``w J_n^T J_{n+1}`` between them, and with
+    With ``Jx = d uv / d p`` / sigma_cm (``sigma`` (C, M) per camera and marker) the detection's
+    whitened residual e has ``J_n = (1-f) Jx dp_n/dq`` and ``J_{n+1} = f Jx dp_{n+1}/dq``; it adds
+    ``w J_n^T J_n`` to frame n's information, ``w J_{n+1}^T J_{n+1}`` to frame n+1's and
+    ``w J_n^T J_{n+1}`` between them, and with
     ``J_W = [Jx ((1-f) dp_n/dl + f dp_{n+1}/dl), Jx (p_{n+1} - p_n)]`` (the length groups on the
     marker's chain, ``marker_wdep`` (M, D_W) padded with -1, :func:`fk_body_jacobian`; and the
     camera's offset column ``tau_col[c]``, -1 when given) the blocks to and of ``W``. Bone rows of a
@@ -709,13 +715,13 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
                     if later:
                         HbW[n, p, col] += Jn1[0, p] * ub[col, 0] + Jn1[1, p] * ub[col, 1] + Jn1[2, p] * ub[col, 2]
                 for d in range(wdep.shape[0]):
-                    l = wdep[d]
-                    if l < 0:
+                    g = wdep[d]
+                    if g < 0:
                         break
-                    h = (Ln[0, l] * ua[col, 0] + Ln[1, l] * ua[col, 1] + Ln[2, l] * ua[col, 2]
-                         + Ln1[0, l] * ub[col, 0] + Ln1[1, l] * ub[col, 1] + Ln1[2, l] * ub[col, 2])
-                    HWW[n, l, col] += h
-                    HWW[n, col, l] += h
+                    h = (Ln[0, g] * ua[col, 0] + Ln[1, g] * ua[col, 1] + Ln[2, g] * ua[col, 2]
+                         + Ln1[0, g] * ub[col, 0] + Ln1[1, g] * ub[col, 1] + Ln1[2, g] * ub[col, 2])
+                    HWW[n, g, col] += h
+                    HWW[n, col, g] += h
         # bone-length rows at frame n's own pose
         if bones.shape[0] > 0:
             jb = np.zeros(P)
