@@ -58,10 +58,9 @@ def write(path: str | Path, run: ExportInput, session_description: str | None = 
     )
     if run.calibration is not None:
         for cam, name in zip(run.calibration.cameras, run.calibration.names):
-            coefficients = "k1..k4 (OpenCV fisheye)" if cam.model == "fisheye" else "k1, k2, p1, p2, k3 (OpenCV)"
             nwb.add_device(ndx_pose.CalibratedCamera(
                 name=name, description=f"{cam.model} camera, {cam.size[0]}x{cam.size[1]} px; distortion "
-                f"coefficients {coefficients}",
+                f"coefficients {cam.camera_model.summary}",
                 intrinsic_matrix=cam.K, rotation_matrix=cam.R, translation_vector=cam.t,
                 distortion_coefficients=cam.dist))
     else:
