@@ -40,6 +40,9 @@ from graph.errors import NESTED_TOO_DEEPLY, InputError
 AXES = {"x": 0, "y": 1, "z": 2}
 SIDE_PREFIXES = ("l_", "r_")
 POINTS_PROCESS_NOISE = 60.0  # std of the per-frame change of a free point's acceleration (m/s^2)
+# the nine arrays of :meth:`SkeletonArrays.kernel_args`, seg_parent .. marker_dep
+KernelArgs = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                   np.ndarray]
 
 
 @dataclass
@@ -54,13 +57,12 @@ class SkeletonArrays:
     pt_root: np.ndarray  # (K, 3) parameter indices of a root point's x, y, z
     pt_offset: np.ndarray  # (K, 3)
     marker_point: np.ndarray  # (M,) point index of each marker
-    marker_dep: np.ndarray = None  # (M, D) parameters each marker depends on, padded with -1
+    marker_dep: np.ndarray = field(init=False)  # (M, D) parameters each marker depends on, padded with -1
 
     def __post_init__(self) -> None:
-        if self.marker_dep is None:
-            self.marker_dep = _marker_dependencies(self)
+        self.marker_dep = _marker_dependencies(self)
 
-    def kernel_args(self) -> tuple:
+    def kernel_args(self) -> KernelArgs:
         """The arrays in the order the kernels in :mod:`graph.solve.kernels` take them."""
         return (self.seg_parent, self.seg_axis, self.seg_param, self.pt_base, self.pt_seg, self.pt_root,
                 self.pt_offset, self.marker_point, self.marker_dep)
@@ -124,7 +126,8 @@ class Skeleton:
         scales = np.asarray(scales, dtype=float)
         if scales.shape != (len(self.length_groups),):
             raise ValueError(f"{len(self.length_groups)} length scales needed, not {scales.shape}")
-        factor = np.where(self.point_group >= 0, scales[np.maximum(self.point_group, 0)], 1.0)
+        group = self.point_group if self.point_group is not None else np.full(len(self.arrays.pt_base), -1)
+        factor = np.where(group >= 0, scales[np.maximum(group, 0)], 1.0)
         arrays = replace(self.arrays, pt_offset=self.arrays.pt_offset * factor[:, None])
         return replace(self, arrays=arrays)
 
@@ -314,7 +317,7 @@ def points_skeleton(bodyparts: list[str], bone_pairs: list[tuple[str, str]] | No
     """Every bodypart a free 3D point: parameters ``<m>_x, <m>_y, <m>_z``."""
     M = len(bodyparts)
     names = [f"{m}_{c}" for m in bodyparts for c in "xyz"]
-    bones = [tuple(b) for b in (bone_pairs or [])]
+    bones = [(a, b) for a, b in (bone_pairs or [])]
     for a, b in bones:
         if a not in bodyparts or b not in bodyparts:
             raise InputError(f"bone {a}-{b} names a bodypart that is not in the keypoint files")

@@ -18,7 +18,7 @@ equations ``H_n, g_n`` of every frame). The damped system is the :class:`gtsam.G
 of :meth:`TrajectoryProblem.linear_graph`:
 
 * one ``HessianFactor`` per frame: the frame's normal equations, the anchor and the Marquardt
-  damping ``lambda I`` (see :class:`TrajectoryProblem`);
+  damping ``lambda I`` (see :class:`TrajectoryCost`);
 * one 4-key linear motion factor per window of four frames (a ``GaussianConditional`` over
   ``q_{n+3} | q_n, q_{n+1}, q_{n+2}``, as a ``JacobianFactor`` kept in Hessian form: the Python
   ``JacobianFactor`` constructors stop at three keys);
@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import NamedTuple
+from typing import Any, Generic, NamedTuple, TypeVar
 
 import gtsam
 import numpy as np
@@ -87,7 +87,11 @@ class Normals(NamedTuple):
     cost: np.ndarray  # (N,) data cost of each frame
 
 
-class TrajectoryProblem:
+StateT = TypeVar("StateT")  # what the optimiser steps: the trajectory Q (N, P), or a richer problem's state
+NormalsT = TypeVar("NormalsT")  # the measurement cost's normal equations at a state
+
+
+class TrajectoryCost(Generic[StateT, NormalsT]):
     """The FTE cost for one :class:`graph.solve.problem.Problem`, and its Gauss-Newton systems.
 
     The linear systems are written in absolute form, for the new trajectory ``Q'`` rather than
@@ -224,13 +228,7 @@ class TrajectoryProblem:
                     for n in range(self.N - order)]
         return out
 
-    def normals(self, Q, stretch=1.0) -> Normals:
-        """The robust measurement cost of every frame at ``Q``, with the loss's knots stretched by ``stretch``."""
-        return Normals(*kernels.all_normals(Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_cm,
-                                            self.prob.options.robust, RA * stretch, RB * stretch, RC * stretch,
-                                            *self.sk_args, self.bones, self.bone_len, self.bone_sigma))
-
-    def normals_at(self, X, stretch=1.0):
+    def normals_at(self, X: StateT, stretch: float = 1.0) -> NormalsT:
         """:meth:`normals` at the state ``X``, or the last ones computed here if they were at this
         very state object, stretch and noise: the optimiser's final evaluation serves the motion
         fit, the noise's measurement and the result at its optimum, without a kernel call each.
@@ -350,29 +348,29 @@ class TrajectoryProblem:
         Qn[:, idx.ravel()] = x.reshape(len(idx), self.N, -1).transpose(1, 0, 2).reshape(self.N, -1)
         return Qn
 
-    # the state interface :func:`optimise` drives (a subclass with more unknowns has its own state)
+    # the state interface :func:`optimise` drives, each problem's own: :class:`TrajectoryProblem`'s
+    # state is the trajectory Q, a problem with more unknowns has a state of its own
 
-    def step(self, Q: np.ndarray, normals: Normals, lam: float) -> np.ndarray:
-        """The damped Gauss-Newton step from ``Q``, clipped to the joint bounds."""
-        sk = self.prob.skeleton
-        return np.clip(self.solve_linear(Q, normals.H, normals.g, lam), sk.lower, sk.upper)
+    def normals(self, X: StateT, stretch: float = 1.0) -> NormalsT:
+        """The robust measurement cost of every frame at ``X``, with the loss's knots stretched by ``stretch``."""
+        raise NotImplementedError
+
+    def step(self, X: StateT, normals: NormalsT, lam: float) -> StateT:
+        """The damped Gauss-Newton step from ``X``, clipped to the bounds."""
+        raise NotImplementedError
 
     @staticmethod
-    def change(Q: np.ndarray, Qn: np.ndarray) -> float:
-        return float(np.max(np.abs(Qn - Q)))
+    def change(X: StateT, Xn: StateT) -> float:
+        """The largest change of an unknown from ``X`` to ``Xn``."""
+        raise NotImplementedError
 
-    def poses(self, Q: np.ndarray) -> np.ndarray:
-        return Q
+    def poses(self, X: StateT) -> np.ndarray:
+        """The trajectory Q (N, P) of ``X``."""
+        raise NotImplementedError
 
-    def estimate(self, Q: np.ndarray, normals: Normals, uncertainty: bool) -> "Estimate":
-        """Markers at ``Q`` by forward kinematics and, with ``uncertainty``, the marginal covariance
-        ``Sigma_n`` of every pose (:meth:`marginal_covariances`), each marker's 3D sd
-        (:func:`marker_std`) and each parameter's ``sqrt(diag Sigma_n)``."""
-        pos, dpos = kinematics.fk_jacobian_batch(Q, *self.sk_args)
-        if not uncertainty:
-            return Estimate(pos, np.full(pos.shape, np.nan), None)
-        Sigma = self.marginal_covariances(normals.H)
-        return Estimate(pos, marker_std(dpos, Sigma), np.sqrt(np.maximum(np.diagonal(Sigma, axis1=-2, axis2=-1), 0.0)))
+    def estimate(self, X: StateT, normals: NormalsT, uncertainty: bool) -> Estimate:
+        """Markers at ``X`` and, with ``uncertainty``, their sds."""
+        raise NotImplementedError
 
     def marginal_covariances(self, H: np.ndarray) -> np.ndarray:
         """Marginal covariance of each frame's pose (N, P, P) at the optimum, from the undamped
@@ -393,6 +391,38 @@ class TrajectoryProblem:
         return S
 
 
+class TrajectoryProblem(TrajectoryCost[np.ndarray, Normals]):
+    """:class:`TrajectoryCost` with the poses alone unknown: the state is the trajectory Q (N, P)."""
+
+    def normals(self, Q: np.ndarray, stretch: float = 1.0) -> Normals:
+        """The robust measurement cost of every frame at ``Q``, with the loss's knots stretched by ``stretch``."""
+        return Normals(*kernels.all_normals(Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_cm,
+                                            self.prob.options.robust, RA * stretch, RB * stretch, RC * stretch,
+                                            *self.sk_args, self.bones, self.bone_len, self.bone_sigma))
+
+    def step(self, Q: np.ndarray, normals: Normals, lam: float) -> np.ndarray:
+        """The damped Gauss-Newton step from ``Q``, clipped to the joint bounds."""
+        sk = self.prob.skeleton
+        return np.clip(self.solve_linear(Q, normals.H, normals.g, lam), sk.lower, sk.upper)
+
+    @staticmethod
+    def change(Q: np.ndarray, Qn: np.ndarray) -> float:
+        return float(np.max(np.abs(Qn - Q)))
+
+    def poses(self, Q: np.ndarray) -> np.ndarray:
+        return Q
+
+    def estimate(self, Q: np.ndarray, normals: Normals, uncertainty: bool) -> Estimate:
+        """Markers at ``Q`` by forward kinematics and, with ``uncertainty``, the marginal covariance
+        ``Sigma_n`` of every pose (:meth:`marginal_covariances`), each marker's 3D sd
+        (:func:`marker_std`) and each parameter's ``sqrt(diag Sigma_n)``."""
+        pos, dpos = kinematics.fk_jacobian_batch(Q, *self.sk_args)
+        if not uncertainty:
+            return Estimate(pos, np.full(pos.shape, np.nan), None)
+        Sigma = self.marginal_covariances(normals.H)
+        return Estimate(pos, marker_std(dpos, Sigma), np.sqrt(np.maximum(np.diagonal(Sigma, axis1=-2, axis2=-1), 0.0)))
+
+
 SMALL_GAINS = 2  # accepted steps in a row, each gaining under tol, that end an optimisation
 # Steps at most in each stretched stage of the graduated robust loss. One: its first step takes the
 # start to the detections (the cost falls 100-1000x), the next ones gained little or failed. Measured
@@ -403,7 +433,7 @@ SMALL_GAINS = 2  # accepted steps in a row, each gaining under tol, that end an 
 STRETCHED_STEPS = 1
 
 
-def optimise(tp: TrajectoryProblem, X, max_iterations: int = 50, progress=None,
+def optimise(tp: TrajectoryCost[StateT, Any], X: StateT, max_iterations: int = 50, progress=None,
              stretches=(4.0, 1.0), tol: float = 1e-4):
     """Levenberg-Marquardt with bound clipping and graduated robustness, on the state ``X`` of
     ``tp`` (the trajectory Q, or a subclass's). Returns (X, iterations, cost).
@@ -456,7 +486,7 @@ NOISE_TOLERANCE = 0.1  # re-solve when the measured noise moved by more than thi
 NOISE_ROUNDS = 2
 
 
-def remeasure_noise(tp: TrajectoryProblem, Q: np.ndarray, cost: float, max_iterations: int):
+def remeasure_noise(tp: TrajectoryCost[Any, Any], Q: np.ndarray, cost: float, max_iterations: int):
     """``measurement_std_px="auto"``: measure the noise again on the smoother's own residuals
     (:func:`graph.solve.noise.scatter_px`; the trajectory's fit takes few degrees of freedom per
     detection, so no correction) and, while it differs from the sigma solved with by more than
@@ -478,7 +508,7 @@ MOTION_TOLERANCE = 0.1  # solve again when a scale moved by more than this fract
 MOTION_ROUNDS = 2  # fits at an optimum, each followed by a solve when it moved
 
 
-def fit_motion(tp: TrajectoryProblem, X, choose_orders: bool = False) -> float:
+def fit_motion(tp: TrajectoryCost[Any, Any], X, choose_orders: bool = False) -> float:
     """Set each group's motion scale to the one of largest marginal likelihood given the data's
     quadratic model at ``X`` (:func:`graph.solve.smoothing.fit_motion_scales`), and with
     ``choose_orders`` its prior's order first (1, 2 or 3, by the evidence compared across orders).
@@ -512,7 +542,7 @@ def fit_motion(tp: TrajectoryProblem, X, choose_orders: bool = False) -> float:
     return moved
 
 
-def refit_motion(tp: TrajectoryProblem, X, cost: float, max_iterations: int):
+def refit_motion(tp: TrajectoryCost[StateT, Any], X: StateT, cost: float, max_iterations: int):
     """``motion_scale="auto"`` at the smoother's optimum ``X``: fit the scales again
     (:func:`fit_motion`) and, if one moved by more than ``MOTION_TOLERANCE``, solve again, up to
     ``MOTION_ROUNDS`` times. The fit and the solve are a fixed-point iteration: a trajectory solved
@@ -566,7 +596,7 @@ def solve_fte(prob: Problem, progress: ProgressCallback | None = None) -> Result
     return solve_from(tp, tp.Q0.copy(), t0, progress)
 
 
-def solve_from(tp: TrajectoryProblem, X0, t0: float, progress: ProgressCallback | None = None) -> Result:
+def solve_from(tp: TrajectoryCost[Any, Any], X0, t0: float, progress: ProgressCallback | None = None) -> Result:
     """The rest of an ``fte`` solve from the start ``X0`` of ``tp`` (begun at ``t0``): optimise
     (graduated when robust), measure the noise again when asked, fit the motion model at the
     optimum when asked (:func:`refit_motion`; the first solve uses the skeleton's process noise),
@@ -623,7 +653,7 @@ def loose_motion(residuals: np.ndarray) -> str | None:
 BOUND_TOLERANCE = 1e-3  # a parameter this close to a joint limit counts as held by it
 
 
-def trajectory_result(tp: TrajectoryProblem, X, method: str, *, seconds: dict[str, float],
+def trajectory_result(tp: TrajectoryCost[Any, Any], X, method: str, *, seconds: dict[str, float],
                       iterations: int, cost: float | None = None, causal: np.ndarray | None = None,
                       per_frame_ms: dict[str, float] | None = None, notes: list[str] | None = None) -> Result:
     """The :class:`Result` of a smoothed state ``X`` of ``tp`` (``fte`` and ``ekf``): markers by

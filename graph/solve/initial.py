@@ -85,7 +85,7 @@ def initial_poses(prob: Problem, X: np.ndarray) -> np.ndarray:
     if root_pt in marker_of_point:
         root = X[:, marker_of_point[root_pt]]
     else:
-        kids = [marker_of_point[k] for k in np.flatnonzero(a.pt_base == root_pt) if int(k) in marker_of_point]
+        kids = [marker_of_point[int(k)] for k in np.flatnonzero(a.pt_base == root_pt) if int(k) in marker_of_point]
         root = _nanmean(X[:, kids], axis=1) if kids else np.full((N, 3), np.nan)
     if not np.isfinite(root).any():  # the root's markers never seen: use the centroid of everything
         root = _nanmean(X, axis=1)
@@ -99,8 +99,8 @@ def initial_poses(prob: Problem, X: np.ndarray) -> np.ndarray:
         centroid = _nanmean(X, axis=1)
         fwd = root - fill_gaps(centroid)
         travel = np.gradient(root, axis=0)
-        fwd = np.where(np.isfinite(fwd).all(-1, keepdims=True) & (np.linalg.norm(fwd[:, :2], axis=-1, keepdims=True) > 0.05),
-                       fwd, travel)
+        usable = np.isfinite(fwd).all(-1, keepdims=True) & (np.linalg.norm(fwd[:, :2], axis=-1, keepdims=True) > 0.05)
+        fwd = np.where(usable, fwd, travel)
         psi = np.unwrap(np.arctan2(fwd[:, 1], fwd[:, 0]))
         if N >= 9:
             psi = running(psi, 9)

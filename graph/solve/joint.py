@@ -41,8 +41,9 @@ import numpy as np
 
 from graph import kinematics
 from graph.errors import InputError
+from graph.skeleton import KernelArgs
 from graph.solve import kernels
-from graph.solve.fte import PRIOR_SIGMA, Estimate, TrajectoryProblem, bone_lengths, solve_from, solve_fte
+from graph.solve.fte import PRIOR_SIGMA, Estimate, TrajectoryCost, bone_lengths, solve_from, solve_fte
 from graph.solve.initial import initial_poses
 from graph.solve.marginals import banded_marginals, chain_band, information_taken, solve_band
 from graph.solve.problem import Problem
@@ -130,8 +131,8 @@ def _marker_columns(pt_base: np.ndarray, marker_point: np.ndarray, pt_col: np.nd
     return out
 
 
-class JointTrajectoryProblem(TrajectoryProblem):
-    """:class:`graph.solve.fte.TrajectoryProblem` with the shared unknowns ``W`` (module docstring).
+class JointTrajectoryProblem(TrajectoryCost[JointState, JointNormals]):
+    """:class:`graph.solve.fte.TrajectoryCost` with the shared unknowns ``W`` (module docstring).
     ``bone_len`` are the bones' starting lengths (their sds stay those of the start)."""
 
     def __init__(self, prob: Problem, Q0: np.ndarray, unknowns: SharedUnknowns, bone_len: np.ndarray | None = None):
@@ -157,13 +158,12 @@ class JointTrajectoryProblem(TrajectoryProblem):
 
     # -- the cost -----------------------------------------------------------------------------
 
-    def _kernel_skeleton(self, scales: np.ndarray) -> tuple:
+    def _kernel_skeleton(self, scales: np.ndarray) -> KernelArgs:
         if len(scales) == 0:  # no length groups (free points)
             return self.sk_args
         factor = np.where(self.point_group >= 0, scales[np.maximum(self.point_group, 0)], 1.0)
-        args = list(self.sk_args)
-        args[6] = self.base_offset * factor[:, None]  # pt_offset
-        return tuple(args)
+        args = self.sk_args
+        return args[:6] + (self.base_offset * factor[:, None],) + args[7:]  # pt_offset scaled
 
     def normals(self, X: JointState, stretch=1.0) -> JointNormals:
         scales, bone_len, tau = self.unknowns.split(X.W)
@@ -188,7 +188,7 @@ class JointTrajectoryProblem(TrajectoryProblem):
 
     def _system(self, X: JointState, nrm: JointNormals, lam: float, prior: bool = True):
         """The frames' and W's blocks of the damped system over the new state, in absolute form
-        (:class:`graph.solve.fte.TrajectoryProblem`): ``G x' = gvec`` with ``gvec = G_data x - g + ...``."""
+        (:class:`graph.solve.fte.TrajectoryCost`): ``G x' = gvec`` with ``gvec = G_data x - g + ...``."""
         Q, W = X
         w = 1.0 / PRIOR_SIGMA**2
         Gd = nrm.H + (w + lam) * np.eye(self.P)
@@ -370,8 +370,8 @@ def given_offsets(prob: Problem) -> np.ndarray:
         return np.zeros(prob.cameras)
     if len(t) != prob.cameras:
         raise InputError(f"time_offsets: {len(t)} given for {prob.cameras} cameras (one per camera, in frames)")
-    t = np.asarray(t, dtype=float)
-    return t - t[0]
+    offsets = np.asarray(t, dtype=float)
+    return offsets - offsets[0]
 
 
 def body_scale_from_points(prob: Problem, X: np.ndarray) -> float:
@@ -418,13 +418,14 @@ def shared_unknowns(prob: Problem, X: np.ndarray, tau0: np.ndarray, bone_len: np
             raise InputError(f"body_lengths: not a length of the {sk.name} skeleton: {', '.join(sorted(given))}")
     elif o.body == "estimate":
         if sk.kind == "points":
-            bones = [i for i, L in enumerate(bone_len if bone_len is not None else []) if L > 0]
+            seen = bone_len if bone_len is not None else np.zeros(0)
+            bones = [i for i, L in enumerate(seen) if L > 0]
             for i in bones:
-                mean.append(np.log(bone_len[i]))
+                mean.append(np.log(seen[i]))
                 sd.append(BONE_PRIOR_SD)
-                lo.append(np.log(bone_len[i]) - 3 * BONE_PRIOR_SD)
-                hi.append(np.log(bone_len[i]) + 3 * BONE_PRIOR_SD)
-                start.append(np.log(bone_len[i]))
+                lo.append(np.log(seen[i]) - 3 * BONE_PRIOR_SD)
+                hi.append(np.log(seen[i]) + 3 * BONE_PRIOR_SD)
+                start.append(np.log(seen[i]))
         else:
             groups = list(range(G_all))
             s0 = np.log(body_scale_from_points(prob, X))

@@ -55,7 +55,7 @@ def build_result(prob: Problem, method: str, *, positions, std, reprojections, s
     rates = None
     if params is not None and params.shape[0] > 1:
         rates = np.gradient(params, prob.dt, axis=0)
-    report = SolveReport(
+    summary = SolveReport(
         method=method, skeleton=sk.name, frames=prob.frames, cameras=prob.cameras, markers=len(sk.markers),
         seconds={"total": 0.0, **{k: float(v) for k, v in seconds.items()}},
         iterations=int(iterations), cost=float(cost), reprojection_rmse_px=rmse, per_frame_ms=per_frame_ms,
@@ -65,7 +65,7 @@ def build_result(prob: Problem, method: str, *, positions, std, reprojections, s
     return Result(
         method=method, skeleton=sk.name, markers=list(sk.markers), positions=positions, std=std,
         reprojections=reprojections, residuals=res_px, ncams=ncams, score=score, outlier=out,
-        camera_names=prob.calibration.names, fps=prob.options.fps, report=report, options=prob.options,
+        camera_names=prob.calibration.names, fps=prob.options.fps, report=summary, options=prob.options,
         param_names=list(sk.param_names) if params is not None else [], params=params, rates=rates,
         params_std=params_std, causal_positions=causal_positions, bones=list(sk.bones),
         camera_centers=np.stack([c.center for c in prob.calibration.cameras]),

@@ -24,8 +24,9 @@ the evidence ``p(z | s) = int exp(-f(x) - |x - x0|^2 / (2 sigma_p^2)) p(x | s) d
 the quantity EKS maximises for its smoothing parameter, here in closed form. K is banded (bandwidth
 4 frames), so each evaluation is a banded Cholesky factorisation (LAPACK ``pbtrf``), linear in
 frames. The scale maximising it is bracketed by a walk of decades from the current scale and refined
-by parabolic interpolation on log s (:func:`best_scales`). Groups whose chains are independent (free points without bones: one chain per marker) get
-one scale each; a kinematic skeleton (or free points joined by bones) one scale.
+by parabolic interpolation on log s (:func:`best_scales`). Groups whose chains are independent
+(free points without bones: one chain per marker) get one scale each; a kinematic skeleton (or free
+points joined by bones) one scale.
 
 The fit is local: it is made at the smoother's optimum, the smoother solved again with the scales
 found and the fit repeated (:func:`graph.solve.fte.refit_motion`), since H and the robust weights depend
@@ -42,10 +43,13 @@ only up to a constant of the order, which a fraction of the data's own evidence 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from scipy.linalg import cho_solve_banded, cholesky_banded
+
+if TYPE_CHECKING:
+    from threadpoolctl import ThreadpoolController
 
 SCALE_RANGE = (1e-6, 1e6)  # the motion scales searched (relative to the skeleton's process noise)
 _FIRST_STEP = 2.0  # the bracketing walk's first factor either side of the start; each further step doubles
@@ -109,7 +113,8 @@ def solve_chains(ab: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return cho_solve_banded((cholesky_banded(ab, lower=True), True), rhs)
 
 
-_BLAS = []  # the process's threadpoolctl controller, found once (finding the libraries takes ~6 ms)
+# the process's threadpoolctl controller, found once (finding the libraries takes ~6 ms)
+_BLAS: list[ThreadpoolController] = []
 
 
 def one_blas_thread():
@@ -183,15 +188,15 @@ class ChainEvidence:
         return self(s) - part(s)
 
 
-class GroupEvidence(ChainEvidence):
+class GroupEvidence:
     """:class:`ChainEvidence` of one chain: ``H`` (N, d, d), ``g``, ``x``, ``x0`` (N, d),
     ``sigma`` (d,); called with a scalar scale."""
 
     def __init__(self, H, g, x, x0, w, sigma, order: int = 3):
-        super().__init__(H[None], g[None], x[None], x0[None], w, np.asarray(sigma)[None], np.array([order]))
+        self.chain = ChainEvidence(H[None], g[None], x[None], x0[None], w, np.asarray(sigma)[None], np.array([order]))
 
     def __call__(self, s: float) -> float:
-        return float(super().__call__(np.array([s]))[0])
+        return float(self.chain(np.array([s]))[0])
 
 
 def best_scales(evidence, lo: np.ndarray, hi: float = SCALE_RANGE[1], start: np.ndarray | None = None) -> np.ndarray:
@@ -225,7 +230,8 @@ def best_scales(evidence, lo: np.ndarray, hi: float = SCALE_RANGE[1], start: np.
         down = ~up & (fa > fb) & (xa < xb)
         if not (up | down).any():
             break
-        new_x = np.where(up, np.minimum(xc + 2 * (xc - xb), a_hi), np.where(down, np.maximum(xa - 2 * (xb - xa), a_lo), xb))
+        new_x = np.where(up, np.minimum(xc + 2 * (xc - xb), a_hi),
+                         np.where(down, np.maximum(xa - 2 * (xb - xa), a_lo), xb))
         fn = f(new_x)
         xa, xb, xc, fa, fb, fc = (np.where(up, xb, np.where(down, new_x, xa)), np.where(up, xc, np.where(down, xa, xb)),
                                   np.where(up, new_x, np.where(down, xb, xc)), np.where(up, fb, np.where(down, fn, fa)),
