@@ -96,7 +96,8 @@ def main() -> int:
                     c["aniposelib triangulate_optim"].append(float(np.nanmean(np.linalg.norm(pos - run.positions,
                                                                                              axis=-1)) * 1000))
                 print(f"  {rig_name[:12]:12s} seed {seed} {cond:22s} est {c['fte estimate'][-1]:6.1f} oracle "
-                      f"{c['oracle'][-1]:6.1f} today {c['fte model, in sync'][-1]:6.1f} ekf {c['ekf estimate'][-1]:6.1f}"
+                      f"{c['oracle'][-1]:6.1f} today {c['fte model, in sync'][-1]:6.1f} "
+                      f"ekf {c['ekf estimate'][-1]:6.1f}"
                       + (f" anipose {c['aniposelib triangulate_optim'][-1]:6.1f}" if cg is not None else "")
                       + f"  lengths {c['length error %'][-1]:.1f} %  offsets {c['offset error frames'][-1]:.3f}",
                       flush=True)
@@ -124,7 +125,8 @@ def main() -> int:
     for name, opts in cases if args.timing_repeats > 0 else ():
         _, t = h.timed(lambda: solve(run.keypoints, cal, SolveOptions(fps=120.0, **opts)), repeats=args.timing_repeats)
         timing[name] = t.to_dict()
-        print(f"  500 frames {name:28s} median {t.median:.3f} s (best {t.best:.3f}, cpu {t.cpu_median:.3f})", flush=True)
+        print(f"  500 frames {name:28s} median {t.median:.3f} s (best {t.best:.3f}, cpu {t.cpu_median:.3f})",
+              flush=True)
     out["timing_500"] = timing
     path = h.save("body_sync_timing" if args.timing_only else "body_sync", out)
     print(f"\nwrote {path}")

@@ -62,10 +62,12 @@ def regular_install(dest: Path) -> str:
     python = dest / "bin" / "python"
     site = Path(subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                                capture_output=True, text=True, check=True).stdout.strip())
-    (site / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")  # this venv's packages, after its own
+    # this venv's packages, after its own
+    (site / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
     with tempfile.TemporaryDirectory() as build:  # a copy: pip's build must not write into the checkout
         src = Path(build) / "src"
-        shutil.copytree(root, src, ignore=shutil.ignore_patterns(".venv", ".git", "__pycache__", "results", "*.egg-info"))
+        shutil.copytree(root, src,
+                        ignore=shutil.ignore_patterns(".venv", ".git", "__pycache__", "results", "*.egg-info"))
         subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps",
                         "--target", str(site), str(src)], check=True)
     script = dest / "bin" / "acinoset"  # pip's console script, run by the new environment's python
@@ -195,7 +197,8 @@ def main() -> int:
     print(f"  acinoset solve --help    median {med(helps):.3f} s (best {min(helps):.3f})")
     print(f"  acinoset solve (process) median {med(runs):.2f} s (best {min(runs):.2f}); its solve() {med(inner):.2f} s")
     print(f"  acinoset solve (served by the resident) median {med(resident):.3f} s (best {min(resident):.3f}); "
-          f"its solve() {med(resident_inner):.3f} s; the run that started it {t_start:.2f} s, warm {warm_s:.1f} s later")
+          f"its solve() {med(resident_inner):.3f} s; the run that started it {t_start:.2f} s, "
+          f"warm {warm_s:.1f} s later")
     print(f"  aniposelib triangulate_optim alone: median {med(anipose):.2f} s")
     print(f"  ratio: {out['ratio_process']:.1f}x the whole process on its own, {out['ratio_process_resident']:.1f}x "
           f"the whole process served by the resident, {out['ratio_in_process']:.1f}x the solve in process")

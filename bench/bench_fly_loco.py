@@ -151,7 +151,8 @@ def main() -> int:
         "acinoset fte points, motion auto, order auto": (kps, replace(base, motion_scale="auto", motion_order="auto")),
         "acinoset fte points, ensemble, motion auto, order auto": (ens, replace(base, motion_scale="auto",
                                                                                 motion_order="auto")),
-        "acinoset fte points, ensemble, motion auto, order 1": (ens, replace(base, motion_scale="auto", motion_order=1)),
+        "acinoset fte points, ensemble, motion auto, order 1": (ens, replace(base, motion_scale="auto",
+                                                                              motion_order=1)),
     }
     methods = {name: (lambda i=i, o=o, name=name: leave_one_camera_out(i, cal, o, method=name, judge=kps))
                for name, (i, o) in ours.items()}

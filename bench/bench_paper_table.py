@@ -25,7 +25,8 @@ import numpy as np
 METHODS = ("tri", "ekf", "fte")
 VARIANTS = {"tri": ("tri", {}), "ekf": ("ekf", {}), "fte": ("fte", {}), "fte-auto": ("fte", {"motion_scale": "auto"}),
             "fte-auto-noise": ("fte", {"motion_scale": "auto", "measurement_std_px": "auto"}),
-            "fte-points": ("fte", {"skeleton": "points"}), "fte-points-auto": ("fte", {"skeleton": "points", "motion_scale": "auto"})}
+            "fte-points": ("fte", {"skeleton": "points"}),
+            "fte-points-auto": ("fte", {"skeleton": "points", "motion_scale": "auto"})}
 
 
 def main() -> int:

@@ -62,7 +62,8 @@ def make_files(d: Path) -> list[Path]:
 
     def csv(path: Path, bodyparts: int, frames: int) -> None:
         with open(path, "w") as f:
-            f.write("scorer" + ",s" * 3 * bodyparts + "\nbodyparts" + "".join(f",b{j // 3}" for j in range(3 * bodyparts))
+            f.write("scorer" + ",s" * 3 * bodyparts
+                    + "\nbodyparts" + "".join(f",b{j // 3}" for j in range(3 * bodyparts))
                     + "\ncoords" + ",x,y,likelihood" * bodyparts + "\n")
             row = ",812.25,433.5,0.5" * bodyparts + "\n"
             f.writelines(f"{i}{row}" for i in range(frames))

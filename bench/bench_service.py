@@ -12,9 +12,9 @@ service worker`` processes), adds a user, and then:
 2. submits ``--jobs`` jobs of ``--frames`` frames from 6 cameras all at once (8 client threads),
    with the default solve (``fte`` on the cheetah skeleton);
 3. meanwhile another process polls ``GET /v1/jobs/{id}`` of random jobs from 2 threads (each every
-   ~20 ms; the ids from the job list every second, as the web page's list does) and keeps the latencies of the polls made while
-   two solves were running (``/healthz`` before each poll): for the whole run, while the uploads
-   arrive, and after;
+   ~20 ms; the ids from the job list every second, as the web page's list does) and keeps the
+   latencies of the polls made while two solves were running (``/healthz`` before each poll): for
+   the whole run, while the uploads arrive, and after;
 4. waits for every job and checks that none is lost (every id succeeded, its CSV downloads) and
    none duplicated (the list has exactly the submitted ids, every job ran once: ``attempts == 1``).
 
@@ -278,7 +278,8 @@ def table(results: list[dict]) -> str:
         ("upload to 202, median / max (s)",
          lambda r: f"{r['upload_6x500_s']['median']:.2f} / {r['upload_6x500_s']['max']:.2f}"),
         ("jobs submitted at once / succeeded", lambda r: f"{r['submitted']} / {r['succeeded']}"),
-        ("lost / duplicated / ran twice", lambda r: f"{r['lost']} / {r['unknown_in_list']} / {r['ran_more_than_once']}"),
+        ("lost / duplicated / ran twice",
+         lambda r: f"{r['lost']} / {r['unknown_in_list']} / {r['ran_more_than_once']}"),
         ("results downloaded", lambda r: str(r["results_downloaded"])),
         ("all submitted in (s)", lambda r: f"{r['submit_wall_s']:.1f}"),
         ("all done in (s); jobs/min", lambda r: f"{r['wall_s']:.1f}; {r['jobs_per_min']:.1f}"),

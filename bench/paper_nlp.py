@@ -251,7 +251,8 @@ class PaperNLP:
                 sel_r += [self.det_r[j] + k] * len(cs)
                 sel_c += cs
                 sel_det += [j] * len(cs)
-        sel_r, sel_c, sel_det = np.array(sel_r, dtype=np.int64), np.array(sel_c, dtype=np.int64), np.array(sel_det, dtype=np.int64)
+        sel_r, sel_c, sel_det = (np.array(sel_r, dtype=np.int64), np.array(sel_c, dtype=np.int64),
+                                 np.array(sel_det, dtype=np.int64))
         k_of = sel_r - self.det_r[sel_det]
         meas_rows = self.m_lin + 2 * sel_det + k_of
         rows.append(meas_rows)
