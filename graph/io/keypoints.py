@@ -1,7 +1,8 @@
-"""2D keypoints from DeepLabCut: one :class:`Keypoints` per camera.
+"""2D keypoints from DeepLabCut and SLEAP: one :class:`Keypoints` per camera.
 
-Readers: DeepLabCut CSV (single-animal 3-row header, multi-animal 4-row header) and DeepLabCut H5,
-read with h5py only: the PyTables attributes in those files are pickles, and an uploaded file must
+Readers: DeepLabCut CSV (single-animal 3-row header, multi-animal 4-row header), DeepLabCut H5 and
+SLEAP's analysis HDF5 export (:mod:`graph.io.sleap`, chosen by the datasets a file holds), read
+with h5py only: the PyTables attributes in those files are pickles, and an uploaded file must
 never execute code, so nothing here unpickles.
 
 Layouts (what ``DataFrame.to_csv`` / ``to_hdf`` write for DeepLabCut's column MultiIndex):
@@ -50,7 +51,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from graph.errors import InputError, TooLargeInput
+from graph.errors import InputError, TooLargeInput, unreadable
 
 
 @dataclass(frozen=True)
@@ -101,6 +102,7 @@ class Keypoints:
     scorer: str = "acinoset"
     source: str = ""
     spread_px: np.ndarray | None = None  # (N, M) an ensemble's disagreement (graph.solve.ensemble), else None
+    fps: float | None = None  # the frame rate the file records (SLEAP's may; DeepLabCut's never do), else None
 
     def __post_init__(self) -> None:
         self.xy = np.asarray(self.xy, dtype=np.float64)
@@ -117,22 +119,18 @@ class Keypoints:
 
 
 def read_keypoints(path: str | Path, individual: str | None = None, limits: ReadLimits = NO_LIMITS) -> Keypoints:
-    """Read a DeepLabCut CSV or H5 file (chosen by content, not extension).
+    """Read a DeepLabCut CSV or H5 file or a SLEAP analysis HDF5 file (chosen by content, not extension).
 
-    ``individual`` picks one animal from a multi-animal file; by default the first one (not
-    counting ``single``), with a warning naming the others. Single-animal files ignore it.
+    ``individual`` picks one animal from a multi-animal file (a SLEAP track by its name); by default
+    the first one (not counting ``single``), with a warning naming the others. Single-animal files ignore it.
     A file over ``limits`` raises :class:`~graph.errors.TooLargeInput` before its data are read.
     """
     path = Path(path)
     try:
         with open(path, "rb") as f:
             head = f.read(8)
-    except FileNotFoundError:
-        raise InputError("no such file", path) from None
-    except IsADirectoryError:
-        raise InputError("is a directory, not a keypoint file", path) from None
     except OSError as e:
-        raise InputError(f"cannot read: {e.strerror}", path) from None
+        raise unreadable(e, path, "a keypoint file") from None
     if not head:
         raise InputError("file is empty", path)
     if head.startswith(_HDF5_MAGIC):
@@ -147,7 +145,7 @@ def _read_csv(path: Path, individual: str | None, limits: ReadLimits) -> Keypoin
     try:
         f = open(path, encoding="utf-8-sig", newline="")
     except OSError as e:
-        raise InputError(f"cannot read: {e.strerror}", path) from None
+        raise unreadable(e, path, "a keypoint file") from None
     try:
         with f:
             return _parse_csv(f, path, individual, limits)
@@ -292,6 +290,10 @@ def _read_h5(path: Path, individual: str | None, limits: ReadLimits) -> Keypoint
         raise InputError(f"not a readable HDF5 file ({' '.join(str(e).split())[:120]})", path) from None
     try:
         with f:
+            from graph.io import sleap
+
+            if sleap.is_analysis(f):
+                return sleap.read_analysis(f, path, individual, limits)
             group = _dlc_group(f, path)
             kind = _text(group.attrs.get("pandas_type", b""))
             if kind == "frame_table":
@@ -687,7 +689,7 @@ def select_markers(keypoints: Keypoints, marker_names: list[str]) -> Keypoints:
         spread = np.full((n, len(marker_names)), np.nan)
         spread[:, have] = keypoints.spread_px[:, match.index[have]]
     return Keypoints(bodyparts=list(marker_names), xy=xy, likelihood=lik,
-                     scorer=keypoints.scorer, source=keypoints.source, spread_px=spread)
+                     scorer=keypoints.scorer, source=keypoints.source, spread_px=spread, fps=keypoints.fps)
 
 
 def check_same_frames(keypoints: list[Keypoints]) -> int:
