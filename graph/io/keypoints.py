@@ -51,7 +51,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from graph.errors import InputError, TooLargeInput, unreadable
+from graph.errors import InputError, TooLargeInput
 
 
 @dataclass(frozen=True)
@@ -129,8 +129,12 @@ def read_keypoints(path: str | Path, individual: str | None = None, limits: Read
     try:
         with open(path, "rb") as f:
             head = f.read(8)
+    except FileNotFoundError:
+        raise InputError("no such file", path) from None
+    except IsADirectoryError:
+        raise InputError("is a directory, not a keypoint file", path) from None
     except OSError as e:
-        raise unreadable(e, path, "a keypoint file") from None
+        raise InputError(f"cannot read: {e.strerror}", path) from None
     if not head:
         raise InputError("file is empty", path)
     if head.startswith(_HDF5_MAGIC):
@@ -145,7 +149,7 @@ def _read_csv(path: Path, individual: str | None, limits: ReadLimits) -> Keypoin
     try:
         f = open(path, encoding="utf-8-sig", newline="")
     except OSError as e:
-        raise unreadable(e, path, "a keypoint file") from None
+        raise InputError(f"cannot read: {e.strerror}", path) from None
     try:
         with f:
             return _parse_csv(f, path, individual, limits)
