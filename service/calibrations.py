@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import json
 import shutil
-import sqlite3
 from pathlib import Path
 from typing import Iterator
 
@@ -34,7 +33,7 @@ from service import jobfiles
 from service.errors import DISK_FULL, NoSpace, NotFound, NotReady, TooLarge, Unprocessable, storage_full
 from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
 from service.jobs import JobService, Upload, _label, _size, safe_name
-from service.store import Job, QuotaExceeded, User
+from service.store import Job, QuotaExceeded, StoreFull, User
 
 DETECTIONS_DIR = "detections"
 VIDEOS_DIR = "videos"
@@ -114,7 +113,7 @@ class CalibrationService:
         except QuotaExceeded:
             self.jobs.check_quota(user)
             raise
-        except (OSError, sqlite3.OperationalError) as e:
+        except (OSError, StoreFull) as e:
             if storage_full(e):
                 raise NoSpace(DISK_FULL) from None
             raise

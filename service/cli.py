@@ -24,16 +24,16 @@ class Refused(Exception):
 
 
 def _refusing(command: str):
-    """Wrap a subcommand's function: a :class:`Refused` (or the job table's ``StoreError``) prints
+    """Wrap a subcommand's function: a :class:`Refused` (or the job table's ``StoreRefused``) prints
     ``acinoset <command>: <why>`` on stderr and exits with status 2."""
     def wrap(fn):
         @functools.wraps(fn)
         def run(args: argparse.Namespace) -> int:
-            from service.store import StoreError
+            from service.store import StoreRefused
 
             try:
                 return fn(args)
-            except (Refused, StoreError) as e:
+            except (Refused, StoreRefused) as e:
                 print(f"acinoset {command}: {e}", file=sys.stderr)
                 return 2
         return run
@@ -306,7 +306,8 @@ def jobs_list(args: argparse.Namespace) -> int:
     import time
 
     store, s = _store(args)
-    jobs, total = store.jobs(_owner_id(store, args.owner), [args.status] if args.status else None, limit=max(1, args.limit))
+    jobs, total = store.jobs(_owner_id(store, args.owner), [args.status] if args.status else None,
+                             limit=max(1, args.limit))
     if not jobs:
         print("no jobs")
         return 0

@@ -43,13 +43,15 @@ class NoSpace(JobError):
 
 
 def storage_full(exc: BaseException) -> bool:
-    """Whether ``exc`` says the disk is full: ENOSPC or EDQUOT from the OS, SQLITE_FULL from the job table."""
+    """Whether ``exc`` says the disk is full: ENOSPC or EDQUOT from the OS, :class:`service.store.StoreFull`
+    from the job table."""
     import errno
-    import sqlite3
+
+    from service.store.errors import StoreFull
 
     if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
         return True
-    return isinstance(exc, sqlite3.OperationalError) and "disk is full" in str(exc)
+    return isinstance(exc, StoreFull)
 
 
 DISK_FULL = "the server's disk is full; delete finished jobs to make room, or ask the admin"

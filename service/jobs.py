@@ -17,7 +17,6 @@ import json
 import os
 import re
 import shutil
-import sqlite3
 import threading
 import uuid
 from pathlib import Path, PurePosixPath
@@ -39,7 +38,7 @@ from service.errors import (
 )
 from service.jobfiles import CALIBRATION_DIR, INPUT, JOB_ID, SKELETON_DIR, keypoints_dir, result_path, video_dir
 from service.settings import Settings
-from service.store import STATUSES, Job, QuotaExceeded, Store, User
+from service.store import STATUSES, Job, QuotaExceeded, Store, StoreFull, User
 from service.uploads import UploadReader
 
 KEYPOINT_SUFFIXES = (".csv", ".h5", ".hdf5")
@@ -261,7 +260,7 @@ class JobService:
         except QuotaExceeded:
             self.check_quota(user)
             raise
-        except (OSError, sqlite3.OperationalError) as e:
+        except (OSError, StoreFull) as e:
             if storage_full(e):
                 raise NoSpace(DISK_FULL) from None
             raise
@@ -303,7 +302,8 @@ class JobService:
         """Bytes of the job files of ``user`` (everyone's: None)."""
         if user is None:
             return jobfiles.disk_bytes(self.settings.jobs_dir)
-        return sum(jobfiles.disk_bytes(jobfiles.job_dir(self.settings.jobs_dir, j)) for j in self.store.job_ids_of(user.id))
+        return sum(jobfiles.disk_bytes(jobfiles.job_dir(self.settings.jobs_dir, j))
+                   for j in self.store.job_ids_of(user.id))
 
     def check_storage(self, user: User, upload_bytes: int) -> None:
         """Room for ``upload_bytes`` more: :class:`NoSpace` (507) if the disk would keep less than

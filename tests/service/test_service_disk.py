@@ -5,7 +5,6 @@ table could not be written stayed ``running`` with no process until a restart.""
 from __future__ import annotations
 
 import multiprocessing
-import sqlite3
 import subprocess
 from pathlib import Path
 
@@ -14,7 +13,7 @@ from servers import Server, add_user, submit, submit_ok, wait_finished
 
 from service.backends.embedded import EmbeddedBackend, _Run
 from service.settings import Settings
-from service.store import Store
+from service.store import Store, StoreFull
 
 FAST = {"method": "tri", "skeleton": "points"}
 
@@ -111,7 +110,7 @@ def test_a_run_that_ended_while_the_table_could_not_be_written_is_requeued_later
         def interrupt(self, job_id, token, reason):
             if self.failures:
                 self.failures -= 1
-                raise sqlite3.OperationalError("database or disk is full")
+                raise StoreFull(f"job table {self.path}: database or disk is full")
             return super().interrupt(job_id, token, reason)
 
     settings = Settings(data_dir=tmp_path, workers=1, warm_start=False)
