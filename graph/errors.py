@@ -24,6 +24,17 @@ class InputError(ValueError):
         self.path = None if path is None else str(path)
 
 
+def unreadable(error: OSError, path: str | Path, what: str = "a file") -> InputError:
+    """The one-line :class:`InputError` for a file the system would not open or read (``error``):
+    ``no such file``, ``is a directory, not <what>``, or ``cannot read: <the system's reason>``
+    (permission denied, an I/O error, ...). Raise it ``from None``: the reason is in its line."""
+    if isinstance(error, FileNotFoundError):
+        return InputError("no such file", path)
+    if isinstance(error, IsADirectoryError):
+        return InputError(f"is a directory, not {what}", path)
+    return InputError(f"cannot read: {error.strerror or error}", path)
+
+
 class TooLargeInput(InputError):
     """Input over a size limit the caller set, refused before it is read; ``limit`` names the limit
     (``"frames"``, ``"bodyparts"``)."""

@@ -30,9 +30,12 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Callable, NamedTuple
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from graph.camera import Calibration
 
 
 @dataclass
@@ -519,7 +522,7 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
         options = replace(options, calibration_units=units)
         reconstruct = _solver_reconstruct(options, scale)
         method = method or options.method
-    method = method or getattr(reconstruct, "__name__", "reconstruct")
+    method = str(method or getattr(reconstruct, "__name__", "reconstruct"))
 
     held: list[HeldOutCamera] = []
     markers: list[str] | None = None
@@ -531,12 +534,12 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
         sub = Calibration(cameras=[calibration.cameras[i] for i in keep], source=calibration.source,
                           metadata=dict(calibration.metadata))
         t0 = time.perf_counter()
-        with warnings.catch_warnings(record=True) as said:  # kept with the camera they came from
+        with warnings.catch_warnings(record=True) as caught:  # kept with the camera they came from
             warnings.simplefilter("always")
             out = reconstruct([keypoints[i] for i in keep], sub)
         seconds = time.perf_counter() - t0
         names, positions = out[0], out[1]
-        said = list(dict.fromkeys(str(w.message) for w in said))
+        said = list(dict.fromkeys(str(w.message) for w in caught))
         markers = list(names) if markers is None else markers
         positions = align_markers(list(names), np.asarray(positions, dtype=np.float64), markers)
         e, confident = held_out_errors(calibration.cameras[c], positions, markers, judge[c], confidence)
@@ -556,13 +559,14 @@ def leave_one_camera_out(keypoints: list, calibration, options=None, *, confiden
     pooled = np.concatenate([h.errors.ravel() for h in held])
     n_conf = sum(h.confident for h in held)
     count = int(np.isfinite(pooled).sum())
+    insides = [h.inside for h in held if h.inside is not None]
     return LeaveOneCameraOut(
         method=method, confidence=confidence, markers=markers or [], cameras=held,
         median_px=_stat(pooled, np.median), p90_px=_stat(pooled, lambda v: np.percentile(v, 90)),
         mean_px=_stat(pooled, np.mean), count=count, coverage=count / n_conf if n_conf else float("nan"),
         seconds=float(sum(h.seconds for h in held)), notes=notes,
-        within_90=(float(np.nanmean(np.concatenate([h.inside.ravel() for h in held])))
-                   if count and all(h.inside is not None for h in held) else None))
+        within_90=(float(np.nanmean(np.concatenate([i.ravel() for i in insides])))
+                   if count and len(insides) == len(held) else None))
 
 
 def _solver_reconstruct(options, scale: float) -> Reconstructor:

@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.camera import PINHOLE, Calibration, Camera
-from graph.errors import InputError
+from graph.errors import InputError, unreadable
 from graph.io.calibration import default_rig_path, load_calibration, write_acinoset_json, write_anipose_toml
 from graph.io.keypoints import Keypoints, write_dlc_csv
 from graph.skeleton import Skeleton, load_skeleton
@@ -580,9 +580,9 @@ def load_truth(path: str | Path) -> tuple[list[str], np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as z:
             return [str(m) for m in z["markers"]], np.asarray(z["positions"], dtype=np.float64)
-    except FileNotFoundError:
-        raise InputError("no such file", path) from None
-    except (OSError, KeyError, ValueError) as e:
+    except OSError as e:
+        raise unreadable(e, path, "a truth file") from None
+    except (KeyError, ValueError, EOFError) as e:
         raise InputError(f"not a truth file written by 'acinoset simulate' ({type(e).__name__})", path) from None
 
 

@@ -247,7 +247,8 @@ def test_multi_animal_csv(tmp_path):
         single = read_keypoints(path, individual="single")
     _check(second, d[:, 4:8])
     _check(single, d[:, 8:], ["lure"])
-    with pytest.raises(InputError, match=r"^ma\.csv: no individual 'cheetah3' \(the file has cheetah1, cheetah2, single\)$"):
+    with pytest.raises(InputError,
+                       match=r"^ma\.csv: no individual 'cheetah3' \(the file has cheetah1, cheetah2, single\)$"):
         read_keypoints(path, individual="cheetah3")
 
 
@@ -291,7 +292,8 @@ def test_h5_table_multi_animal(tmp_path):
     n = 6
     d = np.concatenate([_detections(n, 4, seed=1), _detections(n, 4, seed=2)], axis=1)
     path = tmp_path / "ma_el.h5"
-    _frame(_columns(BODYPARTS, ["a", "b"]), d.reshape(n, -1)).to_hdf(path, key="df_with_missing", format="table", mode="w")
+    _frame(_columns(BODYPARTS, ["a", "b"]), d.reshape(n, -1)).to_hdf(path, key="df_with_missing", format="table",
+                                                                      mode="w")
     _check(read_keypoints(path, individual="b"), d[:, 4:])
 
 
@@ -341,7 +343,8 @@ def test_malicious_pickle_in_h5_attribute_does_not_run(tmp_path):
     d = _detections()
     path = tmp_path / "evil.h5"
     _h5py_table(path, _columns(BODYPARTS), d.reshape(len(d), -1), kind_attr=payload)
-    with pytest.raises(InputError, match=r"^evil\.h5: H5 attribute values_block_0_kind is a pickle that would run code"):
+    with pytest.raises(InputError,
+                       match=r"^evil\.h5: H5 attribute values_block_0_kind is a pickle that would run code"):
         read_keypoints(path)
     assert not marker.exists()
 

@@ -10,6 +10,8 @@ import pytest
 from graph.api import Result, SolveOptions, SolveReport
 from graph.io.calibration import default_rig_path, load_calibration
 from graph.metrics import (
+    HeldOutCamera,
+    LeaveOneCameraOut,
     bounding_box_area,
     evaluate,
     nose_to_eye_px,
@@ -276,15 +278,14 @@ def test_loco_needs_three_cameras():
         leave_one_camera_out(run.keypoints[:3], cal)
 
 
-def _loco_score(errors: np.ndarray) -> "LeaveOneCameraOut":
+def _loco_score(errors: np.ndarray) -> LeaveOneCameraOut:
     """A leave-one-camera-out score holding ``errors`` (C, N, M) as its held-out errors."""
-    from graph.metrics import HeldOutCamera, LeaveOneCameraOut
-
     cams = [HeldOutCamera(camera=f"cam{c + 1}", median_px=float(np.nanmedian(e)), p90_px=float(np.nanpercentile(e, 90)),
                           mean_px=float(np.nanmean(e)), count=int(np.isfinite(e).sum()), confident=e.size, coverage=1.0,
                           seconds=0.0, per_marker_median_px={}, errors=e) for c, e in enumerate(errors)]
     pooled = errors[np.isfinite(errors)]
-    return LeaveOneCameraOut(method="x", confidence=0.9, markers=[f"m{k}" for k in range(errors.shape[2])], cameras=cams,
+    return LeaveOneCameraOut(method="x", confidence=0.9, markers=[f"m{k}" for k in range(errors.shape[2])],
+                             cameras=cams,
                              median_px=float(np.median(pooled)), p90_px=float(np.percentile(pooled, 90)),
                              mean_px=float(pooled.mean()), count=pooled.size, coverage=1.0, seconds=0.0)
 

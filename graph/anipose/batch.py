@@ -115,7 +115,8 @@ def _share_cores(threads: int) -> None:
     not each start a thread per core."""
     import numba
 
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    # numba.config sets its values from the environment through globals(), unseen by a type checker
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
 
 
 def _finish(trial: Trial, outcome: TrialOutcome, report) -> TrialOutcome:

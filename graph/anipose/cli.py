@@ -34,11 +34,11 @@ def run(args: argparse.Namespace) -> int:
         say("ignored (no equivalent here): " + "; ".join(project.ignored))
     for note in project.notes:
         say(note)
-    o = project.options
-    say(f"{len(project.trials)} trials; method {o.method}, skeleton {o.skeleton}, likelihood threshold "
-        f"{o.likelihood_threshold:g}" + (f", bones {', '.join('-'.join(b) for b in o.bone_lengths)}"
-                                          if o.bone_lengths else "")
-        + (f", smoothing given for {len(o.motion_scale)} groups" if isinstance(o.motion_scale, dict) else ""))
+    opts = project.options
+    say(f"{len(project.trials)} trials; method {opts.method}, skeleton {opts.skeleton}, likelihood threshold "
+        f"{opts.likelihood_threshold:g}" + (f", bones {', '.join('-'.join(b) for b in opts.bone_lengths)}"
+                                             if opts.bone_lengths else "")
+        + (f", smoothing given for {len(opts.motion_scale)} groups" if isinstance(opts.motion_scale, dict) else ""))
     if args.list:
         for t in project.trials:
             state = "up to date" if up_to_date(t, project.inputs) and not args.force else "to solve"

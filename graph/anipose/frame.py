@@ -29,7 +29,8 @@ def _median(positions: np.ndarray, j: int, name: str) -> np.ndarray:
     return np.median(p, axis=0)
 
 
-def anipose_frame(positions: np.ndarray, markers: list[str], axes, reference_point: str) -> tuple[np.ndarray, np.ndarray]:
+def anipose_frame(positions: np.ndarray, markers: list[str], axes,
+                  reference_point: str) -> tuple[np.ndarray, np.ndarray]:
     """``(M, center)`` of Anipose's frame for ``positions`` (N, M, 3); see the module docstring."""
     index = {m: j for j, m in enumerate(markers)}
     for name in [reference_point, *(p for spec in axes for p in spec[1:3])]:

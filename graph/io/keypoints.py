@@ -51,7 +51,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from graph.errors import InputError, TooLargeInput
+from graph.errors import InputError, TooLargeInput, unreadable
 
 
 @dataclass(frozen=True)
@@ -129,12 +129,8 @@ def read_keypoints(path: str | Path, individual: str | None = None, limits: Read
     try:
         with open(path, "rb") as f:
             head = f.read(8)
-    except FileNotFoundError:
-        raise InputError("no such file", path) from None
-    except IsADirectoryError:
-        raise InputError("is a directory, not a keypoint file", path) from None
     except OSError as e:
-        raise InputError(f"cannot read: {e.strerror}", path) from None
+        raise unreadable(e, path, "a keypoint file") from None
     if not head:
         raise InputError("file is empty", path)
     if head.startswith(_HDF5_MAGIC):
@@ -149,7 +145,7 @@ def _read_csv(path: Path, individual: str | None, limits: ReadLimits) -> Keypoin
     try:
         f = open(path, encoding="utf-8-sig", newline="")
     except OSError as e:
-        raise InputError(f"cannot read: {e.strerror}", path) from None
+        raise unreadable(e, path, "a keypoint file") from None
     try:
         with f:
             return _parse_csv(f, path, individual, limits)
@@ -252,11 +248,12 @@ def _csv_numbers(block: list[tuple[int, str | list[str]]], n_index: int, path: P
     same correctly rounded conversion as ``float``); anything else (an empty cell, a word, a row
     NumPy reads as another count of numbers) takes the cell-by-cell path."""
     width = len(block[0][1]) if isinstance(block[0][1], list) else block[0][1].count(",") + 1
-    if all(isinstance(data, str) for _, data in block):
+    texts = [data for _, data in block if isinstance(data, str)]
+    if len(texts) == len(block):
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # NumPy stops at a cell it cannot read, with a warning
             try:
-                flat = np.fromstring(",".join(data for _, data in block), dtype=np.float64, sep=",")
+                flat = np.fromstring(",".join(texts), dtype=np.float64, sep=",")
             except (ValueError, Warning):
                 flat = None
         if flat is not None and flat.size == len(block) * width:
@@ -399,6 +396,7 @@ def _h5_fixed(group, path: Path, limits: ReadLimits) -> tuple[list[tuple], np.nd
             if label not in position:
                 raise InputError(f"H5 block{k} column {label} is not among the frame's columns", path)
             values[:, position[label]] = block[:, j]
+    assert values is not None  # nblocks >= 1
     return axis0, values
 
 
@@ -499,9 +497,9 @@ def _literal_unpickle(data: bytes, path: Path, what: str):
                 stack.append(tuple(pop_mark()))
             elif name in ("TUPLE1", "TUPLE2", "TUPLE3"):
                 n = int(name[-1])
-                items = tuple(stack[-n:])
+                top = tuple(stack[-n:])
                 del stack[-n:]
-                stack.append(items)
+                stack.append(top)
             elif name == "EMPTY_DICT":
                 stack.append({})
             elif name == "DICT":
@@ -640,7 +638,8 @@ class BodypartMatch(NamedTuple):
     bodyparts no marker uses (ignored), ``missing`` markers the file lacks (unobserved).
     """
 
-    index: np.ndarray
+    # the field's name shadows tuple.index, as NamedTuple allows: the public name, kept
+    index: np.ndarray  # type: ignore[assignment]
     unknown: list[str]
     missing: list[str]
 

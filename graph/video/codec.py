@@ -18,6 +18,7 @@ ones). :func:`probe` reads a video's size, rate and frame count from its contain
 
 from __future__ import annotations
 
+import io
 import os
 import subprocess
 import tempfile
@@ -158,6 +159,18 @@ class _Ffmpeg:
             return None
         return lines[-1].strip() if lines else f"ffmpeg exited with status {rc}"
 
+    @property
+    def stdout(self) -> io.FileIO:
+        """The child's output: a reader's process has one, unbuffered (``bufsize=0``: a raw file)."""
+        assert isinstance(self.proc.stdout, io.FileIO)
+        return self.proc.stdout
+
+    @property
+    def stdin(self) -> io.FileIO:
+        """The child's input: a writer's process has one, unbuffered (``bufsize=0``: a raw file)."""
+        assert isinstance(self.proc.stdin, io.FileIO)
+        return self.proc.stdin
+
 
 class FrameReader:
     """Stream the frames ``start .. start+count-1`` of a video as :class:`YuvFrame` s.
@@ -180,16 +193,16 @@ class FrameReader:
             args += ["-vf", f"pad={self.width}:{self.height}"]
         args += ["-f", "rawvideo", "-pix_fmt", "yuv420p", "-"]
         self._ff = _Ffmpeg(args, "decode", info.path, stdout=subprocess.PIPE, bufsize=0)
-        _widen(self._ff.proc.stdout)
+        _widen(self._ff.stdout)
         self._frame = YuvFrame(self.width, self.height)
-        self._view = memoryview(self._frame.data)
+        self._view = self._frame.data.data  # the buffer's memoryview
         self.frames_read = 0
 
     def read(self) -> YuvFrame | None:
         """The next frame, or None after the last (the buffer is overwritten by the next read)."""
         if self.frames_read >= self.count:
             return None
-        got, size, out = 0, len(self._view), self._ff.proc.stdout
+        got, size, out = 0, len(self._view), self._ff.stdout
         while got < size:
             n = out.readinto(self._view[got:])
             if not n:
@@ -203,7 +216,7 @@ class FrameReader:
             yield frame
 
     def close(self) -> None:
-        self._ff.proc.stdout.close()
+        self._ff.stdout.close()
         self._ff.finish(kill=True)
 
     def __enter__(self):
@@ -229,7 +242,7 @@ class FrameWriter:
                 *(["-crf", str(crf)] if bitrate is None else ["-b:v", f"{int(bitrate)}"]),
                 "-pix_fmt", "yuv420p", "-threads", str(threads), "-movflags", "+faststart", str(self.path)]
         self._ff = _Ffmpeg(args, "encode", path, stdin=subprocess.PIPE, bufsize=0)
-        _widen(self._ff.proc.stdin)
+        _widen(self._ff.stdin)
         self.frames_written = 0
 
     def write(self, frame: YuvFrame | np.ndarray) -> None:
@@ -239,7 +252,7 @@ class FrameWriter:
         if (frame.width, frame.height) != (self.width, self.height):
             raise ValueError(f"frame of {frame.width}x{frame.height} for a {self.width}x{self.height} video")
         try:
-            self._ff.proc.stdin.write(memoryview(frame.data))
+            self._ff.stdin.write(frame.data.data)
         except BrokenPipeError:
             raise InputError(f"the encoder stopped: {self._ff.finish()}", self.path) from None
         self.frames_written += 1
@@ -247,7 +260,7 @@ class FrameWriter:
     def close(self) -> None:
         """Finish the file; a failed encode raises :class:`InputError` naming the output."""
         try:
-            self._ff.proc.stdin.close()
+            self._ff.stdin.close()
         except BrokenPipeError:
             pass
         failure = self._ff.finish()
@@ -257,7 +270,7 @@ class FrameWriter:
     def abort(self) -> None:
         """Stop the encoder and remove the partial file."""
         try:
-            self._ff.proc.stdin.close()
+            self._ff.stdin.close()
         except BrokenPipeError:
             pass
         self._ff.finish(kill=True)

@@ -47,7 +47,10 @@ def yuv(color: tuple[int, int, int]) -> tuple[int, int, int]:
     y = 16 + 65.481 * r + 128.553 * g + 24.966 * b
     u = 128 - 37.797 * r - 74.203 * g + 112.0 * b
     v = 128 + 112.0 * r - 93.786 * g - 18.214 * b
-    return tuple(int(round(min(max(c, 0), 255))) for c in (y, u, v))
+    def byte(c: float) -> int:
+        return int(round(min(max(c, 0), 255)))
+
+    return byte(y), byte(u), byte(v)
 
 
 def _fixed(p) -> tuple[int, int]:

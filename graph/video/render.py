@@ -27,6 +27,7 @@ import math
 import tempfile
 import time
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -112,7 +113,7 @@ def parse_frames(text: str | None, frames: int) -> tuple[int, int]:
     return a, b
 
 
-def check_videos(result: Result, videos: list[str | Path]) -> list[VideoInfo]:
+def check_videos(result: Result, videos: Sequence[str | Path]) -> list[VideoInfo]:
     """Probe ``videos`` and check they fit ``result``: one per camera, each with the result's
     number of frames (one-line :class:`InputError` otherwise)."""
     C = len(result.camera_names)
@@ -187,7 +188,7 @@ class Grid:
         Painter(canvas).text(((k % self.cols) * tw + 10, (k // self.cols) * th + th // 2), text, 0.5)
 
 
-def render_videos(result: Result, videos: list[str | Path], out: str | Path, frames: str | None = None,
+def render_videos(result: Result, videos: Sequence[str | Path], out: str | Path, frames: str | None = None,
                   combined: bool = False, up: np.ndarray | None = None, progress: Progress | None = None,
                   scene_size: tuple[int, int] = SCENE_SIZE, cameras_at_once: int = CAMERAS_AT_ONCE) -> RenderedVideos:
     """Write the labelled videos of ``result`` over ``videos`` (one per camera, in the result's
@@ -219,7 +220,8 @@ def render_videos(result: Result, videos: list[str | Path], out: str | Path, fra
     grid = Grid(infos, C + 1) if combined else None
     paths = [out / name for name in output_names(infos)]
     scene_path = out / "3d.mp4"
-    grid_path = out / "combined.mp4" if grid else None
+    combined_path = out / "combined.mp4"
+    grid_path = combined_path if grid else None
     total, done = (C + 1) * count, 0
 
     def tick():
@@ -256,11 +258,11 @@ def render_videos(result: Result, videos: list[str | Path], out: str | Path, fra
         with contextlib.ExitStack() as stack:
             scene_writer = stack.enter_context(FrameWriter(scene_path, *scene_size, fps))
             if grid:
-                grid_writer = stack.enter_context(FrameWriter(grid_path, grid.width, grid.height, fps))
+                grid_writer = stack.enter_context(FrameWriter(combined_path, grid.width, grid.height, fps))
                 streams = [stack.enter_context(TileStream(p, a, count)) for p in tile_paths]
             for n in range(a, b):
                 scene_writer.write(YuvFrame.from_bgr(scene.render(n)))
-                if grid:
+                if grid and grid_scene is not None:
                     canvas = grid.blank()
                     for c in range(C):
                         m = n - offsets[c]  # camera c's frame nearest in time to reference frame n

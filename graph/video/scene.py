@@ -55,7 +55,8 @@ class VirtualCamera:
         return uv.reshape(X.shape[:-1] + (2,)), depth.reshape(X.shape[:-1])
 
 
-def look_from(centre: np.ndarray, forward: np.ndarray, up: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
+def look_from(centre: np.ndarray, forward: np.ndarray, up: np.ndarray,
+              distance: float) -> tuple[np.ndarray, np.ndarray]:
     """``R, t`` of a camera ``distance`` behind ``centre`` along ``forward`` with ``up`` up."""
     f = forward / np.linalg.norm(forward)
     right = np.cross(f, up)
@@ -180,7 +181,8 @@ class SceneView:
         finite = self.positions[np.isfinite(self.positions).all(axis=-1)]
         centre = np.median(finite, axis=0) if len(finite) else np.zeros(3)
         span = np.concatenate([finite, self.camera_centers]) if len(finite) else self.camera_centers
-        half = float(np.ceil(np.max(np.abs((span - centre) @ np.stack([self.e1, self.e2]).T)) + 1.0)) if len(span) else 5.0
+        plane = np.stack([self.e1, self.e2]).T
+        half = float(np.ceil(np.max(np.abs((span - centre) @ plane)) + 1.0)) if len(span) else 5.0
         self._draw_segments(img, self.scene, self._grid_lines(centre, min(half, 60.0), 1.0), GRID, 1)
         uv, _ = self.scene.project(self.camera_centers)
         s = max(3, int(round(5 * self.unit)))

@@ -172,6 +172,7 @@ def write_simulated_videos(run, out: str | Path, names: list[str] | None = None,
             raise ValueError(f"camera {cam.name or c + 1}: H.264 in yuv420p needs even image sizes, not {W}x{H}")
         background = camera_background(cam, run.stage.ground_z, texture)
         noise = [rng.integers(0, SENSOR_NOISE + 1, size=(H, W, 3), dtype=np.uint8) for _ in range(NOISE_FRAMES)]
+        centre = np.full((H, W, 3), SENSOR_NOISE // 2, dtype=np.uint8)  # the noise's mean, taken off again
         painter = AnimalPainter(cam, run.markers, run.bones, run.stage.ground_z)
         X = run.camera_positions(c)
         path = out / names[c]
@@ -181,7 +182,7 @@ def write_simulated_videos(run, out: str | Path, names: list[str] | None = None,
                 img = background.copy()
                 painter.draw(img, X[n])
                 cv2.add(img, noise[n % NOISE_FRAMES], dst=img)
-                cv2.subtract(img, (SENSOR_NOISE // 2,) * 3 + (0,), dst=img)
+                cv2.subtract(img, centre, dst=img)
                 writer.write(img)
                 if progress is not None:
                     progress(c * run.frames + n + 1, total)
