@@ -8,11 +8,12 @@ read a :class:`~graph.types.Result`; neither reaches into the solvers. The types
 from __future__ import annotations
 
 import time
+import warnings
 from typing import Protocol
 
 from graph.camera import Calibration
 from graph.io.keypoints import Keypoints
-from graph.solve import problem
+from graph.solve import disagreement, problem
 from graph.solve.joint import solve_fte_joint
 from graph.solve.online import solve_ekf
 from graph.solve.problem import Problem
@@ -36,11 +37,19 @@ def solve(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
           progress: ProgressCallback | None = None) -> Result:
     """Estimate 3D trajectories from one :class:`Keypoints` per camera, in the calibration's order.
 
-    Raises :class:`graph.errors.InputError` when the inputs do not fit together.
+    After the solve, a camera whose detections sit far from where the other cameras put them is
+    named in the report's warnings (:mod:`graph.solve.disagreement`; checked only when the solve's
+    own residuals hint at one). Raises :class:`graph.errors.InputError` when the inputs do not fit
+    together.
     """
     options = options or SolveOptions()
     t0 = time.perf_counter()
     prob = problem.build(keypoints, calibration, options)
     result = SOLVERS[options.method](prob, progress=progress)
+    if disagreement.worth_checking(result.residuals, result.outlier):
+        _, said = disagreement.check(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
+        if said:
+            result.report.warnings.append(said)
+            warnings.warn(said, stacklevel=2)
     result.report.seconds["total"] = time.perf_counter() - t0
     return result
