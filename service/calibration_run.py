@@ -17,10 +17,10 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
     holds no other); returns the report (:meth:`graph.calibrate.RigResult.to_dict`) as plain JSON,
     the job's summary."""
     from graph.calibrate import calibrate_extrinsics, parse_board, read_detections
-    from graph.calibrate.cli import load_camera_json
     from graph.calibrate.detect import detect_views
     from graph.calibrate.report import write_figures
     from graph.io.calibration import SCENE_JSON_MODEL, write_acinoset_json, write_anipose_toml
+    from graph.io.cameras import load_camera_json
     from graph.types import Progress, jsonable
 
     progress.report(READING, 0.0)

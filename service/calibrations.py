@@ -123,7 +123,7 @@ class CalibrationService:
     def _store_upload(self, detections: list[Upload], intrinsics: list[Upload], options: dict,
                       videos: bool = False) -> tuple[str, dict]:
         from graph.calibrate import parse_board, read_detections
-        from graph.calibrate.cli import load_camera_json
+        from graph.io.cameras import load_camera_json
 
         s = self.jobs.settings
         board = parse_board(options["board"])

@@ -143,34 +143,10 @@ def _warn_mm(board) -> None:
                       "Board lengths are in metres")
 
 
-def load_camera_json(path: str):
-    """A camera from AcinoSet's camera JSON (``camera_resolution``, ``k``, ``d``; ``model`` if written by
-    acinoset, else fisheye for 4 coefficients and pinhole otherwise)."""
-    from graph.camera import PINHOLE, Camera
-    from graph.io.calibration import _array, _intrinsic_matrix, _size
-
-    p = Path(path)
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8-sig"))
-    except FileNotFoundError:
-        raise InputError("no such file", p) from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise InputError(f"not a camera JSON ({e})", p) from None
-    if not isinstance(doc, dict) or "k" not in doc or "d" not in doc:
-        raise InputError('not a camera JSON: needs "k" (3x3) and "d"', p)
-    K = _intrinsic_matrix(doc["k"], "k", p)
-    d = _array(doc["d"], "d", p).ravel()
-    model = doc.get("model", FISHEYE if d.size == 4 else PINHOLE)
-    spec = CAMERA_MODELS.get(model) if isinstance(model, str) else None
-    if spec is None or spec.coefficient_problem(d.size):
-        raise InputError(f"d: {d.size} coefficients do not fit the {model} model", p)
-    size = _size(doc["camera_resolution"], "camera_resolution", p) if "camera_resolution" in doc else (0, 0)
-    return Camera(K=K, dist=d, R=np.eye(3), t=np.zeros(3), model=model, size=size, name=p.stem)
-
-
 def run_extrinsics(args: argparse.Namespace) -> int:
     from graph.calibrate import calibrate_extrinsics, parse_board
     from graph.io.calibration import write_acinoset_json, write_anipose_toml
+    from graph.io.cameras import load_camera_json
 
     board = parse_board(args.board)
     intrinsics = None

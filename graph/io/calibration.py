@@ -34,8 +34,7 @@ import numpy as np
 
 from graph.camera import CALIBRATION_UNITS, CAMERA_MODELS, FISHEYE, Calibration, Camera, CameraModel, camera_model
 from graph.errors import NESTED_TOO_DEEPLY, InputError
-
-ROTATION_TOLERANCE = 1e-5  # max |R^T R - I| and |det R - 1| accepted (files rounded to ~6 digits pass)
+from graph.io.cameras import float_array, image_size, intrinsic_matrix, rotation_matrix, vector3
 
 _CAM_KEY = re.compile(r"^cam_(\d+)$")
 
@@ -101,7 +100,7 @@ def _from_acinoset(doc, path: Path) -> Calibration:
         raise InputError('"cameras" must be a non-empty list', path)
     size = (0, 0)
     if "camera_resolution" in doc:
-        size = _size(doc["camera_resolution"], "camera_resolution", path)
+        size = image_size(doc["camera_resolution"], "camera_resolution", path)
     spec = camera_model(SCENE_JSON_MODEL)
     cameras = []
     for i, c in enumerate(cams):
@@ -111,13 +110,13 @@ def _from_acinoset(doc, path: Path) -> Calibration:
         for key, what in (("k", "camera matrix"), ("d", "distortion"), ("r", "rotation"), ("t", "translation")):
             if key not in c:
                 raise InputError(f'{where}: missing "{key}" ({what})', path)
-        K = _intrinsic_matrix(c["k"], f"{where} k", path)
-        d = _array(c["d"], f"{where} d", path).ravel()
+        K = intrinsic_matrix(c["k"], f"{where} k", path)
+        d = float_array(c["d"], f"{where} d", path).ravel()
         if d.size != spec.n_coefficients:
             raise InputError(f"{where} d: {spec.name} distortion needs {spec.n_coefficients} coefficients, "
                              f"got {d.size}", path)
-        R = _rotation_matrix(c["r"], f"{where} r", path)
-        t = _vector3(c["t"], f"{where} t", path)
+        R = rotation_matrix(c["r"], f"{where} r", path)
+        t = vector3(c["t"], f"{where} t", path)
         cameras.append(Camera(K=K, dist=d, R=R, t=t, model=spec.name, size=size, name=f"cam{i + 1}"))
     meta = {k: v for k, v in doc.items() if k not in ("cameras", "camera_resolution")
             and isinstance(v, (str, int, float, bool))}
@@ -140,19 +139,19 @@ def _from_anipose(doc: dict, path: Path) -> Calibration:
             if field not in c:
                 raise InputError(f"{where}: missing {field} ({what})", path)
         spec = _anipose_model(c, where, path)
-        K = _intrinsic_matrix(c["matrix"], f"{where} matrix", path)
-        d = _array(c["distortions"], f"{where} distortions", path).ravel()
+        K = intrinsic_matrix(c["matrix"], f"{where} matrix", path)
+        d = float_array(c["distortions"], f"{where} distortions", path).ravel()
         problem = spec.coefficient_problem(d.size)
         if problem:
             raise InputError(f"{where} distortions: {problem}", path)
-        rvec = _vector3(c["rotation"], f"{where} rotation", path)
-        t = _vector3(c["translation"], f"{where} translation", path)
+        rvec = vector3(c["rotation"], f"{where} rotation", path)
+        t = vector3(c["translation"], f"{where} translation", path)
         name = c.get("name", key)
         if not isinstance(name, (str, int)):
             raise InputError(f"{where} name: must be a string", path)
         cameras.append(Camera(K=K, dist=d, R=rodrigues_to_matrix(rvec), t=t,
                               model=spec.name,
-                              size=_size(c["size"], f"{where} size", path), name=str(name)))
+                              size=image_size(c["size"], f"{where} size", path), name=str(name)))
     meta = doc.get("metadata", {})
     return Calibration(cameras=cameras, source=str(path), metadata=dict(meta) if isinstance(meta, dict) else {})
 
@@ -176,65 +175,6 @@ def _anipose_model(table: dict, where: str, path: Path) -> CameraModel:
         raise InputError(f"{where}: marks " + (" and ".join(m.name for m in best) + " cameras at once" if best
                                                else "no camera model"), path)
     return best[0]
-
-
-def _array(value, what: str, path: Path) -> np.ndarray:
-    try:
-        a = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"{what}: expected numbers in a regular array", path) from None
-    if not np.all(np.isfinite(a)):
-        raise InputError(f"{what}: contains NaN or infinite values", path)
-    return a
-
-
-def _intrinsic_matrix(value, what: str, path: Path) -> np.ndarray:
-    """``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` with ``fx, fy > 0``; the camera models here
-    have no skew, so ``s`` must be (numerically) zero."""
-    K = _array(value, what, path)
-    if K.shape != (3, 3):
-        raise InputError(f"{what}: camera matrix must be 3x3, got shape {_shape(K)}", path)
-    if not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise InputError(f"{what}: focal lengths must be positive (fx={K[0, 0]:g}, fy={K[1, 1]:g})", path)
-    if not np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9) or abs(K[1, 0]) > 1e-9:
-        raise InputError(f"{what}: not a camera matrix (last row must be [0, 0, 1])", path)
-    if abs(K[0, 1]) > 1e-6 * K[0, 0]:
-        raise InputError(f"{what}: skew {K[0, 1]:g} is not supported (OpenCV models have none)", path)
-    return K
-
-
-def _rotation_matrix(value, what: str, path: Path) -> np.ndarray:
-    """Accept ``R`` when ``|R^T R - I| <= tol`` and ``|det R - 1| <= tol``; return the nearest
-    rotation ``U V^T`` (from ``R = U S V^T``) so rounding in the file does not leak into the solver."""
-    R = _array(value, what, path)
-    if R.shape != (3, 3):
-        raise InputError(f"{what}: rotation must be 3x3, got shape {_shape(R)}", path)
-    ortho = float(np.abs(R.T @ R - np.eye(3)).max())
-    det = float(np.linalg.det(R))
-    if ortho > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
-        raise InputError(f"{what}: not a rotation matrix (max |R^T R - I| = {ortho:.2g}, det = {det:.6g})", path)
-    if ortho > 1e-12:
-        U, _, Vt = np.linalg.svd(R)
-        R = U @ Vt
-    return R
-
-
-def _vector3(value, what: str, path: Path) -> np.ndarray:
-    v = _array(value, what, path)
-    if v.size != 3 or v.ndim > 2:
-        raise InputError(f"{what}: expected 3 numbers, got shape {_shape(v)}", path)
-    return v.ravel()
-
-
-def _size(value, what: str, path: Path) -> tuple[int, int]:
-    s = _array(value, what, path).ravel()
-    if s.size != 2 or not np.all(s > 0) or not np.all(s == np.round(s)):
-        raise InputError(f"{what}: expected [width, height] in whole pixels, got {value!r}", path)
-    return int(s[0]), int(s[1])
-
-
-def _shape(a: np.ndarray) -> str:
-    return "x".join(str(n) for n in a.shape) or "scalar"
 
 
 # ----------------------------------------------------------------------------------- rotations
