@@ -2,8 +2,10 @@
 
 ``POST /v1/batches`` takes the project as a zip archive (``config.toml`` at its top, or in its one
 top folder, with the sessions, ``pose-2d/*.h5`` and ``calibration/calibration.toml`` as Anipose
-lays them out). The server reads it as ``acinoset anipose`` does (:func:`graph.anipose.load_project`)
-and submits every trial through :meth:`service.jobs.JobService.submit`, so each trial is validated,
+lays them out). The archive is copied to the data dir as it is received, then unpacked and read as
+``acinoset anipose`` reads a project (:func:`graph.anipose.load_project`), kept to the archive, in a
+process of its own under time and memory limits (:mod:`service.batch_reader`); the API process
+parses none of it. Every trial is submitted through :meth:`service.jobs.JobService.submit`, so each is validated,
 stored and queued like any job: its keypoint files (rewritten as DeepLabCut CSVs where a camera has
 an ``offset`` or more frames than the shortest), its calibration (the trial's cameras, in their
 order, as Anipose TOML) and the project's options (an ``options`` JSON object overrides them).
@@ -16,17 +18,15 @@ status is computed from its jobs when asked: ``running`` while any is queued or 
 
 from __future__ import annotations
 
-import io
 import json
 import shutil
 import time
 import uuid
-import zipfile
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
-from graph.errors import InputError
+from graph.errors import NESTED_TOO_DEEPLY, InputError
 from service import jobfiles
-from service.errors import JobError, NotFound, TooLarge, TooMany, Unprocessable
+from service.errors import DISK_FULL, JobError, NoSpace, NotFound, TooLarge, TooMany, Unprocessable, storage_full
 from service.jobs import JobService, Upload
 from service.store import User
 
@@ -42,123 +42,102 @@ class BatchService:
     # -- submit ------------------------------------------------------------------------------
 
     def submit(self, user: User, archive: Upload, options_text: str | None = None) -> dict:
-        """Unpack the project, submit one job per trial, record the batch; returns the batch record."""
-        from graph.anipose import load_project
+        """Receive the archive, read the project in a limited process of its own
+        (:mod:`service.batch_reader`), submit one job per trial, record the batch; returns the batch record."""
+        from service.batch_reader import read_batch, run_limited
 
         try:
             overrides = json.loads(options_text) if options_text and options_text.strip() else {}
         except json.JSONDecodeError as e:
             raise Unprocessable(f"options: not valid JSON ({e.msg})")
+        except RecursionError:
+            raise Unprocessable(f"options: {NESTED_TOO_DEEPLY}") from None
         if not isinstance(overrides, dict):
             raise Unprocessable("options: must be a JSON object")
+        s = self.jobs.settings
         batch_id = uuid.uuid4().hex
         staging = self.dir / f".upload-{batch_id}"
         try:
-            root = self._unpack(archive, staging / "project")
-            try:
-                project = load_project(root)
-            except InputError as e:
-                raise Unprocessable(f"project: {e}")
-            if not project.trials:
+            staging.mkdir(parents=True)
+            received = self._receive(archive, staging / "project.zip")
+            n_active = self.jobs.store.count_active(user.id)
+            limit = s.max_active_jobs_per_user
+            project = run_limited(
+                read_batch, dict(archive=str(received), staging=str(staging), overrides=overrides,
+                                 max_bytes=s.max_upload_bytes, max_trials=limit - n_active, max_frames=s.max_frames,
+                                 max_bodyparts=s.max_bodyparts, filename=archive.filename),
+                timeout=s.batch_read_timeout_seconds, memory_bytes=s.batch_read_memory_bytes,
+                cpu_seconds=s.batch_read_cpu_seconds, niceness=s.upload_niceness)
+            if not project["count"]:
                 raise Unprocessable("project: no trials found (pose-2d/*.h5 named by cam_regex, "
                                     "with a calibration folder in or above the session)")
-            n_active = self.jobs.store.count_active(user.id)
-            limit = self.jobs.settings.max_active_jobs_per_user
-            if n_active + len(project.trials) > limit:
-                raise TooMany(f"the project has {len(project.trials)} trials and you have {n_active} queued or "
+            if n_active + project["count"] > limit:
+                raise TooMany(f"the project has {project['count']} trials and you have {n_active} queued or "
                               f"running jobs; this server allows {limit} per user")
-            trials = [self._submit_trial(user, project, t, overrides, staging / "trials" / str(i))
-                      for i, t in enumerate(project.trials)]
+            trials = [self._submit_trial(user, t, staging) for t in project["trials"]]
+        except OSError as e:
+            if storage_full(e):
+                raise NoSpace(DISK_FULL) from None
+            raise
         finally:
             shutil.rmtree(staging, ignore_errors=True)
-        ignored = project.ignored + (["[triangulation] axes, reference_point (a job's CSV is in the "
-                                      "calibration's frame)"] if project.frame else [])
         record = {"id": batch_id, "owner_id": user.id, "owner": user.name, "created_at": time.time(),
-                  "project": root.name, "trials": trials, "ignored": ignored, "notes": project.notes}
+                  "project": project["project"], "trials": trials, "ignored": project["ignored"],
+                  "notes": project["notes"]}
         self.dir.mkdir(parents=True, exist_ok=True)
         tmp = self.dir / f".{batch_id}.json.tmp"
         tmp.write_text(json.dumps(record, indent=1), encoding="utf-8")
         tmp.replace(self.dir / f"{batch_id}.json")
         return record
 
-    def _unpack(self, archive: Upload, dest: Path) -> Path:
-        """The archive's files under ``dest`` (paths checked to stay inside it; the total unpacked
-        size held to the upload limit); returns the folder holding config.toml."""
+    def _receive(self, archive: Upload, dest: Path) -> Path:
+        """The uploaded archive copied to ``dest`` a megabyte at a time (never whole in memory);
+        :class:`TooLarge` past the upload limit."""
         limit = self.jobs.settings.max_upload_bytes
-        data = archive.file.read(limit + 1)
-        if len(data) > limit:
-            raise TooLarge(f"project archive over this server's upload limit of {limit} bytes")
-        try:
-            z = zipfile.ZipFile(io.BytesIO(data))
-        except zipfile.BadZipFile:
-            raise Unprocessable(f"project: {archive.filename or 'the upload'} is not a zip archive")
-        with z:
-            infos = [i for i in z.infolist() if not i.is_dir()]
-            if sum(i.file_size for i in infos) > limit:
-                raise TooLarge(f"project archive unpacks to more than this server's upload limit of {limit} bytes")
-            for info in infos:
-                try:
-                    target = jobfiles.inside(dest, info.filename)
-                except ValueError:
-                    raise Unprocessable(f"project: the archive holds a path outside it: {info.filename!r}")
-                target.parent.mkdir(parents=True, exist_ok=True)
-                with z.open(info) as src, open(target, "wb") as out:
-                    shutil.copyfileobj(src, out, 1 << 20)
-        tops = [PurePosixPath(i.filename).parts for i in infos if PurePosixPath(i.filename).name == "config.toml"]
-        top = min(tops, key=len, default=None)
-        if top is None or len(top) > 2:
-            raise Unprocessable("project: no config.toml at the archive's top or in its one top folder")
-        return dest.joinpath(*top[:-1]) if len(top) == 2 else dest
+        seen = 0
+        with open(dest, "wb") as out:
+            while chunk := archive.file.read(1 << 20):
+                seen += len(chunk)
+                if seen > limit:
+                    raise TooLarge(f"project archive over this server's upload limit of {limit} bytes")
+                out.write(chunk)
+        return dest
 
-    def _submit_trial(self, user: User, project, trial, overrides: dict, tmp: Path) -> dict:
-        """One trial as a job: ``{"trial", "job_id"}``, or ``{"trial", "error"}`` if it was refused."""
-        from graph.anipose.batch import trial_options
-        from graph.camera import Calibration
-        from graph.io.calibration import load_calibration, write_anipose_toml
-        from graph.io.keypoints import read_keypoints, write_dlc_csv
-        from graph.types import jsonable
-
-        tmp.mkdir(parents=True)
+    def _submit_trial(self, user: User, trial: dict, staging: Path) -> dict:
+        """One prepared trial (:func:`service.batch_reader.read_batch`) as a job: ``{"trial", "job_id"}``,
+        or ``{"trial", "error"}`` if it was refused."""
+        if "error" in trial:
+            return {"trial": trial["trial"], "error": trial["error"]}
         opened = []
         try:
-            options = jsonable(trial_options(project, trial).to_dict())
-            options.update(overrides)
-            skeleton = None
-            if options.get("skeleton") not in (None, "cheetah", "points"):
-                skeleton = Path(options.pop("skeleton"))
-                if not skeleton.is_file() or project.root not in skeleton.parents:
-                    raise Unprocessable(f"skeleton {skeleton.name}: not a file of the project")
-            rig = load_calibration(trial.calibration)
-            by_name = dict(zip(rig.names, rig.cameras))
-            missing = [c for c in trial.cameras if c not in by_name]
-            if missing:
-                raise Unprocessable(f"{trial.calibration.name}: has no camera named {', '.join(missing)}")
-            cal = tmp / "calibration.toml"
-            write_anipose_toml(cal, Calibration([by_name[c] for c in trial.cameras], metadata=rig.metadata))
-            files = list(trial.pose_files)
-            keypoints = [read_keypoints(p) for p in files]
-            n = min(k.frames for k in keypoints)
-            for i, (cam, k) in enumerate(zip(trial.cameras, keypoints)):
-                dx, dy = project.offsets.get(cam, (0.0, 0.0))
-                if dx or dy or k.frames != n:  # as acinoset anipose solves it: shifted, truncated
-                    k.xy, k.likelihood = k.xy[:n] + [dx, dy], k.likelihood[:n]
-                    files[i] = tmp / f"{files[i].stem}.csv"
-                    write_dlc_csv(files[i], k)
-            uploads = [Upload(p.name, open(p, "rb")) for p in files]
-            opened += [u.file for u in uploads]
+            paths = [self._staged(p, staging) for p in trial["keypoints"]]
+            cal, sk = self._staged(trial["calibration"], staging), trial["skeleton"]
+            uploads = []
+            for p in paths:
+                uploads.append(Upload(p.name, open(p, "rb")))
+                opened.append(uploads[-1].file)
             cal_up = Upload(cal.name, open(cal, "rb"))
             opened.append(cal_up.file)
             sk_up = None
-            if skeleton is not None:
-                sk_up = Upload(skeleton.name, open(skeleton, "rb"))
+            if sk is not None:
+                sk_path = self._staged(sk, staging)
+                sk_up = Upload(sk_path.name, open(sk_path, "rb"))
                 opened.append(sk_up.file)
-            job = self.jobs.submit(user, uploads, cal_up, json.dumps(options), sk_up)
-            return {"trial": trial.label, "job_id": job.id}
+            job = self.jobs.submit(user, uploads, cal_up, json.dumps(trial["options"]), sk_up)
+            return {"trial": trial["trial"], "job_id": job.id}
         except (JobError, InputError) as e:
-            return {"trial": trial.label, "error": getattr(e, "detail", None) or str(e)}
+            return {"trial": trial["trial"], "error": getattr(e, "detail", None) or str(e)}
         finally:
             for f in opened:
                 f.close()
+
+    @staticmethod
+    def _staged(path: str, staging: Path) -> Path:
+        """A file the reader prepared: it must be a file inside the batch's staging folder."""
+        p = Path(path)
+        if not (p.resolve().is_relative_to(staging.resolve()) and p.is_file()):
+            raise Unprocessable(f"{p.name}: not a file of the project")
+        return p
 
     # -- read --------------------------------------------------------------------------------
 

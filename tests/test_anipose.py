@@ -6,6 +6,7 @@ reads it."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -224,3 +225,37 @@ def test_a_session_is_solved_with_the_smoothing_one_trial_fitted(tmp_path):
     clash = acinoset("anipose", root)
     assert clash.returncode == 2 and len(clash.stderr.splitlines()) == 1, clash.stderr
     assert "fitted.h5: its scales were fitted for motion order(s) 3" in clash.stderr
+
+
+def test_a_project_kept_to_its_folder_and_walks_bounded(tmp_path, monkeypatch):
+    """``within``: a project from elsewhere reads only its own files (each key naming a path out of
+    it refused by name, ``path`` out of it not followed); symlinks back up the tree (3^k folders k
+    levels down) end the walk at its bound when followed (the command line), at once when not."""
+    from graph.anipose import project as anipose_project
+
+    root = write_project(tmp_path / "p", sessions={"s1": ["t1"]}, frames=10, optim=False)
+    (tmp_path / "outside.toml").write_text("")
+    for name in ("loop", "loop2", "loop3"):
+        (root / "s1" / name).symlink_to(root / "s1")
+    text = (root / "config.toml").read_text()
+    (root / "config.toml").write_text(text.replace("nesting = 1", "nesting = -1"))
+    monkeypatch.setattr(anipose_project, "MAX_FOLDERS", 2000)  # the walk's bound, lowered to keep the test short
+    with pytest.raises(InputError, match="more than 2000 folders under the project"):
+        load_project(root)
+    p = load_project(root, within=root)
+    assert [t.label for t in p.trials] == ["s1/t1"] and p.notes == []
+
+    for key, line in (("[acinoset] skeleton", 'skeleton = "../outside.toml"'),
+                      ("[acinoset] body", f'body = "{tmp_path / "outside.toml"}"'),
+                      ("[pipeline] calibration_results", '[pipeline]\ncalibration_results = "../../.."'),
+                      ("[pipeline] pose_2d", '[pipeline]\npose_2d = "loop/../../.."')):
+        (root / "config.toml").write_text(text.replace("[acinoset]\n", f"[acinoset]\n{line}\n")
+                                          if key.startswith("[acinoset]") else f"{text}\n{line}\n")
+        with pytest.raises(InputError, match=f"{re.escape(key)} names a (path|file) outside the project"):
+            load_project(root, within=root)
+        if key != "[acinoset] body":  # (an empty file is no body file)
+            load_project(root)  # the command line takes them as given
+    (root / "config.toml").write_text(f'path = "{tmp_path}"\n{text}')
+    p = load_project(root, within=root)
+    assert p.root == root and p.notes == ["path: not a folder of the upload; the upload's own folder is the project"]
+    assert load_project(root).root == tmp_path  # the command line goes where path says
