@@ -28,8 +28,10 @@ STAGES: tuple[str, ...] = get_args(Stage)
 
 
 # Ranges of the options (NaN and infinity fall outside every one). A frame rate over MAX_FPS is a typo
-# or a unit slip (the motion model scales with 1/fps^2: at 1e5 fps its factors are singular).
+# or a unit slip (the motion model scales with 1/fps^2: at 1e5 fps its factors are singular); one under
+# MIN_FPS too (a frame every 100 s is a time-lapse, and at 1e-300 fps the motion's sds overflow).
 MAX_FPS = 10000.0
+MIN_FPS = 0.01
 MAX_NOISE_PX = 1000.0
 MAX_ITERATIONS = 10000
 MAX_MOTION_SCALE = 1e6
@@ -87,8 +89,8 @@ class SolveOptions:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {', '.join(METHODS)}, not {self.method!r}")
-        if not (0 < self.fps <= MAX_FPS):
-            raise ValueError(f"fps must be positive and at most {MAX_FPS:g} (frames per second), not {self.fps}")
+        if not (MIN_FPS <= self.fps <= MAX_FPS):
+            raise ValueError(f"fps must be between {MIN_FPS:g} and {MAX_FPS:g} (frames per second), not {self.fps}")
         if not (0.0 <= self.likelihood_threshold <= 1.0):
             raise ValueError(f"likelihood_threshold must be in [0, 1], not {self.likelihood_threshold}")
         if self.measurement_std_px != "auto" and not (isinstance(self.measurement_std_px, (int, float))

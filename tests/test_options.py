@@ -8,9 +8,10 @@ from graph.types import SolveOptions
 
 
 @pytest.mark.parametrize("field,value,words", [
-    ("fps", 1e5, "fps must be positive and at most 10000"),
-    ("fps", math.nan, "fps must be positive"),
-    ("fps", -3.0, "fps must be positive"),
+    ("fps", 1e5, "fps must be between 0.01 and 10000"),
+    ("fps", math.nan, "fps must be between"),
+    ("fps", -3.0, "fps must be between"),
+    ("fps", 1e-300, "fps must be between"),
     ("motion_scale", math.inf, "motion_scale must be positive"),
     ("motion_scale", -1.0, "motion_scale must be positive"),
     ("lag_seconds", -0.5, "lag_seconds must be positive"),

@@ -213,7 +213,7 @@ def test_a_catastrophic_cam_regex_does_not_stall_the_server(server, alice, base)
     thread.start()
     time.sleep(0.3)
     t0 = time.monotonic()
-    assert httpx.get(server.url + "/healthz", timeout=30).status_code == 200
+    assert httpx.get(server.url + "/healthz", timeout=30).status_code in (200, 503)  # answering (503: compiling)
     health = time.monotonic() - t0
     thread.join(60)
     assert health < 2.0, f"/healthz took {health:.1f} s while the batch was read"  # it took 28 s
