@@ -1,7 +1,7 @@
 """The REST API of calibrations, version 1: submit board detections, poll, download the rig.
 
-Thin like :mod:`service.routes` (whose router settings, caller and job service it shares); the work
-is :mod:`service.calibrations`'."""
+Thin like :mod:`service.routes` (whose router settings, caller and job service it shares, from
+:mod:`service.deps`); the work is :mod:`service.calibrations`'."""
 
 from __future__ import annotations
 
@@ -11,15 +11,15 @@ from fastapi import APIRouter, Depends, File, Form, Query, Response, Security, U
 from fastapi.responses import FileResponse
 
 from service.calibrations import CalibrationService
+from service.deps import AUTH_ERRORS, BAD_REQUEST, BEARER, SERVER_ERROR, UPLOAD_ERRORS, CurrentUser, Jobs, error_doc
 from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
 from service.jobs import Upload
 from service.models import CalibrationList, CalibrationOut, calibration_out
-from service.routes import AUTH_ERRORS, BAD_REQUEST, BEARER, SERVER_ERROR, UPLOAD_ERRORS, CurrentUser, Jobs, _err
 from service.store import JobStatus
 
 router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR}, dependencies=[Security(BEARER)],
                    tags=["calibrations"])
-NOT_FOUND = {404: _err("No such calibration, or it belongs to another user")}
+NOT_FOUND = {404: error_doc("No such calibration, or it belongs to another user")}
 CalibrationFile = Literal[tuple(CALIBRATION_FILES)]  # type: ignore[valid-type]
 
 
@@ -33,10 +33,10 @@ Calibrations = Annotated[CalibrationService, Depends(_calibrations)]
 @router.post(
     "/v1/calibrations", status_code=202, response_model=CalibrationOut, summary="Calibrate a rig",
     responses={**UPLOAD_ERRORS,
-               413: _err("Upload or camera count over this server's limits, or the caller's storage full"),
-               422: _err("A bad board spec, a detections or camera file the readers refuse, fewer than two "
-                         "cameras, or bad options"),
-               429: _err("The caller already has the most queued and running jobs allowed")})
+               413: error_doc("Upload or camera count over this server's limits, or the caller's storage full"),
+               422: error_doc("A bad board spec, a detections or camera file the readers refuse, fewer than two "
+                              "cameras, or bad options"),
+               429: error_doc("The caller already has the most queued and running jobs allowed")})
 def submit_calibration(
     user: CurrentUser, calibrations: Calibrations, response: Response,
     board: Annotated[str, Form(description="checkerboard:COLSxROWS:SQUARE_M (inner corners, square side in metres) "
@@ -72,7 +72,8 @@ def list_calibrations(
     user: CurrentUser, calibrations: Calibrations,
     status: Annotated[list[JobStatus] | None, Query(description="only calibrations in these states")] = None,
     limit: Annotated[int, Query(ge=1, description="calibrations per page (at most 500)")] = 50,
-    cursor: Annotated[str | None, Query(pattern=r"^[0-9]{1,18}$", description="next_cursor of the previous page")] = None,
+    cursor: Annotated[str | None, Query(pattern=r"^[0-9]{1,18}$",
+                                        description="next_cursor of the previous page")] = None,
 ) -> CalibrationList:
     """The caller's calibrations, newest first (an admin's call lists everyone's)."""
     rows, total, nxt = calibrations.jobs.list(user, list(status) if status else None, limit, cursor, None,
@@ -94,7 +95,7 @@ async def get_calibration(calibration_id: str, user: CurrentUser, calibrations: 
                    "application/toml": {"schema": {"type": "string"}},
                    "application/json": {"schema": {"type": "object"}},
                    "image/png": {"schema": {"type": "string", "format": "binary"}}}},
-               **NOT_FOUND, 409: _err("The calibration has not succeeded (yet)")})
+               **NOT_FOUND, 409: error_doc("The calibration has not succeeded (yet)")})
 def get_calibration_file(calibration_id: str, file: CalibrationFile, user: CurrentUser,
                          calibrations: Calibrations) -> FileResponse:
     """calibration.toml (Anipose), scene.json (AcinoSet's scene; fisheye rigs of one resolution only),

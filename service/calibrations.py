@@ -32,7 +32,7 @@ from graph.errors import InputError
 from service import jobfiles
 from service.errors import DISK_FULL, NoSpace, NotFound, NotReady, TooLarge, Unprocessable, storage_full
 from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
-from service.jobs import JobService, Upload, _label, _size, safe_name
+from service.jobs import JobService, Upload, parse_label, safe_name, stream_size
 from service.store import Job, QuotaExceeded, StoreFull, User
 
 DETECTIONS_DIR = "detections"
@@ -61,7 +61,7 @@ def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
     unknown = sorted(set(data) - set(OPTION_NAMES))
     if unknown:
         raise Unprocessable(f"options: unknown option {unknown[0]!r}; known: {', '.join(OPTION_NAMES)}")
-    label = _label(data.get("label"))
+    label = parse_label(data.get("label"))
     model = data.get("model", "fisheye")
     if model not in MODELS:
         raise Unprocessable(f"options: model must be one of {', '.join(MODELS)}, not {model!r}")
@@ -101,7 +101,7 @@ class CalibrationService:
                                 "per camera, in the same order, or none")
         options, label = parse_options(board_spec, options_text)
         self.jobs.check_quota(user)
-        self.jobs.check_storage(user, sum(_size(u.file) for u in [*detections, *intrinsics]))
+        self.jobs.check_storage(user, sum(stream_size(u.file) for u in [*detections, *intrinsics]))
         try:
             job_id, inputs = self._store_upload(detections, intrinsics, options, videos=bool(videos))
             try:

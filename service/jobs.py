@@ -70,7 +70,7 @@ def safe_name(filename: str | None, default: str) -> str:
 LABEL_MAX = 200
 
 
-def _label(value) -> str | None:
+def parse_label(value) -> str | None:
     """A job's label: text of at most :data:`LABEL_MAX` characters, no control characters; None if empty."""
     if value is None:
         return None
@@ -82,7 +82,7 @@ def _label(value) -> str | None:
     return value or None
 
 
-def _size(f: BinaryIO) -> int:
+def stream_size(f: BinaryIO) -> int:
     """Bytes from the stream's position to its end (the upload is spooled: seekable)."""
     here = f.tell()
     end = f.seek(0, os.SEEK_END)
@@ -162,7 +162,7 @@ class JobService:
             raise Unprocessable(f"options: {NESTED_TOO_DEEPLY}") from None
         if not isinstance(data, dict):
             raise Unprocessable("options: must be a JSON object such as {\"method\": \"fte\", \"fps\": 120}")
-        label = _label(data.pop("label", None))
+        label = parse_label(data.pop("label", None))
         known = [f.name for f in dataclasses.fields(SolveOptions)]
         unknown = sorted(set(data) - set(known))
         if unknown:
@@ -242,7 +242,7 @@ class JobService:
         self.check_quota(user)
         skeleton_name = safe_name(skeleton.filename, "skeleton.toml") if skeleton is not None else None
         options, label = self.parse_options(options_text, skeleton_name)
-        upload_bytes = sum(_size(u.file) for u in [*keypoints, calibration, *([skeleton] if skeleton else []),
+        upload_bytes = sum(stream_size(u.file) for u in [*keypoints, calibration, *([skeleton] if skeleton else []),
                                                    *(videos or [])])
         self.check_storage(user, upload_bytes)
 

@@ -10,7 +10,6 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, Response, Security, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
-from fastapi.security import HTTPBearer
 from pydantic import BeforeValidator
 
 import graph
@@ -19,15 +18,26 @@ from graph.skeleton import available_skeletons, load_skeleton
 from graph.types import Method
 from service import media, metrics
 from service.auth import current_user
-from service.backends.base import Backend
 from service.batches import BatchService
 from service.calibrations import calibration_upload
+from service.deps import (
+    AUTH_ERRORS,
+    BAD_REQUEST,
+    BEARER,
+    SERVER_ERROR,
+    UPLOAD_ERRORS,
+    CurrentUser,
+    JobBackend,
+    Jobs,
+    JobTable,
+    ServerSettings,
+    error_doc,
+)
 from service.jobfiles import DOWNLOADS, JOB_ID, download_name
-from service.jobs import JobService, Upload
+from service.jobs import Upload
 from service.models import (
     BatchOut,
     Disk,
-    ErrorBody,
     FormatOut,
     Health,
     JobList,
@@ -44,80 +54,26 @@ from service.models import (
     formats_help,
     job_out,
 )
-from service.settings import Settings
-from service.store import Store, User
-
-
-def _err(description: str) -> dict:
-    return {"model": ErrorBody, "description": description}
-
 
 IsoTime = Annotated[datetime, BeforeValidator(lambda v: _iso_only(v))]
 
-AUTH_ERRORS = {401: _err("No token, or an unknown or revoked one")}
-NOT_FOUND = {404: _err("No such job, or it belongs to another user")}
-BAD_REQUEST = {422: _err("A request parameter or field is missing or malformed")}
-SERVER_ERROR = {500: _err("A fault of the server (logged there)")}
-# what every upload route may answer while it receives the body (service.uploads)
-UPLOAD_ERRORS = {400: _err("The body is not valid multipart/form-data"),
-                 408: _err("The upload stalled or took too long (ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS, "
-                           "ACINOSET_UPLOAD_TIMEOUT_SECONDS)"),
-                 503: _err("Too many uploads arriving at once; try again after Retry-After seconds"),
-                 507: _err("The server's disk or its storage for jobs is full")}
-
-# Declares the bearer scheme of every /v1 call in the spec; the check itself is service.auth's
-# (current_user), which answers 401 with the same challenge whether or not a token was sent.
-BEARER = HTTPBearer(auto_error=False, scheme_name="bearer",
-                    description="`Authorization: Bearer TOKEN`; an admin makes tokens with `acinoset users add NAME`")
+NOT_FOUND = {404: error_doc("No such job, or it belongs to another user")}
 
 router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR}, dependencies=[Security(BEARER)])
 public = APIRouter(responses=SERVER_ERROR)
-
-async def _caller(request: Request) -> User:
-    """:func:`service.auth.current_user` on the event loop: one indexed read and a hash, well under a
-    millisecond, where a thread-pool hop costs a GIL hand-off (several ms while uploads are parsed)."""
-    return current_user(request)
-
-
-CurrentUser = Annotated[User, Depends(_caller)]
-
-
-async def _jobs(request: Request) -> JobService:
-    return request.app.state.jobs
-
-
-Jobs = Annotated[JobService, Depends(_jobs)]
-
-
-async def _store(request: Request) -> Store:
-    return request.app.state.store
-
-
-async def _settings(request: Request) -> Settings:
-    return request.app.state.settings
-
-
-async def _backend(request: Request) -> Backend:
-    return request.app.state.backend
-
-
-# what the app's lifespan made (service.app.create_app), for the routes that need more than jobs
-JobTable = Annotated[Store, Depends(_store)]
-ServerSettings = Annotated[Settings, Depends(_settings)]
-JobBackend = Annotated[Backend, Depends(_backend)]
 
 
 @router.post(
     "/v1/jobs", status_code=202, response_model=JobOut, tags=["jobs"], summary="Submit a job",
     responses={**UPLOAD_ERRORS,
-               413: _err("Upload, frame count, bodyparts, camera count or the caller's storage over this "
-                         "server's limits"),
-               403: _err("video_paths on a server without a video root, or outside it"),
-               422: _err("A file the readers refuse (the detail names it), bad options, or videos that do not "
-                         "match the keypoint files"),
-               429: _err("The caller already has the most queued and running jobs allowed"),
-               404: _err("calibration_id names no succeeded calibration of the caller"),
-               409: _err("calibration_id names a calibration that has not succeeded (yet)")})
+               413: error_doc("Upload, frame count, bodyparts, camera count or the caller's storage over this "
+                              "server's limits"),
+               403: error_doc("video_paths on a server without a video root, or outside it"),
+               422: error_doc("A file the readers refuse (the detail names it), bad options, or videos that do not "
+                              "match the keypoint files"),
+               429: error_doc("The caller already has the most queued and running jobs allowed"),
+               404: error_doc("calibration_id names no succeeded calibration of the caller"),
+               409: error_doc("calibration_id names a calibration that has not succeeded (yet)")})
 def submit_job(
     user: CurrentUser, jobs: Jobs, response: Response,
     keypoints: Annotated[list[UploadFile], File(
@@ -162,7 +118,7 @@ def submit_job(
 
 
 @router.get("/v1/jobs", response_model=JobList, tags=["jobs"], summary="List jobs",
-            responses={403: _err("A non-admin asked for another user's jobs"), 422: _err("Bad filter")})
+            responses={403: error_doc("A non-admin asked for another user's jobs"), 422: error_doc("Bad filter")})
 def list_jobs(
     user: CurrentUser, jobs: Jobs, request: Request,
     status: Annotated[list[JobStatus] | None,
@@ -222,7 +178,7 @@ def _file_schema(media_type: str) -> dict:
     response_class=FileResponse,
     responses={200: {"description": "The result file", "content": {
                    media_type: {"schema": _file_schema(media_type)} for _, media_type in DOWNLOADS.values()}},
-               **NOT_FOUND, 409: _err("The job has not succeeded (yet)")})
+               **NOT_FOUND, 409: error_doc("The job has not succeeded (yet)")})
 def get_result(job_id: str, user: CurrentUser, jobs: Jobs,
                format: Annotated[ResultFormat, Query(description=formats_help())] = "csv") -> FileResponse:
     path = jobs.result_file(user, job_id, format)
@@ -230,7 +186,7 @@ def get_result(job_id: str, user: CurrentUser, jobs: Jobs,
 
 
 @router.get("/v1/jobs/{job_id}/videos", response_model=VideoList, tags=["videos"], summary="A job's labelled videos",
-            responses={**NOT_FOUND, 409: _err("The job has not succeeded (yet)")})
+            responses={**NOT_FOUND, 409: error_doc("The job has not succeeded (yet)")})
 def list_videos(job_id: str, user: CurrentUser, jobs: Jobs) -> VideoList:
     """Links to the job's labelled videos (none when it was submitted without videos): each camera's
     footage with the estimate drawn on it, the 3D view and the grid of all, at the footage's rate."""
@@ -250,8 +206,8 @@ def list_videos(job_id: str, user: CurrentUser, jobs: Jobs) -> VideoList:
                                                                                            "format": "binary"}}}},
                206: {"description": "The byte range asked for (Range: bytes=A-B)",
                      "content": {"video/mp4": {"schema": {"type": "string", "format": "binary"}}}},
-               401: _err("No token, or the link's token was revoked or its user removed"),
-               **NOT_FOUND, 409: _err("The job has not succeeded (yet)")})
+               401: error_doc("No token, or the link's token was revoked or its user removed"),
+               **NOT_FOUND, 409: error_doc("The job has not succeeded (yet)")})
 def get_video(job_id: str, view: str, request: Request, jobs: Jobs,
               access: Annotated[str | None, Query(max_length=200, description="the access key of a link of GET "
                                                   "/v1/jobs/{id}/videos (instead of the Authorization header)")] = None
@@ -274,8 +230,8 @@ def get_video(job_id: str, view: str, request: Request, jobs: Jobs,
     response_class=Response,
     responses={200: {"description": "PNG",
                      "content": {"image/png": {"schema": {"type": "string", "format": "binary"}}}},
-               **NOT_FOUND, 409: _err("The job has not succeeded (yet)"),
-               422: _err("No such camera or frame")})
+               **NOT_FOUND, 409: error_doc("The job has not succeeded (yet)"),
+               422: error_doc("No such camera or frame")})
 def get_frame(job_id: str, user: CurrentUser, jobs: Jobs,
               camera: Annotated[int, Query(ge=1, le=999, description="the camera, from 1, in the job's order")] = 1,
               n: Annotated[int, Query(ge=0, description="the frame, from 0")] = 0) -> Response:
@@ -308,9 +264,9 @@ Batches = Annotated[BatchService, Depends(_batches)]
     "/v1/batches", status_code=202, response_model=BatchOut, tags=["batches"],
     summary="Submit an Anipose project: a job per trial",
     responses={**UPLOAD_ERRORS,
-               413: _err("The archive is over this server's upload limit"),
-               422: _err("Not a zip, no config.toml, no trials, or bad options"),
-               429: _err("More trials than the caller may still queue")})
+               413: error_doc("The archive is over this server's upload limit"),
+               422: error_doc("Not a zip, no config.toml, no trials, or bad options"),
+               429: error_doc("More trials than the caller may still queue")})
 def submit_batch(
     user: CurrentUser, batches: Batches, response: Response,
     project: Annotated[UploadFile, File(description="zip archive of an Anipose project: config.toml at its top "
@@ -399,7 +355,7 @@ def healthz(backend: JobBackend, store: JobTable, s: ServerSettings):
 @public.get("/metrics", response_class=Response, tags=["service"], summary="Prometheus metrics",
             responses={200: {"content": {metrics.CONTENT_TYPE: {"schema": {"type": "string"}}},
                              "description": "Prometheus text format"},
-                       401: _err("The server requires a token for metrics (ACINOSET_METRICS_PUBLIC=false)")})
+                       401: error_doc("The server requires a token for metrics (ACINOSET_METRICS_PUBLIC=false)")})
 def get_metrics(request: Request, s: ServerSettings, store: JobTable, backend: JobBackend) -> PlainTextResponse:
     if not s.metrics_public:
         current_user(request)

@@ -144,7 +144,7 @@ def test_usage_errors_are_one_line(run_dir, tmp_path):
     for args, fragment in [(["solve", *cams(run_dir)], "required: --calibration, --out"),
                            (solve_args(run_dir, tmp_path)[:-2] + ["--method", "magic", "--out", "x.csv"],
                             "invalid choice: 'magic'"),
-                           (solve_args(run_dir, tmp_path) + ["--fps", "-3"], "fps must be positive"),
+                           (solve_args(run_dir, tmp_path) + ["--fps", "-3"], "fps must be between"),
                            (solve_args(run_dir, tmp_path) + ["--measurement-std", "loud"],
                             "--measurement-std takes a number of pixels or 'auto'"),
                            (solve_args(run_dir, tmp_path) + ["--measurement-std", "0"],

@@ -213,7 +213,7 @@ def _bad_cases(run):
         "options not an object": (_files(run), "[1, 2]", "options: must be a JSON object"),
         "unknown option": (_files(run), {"methd": "tri"}, "unknown option 'methd'"),
         "bad method": (_files(run), {"method": "magic"}, "options: method"),
-        "bad fps": (_files(run), {"method": "tri", "fps": -3}, "fps must be positive"),
+        "bad fps": (_files(run), {"method": "tri", "fps": -3}, "fps must be between"),
         "bad noise": (_files(run), {"method": "tri", "measurement_std_px": "loud"},
                       "options: measurement_std_px: must be a positive number of pixels or 'auto'"),
         "bad motion scale": (_files(run), {"method": "tri", "motion_scale": "smooth"},
