@@ -161,3 +161,47 @@ def check(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, sigma_p
     agreements = camera_agreement(calibration, meas, valid, sigma_px, max_points)
     named = [a for a in agreements if a.disagrees]
     return named, (disagreement_warning(named, agreements) if named else None)
+
+
+CHI2_2_90 = -2.0 * float(np.log(0.1))  # chi^2 with 2 degrees of freedom at 0.9: the 90 % ellipse's radius^2
+
+
+def held_out_noise(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, sigma_px: float = 5.0,
+                   share: float = 0.9, max_points: int = MAX_POINTS) -> float:
+    """The detection noise (px per coordinate) that a held-out camera accepts: the smallest ``sigma``
+    at which ``share`` of each camera's detections fall inside the 90 % ellipse its prediction from
+    the other cameras gives, pooled over the cameras (NaN with fewer than three cameras).
+
+    For camera ``c``, ``X_{-c}`` triangulated from the others with information ``H`` (px^-2 m^2 per
+    unit weight, :func:`graph.solve.triangulate.robust_points`: covariance ``sigma^2 H^-1``) and
+    ``J = d pi_c / d X`` there, a detection ``z`` is predicted as ``N(pi_c(X_{-c}), sigma^2 A)``,
+    ``A = J H^-1 J^T + I``: inside the ellipse when ``q = e^T A^-1 e <= sigma^2 chi2_2(0.9)``,
+    ``e = z - pi_c(X_{-c})``. So ``sigma`` is ``sqrt(quantile_share(q) / chi2_2(0.9))``. Unlike the
+    scatter of a fit's residuals (which sees only how the cameras agree about the estimate they make
+    together), a camera's own errors (its calibration, its detector's bias) are in ``e``."""
+    N, C, M, _ = meas.shape
+    if C < 3:
+        return float("nan")
+    rows = _sample(N, M, max_points)
+    meas, valid = meas[rows], valid[rows]
+    qs = []
+    for c in range(C):
+        keep = [i for i in range(C) if i != c]
+        others = Calibration(cameras=[calibration.cameras[i] for i in keep])
+        X, H, _ = robust_points(others, meas[:, keep], valid[:, keep], sigma_px)
+        X, H = X.reshape(-1, 3), H.reshape(-1, 3, 3)
+        z = meas[:, c].reshape(-1, 2)
+        judged = valid[:, c].ravel() & np.isfinite(X).all(-1)
+        if not judged.any():
+            continue
+        uv, J = calibration.cameras[c].project_with_jacobian(X[judged])
+        with np.errstate(all="ignore"):
+            A = J @ np.linalg.pinv(H[judged]) @ np.swapaxes(J, -1, -2) + np.eye(2)
+            e = z[judged] - uv
+            ok = np.isfinite(e).all(-1) & np.isfinite(A).all(axis=(-1, -2))
+            q = np.einsum("ki,kij,kj->k", e[ok], np.linalg.inv(A[ok]), e[ok])
+        qs.append(q[np.isfinite(q)])
+    q = np.concatenate(qs) if qs else np.zeros(0)
+    if q.size < 10:
+        return float("nan")
+    return float(np.sqrt(np.quantile(q, share) / CHI2_2_90))

@@ -38,7 +38,10 @@ def build_result(prob: Problem, method: str, *, positions, std, reprojections, s
     notes = list(prob.warnings)
     misfit = inputs_misfit(out, valid.transpose(1, 0, 2), prob.calibration.names)
     # when the inputs do not fit, the scatter is the misfit's, and more noise would only hide it
-    mismatch = None if misfit else noise_mismatch(method, prob.options.measurement_std_px, sigma_px, noise)
+    mismatch = None
+    if not misfit:
+        held = held_out_check(prob, method, sigma_px, noise)
+        mismatch = noise_mismatch(method, prob.options.measurement_std_px, sigma_px, noise, held)
     motion = implausible_motion(positions, prob.options.fps)
     for note in (misfit, mismatch, motion):
         if note:
@@ -148,20 +151,52 @@ def measured_scatter(method: str, res_px: np.ndarray, ncams: np.ndarray) -> floa
     return scatter_px(res_px, dof)
 
 
-def noise_mismatch(method: str, option, sigma_px: float, noise_px: float) -> str | None:
-    """A one-line warning when a smoother was given a detection noise far from the measured one."""
+def _px(value: float) -> str:
+    return f"{value:.1f}" if value >= 1 else f"{value:.2g}"
+
+
+def held_out_check(prob: Problem, method: str, sigma_px: float, noise_px: float) -> float | None:
+    """The noise the cameras held out accept (:func:`graph.solve.disagreement.held_out_noise`), where
+    :func:`noise_mismatch` would advise a smaller noise for ``tri`` (the check is triangulation's own
+    prediction); None where it is not needed."""
+    option = prob.options.measurement_std_px
+    if option == "auto" or method != "tri" or not (np.isfinite(noise_px) and noise_px * NOISE_MISMATCH < sigma_px):
+        return None
+    from graph.solve.disagreement import held_out_noise
+
+    return held_out_noise(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
+
+
+def noise_mismatch(method: str, option, sigma_px: float, noise_px: float, held_px: float | None = None) -> str | None:
+    """A one-line warning when a solve was given a detection noise far from the measured one.
+
+    The scatter ``noise_px`` sees only how the cameras agree with each other about the estimate they
+    make together; an error a camera makes on its own (its calibration, its detector's bias) hides in
+    it, so a noise smaller than the one assumed is advised only where a held-out check accepts it:
+    ``held_px``, the noise at which 90 % of each camera's detections fall inside the 90 % ellipse of
+    its prediction from the other cameras (:func:`graph.solve.disagreement.held_out_noise`). That is
+    ``tri``'s own prediction (on the fly recording, tri's held-out ``in 90 %`` share at it was 0.90:
+    bench/RESULTS.md), and too small for a smoother, whose ellipses are narrower (fte at the same
+    2.0 px: 0.72; at the scatter's 1.4 px, 0.58; at 5 px, 0.95): a smoother is told the scatter and
+    how to judge a smaller noise, not to take it. A larger noise is advised as measured (the 3D
+    standard deviations grow with it)."""
     if option == "auto" or not (np.isfinite(noise_px) and noise_px > 0):
         return None
     ratio = noise_px / sigma_px
     if 1.0 / NOISE_MISMATCH <= ratio <= NOISE_MISMATCH:
         return None
-    how = f"{ratio:.2g}x too small" if ratio > 1 else f"{1 / ratio:.2g}x too large"
-    px = f"{noise_px:.1f}" if noise_px >= 1 else f"{noise_px:.2g}"
-    # the scatter sees only how the cameras disagree with each other about the estimate; an error a
-    # camera makes on its own (its calibration, its detector's bias) hides in it, and on a real
-    # recording was far larger (bench/RESULTS.md: a held-out camera inside the ellipse 32 % of the
-    # time with the noise measured, 98 % with 5 px): so a held-out camera is the check to trust
-    return (f"the detections scatter {px} px about the estimate, not the {sigma_px:g} px assumed: if the "
-            f"cameras agree with each other that well, the 3D standard deviations are about {how} (set the "
-            f"detection noise to {px} px or 'auto'); a held-out camera tells (acinoset evaluate loco, its "
-            f"'in 90 %' column)")
+    px = _px(noise_px)
+    said = f"the detections scatter {px} px about the estimate, not the {sigma_px:g} px assumed"
+    if ratio > 1:
+        return (f"{said}: the 3D standard deviations are about {ratio:.2g}x too small (set the detection noise "
+                f"to {px} px or 'auto')")
+    if held_px is not None:
+        if not (np.isfinite(held_px) and held_px * NOISE_MISMATCH < sigma_px):
+            return None  # the cameras held out accept the noise assumed
+        return (f"{said}, and the cameras held out (each predicted from the others) accept {_px(held_px)} px: "
+                f"the 3D standard deviations are about {sigma_px / held_px:.2g}x too large (set the detection "
+                f"noise to {_px(held_px)} px)")
+    return (f"{said}: if the cameras agree with each other that well, the 3D standard deviations are about "
+            f"{1 / ratio:.2g}x too large; but a scatter does not see a camera's own errors (its calibration, its "
+            f"detector's bias), so judge a smaller noise before setting it: acinoset evaluate loco with it, its "
+            f"'in 90 %' column near 0.9")
