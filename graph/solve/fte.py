@@ -58,12 +58,17 @@ from graph.solve.robust import OUTLIER_S
 from graph.solve.robust import A as RA
 from graph.solve.robust import B as RB
 from graph.solve.robust import C as RC
-from graph.solve.smoothing import MAX_STIFFNESS
+from graph.solve.smoothing import MAX_STIFFNESS, stiffest_scale
 from graph.solve.triangulate import robust_points
 from graph.types import Progress, ProgressCallback, Result
 
 PRIOR_SIGMA = 10.0
 BONE_SIGMA_FRACTION = 0.05
+
+
+class IndefiniteSystem(RuntimeError):
+    """A step's damped system is numerically not positive definite (its Cholesky factorisation
+    failed): :func:`optimise` then damps more, as for a step that did not lower the cost."""
 
 
 class Estimate(NamedTuple):
@@ -148,6 +153,7 @@ class TrajectoryCost(Generic[StateT, NormalsT]):
         # the stiffest smoothing a fit may choose (graph.solve.smoothing.stiffest_scale); ekf's stream, which
         # GTSAM eliminates with all markers in one key, takes GTSAM_MAX_STIFFNESS
         self.max_stiffness = MAX_STIFFNESS
+        self.indefinite_steps = 0  # steps whose system was numerically indefinite, damped more (optimise)
         self._motion_graph: list | None = None
         self._motion_band: np.ndarray | None = None
         self._kept_normals: tuple | None = None  # (state, stretch, sigma_px, normals): normals_at
@@ -191,6 +197,33 @@ class TrajectoryCost(Generic[StateT, NormalsT]):
             sigma3[idx] = sigma3[idx] * s
         self.sigma3 = sigma3
         self._motion_graph = self._motion_band = None
+
+    def bound_stiffness(self, H: np.ndarray) -> str | None:
+        """Raise each group's motion scale to at least :func:`graph.solve.smoothing.stiffest_scale` of
+        its data information ``H`` (N, P, P): the motion's precision ``1 / (s sigma_3)^2`` at most
+        ``max_stiffness`` times the median per-frame information of the group's parameters.
+
+        A fitted scale never goes past that bound; a given one, or the skeleton's own process noise
+        at a high frame rate (``sigma_3`` scales with ``dt^2``: at 10 kHz it is 5000 times smaller
+        than at 120 fps, its precision 2.5e7 times larger), can ask for more, and then the chain's
+        information ``K = H + w I + c D^T D`` keeps too few of double precision's digits to tell the
+        trajectory from a polynomial: its Cholesky fails, or succeeds and returns a trajectory metres
+        off (measured: a given scale of 1e-7 at 60 fps failed in every solver; free points at 10 kHz
+        came back 3.9 m off). Returns a one-line warning naming how many groups were raised, or None."""
+        w = 1.0 / PRIOR_SIGMA**2
+        lo = np.array([stiffest_scale(np.ascontiguousarray(H[:, idx][:, :, idx]), self.base_sigma3[idx], w,
+                                      self.max_stiffness) for idx in self.groups])
+        raised = self.motion_scales < lo
+        if not raised.any():
+            return None
+        old = self.motion_scales.copy()
+        self.set_motion_scales(np.maximum(self.motion_scales, lo))
+        k = int(raised.sum())
+        return (f"the motion model asked for is stiffer than the detections can support for {k} of "
+                f"{len(self.groups)} parameter groups (at {self.prob.options.fps:g} fps): its scale was raised "
+                f"from {float(np.min(old[raised])):.3g} to {float(np.min(lo[raised])):.3g}, where the motion's "
+                f"precision is {self.max_stiffness:.0e} times the data's; fit it (--motion-scale auto) or give a "
+                f"larger scale")
 
     @property
     def _motion(self) -> list:
@@ -309,7 +342,7 @@ class TrajectoryCost(Generic[StateT, NormalsT]):
         try:
             return solve_band([band], [np.zeros((self.N, self.P, 0))], [rhs], np.zeros((0, 0)), np.zeros(0))[0][0]
         except np.linalg.LinAlgError as e:
-            raise RuntimeError(f"the smoother's system is not positive definite: {e}") from None
+            raise IndefiniteSystem(f"the smoother's system is not positive definite: {e}") from None
 
     def chain_band(self, G: np.ndarray) -> np.ndarray:
         """The one group's information as chain blocks (:func:`graph.solve.marginals.chain_band`): the
@@ -343,7 +376,7 @@ class TrajectoryCost(Generic[StateT, NormalsT]):
         try:
             x = solve_chains(data_band(Hg, w + lam) + self._motion_band, rhs)
         except np.linalg.LinAlgError as e:
-            raise RuntimeError(f"the smoother's system is not positive definite: {e}") from None
+            raise IndefiniteSystem(f"the smoother's system is not positive definite: {e}") from None
         Qn = np.empty_like(Q)
         Qn[:, idx.ravel()] = x.reshape(len(idx), self.N, -1).transpose(1, 0, 2).reshape(self.N, -1)
         return Qn
@@ -460,7 +493,12 @@ def optimise(tp: TrajectoryCost[StateT, Any], X: StateT, max_iterations: int = 5
             # a stretched stage only has to bring the pose near the detections: it ends at its
             # first failed step instead of raising the damping until one succeeds
             for _try in range(10 if stretch == stretches[-1] else 1):
-                Xn = tp.step(X, nrm, lam)
+                try:
+                    Xn = tp.step(X, nrm, lam)
+                except IndefiniteSystem:  # numerically indefinite at this damping: damp more
+                    tp.indefinite_steps += 1
+                    lam *= 10.0
+                    continue
                 nrm_n = tp.normals_at(Xn, stretch)
                 new_cost = tp.cost(Xn, nrm_n.cost)
                 if new_cost <= cost:
@@ -602,6 +640,10 @@ def solve_from(tp: TrajectoryCost[Any, Any], X0, t0: float, progress: ProgressCa
     optimum when asked (:func:`refit_motion`; the first solve uses the skeleton's process noise),
     and the result with its uncertainty."""
     o = tp.prob.options
+    notes = []
+    stiff = tp.bound_stiffness(tp.normals_at(X0).H)  # a fit starts from scale 1: bounded too, without a word
+    if stiff and o.motion_scale != "auto":
+        notes.append(stiff)
     t_init = time.perf_counter() - t0
     if progress:
         progress(Progress(stage="optimise", fraction=0.1))
@@ -621,7 +663,7 @@ def solve_from(tp: TrajectoryCost[Any, Any], X0, t0: float, progress: ProgressCa
     if progress:
         progress(Progress(stage="uncertainty", fraction=0.95, iteration=iterations, cost=cost))
     result = trajectory_result(tp, X, "fte", seconds={"init": t_init, "solve": t_solve}, iterations=iterations,
-                               cost=cost)
+                               cost=cost, notes=notes)
     if progress:
         progress(Progress(stage="done", fraction=1.0, iteration=iterations, cost=cost))
     return result
@@ -675,6 +717,10 @@ def trajectory_result(tp: TrajectoryCost[Any, Any], X, method: str, *, seconds: 
         report["motion_orders"] = {name: int(k) for name, k in zip(tp.group_names(), tp.orders)}
     loose = loose_motion(tp.motion_residuals(Q)) if prob.options.motion_scale != "auto" else None
     report["warnings"] = list(notes or []) + report.get("warnings", []) + ([loose] if loose else [])
+    if tp.indefinite_steps:
+        report["warnings"].append(f"{tp.indefinite_steps} optimiser steps met a numerically indefinite system and "
+                                  "were damped more (a motion model far stiffer than the data, or a marker no camera "
+                                  "pair sees for long)")
     causal_pos = prob.skeleton.positions(causal) if causal is not None else None
     if prob.skeleton.kind == "points":
         # a free point in a frame fewer than two cameras see has no 3D estimate: its depth is only

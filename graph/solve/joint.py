@@ -43,7 +43,7 @@ from graph import kinematics
 from graph.errors import InputError
 from graph.skeleton import KernelArgs
 from graph.solve import kernels
-from graph.solve.fte import PRIOR_SIGMA, Estimate, TrajectoryCost, bone_lengths, solve_from, solve_fte
+from graph.solve.fte import PRIOR_SIGMA, Estimate, IndefiniteSystem, TrajectoryCost, bone_lengths, solve_from, solve_fte
 from graph.solve.initial import initial_poses
 from graph.solve.marginals import banded_marginals, chain_band, information_taken, solve_band
 from graph.solve.problem import Problem
@@ -226,7 +226,7 @@ class JointTrajectoryProblem(TrajectoryCost[JointState, JointNormals]):
         try:
             xs, W = solve_band(bands, Bs, rs, GW, gW)
         except np.linalg.LinAlgError as e:
-            raise RuntimeError(f"the smoother's system is not positive definite: {e}") from None
+            raise IndefiniteSystem(f"the smoother's system is not positive definite: {e}") from None
         Q = np.empty_like(X.Q)
         for idx, x in zip(self.groups, xs):
             Q[:, idx[0]:idx[-1] + 1] = x

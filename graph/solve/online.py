@@ -273,6 +273,21 @@ def _ekf_with_shared(prob: Problem, progress: ProgressCallback | None) -> Result
     return result
 
 
+def _whole_run(prob: Problem, tp: TrajectoryProblem, done: np.ndarray) -> tuple[np.ndarray, int]:
+    """The whole run's smoothed trajectory (fte's optimiser, the motion scales of ``tp``), started
+    from the stream's poses ``done`` for its first frames and from the robust triangulation's after:
+    what ekf returns when GTSAM's stream cannot eliminate its system. Returns (Q, iterations)."""
+    X, _, _ = robust_points(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
+    Q0 = initial_poses(prob, X)
+    Q0[:len(done)] = done
+    whole = TrajectoryProblem(prob, Q0, tp.bone_len)
+    whole.set_motion_scales(tp.motion_scales)
+    whole.bound_stiffness(whole.normals_at(Q0).H)
+    Q, iterations, _ = optimise(whole, Q0.copy(), prob.options.max_iterations)
+    tp.indefinite_steps += whole.indefinite_steps
+    return Q, iterations
+
+
 def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     t0 = time.perf_counter()
     if progress:
@@ -287,6 +302,8 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     Q0 = initial_poses(sub, X)
     tp = TrajectoryProblem(sub, Q0, bone_lengths(sub, X) if sub.skeleton.kind == "points" else None)
     tp.max_stiffness = GTSAM_MAX_STIFFNESS  # the stream (OnlineSmoother) eliminates on GTSAM, all markers together
+    stiff = tp.bound_stiffness(tp.normals_at(Q0).H)  # as fte (solve_from): a fit's start of scale 1 too
+    notes = [stiff] if stiff and not auto else []
     Q_start, iters, cost = optimise(tp, Q0.copy(), 30)
     if auto:  # the scales of largest marginal likelihood over the start (fitted at its optimum, as fte), kept
         # for the stream
@@ -298,15 +315,27 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     per_frame = []
     Q = Q_start
     if N > S:
-        sm = OnlineSmoother(tp, Q_start, int(round(prob.options.lag_seconds * prob.options.fps)))
-        every = max(1, (N - S) // 50)
-        for n in range(S, N):
-            t1 = time.perf_counter()
-            causal[n] = sm.push(prob.meas[n], prob.valid[n])
-            per_frame.append(time.perf_counter() - t1)
-            if progress and (n - S) % every == 0:
-                progress(Progress(stage="filter", fraction=0.1 + 0.85 * (n - S) / (N - S), iteration=n))
-        Q = sm.finish()
+        n = S
+        try:
+            sm = OnlineSmoother(tp, Q_start, int(round(prob.options.lag_seconds * prob.options.fps)))
+            every = max(1, (N - S) // 50)
+            for n in range(S, N):
+                t1 = time.perf_counter()
+                causal[n] = sm.push(prob.meas[n], prob.valid[n])
+                per_frame.append(time.perf_counter() - t1)
+                if progress and (n - S) % every == 0:
+                    progress(Progress(stage="filter", fraction=0.1 + 0.85 * (n - S) / (N - S), iteration=n))
+            Q = sm.finish()
+        except RuntimeError as e:
+            if "Indeterminate" not in str(e):
+                raise
+            Q, more = _whole_run(prob, tp, causal[:n])
+            iters += more
+            causal[n:] = Q[n:]
+            notes.append(f"the stream's elimination (GTSAM's iSAM2) found its system indeterminate at frame {n} "
+                         f"(a motion model far stiffer than the data, {prob.options.fps:g} fps, or a long stretch "
+                         "without two cameras): the trajectory is the whole run's smoother's (as fte), and from "
+                         "that frame on so are the causal estimates")
     t_solve = time.perf_counter() - t0 - t_init
     ms = np.array(per_frame) * 1000.0
     per_frame_ms = ({"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "max": float(ms.max())}
@@ -315,11 +344,11 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     # (the chain of graph.solve.marginals, as fte); a per-frame inverse with the motion prior as a stiff
     # local term had claimed 4-9x too little spread
     whole = TrajectoryProblem(prob, Q, tp.bone_len)
-    if auto:
-        whole.set_motion_scales(tp.motion_scales)
+    whole.set_motion_scales(tp.motion_scales)  # fitted, or given and bounded (bound_stiffness)
+    whole.indefinite_steps = tp.indefinite_steps
     result = trajectory_result(whole, Q, "ekf",
                                seconds={"init": t_init, "solve": t_solve}, iterations=N - S + iters,
-                               causal=causal, per_frame_ms=per_frame_ms)
+                               causal=causal, per_frame_ms=per_frame_ms, notes=notes)
     if progress:
         progress(Progress(stage="done", fraction=1.0, iteration=N))
     return result
