@@ -148,7 +148,8 @@ class JobService:
 
     def parse_options(self, text: str | None, skeleton_file: str | None) -> tuple[dict, str | None]:
         """The ``options`` form field: a JSON object of :class:`graph.api.SolveOptions` fields, and
-        the job's ``label`` (the user's name for the run, not an option of the solve)."""
+        the job's ``label`` (the user's name for the run, not an option of the solve). Without ``fps``
+        the options come back without it: the upload's files settle it (:meth:`_store_upload`)."""
         from pydantic import TypeAdapter, ValidationError
 
         from graph.api import SolveOptions
@@ -190,7 +191,10 @@ class JobService:
             raise Unprocessable(f"options: {where + ': ' if where else ''}{msg}")
         except (TypeError, ValueError) as e:
             raise Unprocessable(f"options: {e}")
-        return json.loads(json.dumps(opts.to_dict())), label
+        out = json.loads(json.dumps(opts.to_dict()))
+        if "fps" not in data:
+            del out["fps"]
+        return out, label
 
     def _save(self, upload: Upload, dest_dir: Path, default: str, allowed: tuple[str, ...], sniff) -> Path:
         head = upload.file.read(16)
@@ -295,6 +299,12 @@ class JobService:
                 individual=options.get("individual"), max_frames=s.max_frames,
                 max_bodyparts=s.max_bodyparts,
                 videos=[str(p) for p in (video_files or video_paths or [])] or None)
+            recorded = inputs.pop("recorded_fps", None)
+            if "fps" not in options:  # as the command line's --fps: required unless the files record it
+                if recorded is None:
+                    raise Unprocessable("options: fps is required: the cameras' frame rate, frames per second (the "
+                                        "keypoint files record none, DeepLabCut's never do, and no video gave one)")
+                options["fps"] = recorded
             jobfiles.write_manifest(input_dir, manifest)
         return job_id, inputs
 

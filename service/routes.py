@@ -86,7 +86,9 @@ def submit_job(
                     "(POST /v1/calibrations)")] = None,
     options: Annotated[str, Form(
         description='JSON object of solve options, e.g. {"method": "fte", "fps": 120, "skeleton": "cheetah", '
-                    '"likelihood_threshold": 0.5, "measurement_std_px": 5}; measurement_std_px "auto" measures '
+                    '"likelihood_threshold": 0.5, "measurement_std_px": 5}; fps (the cameras\' frame rate) is '
+                    'required unless the keypoint files or the videos record one (SLEAP analysis files may, '
+                    'DeepLabCut files never do); measurement_std_px "auto" measures '
                     'the detection noise from the data, motion_scale "auto" fits the smoothing to it (the default '
                     'for fte on free points; 1 otherwise), motion_order 1, 2, 3 (the default) or "auto" the order '
                     'of the motion prior (an earlier report\'s motion_scales and motion_orders given back reuse its '

@@ -69,7 +69,18 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
         "skeleton": {"name": sk_path.name, "bytes": sk_path.stat().st_size} if sk_path is not None else None,
         "videos": None if infos is None else [{"name": Path(i.path).name, "bytes": Path(i.path).stat().st_size,
                                                "frames": i.frames} for i in infos],
+        "recorded_fps": recorded_frame_rate([k.fps for k in kps], [i.fps for i in infos or []]),
     }
+
+
+def recorded_frame_rate(keypoints: list[float | None], videos: list[float]) -> float | None:
+    """The frame rate the upload records: the keypoint files' (SLEAP's may record one, DeepLabCut's
+    never do), else the videos'; None when neither does, or when those that do disagree."""
+    for rates in (keypoints, videos):
+        rates = [float(r) for r in rates if r is not None and r > 0]
+        if rates and max(rates) - min(rates) <= 1e-3 * max(rates):
+            return rates[0]
+    return None
 
 
 def check_videos(videos: list[str], frames: int) -> list:

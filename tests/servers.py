@@ -256,7 +256,7 @@ def submit(client: httpx.Client, run: Run, options: dict | None = None, calibrat
     files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in (cams or run.cams)]
     cal = calibration or run.calibration
     files.append(("calibration", (cal.name, cal.read_bytes(), "application/octet-stream")))
-    return client.post("/v1/jobs", files=files, data={"options": json.dumps(options or {})})
+    return client.post("/v1/jobs", files=files, data={"options": json.dumps({"fps": run.fps, **(options or {})})})
 
 
 def submit_ok(client: httpx.Client, run: Run, options: dict | None = None) -> str:

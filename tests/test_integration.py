@@ -90,7 +90,7 @@ def test_simulate_then_solve_through_files(tmp_path, capsys):
     assert main(["simulate", "--frames", "60", "--seed", "4", "--out", str(sim)]) == 0
     out = tmp_path / "fte.csv"
     cams = [str(sim / f"cam{i}.csv") for i in range(1, 7)]
-    assert main(["solve", *cams, "--calibration", str(sim / "calibration.toml"), "--method", "fte",
+    assert main(["solve", *cams, "--calibration", str(sim / "calibration.toml"), "--method", "fte", "--fps", "120",
                  "--out", str(out)]) == 0
     capsys.readouterr()
     table = read_anipose_csv(out)
@@ -101,7 +101,7 @@ def test_simulate_then_solve_through_files(tmp_path, capsys):
     # solving with the AcinoSet JSON copy of the rig gives the same answer
     out2 = tmp_path / "fte_json.csv"
     assert main(["solve", *cams, "--calibration", str(sim / "acinoset_2019_rig.json"), "--method", "fte",
-                 "--out", str(out2)]) == 0
+                 "--fps", "120", "--out", str(out2)]) == 0
     np.testing.assert_allclose(read_anipose_csv(out2).positions, table.positions, atol=1e-4)
 
 

@@ -171,7 +171,7 @@ def test_cli_body_and_sync_round_trip(tmp_path, rig):
     cams = sorted((tmp_path / "run").glob("cam*.csv"))
     cal = tmp_path / "run" / "calibration.toml"
     rep = tmp_path / "report.json"
-    first = _cli("solve", *cams, "--calibration", cal, "--body", "estimate", "--sync", "estimate",
+    first = _cli("solve", *cams, "--calibration", cal, "--fps", "120", "--body", "estimate", "--sync", "estimate",
                  "--out", tmp_path / "a.csv", "--report", rep, "--h5", tmp_path / "a.h5")
     assert first.returncode == 0, first.stderr
     report = json.loads(rep.read_text())
@@ -184,20 +184,20 @@ def test_cli_body_and_sync_round_trip(tmp_path, rig):
         names = [n.decode() if isinstance(n, bytes) else n for n in f["body_lengths/names"][()]]
         assert "spine" in names and f["time_offsets_frames"].shape == (6,)
     for body in (rep, tmp_path / "a.h5"):
-        again = _cli("solve", *cams, "--calibration", cal, "--body", body, "--out", tmp_path / "b.csv",
+        again = _cli("solve", *cams, "--calibration", cal, "--fps", "120", "--body", body, "--out", tmp_path / "b.csv",
                      "--report", tmp_path / "b.json")
         assert again.returncode == 0, again.stderr
         got = json.loads((tmp_path / "b.json").read_text())["body_lengths"]["spine"]
         assert got["length_m"] == pytest.approx(report["body_lengths"]["spine"]["length_m"], rel=1e-9)
-    given = _cli("solve", *cams, "--calibration", cal, "--time-offsets", "0,0,0,0,0,0.5", "--out", tmp_path / "c.csv",
-                 "--report", tmp_path / "c.json")
+    given = _cli("solve", *cams, "--calibration", cal, "--fps", "120", "--time-offsets", "0,0,0,0,0,0.5",
+                 "--out", tmp_path / "c.csv", "--report", tmp_path / "c.json")
     assert given.returncode == 0, given.stderr
     assert json.loads((tmp_path / "c.json").read_text())["time_offsets_frames"][5] == 0.5
     for bad, words in ((["--time-offsets", "0,x"], "--time-offsets takes numbers"),
                        (["--time-offsets", "0,1"], "time_offsets: 2 given for 6 cameras"),
                        (["--body", tmp_path / "a.csv"], "a.csv: not JSON"),
                        (["--sync", "later"], "invalid choice")):
-        proc = _cli("solve", *cams, "--calibration", cal, *bad, "--out", tmp_path / "d.csv")
+        proc = _cli("solve", *cams, "--calibration", cal, "--fps", "120", *bad, "--out", tmp_path / "d.csv")
         assert proc.returncode == 2, proc.stderr
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and words in lines[0], proc.stderr

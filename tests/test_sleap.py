@@ -4,6 +4,8 @@ orders SLEAP and sleap-io write, several tracks, and one-line refusals for bad f
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -155,3 +157,36 @@ def test_declared_sizes_are_checked_before_reading(tmp_path):
         read_keypoints(tmp_path / "long.h5", limits=ReadLimits(max_frames=50_000, max_bodyparts=100))
     with pytest.raises(TooLargeInput, match="bodyparts"):
         read_keypoints(analysis("top"), limits=ReadLimits(max_bodyparts=10))
+
+
+# --------------------------------------------------------------------------- the command line
+
+def _cli(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "graph.app.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=600)
+
+
+def test_solve_and_evaluate_take_the_files_and_need_a_frame_rate(tmp_path):
+    files = [analysis(c) for c in CAMERAS]
+    common = ["--calibration", SESSION / "calibration.toml", "--method", "tri", "--skeleton", "points",
+              "--likelihood-threshold", "0"]
+    missing = _cli("solve", *files, *common, "--out", tmp_path / "a.csv")
+    assert missing.returncode == 2 and "--fps is required: the keypoint files record no frame rate" in missing.stderr
+    assert not (tmp_path / "a.csv").exists()
+    solved = _cli("solve", *files, *common, "--fps", "30", "--out", tmp_path / "a.csv")
+    assert solved.returncode == 0, solved.stderr
+    assert "tri: 120 frames, 4 cameras, 15 markers, 30 fps (--fps)" in solved.stdout
+    assert "camera side disagrees with the others" in solved.stderr
+    # a file recording its frame rate needs no --fps, and the command says where the rate came from
+    recorded = []
+    for c in CAMERAS:
+        tracks, scores = _raw(c)
+        recorded.append(_write(tmp_path / f"{c}.analysis.h5", tracks, scores, attrs={"fps": 30.0}))
+    own = _cli("solve", *recorded, *common, "--out", tmp_path / "b.csv")
+    assert own.returncode == 0 and "30 fps (recorded in the keypoint files)" in own.stdout, own.stderr
+    loco = _cli("evaluate", "loco", *files, *common, "--fps", "30", "--confidence", "0")
+    assert loco.returncode == 0, loco.stderr
+    assert "leave one camera out, tri at 30 fps (--fps)" in loco.stdout
+    side = next(line for line in loco.stdout.splitlines() if line.strip().startswith("side"))
+    assert float(side.split()[1]) > 80  # side's held-out median: its calibration entry is top's
+    assert _cli("evaluate", "loco", *files, *common).returncode == 2

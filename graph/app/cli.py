@@ -191,8 +191,8 @@ def _fail(message: str) -> int:
 
 def register(sub) -> None:
     """``acinoset solve``."""
-    p = sub.add_parser("solve", description="Estimate 3D trajectories from one DeepLabCut CSV/H5 file per camera, "
-                       "given in the calibration's camera order.")
+    p = sub.add_parser("solve", description="Estimate 3D trajectories from one keypoint file per camera (DeepLabCut "
+                       "CSV/H5, SLEAP analysis HDF5), given in the calibration's camera order.")
     p.add_argument("keypoints", nargs="+", metavar="CAM.csv", help=KEYPOINTS_HELP)
     p.add_argument("--calibration", required=True, metavar="FILE",
                    help="Anipose calibration.toml or AcinoSet scene JSON")
@@ -205,8 +205,9 @@ def register(sub) -> None:
     p.set_defaults(func=run_solve)
 
 
-KEYPOINTS_HELP = ("DeepLabCut CSV or H5, one per camera in the calibration's order; an ensemble of pose models "
-                  "as CAM_a.csv+CAM_b.csv (one observation, its members' spread weighing the cameras)")
+KEYPOINTS_HELP = ("DeepLabCut CSV or H5 or SLEAP analysis HDF5 (.analysis.h5), one per camera in the calibration's "
+                  "order; an ensemble of pose models as CAM_a.csv+CAM_b.csv (one observation, its members' spread "
+                  "weighing the cameras)")
 
 
 def read_cameras(paths: list[str], individual: str | None = None) -> list:
@@ -234,7 +235,9 @@ def add_solve_options(p) -> None:
 
     defaults = SolveOptions()
     p.add_argument("--method", choices=METHODS, default=defaults.method)
-    p.add_argument("--fps", type=float, default=defaults.fps, help=f"frame rate (default {defaults.fps:g})")
+    p.add_argument("--fps", type=float, default=None,
+                   help="the cameras' frame rate, frames per second; required unless the keypoint files record "
+                        "it (SLEAP's analysis files may, DeepLabCut's never do)")
     p.add_argument("--skeleton", default=defaults.skeleton, metavar="cheetah|points|PATH",
                    help="skeleton: the AcinoSet cheetah, free points, or a skeleton TOML file")
     p.add_argument("--likelihood-threshold", type=float, default=defaults.likelihood_threshold, metavar="P",
@@ -251,7 +254,8 @@ def add_solve_options(p) -> None:
                    help="the motion prior's order: on the k-th differences of each coordinate, 3 (constant "
                         "acceleration, the default), 2, 1 (what aniposelib smooths), or 'auto' to choose it per "
                         "marker from the data (fte, with the motion scale fitted)")
-    p.add_argument("--individual", default=None, metavar="NAME", help="multi-animal files: which individual")
+    p.add_argument("--individual", default=None, metavar="NAME",
+                   help="multi-animal files: which individual (a SLEAP file's track name)")
     p.add_argument("--calibration-units", choices=list(CALIBRATION_UNITS), default="auto",
                    help="units of the calibration's translations (default: auto, which recognises millimetres)")
     p.add_argument("--no-uncertainty", dest="uncertainty", action="store_false",
@@ -325,9 +329,30 @@ def _offsets_option(text: str | None) -> list[float] | None:
         raise ValueError(f"--time-offsets takes numbers of frames as 0,0.4,-1.2, not {text!r}") from None
 
 
-def solve_options(args: argparse.Namespace):
-    """The :class:`~graph.types.SolveOptions` of :func:`add_solve_options`'s arguments; a
-    :class:`UsageError` for a malformed one."""
+def frame_rate(given: float | None, keypoints: list) -> tuple[float, str]:
+    """The frame rate to solve at and where it came from: ``--fps`` when given (a warning when the
+    keypoint files record another), else the one the files record (:attr:`Keypoints.fps`; every file
+    that records one must agree). Neither: a :class:`UsageError`, for a frame rate assumed silently
+    sets the motion model's scale wrong (on the fly's 300 fps recording, the 120 that was the default
+    left the fitted smoothing at its bound)."""
+    recorded = sorted({float(k.fps) for k in keypoints if getattr(k, "fps", None) is not None})
+    if given is not None:
+        if recorded and any(abs(r - given) > 1e-3 * given for r in recorded):
+            warnings.warn(f"--fps {given:g} given, the keypoint files record {', '.join(f'{r:g}' for r in recorded)} "
+                          "fps: solving at the --fps given", stacklevel=2)
+        return float(given), "--fps"
+    if not recorded:
+        raise UsageError("--fps is required: the keypoint files record no frame rate (DeepLabCut's never do)")
+    if len(recorded) > 1:
+        raise UsageError(f"the keypoint files record different frame rates ({', '.join(f'{r:g}' for r in recorded)} "
+                         "fps); give the cameras' with --fps")
+    return recorded[0], "recorded in the keypoint files"
+
+
+def solve_options(args: argparse.Namespace, fps: float | None = None):
+    """The :class:`~graph.types.SolveOptions` of :func:`add_solve_options`'s arguments, at frame rate
+    ``fps`` (default ``--fps``; a command that reads the keypoint files first settles it with
+    :func:`frame_rate`); a :class:`UsageError` for a malformed one."""
     from graph.types import SolveOptions
 
     try:
@@ -340,8 +365,11 @@ def solve_options(args: argparse.Namespace):
         motion, order = _motion_options(args.motion_scale, args.motion_order)
         body, lengths = _body_option(args.body)
         offsets = _offsets_option(args.time_offsets)
+        rate = fps if fps is not None else args.fps
+        if rate is None:  # checked here; settled by frame_rate() once the keypoint files are read
+            rate = SolveOptions.fps
         options = SolveOptions(body=body, body_lengths=lengths, sync=args.sync, time_offsets=offsets,
-                               method=args.method, fps=args.fps, skeleton=args.skeleton, measurement_std_px=std_px,
+                               method=args.method, fps=rate, skeleton=args.skeleton, measurement_std_px=std_px,
                                motion_scale=motion,
                                motion_order=order,
                                likelihood_threshold=args.likelihood_threshold, individual=args.individual,
@@ -368,6 +396,8 @@ def run_solve(args: argparse.Namespace) -> int:
                          "were given (one per camera, in the calibration's order)", args.calibration)
     keypoints = read_cameras(args.keypoints, args.individual)
     check_same_frames(keypoints)
+    fps, fps_from = frame_rate(args.fps, keypoints)
+    options = solve_options(args, fps)
 
     from graph.progress import ProgressBar, compile_notice
 
@@ -403,7 +433,7 @@ def run_solve(args: argparse.Namespace) -> int:
     if rep.motion_orders and options.motion_order == "auto":
         counts = {k: list(rep.motion_orders.values()).count(k) for k in sorted(set(rep.motion_orders.values()))}
         noise += ", motion order " + ", ".join(f"{k} for {n}" for k, n in counts.items())
-    print(f"{rep.method}: {rep.frames} frames, {rep.cameras} cameras, {rep.markers} markers, "
+    print(f"{rep.method}: {rep.frames} frames, {rep.cameras} cameras, {rep.markers} markers, {fps:g} fps ({fps_from}), "
           f"reprojection RMSE {rmse}{noise}, {rep.seconds.get('total', 0.0):.2f} s -> {', '.join(map(str, written))}")
     return 0
 

@@ -49,12 +49,13 @@ def register(sub) -> None:
     loco.set_defaults(func=run_loco)
 
 
-def _variant(args: argparse.Namespace, text: str):
-    """The solve options of ``args`` with those in ``text`` (a --versus value) changed."""
+def _variant(args: argparse.Namespace, text: str, keypoints: list):
+    """The solve options of ``args`` with those in ``text`` (a --versus value) changed, at the frame rate
+    :func:`graph.app.cli.frame_rate` settles for them and ``keypoints``."""
     import copy
     import shlex
 
-    from graph.app.cli import UsageError, add_solve_options, solve_options
+    from graph.app.cli import UsageError, add_solve_options, frame_rate, solve_options
 
     parser = argparse.ArgumentParser(prog=f"--versus {text!r}", add_help=False, exit_on_error=False)
     add_solve_options(parser)
@@ -66,7 +67,7 @@ def _variant(args: argparse.Namespace, text: str):
     if rest or not words:
         raise UsageError(f"--versus {text!r}: give solve options to change, such as \"--motion-order 1\""
                          + (f" ({' '.join(rest)} is not one)" if rest else ""))
-    return solve_options(changed)
+    return solve_options(changed, frame_rate(changed.fps, keypoints)[0])
 
 
 def _table(score) -> None:
@@ -96,13 +97,12 @@ def _judged(keypoints: list) -> str:
 
 
 def run_loco(args: argparse.Namespace) -> int:
-    from graph.app.cli import UsageError, read_cameras, solve_options
+    from graph.app.cli import UsageError, frame_rate, read_cameras, solve_options
     from graph.io.calibration import load_calibration
     from graph.metrics import leave_one_camera_out, loco_difference
     from graph.types import jsonable
 
     options = solve_options(args)
-    variants = [(text, _variant(args, text)) for text in args.versus]
     if not 0.0 <= args.confidence <= 1.0:
         raise UsageError(f"--confidence must be in [0, 1], not {args.confidence:g}")
     if args.json is not None and not Path(args.json).parent.is_dir():
@@ -112,11 +112,15 @@ def run_loco(args: argparse.Namespace) -> int:
         raise InputError(f"has {len(calibration)} cameras but {len(args.keypoints)} keypoint files "
                          "were given (one per camera, in the calibration's order)", args.calibration)
     keypoints = read_cameras(args.keypoints, args.individual)
+    fps, fps_from = frame_rate(args.fps, keypoints)
+    options = solve_options(args, fps)
+    variants = [(text, _variant(args, text, keypoints)) for text in args.versus]
     say = (lambda text: print(f"  {text}", file=sys.stderr, flush=True)) if sys.stderr.isatty() else None
     score = leave_one_camera_out(keypoints, calibration, options, confidence=args.confidence, progress=say)
     for note in score.notes:
         print(f"acinoset: note: {note}", file=sys.stderr)
-    print(f"leave one camera out, {score.method}, detections of likelihood >= {score.confidence:g}:")
+    print(f"leave one camera out, {score.method} at {fps:g} fps ({fps_from}), detections of likelihood >= "
+          f"{score.confidence:g}:")
     print(f"  {_judged(keypoints)}")
     _table(score)
     versus = []

@@ -61,7 +61,8 @@ def combine(members: list[Keypoints]) -> Keypoints:
         spread = np.where(count >= 2, np.sqrt(dev2 / (2.0 * np.maximum(count - 1, 1))), np.nan)
     sources = "+".join(k.source for k in members if k.source)
     return Keypoints(bodyparts=list(first.bodyparts), xy=centre, likelihood=lik.mean(axis=0), scorer=first.scorer,
-                     source=sources or first.source, spread_px=spread)
+                     source=sources or first.source, spread_px=spread,
+                     fps=first.fps if all(k.fps == first.fps for k in members) else None)
 
 
 def relative_noise(spread: np.ndarray, valid: np.ndarray) -> np.ndarray | None:

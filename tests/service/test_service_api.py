@@ -25,7 +25,7 @@ def root(server):
         yield c
 
 
-FAST = {"method": "tri", "skeleton": "points"}
+FAST = {"method": "tri", "skeleton": "points", "fps": 120.0}
 
 
 # -- tokens ----------------------------------------------------------------------------------------

@@ -105,7 +105,7 @@ def test_a_solve_job_names_the_calibration(ex1, alice, bob, tmp_path):
         cams.append(tmp_path / f"{name}.csv")
         write_dlc_csv(cams[-1], Keypoints([f"p{i}" for i in range(4)], uv, np.ones(truth.shape[:2])))
     files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in cams]
-    options = {"options": json.dumps({"method": "tri", "skeleton": "points"})}
+    options = {"options": json.dumps({"method": "tri", "skeleton": "points", "fps": 120})}
 
     r = alice.post("/v1/jobs", files=files, data={**options, "calibration_id": ex1["id"]})
     assert r.status_code == 202, r.text

@@ -15,7 +15,7 @@ from service.backends.embedded import EmbeddedBackend, _Run
 from service.settings import Settings
 from service.store import Store, StoreFull
 
-FAST = {"method": "tri", "skeleton": "points"}
+FAST = {"method": "tri", "skeleton": "points", "fps": 120.0}
 
 
 @pytest.fixture

@@ -11,7 +11,7 @@ import pytest
 from servers import Server, add_user, pid_alive, submit_ok, wait_dead, wait_finished, wait_for, wait_solving
 
 LONG = {"method": "fte", "skeleton": "cheetah"}
-FAST = {"method": "tri", "skeleton": "points"}
+FAST = {"method": "tri", "skeleton": "points", "fps": 120.0}
 
 
 def _pid(job: dict) -> int:

@@ -149,7 +149,7 @@ def test_a_skeleton_matching_no_bodypart_is_refused_at_upload_with_the_points_hi
     assert set(jobs_dir.iterdir()) == before
     # the same files with the points skeleton are accepted
     ok = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=_fly_files(),
-                         data={"options": json.dumps({"method": "tri", "skeleton": "points"})})
+                         data={"options": json.dumps({"method": "tri", "skeleton": "points", "fps": 300})})
     assert ok.status_code == 202, ok.text
     app_client.delete(f"/v1/jobs/{ok.json()['id']}", headers=_auth(app_client, "ada"))
 
@@ -244,7 +244,8 @@ def test_labels_filters_warnings_without_paths_and_what_failed(app_client, small
     def post(cams, options):
         files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in cams]
         files.append(("calibration", ("calibration.toml", small_run.calibration.read_bytes(), "text/plain")))
-        r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=files, data={"options": json.dumps(options)})
+        r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=files,
+                            data={"options": json.dumps({"fps": small_run.fps, **options})})
         assert r.status_code == 202, r.text
         return r.json()
 

@@ -28,7 +28,7 @@ from servers import (
 pytestmark = pytest.mark.skipif(not have_redis(), reason="needs Debian's redis-server (.ci/run installs it)")
 
 LONG = {"method": "fte", "skeleton": "cheetah"}
-FAST = {"method": "tri", "skeleton": "points"}
+FAST = {"method": "tri", "skeleton": "points", "fps": 120.0}
 # fast failure detection for the tests: workers heartbeat every second, a run is lost after 6 s
 ENV = {"ACINOSET_LEASE_SECONDS": "6", "ACINOSET_HEARTBEAT_SECONDS": "1"}
 

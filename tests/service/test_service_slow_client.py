@@ -14,7 +14,7 @@ import time
 import pytest
 from servers import BOUNDARY, Server, add_user, multipart, slow_upload, submit
 
-FAST = {"method": "tri", "skeleton": "points"}
+FAST = {"method": "tri", "skeleton": "points", "fps": 120.0}
 
 
 @pytest.fixture(scope="module")

@@ -237,7 +237,7 @@ def test_offline_playback_file(browser, simulated_run, tmp_path):
     cams = [str(simulated_run / f"cam{i}.csv") for i in range(1, 7)]
     h5 = tmp_path / "run.h5"
     solved = subprocess.run([sys.executable, "-m", "graph.app.cli", "solve", *cams, "--calibration",
-                             str(simulated_run / "calibration.toml"), "--method", "tri", "--out",
+                             str(simulated_run / "calibration.toml"), "--method", "tri", "--fps", "120", "--out",
                              str(tmp_path / "run.csv"), "--h5", str(h5)],
                             cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert solved.returncode == 0, solved.stderr
