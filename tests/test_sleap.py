@@ -190,3 +190,28 @@ def test_solve_and_evaluate_take_the_files_and_need_a_frame_rate(tmp_path):
     side = next(line for line in loco.stdout.splitlines() if line.strip().startswith("side"))
     assert float(side.split()[1]) > 80  # side's held-out median: its calibration entry is top's
     assert _cli("evaluate", "loco", *files, *common).returncode == 2
+
+
+def test_mutated_analysis_files_are_read_or_refused_in_one_line_within_the_memory_cap(tmp_path):
+    from test_keypoint_memory import _read_capped
+
+    rng = np.random.default_rng(11)
+    source = analysis("top").read_bytes()
+    paths = []
+    for k in range(60):
+        data = bytearray(source)
+        if k % 3 == 0:  # flip bytes
+            for at in rng.integers(0, len(data), rng.integers(1, 40)):
+                data[at] = rng.integers(256)
+        elif k % 3 == 1:  # delete a run
+            a = int(rng.integers(0, len(data)))
+            del data[a: a + int(rng.integers(1, 400))]
+        else:  # cut short
+            del data[int(rng.integers(1, len(data))):]
+        paths.append(tmp_path / f"mutant{k:02d}.analysis.h5")
+        paths[-1].write_bytes(bytes(data))
+    got = _read_capped(paths)
+    assert not {k: v for k, v in got.items() if v[0] == "crashed"}
+    assert all("\n" not in v[2] and v[2].startswith(k) for k, v in got.items() if v[0] == "refused")
+    kinds = [v[0] for v in got.values()]
+    assert kinds.count("refused") > 30, kinds  # HDF5's structure seldom survives a mutation: most are refused
