@@ -60,4 +60,5 @@ def test_a_job_without_a_frame_rate_is_refused_unless_its_files_record_one(clien
     own = _post(client, recorded, SESSION / "calibration.toml", {"method": "tri", "skeleton": "points"})
     assert own.status_code == 202 and own.json()["options"]["fps"] == 30.0, own.text
     plain = [SESSION / c / f"minimal_{c}_proofread.analysis.h5" for c in CAMERAS]
-    assert _post(client, plain, SESSION / "calibration.toml", {"method": "tri", "skeleton": "points"}).status_code == 422
+    refused = _post(client, plain, SESSION / "calibration.toml", {"method": "tri", "skeleton": "points"})
+    assert refused.status_code == 422 and "fps is required" in refused.json()["detail"], refused.text
