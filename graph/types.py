@@ -36,6 +36,7 @@ MAX_NOISE_PX = 1000.0
 MAX_ITERATIONS = 10000
 MAX_MOTION_SCALE = 1e6
 MAX_LAG_SECONDS = 60.0
+MAX_MIN_VIEWS = 100
 
 
 def default_motion_scale(method: str, free_points: bool) -> float | Literal["auto"]:
@@ -85,6 +86,10 @@ class SolveOptions:
     # the cameras' clocks: ``time_offsets`` (frames per camera; none: all 0) as given, or estimated
     sync: Sync = "given"
     time_offsets: list[float] | None = None
+    # fte and ekf answer a marker in every frame, from the motion model where fewer than two cameras see
+    # it (``ncams`` 0 or 1, a larger sd); positions seen by fewer than ``min_views`` cameras are left NaN
+    # (2: only what two cameras triangulate). tri, without a motion model, needs two in any case
+    min_views: int = 0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -128,6 +133,8 @@ class SolveOptions:
         if self.time_offsets is not None and not all(
                 isinstance(v, (int, float)) and abs(v) < float("inf") for v in self.time_offsets):
             raise ValueError("time_offsets must be finite numbers of frames, one per camera")
+        if not (isinstance(self.min_views, int) and 0 <= self.min_views <= MAX_MIN_VIEWS):
+            raise ValueError(f"min_views must be a whole number from 0 to {MAX_MIN_VIEWS}, not {self.min_views!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -164,6 +171,8 @@ class SolveReport:
     observations: int = 0  # observations above the likelihood threshold
     unconstrained_markers: list[str] = field(default_factory=list)  # never seen by two cameras
     unconstrained_frames: list[int] = field(default_factory=list)  # frames with no marker seen twice
+    # fte and ekf: per marker, the frames answered from the motion model (fewer than two cameras saw it)
+    motion_only_frames: dict[str, int] = field(default_factory=dict)
     bounds_active: int = 0
     sigma_px: float = float("nan")  # the detection noise the loss and the uncertainties assumed (px)
     noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.solve.noise)

@@ -27,9 +27,13 @@ import sys
 import warnings
 from collections import namedtuple
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from graph import __version__
 from graph.errors import InputError
+
+if TYPE_CHECKING:
+    from graph.types import Body
 
 PROG = "acinoset"
 
@@ -54,7 +58,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("video", "graph.video.cli", "draw a solved run over each camera's video, with a 3D view (H.264 MP4)"),
     Command("calibrate", "graph.calibrate.cli", "calibrate cameras from board views, or refine a rig from keypoints"),
     Command("evaluate", "graph.app.evaluate", "score a 3D method on a recording: leave one camera out"),
-    Command("resident", "graph.app.resident.status", "the warm background process that serves 'acinoset solve': status, stop"),
+    Command("resident", "graph.app.resident.status",
+            "the warm background process that serves 'acinoset solve': status, stop"),
 )
 
 
@@ -242,6 +247,10 @@ def add_solve_options(p) -> None:
                    help="skeleton: the AcinoSet cheetah, free points, or a skeleton TOML file")
     p.add_argument("--likelihood-threshold", type=float, default=defaults.likelihood_threshold, metavar="P",
                    help=f"ignore detections below this likelihood (default {defaults.likelihood_threshold:g})")
+    p.add_argument("--min-views", type=int, default=defaults.min_views, metavar="K",
+                   help="leave a marker's position NaN in frames fewer than K cameras see confidently (default "
+                        f"{defaults.min_views}: fte and ekf answer every frame, from the motion model where fewer "
+                        "than two cameras see it, flagged by ncams and a larger sd; 2: only triangulated positions)")
     p.add_argument("--measurement-std", default=str(defaults.measurement_std_px), metavar="PX|auto",
                    help=f"detection noise in pixels per coordinate (default {defaults.measurement_std_px:g}, the "
                         "paper's), or 'auto' to measure it from the data; the 3D uncertainties scale with it")
@@ -284,10 +293,12 @@ def _auto_option(text: str, option: str = "--measurement-std", unit: str = "a nu
     return value
 
 
-def _body_option(text: str) -> tuple[str, dict[str, float] | None]:
+def _body_option(text: str) -> tuple[Body, dict[str, float] | None]:
     """``--body``: ``model``, ``estimate``, or a file holding ``body_lengths`` (:func:`graph.io.results.read_body`)."""
-    if text in ("model", "estimate"):
-        return text, None
+    if text == "model":
+        return "model", None
+    if text == "estimate":
+        return "estimate", None
     from graph.io.results import read_body
 
     return "given", read_body(text)
@@ -373,6 +384,7 @@ def solve_options(args: argparse.Namespace, fps: float | None = None):
                                motion_scale=motion,
                                motion_order=order,
                                likelihood_threshold=args.likelihood_threshold, individual=args.individual,
+                               min_views=args.min_views,
                                calibration_units=args.calibration_units, bone_lengths=bones,
                                uncertainty=args.uncertainty)
     except ValueError as e:

@@ -722,21 +722,28 @@ def trajectory_result(tp: TrajectoryCost[Any, Any], X, method: str, *, seconds: 
                                   "were damped more (a motion model far stiffer than the data, or a marker no camera "
                                   "pair sees for long)")
     causal_pos = prob.skeleton.positions(causal) if causal is not None else None
+    views = prob.views()  # (N, M) cameras that saw each marker confidently
+    few = views < prob.options.min_views  # left NaN on request (min_views)
     if prob.skeleton.kind == "points":
-        # a free point in a frame fewer than two cameras see has no 3D estimate: its depth is only
-        # the motion model's guess, which drifts (a point bones tie to others is held by them)
-        few = prob.views() < 2
+        # a free point no camera pair ever sees has no depth but the start's guess: no estimate. Elsewhere
+        # a frame fewer than two cameras see is answered by the motion model (its sd grows through the gap:
+        # the marginals), unless min_views asks for more; a point bones tie to others is held by them
+        tied = np.zeros(len(prob.markers), dtype=bool)
         if len(prob.skeleton.bones):
-            tied = np.zeros(len(prob.markers), dtype=bool)
             tied[np.unique(prob.skeleton.bone_index)] = True
-            few &= ~(tied[None] & (prob.views().max(axis=0) >= 2)[None])
-        for a in (pos, std, causal_pos):
-            if a is not None:
-                a[few] = np.nan
-        gaps = int(few.sum() - (prob.views().max(axis=0) < 2).sum() * prob.frames)
+        never = (views.max(axis=0) < 2) & ~tied
+        few |= never[None]
+        if len(prob.skeleton.bones):
+            few &= ~(tied[None] & (views.max(axis=0) >= 2)[None])
+        gaps = int(few.sum() - never.sum() * prob.frames)
         if gaps > 0:
-            report["warnings"].append(f"{gaps} marker positions in frames that fewer than two cameras see "
-                                      "confidently are left without an estimate (NaN)")
+            report["warnings"].append(f"{gaps} marker positions in frames that fewer than {prob.options.min_views} "
+                                      "cameras see confidently are left without an estimate (NaN, min_views)")
+    for a in (pos, std, causal_pos):
+        if a is not None:
+            a[few] = np.nan
+    alone = (views < 2) & ~few
+    report["motion_only_frames"] = {m: int(k) for m, k in zip(prob.markers, alone.sum(axis=0)) if k}
     sk = prob.skeleton
     active = int(np.sum((Q <= sk.lower + BOUND_TOLERANCE) | (Q >= sk.upper - BOUND_TOLERANCE)))
     s = normals.s

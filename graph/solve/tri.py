@@ -21,6 +21,8 @@ def solve_tri(prob: Problem, progress: ProgressCallback | None = None) -> Result
         progress(Progress(stage="triangulate", fraction=0.0))
     X, cov, uv, s = triangulate(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
     std = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
+    few = prob.views() < prob.options.min_views  # NaN already where fewer than two cameras see it
+    X[few], std[few] = np.nan, np.nan
     seconds = time.perf_counter() - t0
     if progress:
         progress(Progress(stage="done", fraction=1.0))
