@@ -1,7 +1,8 @@
 """2D keypoints from DeepLabCut and SLEAP: one :class:`Keypoints` per camera.
 
-Readers: DeepLabCut CSV (single-animal 3-row header, multi-animal 4-row header), DeepLabCut H5 and
-SLEAP's analysis HDF5 export (:mod:`graph.io.sleap`, chosen by the datasets a file holds), read
+Readers: DeepLabCut CSV (single-animal 3-row header, multi-animal 4-row header), DeepLabCut H5,
+SLEAP's analysis HDF5 export (:mod:`graph.io.sleap`) and SLEAP's labels files, ``.slp``
+(:mod:`graph.io.slp`, through sleap-io), chosen by the datasets a file holds; the first three read
 with h5py only: the PyTables attributes in those files are pickles, and an uploaded file must
 never execute code, so nothing here unpickles.
 
@@ -45,74 +46,20 @@ from __future__ import annotations
 import csv
 import pickletools
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from graph.errors import InputError, TooLargeInput, unreadable
+from graph.io.keypoint_types import NO_LIMITS, Keypoints, ReadLimits
 
-
-@dataclass(frozen=True)
-class ReadLimits:
-    """What a reader accepts, checked before the data are read. ``max_bodyparts`` counts each
-    individual's bodyparts of a multi-animal file (a file may hold at most ``3 * max_bodyparts``
-    data columns). None: no limit."""
-
-    max_frames: int | None = None
-    max_bodyparts: int | None = None
-
-    @property
-    def max_columns(self) -> int | None:
-        return None if self.max_bodyparts is None else 3 * self.max_bodyparts
-
-    def check_frames(self, frames: int, path: Path, counting: bool = False) -> None:
-        """``frames`` declared (or, ``counting``, read so far) against ``max_frames``."""
-        if self.max_frames is not None and frames > self.max_frames:
-            said = f"more than {self.max_frames}" if counting else str(frames)
-            raise TooLargeInput(f"{said} frames; at most {self.max_frames} frames per file", path, "frames")
-
-    def check_columns(self, columns: int, path: Path) -> None:
-        if self.max_columns is not None and columns > self.max_columns:
-            raise TooLargeInput(f"{columns} data columns (about {columns // 3} bodyparts); at most "
-                                f"{self.max_bodyparts} bodyparts ({self.max_columns} columns) per file", path,
-                                "bodyparts")
-
-
-NO_LIMITS = ReadLimits()
 CSV_BLOCK_ROWS = 4096  # rows parsed at a time
 
 SINGLE = "single"  # DeepLabCut's pseudo-individual holding the unique bodyparts
 _LEVELS_SINGLE = ("scorer", "bodyparts", "coords")
 _LEVELS_MULTI = ("scorer", "individuals", "bodyparts", "coords")
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
-
-
-@dataclass
-class Keypoints:
-    """One camera's detections: N frames, M bodyparts.
-
-    ``xy`` (N, M, 2) pixels, NaN where missing; ``likelihood`` (N, M) in [0, 1], 0 where missing.
-    """
-
-    bodyparts: list[str]
-    xy: np.ndarray
-    likelihood: np.ndarray
-    scorer: str = "acinoset"
-    source: str = ""
-    spread_px: np.ndarray | None = None  # (N, M) an ensemble's disagreement (graph.solve.ensemble), else None
-    fps: float | None = None  # the frame rate the file records (SLEAP's may; DeepLabCut's never do), else None
-
-    def __post_init__(self) -> None:
-        self.xy = np.asarray(self.xy, dtype=np.float64)
-        self.likelihood = np.asarray(self.likelihood, dtype=np.float64)
-        if self.spread_px is not None:
-            self.spread_px = np.asarray(self.spread_px, dtype=np.float64)
-
-    @property
-    def frames(self) -> int:
-        return self.xy.shape[0]
 
 
 # ------------------------------------------------------------------------------------- reading
@@ -295,6 +242,11 @@ def _read_h5(path: Path, individual: str | None, limits: ReadLimits) -> Keypoint
 
             if sleap.is_analysis(f):
                 return sleap.read_analysis(f, path, individual, limits)
+            from graph.io import slp
+
+            if slp.is_slp(f):
+                slp.check_slp(f, path, limits)
+                return slp.read_slp(path, individual, limits)
             group = _dlc_group(f, path)
             kind = _text(group.attrs.get("pandas_type", b""))
             if kind == "frame_table":

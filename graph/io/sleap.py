@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.errors import InputError
-from graph.io.keypoints import Keypoints, ReadLimits
+from graph.io.keypoint_types import Keypoints, ReadLimits
 
 AXES = ("track", "xy", "node", "frame")
 MATLAB_ORDER = ("track", "xy", "node", "frame")  # SLEAP's default export (transposed for MATLAB)
