@@ -26,6 +26,21 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+_compiled = False
+
+
+def compile_kernels(timeout: float = 1200) -> None:
+    """Compile the solver's kernels into numba's on-disk cache once per test session, before the
+    first server starts: a fresh checkout compiles for minutes, which no job's timeout should pay.
+    Later processes (servers, workers, resident) load the cache in about a second."""
+    global _compiled
+    if _compiled:
+        return
+    subprocess.run([PY, "-c", "from graph.app.warmup import warm_up; warm_up()"], cwd=ROOT, check=True,
+                   timeout=timeout, capture_output=True)
+    _compiled = True
+
+
 def acinoset(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
     """``acinoset ARGS...`` (the service's command line, as ``python -m service``), run from the checkout."""
     return subprocess.run([PY, "-m", "service", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
@@ -203,6 +218,7 @@ class Server(Proc):
     def start(self, timeout: float = 60, ready: tuple[int, ...] = (200, 503)) -> "Server":
         """Start it and wait until ``/healthz`` answers with one of ``ready`` (503: up, its backend
         not yet able to run jobs)."""
+        compile_kernels()
         super().start()
         wait_answering(self.url, self, timeout, ready)
         return self
