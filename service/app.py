@@ -19,8 +19,11 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import graph
-from service import jobfiles
+from service.api.headers import SecurityHeaders
+from service.api.limits import UploadGuard
 from service.backends import make_backend
+from service.core.jobs import JobService
+from service.core.uploads import UploadReader
 from service.errors import (
     DISK_FULL,
     Forbidden,
@@ -33,13 +36,9 @@ from service.errors import (
     Unprocessable,
     storage_full,
 )
-from service.headers import SecurityHeaders
-from service.jobs import JobService
-from service.limits import UploadGuard
+from service.run.worker import configure_forkserver
 from service.settings import Settings
-from service.store import Store
-from service.uploads import UploadReader
-from service.worker import configure_forkserver
+from service.store import Store, jobfiles
 
 log = logging.getLogger("acinoset.service")
 
@@ -132,7 +131,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             lock.release()
 
-    # no CDN-served API explorer on the origin where the token lives: /docs is a page of our own (service.web)
+    # no CDN-served API explorer on the origin where the token lives: /docs is a page of our own (service.api.web)
     app = FastAPI(title="acinoset", version=graph.__version__, description=DESCRIPTION, lifespan=lifespan,
                   docs_url=None, redoc_url=None)
     app.state.settings = settings
@@ -170,7 +169,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse({"detail": f"internal error ({type(exc).__name__}); the server log has the details"},
                             status_code=500)
 
-    from service import calibration_routes, routes
+    from service.api import calibration_routes, routes
 
     app.include_router(routes.router)
     app.include_router(calibration_routes.router)
@@ -180,13 +179,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
 
 def _include_web(app: FastAPI) -> None:
-    """The web pages (``service/web.py``), when that module exists; not part of the REST contract."""
+    """The web pages (``service/api/web.py``), when that module exists; not part of the REST contract."""
     import importlib
 
     try:
-        web = importlib.import_module("service.web")
+        web = importlib.import_module("service.api.web")
     except ModuleNotFoundError as e:
-        if e.name != "service.web":
+        if e.name != "service.api.web":
             raise
         return
     app.include_router(web.router, include_in_schema=False)

@@ -199,12 +199,12 @@ def worker(args: argparse.Namespace) -> int:
         conn.ping()
     except Exception as e:
         raise Refused(f"cannot reach Redis at {s.redis_url}: {e}") from None
-    from service.worker import preload_modules, prepare_solver_environment
+    from service.run.worker import preload_modules, prepare_solver_environment
 
     prepare_solver_environment()  # work horses fork from this process
     import importlib
 
-    for module in preload_modules(s.warm_start):  # importing service.warmup runs the warm-up
+    for module in preload_modules(s.warm_start):  # importing service.run.warmup runs the warm-up
         try:
             importlib.import_module(module)
         except ImportError:
@@ -282,7 +282,7 @@ def users_list(args: argparse.Namespace) -> int:
 
 def _job_bytes(jobs_dir: Path, job_id: str) -> int:
     """Disk use of a job's files."""
-    from service.jobfiles import job_dir
+    from service.store.jobfiles import job_dir
 
     path = job_dir(jobs_dir, job_id)
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else 0
@@ -326,7 +326,7 @@ def jobs_list(args: argparse.Namespace) -> int:
 def jobs_prune(args: argparse.Namespace) -> int:
     import time
 
-    from service.jobs import delete_finished
+    from service.core.jobs import delete_finished
 
     if not args.older_than >= 0:
         raise Refused("--older-than takes a number of days, 0 or more")

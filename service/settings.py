@@ -62,7 +62,7 @@ class Settings(BaseSettings):
     max_connections: int = Field(512, ge=1)  # open connections to the server (503 beyond)
     upload_readers: int = Field(2, ge=0, le=64)  # processes that read uploads (0: in the API process)
     upload_niceness: int = Field(5, ge=0, le=19)  # they yield the CPU to the API
-    # a batch's Anipose project is read in a process of its own (service.batch_reader), within these (422 beyond)
+    # a batch's Anipose project is read in a process of its own (service.run.batch_reader), within these (422 beyond)
     batch_read_timeout_seconds: float = Field(60.0, gt=0)  # wall clock: killed then
     batch_read_cpu_seconds: float = Field(60.0, gt=0)  # CPU time (RLIMIT_CPU)
     batch_read_memory_bytes: int = Field(2048 * MiB, ge=256 * MiB)  # address space (RLIMIT_AS)

@@ -83,7 +83,7 @@ class EmbeddedBackend(Backend):
 
     def _start_forkserver(self) -> None:
         """Start the forkserver (importing and warming the solver) now rather than at the first job."""
-        from service.worker import noop
+        from service.run.worker import noop
 
         t0 = time.time()
         try:
@@ -196,7 +196,7 @@ class EmbeddedBackend(Backend):
         self.store.renew_leases(tokens, self.settings.lease_seconds)
 
     def _fill(self) -> None:
-        from service.worker import run_embedded
+        from service.run.worker import run_embedded
 
         if not self._ready.is_set():  # a fork now would block this thread until the forkserver is up
             self.store.mark_queued(self.name, COMPILING)

@@ -4,7 +4,8 @@ Redis carries the work, the job table stays the record of truth. Each attempt ch
 one RQ job whose id is the job's *run token* in the table. Its input files travel as one zip
 archive in the Redis key ``acinoset:input:<token>`` (workers need no shared disk), its result files
 come back in ``acinoset:result:<token>`` (each a list of 1 MB chunks, so that footage and labelled
-videos are not bounded by the largest value Redis takes: :func:`service.jobfiles.put_archive`); the server's collector thread copies them into the data
+videos are not bounded by the largest value Redis takes: :func:`service.store.jobfiles.put_archive`); the server's
+collector thread copies them into the data
 dir and the table, then deletes them and the RQ job from Redis. RQ is used with
 ``Retry`` (a work horse that dies is queued again by its worker), ``result_ttl=-1`` (a result
 waits in Redis until the server has stored it, even across a server restart), a job timeout above
@@ -32,7 +33,7 @@ from service.backends.base import Backend, log
 from service.settings import Settings
 from service.store import Job, Store
 
-RQ_FUNCTION = "service.worker.run_rq_job"
+RQ_FUNCTION = "service.run.worker.run_rq_job"
 
 
 def _rq():
@@ -183,7 +184,7 @@ class RQBackend(Backend):
         from rq import Retry
         from rq.job import Job as RQJob
 
-        from service.jobfiles import INPUT, input_archive, input_key, job_dir, put_archive
+        from service.store.jobfiles import INPUT, input_archive, input_key, job_dir, put_archive
 
         with self._lock:
             remaining = max(1, job.max_attempts - job.attempts)
@@ -239,7 +240,7 @@ class RQBackend(Backend):
 
     def _delete(self, token: str) -> None:
         """The RQ job and its files in Redis."""
-        from service.jobfiles import PARTIAL, input_key, result_key
+        from service.store.jobfiles import PARTIAL, input_key, result_key
 
         rj = self._full(token)
         if rj is not None:
@@ -373,7 +374,7 @@ class RQBackend(Backend):
             self._enqueue(fresh)
 
     def _finished(self, row: Job, rj, attempt: int) -> None:
-        from service.jobfiles import (
+        from service.store.jobfiles import (
             get_archive,
             install_result,
             is_result_name,
@@ -430,7 +431,7 @@ class RQBackend(Backend):
         from rq.job import Job as RQJob
         from rq.registry import CanceledJobRegistry, FailedJobRegistry, FinishedJobRegistry
 
-        from service.jobfiles import PARTIAL, input_key, result_key
+        from service.store.jobfiles import PARTIAL, input_key, result_key
 
         live = {r.run_token for r in self.store.active_jobs(self.name) if r.run_token}
         for reg in (FinishedJobRegistry, FailedJobRegistry, CanceledJobRegistry):

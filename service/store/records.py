@@ -21,12 +21,12 @@ ACTIVE: tuple[str, ...] = ("queued", "running")
 FINISHED: tuple[str, ...] = tuple(s for s in STATUSES if s not in ACTIVE)
 
 # The stages of a run the service records itself, around the solver's own (graph.types.STAGES,
-# reported by the solve as it goes; service.models.STAGES publishes the whole sequence):
+# reported by the solve as it goes; service.api.models.STAGES publishes the whole sequence):
 COMPILING = "compiling"  # queued while the server compiles its solver, once after an install (set here)
 STARTING = "starting"  # claimed, its process starting (set here)
-READING = "reading"  # reading the input files (service.worker)
-WRITING = "writing"  # writing the result files (service.worker)
-RENDERING = "rendering videos"  # drawing the result over the job's videos, when it has some (service.worker)
+READING = "reading"  # reading the input files (service.run.worker)
+WRITING = "writing"  # writing the result files (service.run.worker)
+RENDERING = "rendering videos"  # drawing the result over the job's videos, when it has some (service.run.worker)
 DONE = "done"  # the result is stored (set here)
 
 # Why a failed job failed: its input (a file or option the solver refuses), a limit of this server,

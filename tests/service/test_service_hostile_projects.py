@@ -366,10 +366,10 @@ def _sleep(seconds: float) -> None:
 
 
 def test_the_reader_process_is_held_to_its_limits():
-    """:func:`service.batch_reader.run_limited`, the process a batch's project is read in: its value,
+    """:func:`service.run.batch_reader.run_limited`, the process a batch's project is read in: its value,
     or a one-line refusal naming the limit it passed (memory, CPU time, wall clock)."""
-    from service.batch_reader import run_limited
     from service.errors import Unprocessable
+    from service.run.batch_reader import run_limited
 
     limits = {"timeout": 60.0, "memory_bytes": 2**30, "cpu_seconds": 30.0}
     assert run_limited(_allocate, {"n": 2**20}, **limits) == 2**20
@@ -382,7 +382,7 @@ def test_the_reader_process_is_held_to_its_limits():
         run_limited(_sleep, {"seconds": 60.0}, **{**limits, "timeout": 3.0})
     assert time.monotonic() - t0 < 10
     with pytest.raises(Unprocessable, match="not a zip archive"):  # a JobError raised in it is raised here
-        from service.batch_reader import unpack
+        from service.run.batch_reader import unpack
 
         run_limited(unpack, {"archive": Path("/nonexistent.zip"), "dest": Path("/nonexistent"), "max_bytes": 1},
                     **limits)

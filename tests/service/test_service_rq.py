@@ -154,7 +154,7 @@ def test_rq_files_larger_than_a_redis_value_go_and_come_back_in_chunks(pool, cli
     import redis as redis_lib
 
     from graph.io.results import read_result
-    from service.jobfiles import input_archive, job_dir, pack_files, written_outputs
+    from service.store.jobfiles import input_archive, job_dir, pack_files, written_outputs
 
     big = make_run(tmp_path_factory.mktemp("big_run"), frames=3000, cameras=3, seed=4)
     job_id = submit_ok(client, big, {**FAST, "fps": big.fps})
@@ -263,7 +263,7 @@ def test_rq_a_job_whose_files_cannot_be_read_fails_alone(tmp_path, small_run):
     """Two jobs wait in the table while Redis is down; one of them loses a stored input file. When
     Redis is back, that one fails saying why, and the other runs (an exception of one job's
     enqueue had ended every dispatch pass, holding back the jobs picked after it)."""
-    from service.jobfiles import job_dir
+    from service.store.jobfiles import job_dir
 
     pool, token, srv = rq_server(tmp_path, "kim")
     try:
@@ -293,7 +293,7 @@ def test_rq_a_result_that_cannot_be_read_fails_its_job_alone(tmp_path, long_run,
     from rq.job import Job as RQJob
     from rq.serializers import JSONSerializer
 
-    from service.jobfiles import put_archive, result_key
+    from service.store.jobfiles import put_archive, result_key
 
     pool, token, srv = rq_server(tmp_path, "lee")
     pool.start_workers(["w1"])

@@ -212,8 +212,8 @@ def test_videos_that_cannot_be_rendered_leave_the_solve_standing_with_a_warning(
     """The worker's render step: a video the renderer refuses (here one of 5 frames for a 24-frame
     run, past the checks at submission) costs the job its videos, not its solve."""
     from graph.video import FrameWriter, YuvFrame
-    from service import jobfiles
-    from service.worker import ThrottledProgress, solve_job
+    from service.run.worker import ThrottledProgress, solve_job
+    from service.store import jobfiles
 
     _, run, videos, *_ = served
     short = tmp_path / "short.mp4"

@@ -1,19 +1,18 @@
 """A calibration job's run, in the worker's process: :func:`run_calibration` (the API side, which
-takes the uploads and queues the job, is :mod:`service.calibrations`)."""
+takes the uploads and queues the job, is :mod:`service.core.calibrations`)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-from service import jobfiles
-from service.jobfiles import inside, read_manifest
-from service.store import READING, WRITING
+from service.store import READING, WRITING, jobfiles
+from service.store.jobfiles import inside, read_manifest
 
 
 def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
     """Calibrate the rig from the job's detections (or videos) and write its files into ``out_dir``
-    (:data:`service.jobfiles.CALIBRATION_FILES`; the scene JSON only for fisheye cameras: the format
+    (:data:`service.store.jobfiles.CALIBRATION_FILES`; the scene JSON only for fisheye cameras: the format
     holds no other); returns the report (:meth:`graph.calibrate.RigResult.to_dict`) as plain JSON,
     the job's summary."""
     from graph.calibrate import calibrate_extrinsics, parse_board, read_detections

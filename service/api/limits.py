@@ -20,7 +20,7 @@ import time
 from fastapi import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.auth import authorized_user
+from service.api.auth import authorized_user
 from service.errors import JobError, NoSpace, TooLarge, TooMany
 from service.settings import Settings
 

@@ -1,9 +1,10 @@
 """Calibration jobs: a rig from board detections, solved on the server by :mod:`graph.calibrate`.
 
 A calibration is a job of its own kind: its row in the job table has ``options.kind`` set to
-:data:`service.jobfiles.CALIBRATION_KIND`, so it is queued, run, cancelled, counted against the
+:data:`service.store.jobfiles.CALIBRATION_KIND`, so it is queued, run, cancelled, counted against the
 owner's quota and recovered after a crash by the same backends as a solve. Its manifest names the
-kind too, and :func:`service.worker.solve_job` hands such a job to :func:`service.calibration_run.run_calibration`.
+kind too, and :func:`service.run.worker.solve_job` hands such a job to
+:func:`service.run.calibration_run.run_calibration`.
 
 Input layout (under the job's ``input/``)::
 
@@ -11,7 +12,7 @@ Input layout (under the job's ``input/``)::
     detections/01/<uploaded name>.json    AcinoSet detections JSON, one directory per camera, in order
     intrinsics/01/<uploaded name>.json    optional: AcinoSet camera JSON per camera
 
-Outputs (its ``result/``): :data:`service.jobfiles.CALIBRATION_FILES`, the files ``acinoset
+Outputs (its ``result/``): :data:`service.store.jobfiles.CALIBRATION_FILES`, the files ``acinoset
 calibrate extrinsics`` writes with ``--out --scene --report --figures``.
 
 A solve job may name a succeeded calibration of its owner by id instead of uploading a calibration
@@ -29,11 +30,10 @@ from typing import Iterator
 
 from graph.camera import CAMERA_MODELS
 from graph.errors import InputError
-from service import jobfiles
+from service.core.jobs import JobService, Upload, parse_label, safe_name, stream_size
 from service.errors import DISK_FULL, NoSpace, NotFound, NotReady, TooLarge, Unprocessable, storage_full
-from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
-from service.jobs import JobService, Upload, parse_label, safe_name, stream_size
-from service.store import Job, QuotaExceeded, StoreFull, User
+from service.store import Job, QuotaExceeded, StoreFull, User, jobfiles
+from service.store.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
 
 DETECTIONS_DIR = "detections"
 VIDEOS_DIR = "videos"
@@ -75,7 +75,7 @@ def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
 
 
 class CalibrationService:
-    """Submit, find and serve calibration jobs, through the :class:`service.jobs.JobService` of solves."""
+    """Submit, find and serve calibration jobs, through the :class:`service.core.jobs.JobService` of solves."""
 
     def __init__(self, jobs: JobService):
         self.jobs = jobs

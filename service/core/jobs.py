@@ -1,6 +1,6 @@
 """What the API does with jobs: submit (validate, store, queue), find, list, cancel, delete.
 
-The routes (:mod:`service.routes`) stay thin and call these. Every refusal is a
+The routes (:mod:`service.api.routes`) stay thin and call these. Every refusal is a
 :class:`service.errors.JobError` with a one-line message; the app answers each kind with its HTTP
 status (:data:`service.app.JOB_ERROR_STATUS`).
 
@@ -23,8 +23,8 @@ from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
 from graph.errors import NESTED_TOO_DEEPLY
-from service import jobfiles
 from service.backends.base import Backend
+from service.core.uploads import UploadReader
 from service.errors import (
     DISK_FULL,
     Forbidden,
@@ -36,12 +36,11 @@ from service.errors import (
     Unprocessable,
     storage_full,
 )
-from service.jobfiles import CALIBRATION_DIR, INPUT, JOB_ID, SKELETON_DIR, keypoints_dir, result_path, video_dir
 from service.settings import Settings
-from service.store import STATUSES, Job, QuotaExceeded, Store, StoreFull, User
-from service.uploads import UploadReader
+from service.store import STATUSES, Job, QuotaExceeded, Store, StoreFull, User, jobfiles
+from service.store.jobfiles import CALIBRATION_DIR, INPUT, JOB_ID, SKELETON_DIR, keypoints_dir, result_path, video_dir
 
-KEYPOINT_SUFFIXES = (".csv", ".h5", ".hdf5")
+KEYPOINT_SUFFIXES = (".csv", ".h5", ".hdf5", ".slp")
 CURSOR = re.compile(r"^[0-9]{1,18}$")
 CALIBRATION_SUFFIXES = (".json", ".toml")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
@@ -346,7 +345,7 @@ class JobService:
     # -- read --------------------------------------------------------------------------------
 
     def visible(self, user: User, job_id: str, kind: str | None = None) -> Job:
-        """The job of ``kind`` (None: a solve; see :mod:`service.calibrations`) if the caller may see it
+        """The job of ``kind`` (None: a solve; see :mod:`service.core.calibrations`) if the caller may see it
         (its owner, or an admin); 404 otherwise, whether or not it exists."""
         job = self.store.job(job_id) if JOB_ID.match(job_id) else None
         if job is None or job.options.get("kind") != kind or (job.owner_id != user.id and not user.is_admin):
@@ -383,7 +382,7 @@ class JobService:
         return jobs, total, (str(jobs[-1].seq) if more and jobs else None)
 
     def result_file(self, user: User, job_id: str, fmt: str) -> Path:
-        """The job's result file of download format ``fmt`` (:data:`service.jobfiles.DOWNLOADS`)."""
+        """The job's result file of download format ``fmt`` (:data:`service.store.jobfiles.DOWNLOADS`)."""
         job = self.visible(user, job_id)
         if job.status != "succeeded":
             why = f": {job.error}" if job.status == "failed" and job.error else ""

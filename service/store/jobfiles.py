@@ -62,7 +62,7 @@ _SUFFIXES = [file.removeprefix(RESULT + ".") for file, _ in DOWNLOADS.values()] 
 if len(DOWNLOADS) < len(RESULT_FILES) + len(EXPORT_FILES) or len(set(_SUFFIXES)) < len(_SUFFIXES):
     raise RuntimeError(f"an export format takes the name or the file of one of a job's own results: formats "
                        f"{[*RESULT_FILES]} + {[*EXPORT_FILES]}, files {[file for file, _ in DOWNLOADS.values()]}")
-# what a calibration job writes in its result dir (service.calibrations): file name -> media type
+# what a calibration job writes in its result dir (service.core.calibrations): file name -> media type
 CALIBRATION_FILES: dict[str, str] = {
     "calibration.toml": "application/toml", "scene.json": "application/json", "report.json": "application/json",
     "rig.png": "image/png", "residuals.png": "image/png", "coverage.png": "image/png"}

@@ -4,8 +4,8 @@
 top folder, with the sessions, ``pose-2d/*.h5`` and ``calibration/calibration.toml`` as Anipose
 lays them out). The archive is copied to the data dir as it is received, then unpacked and read as
 ``acinoset anipose`` reads a project (:func:`graph.anipose.load_project`), kept to the archive, in a
-process of its own under time and memory limits (:mod:`service.batch_reader`); the API process
-parses none of it. Every trial is submitted through :meth:`service.jobs.JobService.submit`, so each is validated,
+process of its own under time and memory limits (:mod:`service.run.batch_reader`); the API process
+parses none of it. Every trial is submitted through :meth:`service.core.jobs.JobService.submit`, so each is validated,
 stored and queued like any job: its keypoint files (rewritten as DeepLabCut CSVs where a camera has
 an ``offset`` or more frames than the shortest), its calibration (the trial's cameras, in their
 order, as Anipose TOML) and the project's options (an ``options`` JSON object overrides them).
@@ -25,10 +25,9 @@ import uuid
 from pathlib import Path
 
 from graph.errors import NESTED_TOO_DEEPLY, InputError
-from service import jobfiles
+from service.core.jobs import JobService, Upload
 from service.errors import DISK_FULL, JobError, NoSpace, NotFound, TooLarge, TooMany, Unprocessable, storage_full
-from service.jobs import JobService, Upload
-from service.store import User
+from service.store import User, jobfiles
 
 BATCH_ID = jobfiles.JOB_ID  # 32 hex digits
 ACTIVE = ("queued", "running")
@@ -43,8 +42,8 @@ class BatchService:
 
     def submit(self, user: User, archive: Upload, options_text: str | None = None) -> dict:
         """Receive the archive, read the project in a limited process of its own
-        (:mod:`service.batch_reader`), submit one job per trial, record the batch; returns the batch record."""
-        from service.batch_reader import read_batch, run_limited
+        (:mod:`service.run.batch_reader`), submit one job per trial, record the batch; returns the batch record."""
+        from service.run.batch_reader import read_batch, run_limited
 
         try:
             overrides = json.loads(options_text) if options_text and options_text.strip() else {}
@@ -104,7 +103,7 @@ class BatchService:
         return dest
 
     def _submit_trial(self, user: User, trial: dict, staging: Path) -> dict:
-        """One prepared trial (:func:`service.batch_reader.read_batch`) as a job: ``{"trial", "job_id"}``,
+        """One prepared trial (:func:`service.run.batch_reader.read_batch`) as a job: ``{"trial", "job_id"}``,
         or ``{"trial", "error"}`` if it was refused."""
         if "error" in trial:
             return {"trial": trial["trial"], "error": trial["error"]}

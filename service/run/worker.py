@@ -10,8 +10,8 @@ The same :func:`solve_job` runs under both backends:
   files back in Redis; the server stores them in the data dir and the job table, then deletes them
   from Redis (RQ expires results: it is not the record).
 
-The job's files (inputs, manifest, results, their archives) are laid out by :mod:`service.jobfiles`.
-The stages a job reports are :data:`service.models.STAGES`.
+The job's files (inputs, manifest, results, their archives) are laid out by :mod:`service.store.jobfiles`.
+The stages a job reports are :data:`service.api.models.STAGES`.
 
 Errors: :class:`graph.errors.InputError` and other exceptions of the solve fail the job at once with
 a one-line message (trying again would fail again); only a run that dies (killed, machine lost) is
@@ -33,8 +33,8 @@ from typing import Callable
 
 import numpy as np
 
-from service import jobfiles
-from service.jobfiles import (
+from service.store import READING, RENDERING, WRITING, jobfiles
+from service.store.jobfiles import (
     ERROR_LOG,
     INPUT,
     RESULT,
@@ -53,7 +53,6 @@ from service.jobfiles import (
     unpack_files,
     video_result_name,
 )
-from service.store import READING, RENDERING, WRITING
 
 SOLVER_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
@@ -75,14 +74,15 @@ def prepare_solver_environment() -> None:
 
 # imported by every process that forks solves (missing ones are skipped)
 SOLVER_MODULES = ("gtsam", "numba", "graph.types", "graph.api", "graph.io.calibration", "graph.io.keypoints",
-                  "graph.skeleton", "graph.solve.problem", "graph.solve.kernels", "graph.solve.triangulate", "graph.solve.tri", "graph.solve.fte",
-                  "graph.solve.sync", "graph.solve.joint", "graph.solve.online", "graph.io.results", "graph.viewer.payload")
+                  "graph.skeleton", "graph.solve.problem", "graph.solve.kernels", "graph.solve.triangulate",
+                  "graph.solve.tri", "graph.solve.fte", "graph.solve.sync", "graph.solve.joint", "graph.solve.online",
+                  "graph.io.results", "graph.viewer.payload")
 
 
 def preload_modules(warm: bool) -> list[str]:
     """What a process that forks solves imports first: this module, the solver and, if ``warm``,
-    :mod:`service.warmup` (importing it compiles the solver's kernels)."""
-    return ["service.worker", *SOLVER_MODULES, *(["service.warmup"] if warm else [])]
+    :mod:`service.run.warmup` (importing it compiles the solver's kernels)."""
+    return ["service.run.worker", *SOLVER_MODULES, *(["service.run.warmup"] if warm else [])]
 
 
 def configure_forkserver(warm: bool) -> None:
@@ -173,11 +173,11 @@ class ThrottledProgress:
 
 def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> dict:
     """Read the inputs, solve, write the results; return the solve report. A calibration job
-    (its manifest's ``kind``) is run by :func:`service.calibration_run.run_calibration` instead."""
+    (its manifest's ``kind``) is run by :func:`service.run.calibration_run.run_calibration` instead."""
     from graph.api import solve
 
     if read_manifest(input_dir).get("kind") == jobfiles.CALIBRATION_KIND:
-        from service.calibration_run import run_calibration
+        from service.run.calibration_run import run_calibration
 
         return run_calibration(input_dir, out_dir, progress)
 
@@ -202,7 +202,7 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
 def render_labelled_videos(result, videos: list[Path], out_dir: Path, progress: "ThrottledProgress") -> None:
     """Each camera's video with the result drawn on it, the 3D view and the grid of all
     (:func:`graph.video.render_videos`), as ``videos/camera01.mp4``, ..., ``3d.mp4`` and
-    ``combined.mp4`` in ``out_dir`` (:func:`service.jobfiles.video_result_name`)."""
+    ``combined.mp4`` in ``out_dir`` (:func:`service.store.jobfiles.video_result_name`)."""
     from graph.video import render_videos
 
     folder = out_dir / VIDEOS_DIR

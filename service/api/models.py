@@ -14,8 +14,8 @@ from pydantic import BaseModel, Field
 
 from graph.export import REGISTRY, available
 from graph.types import STAGES as SOLVER_STAGES
-from service.jobfiles import DOWNLOADS, EXPORT_FILES, RESULT_FILES, download_name
 from service.store import COMPILING, DONE, READING, RENDERING, STARTING, WRITING, ErrorKind, Job, JobStatus
+from service.store.jobfiles import DOWNLOADS, EXPORT_FILES, RESULT_FILES, download_name
 
 ResultFormat = Literal[tuple(DOWNLOADS)]  # type: ignore[valid-type]  # the download formats
 
@@ -181,7 +181,7 @@ class FormatOut(BaseModel):
 
 
 def download_formats() -> list[FormatOut]:
-    """Every download format, in the order of :data:`service.jobfiles.DOWNLOADS`."""
+    """Every download format, in the order of :data:`service.store.jobfiles.DOWNLOADS`."""
     offered = set(offered_formats())
     return [FormatOut(name=name, label=label, description=what, extension=download_name("", name),
                       media_type=DOWNLOADS[name][1], export=name in EXPORT_FILES, offered=name in offered)
@@ -322,7 +322,7 @@ class BatchOut(BaseModel):
 
 
 def batch_out(view: dict, base: str = "/v1") -> BatchOut:
-    """A batch as the API shows it, from :meth:`service.batches.BatchService.status`."""
+    """A batch as the API shows it, from :meth:`service.core.batches.BatchService.status`."""
     trials = [BatchTrial(**t, link=f"{base}/jobs/{t['job_id']}" if t.get("job_id") else None)
               for t in view["trials"]]
     return BatchOut(id=view["id"], owner=view["owner"], created_at=_ts(view["created_at"]), project=view["project"],

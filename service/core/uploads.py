@@ -19,7 +19,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from service.errors import TooLarge, Unprocessable
-from service.jobfiles import inside
+from service.store.jobfiles import inside
 
 
 def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skeleton_file: str | None,
@@ -97,7 +97,7 @@ def check_videos(videos: list[str], frames: int) -> list:
 
 
 def _helper_init(niceness: int) -> None:
-    from service.worker import server_child
+    from service.run.worker import server_child
 
     server_child(niceness)
 

@@ -29,7 +29,7 @@ from graph import viewer
 from graph.viewer.playback import plotly_js_path
 from service.store import ACTIVE, STATUSES
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parents[1]  # service/
 TEMPLATES = HERE / "templates"
 STATIC = HERE / "static"
 # The result view's files, served beside service/static (a name there never shadows one of these).

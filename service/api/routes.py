@@ -1,4 +1,4 @@
-"""The REST API, version 1. Thin: each route checks who calls and hands over to :mod:`service.jobs`."""
+"""The REST API, version 1. Thin: each route checks who calls and hands over to :mod:`service.core.jobs`."""
 
 from __future__ import annotations
 
@@ -16,11 +16,9 @@ import graph
 from graph.errors import InputError
 from graph.skeleton import available_skeletons, load_skeleton
 from graph.types import Method
-from service import media, metrics
-from service.auth import current_user
-from service.batches import BatchService
-from service.calibrations import calibration_upload
-from service.deps import (
+from service.api import media, metrics
+from service.api.auth import current_user
+from service.api.deps import (
     AUTH_ERRORS,
     BAD_REQUEST,
     BEARER,
@@ -33,9 +31,7 @@ from service.deps import (
     ServerSettings,
     error_doc,
 )
-from service.jobfiles import DOWNLOADS, JOB_ID, download_name
-from service.jobs import Upload
-from service.models import (
+from service.api.models import (
     BatchOut,
     Disk,
     FormatOut,
@@ -54,6 +50,10 @@ from service.models import (
     formats_help,
     job_out,
 )
+from service.core.batches import BatchService
+from service.core.calibrations import calibration_upload
+from service.core.jobs import Upload
+from service.store.jobfiles import DOWNLOADS, JOB_ID, download_name
 
 IsoTime = Annotated[datetime, BeforeValidator(lambda v: _iso_only(v))]
 

@@ -1,7 +1,7 @@
 """The REST API of calibrations, version 1: submit board detections, poll, download the rig.
 
-Thin like :mod:`service.routes` (whose router settings, caller and job service it shares, from
-:mod:`service.deps`); the work is :mod:`service.calibrations`'."""
+Thin like :mod:`service.api.routes` (whose router settings, caller and job service it shares, from
+:mod:`service.api.deps`); the work is :mod:`service.core.calibrations`'."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Depends, File, Form, Query, Response, Security, UploadFile
 from fastapi.responses import FileResponse
 
-from service.calibrations import CalibrationService
-from service.deps import AUTH_ERRORS, BAD_REQUEST, BEARER, SERVER_ERROR, UPLOAD_ERRORS, CurrentUser, Jobs, error_doc
-from service.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
-from service.jobs import Upload
-from service.models import CalibrationList, CalibrationOut, calibration_out
+from service.api.deps import AUTH_ERRORS, BAD_REQUEST, BEARER, SERVER_ERROR, UPLOAD_ERRORS, CurrentUser, Jobs, error_doc
+from service.api.models import CalibrationList, CalibrationOut, calibration_out
+from service.core.calibrations import CalibrationService
+from service.core.jobs import Upload
 from service.store import JobStatus
+from service.store.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
 
 router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR}, dependencies=[Security(BEARER)],
                    tags=["calibrations"])

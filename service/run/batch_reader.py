@@ -301,7 +301,7 @@ def _limited_child(conn, target: Callable[..., Any], kwargs: dict, memory_bytes:
                    niceness: int) -> None:
     import resource
 
-    from service.worker import server_child
+    from service.run.worker import server_child
 
     server_child(niceness)
     use = resource.getrusage(resource.RUSAGE_SELF)
