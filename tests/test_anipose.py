@@ -259,3 +259,35 @@ def test_a_project_kept_to_its_folder_and_walks_bounded(tmp_path, monkeypatch):
     p = load_project(root, within=root)
     assert p.root == root and p.notes == ["path: not a folder of the upload; the upload's own folder is the project"]
     assert load_project(root).root == tmp_path  # the command line goes where path says
+
+
+def test_a_millimetre_project_gets_millimetres(tmp_path):
+    """A project calibrated in millimetres (Anipose's default: the board's units) gets pose-3d in
+    millimetres, as ``anipose triangulate`` writes it: the CSV is the H5's metres x 1000, and agrees
+    with aniposelib's own triangulation from the same calibration file, in its units."""
+    from dataclasses import replace
+
+    from graph.anipose import run_project
+    from graph.camera import Calibration
+    from graph.io.calibration import load_calibration, write_anipose_toml
+    from graph.io.keypoints import read_keypoints
+
+    aniposelib = pytest.importorskip("aniposelib.cameras")
+    root = write_project(tmp_path / "p", sessions={"s": ["t"]}, frames=30, optim=False)
+    for toml in (root / "calibration" / "calibration.toml", root / "s" / "calibration" / "calibration.toml"):
+        cal = load_calibration(toml)
+        write_anipose_toml(toml, Calibration(cameras=[replace(c, t=c.t * 1000.0) for c in cal.cameras]))
+    (root / "config.toml").write_text((root / "config.toml").read_text().replace("[acinoset]",
+                                                                                 '[acinoset]\nmethod = "tri"'))
+    (outcome,) = run_project(load_project(root))
+    assert outcome.status == "solved", outcome.message
+    csv, res = read_anipose_csv(outcome.trial.csv), read_result(outcome.trial.h5)
+    np.testing.assert_allclose(csv.positions, res.positions * 1000.0, rtol=1e-12)
+    group = aniposelib.CameraGroup.load(str(root / "s" / "calibration" / "calibration.toml"))
+    kps = [read_keypoints(p) for p in outcome.trial.pose_files]
+    xy = np.stack([np.where((k.likelihood >= 0.5)[..., None], k.xy, np.nan) for k in kps])  # (C, N, M, 2)
+    theirs = group.triangulate(xy.reshape(len(kps), -1, 2), progress=False).reshape(csv.positions.shape)
+    gap, size = np.linalg.norm(csv.positions - theirs, axis=-1), np.linalg.norm(theirs, axis=-1)
+    # the same units: ours a median 12 mm from theirs (their DLT takes the simulated outliers in), the
+    # points 6.7 m from the origin; a CSV in metres would be 1000x off
+    assert np.nanmedian(gap) < 0.01 * np.nanmedian(size), f"{np.nanmedian(gap):.1f} of {np.nanmedian(size):.0f} mm"

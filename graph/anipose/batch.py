@@ -155,12 +155,18 @@ def solve_trial(trial: Trial, options: SolveOptions, offsets: dict[str, tuple[fl
 
         trial.csv.parent.mkdir(parents=True, exist_ok=True)
         tmp_csv, tmp_h5 = (p.with_name(f".{p.name}.partial") for p in (trial.csv, trial.h5))
+        # the CSV in the calibration's units, as anipose triangulate writes it (a project calibrated in
+        # millimetres gets millimetres); the H5 keeps metres, as every acinoset result file does
+        from graph.camera import CALIBRATION_UNITS
+        from graph.io.calibration import resolve_units
+
+        per_unit = CALIBRATION_UNITS[resolve_units(calibration, result.options.calibration_units)[0]]
         csv_frame = None
         if frame is not None:
             from graph.anipose.frame import anipose_frame
 
-            csv_frame = anipose_frame(result.positions, result.markers, *frame)
-        results.write_anipose_csv(tmp_csv, result, frame=csv_frame)
+            csv_frame = anipose_frame(result.positions / per_unit, result.markers, *frame)
+        results.write_anipose_csv(tmp_csv, result, frame=csv_frame, metres_per_unit=per_unit)
         results.write_h5(tmp_h5, result, calibration=calibration)
         os.replace(tmp_h5, trial.h5)
         os.replace(tmp_csv, trial.csv)  # the CSV last: it is what Anipose's tools look for

@@ -62,13 +62,18 @@ class Points3D:
 
 
 def write_anipose_csv(path: str | Path, result: Result,
-                      frame: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                      frame: tuple[np.ndarray, np.ndarray] | None = None, metres_per_unit: float = 1.0) -> None:
     """Anipose's ``pose-3d`` CSV (column order as ``anipose triangulate``), floats as ``repr``.
 
-    ``frame = (M, center)``: the positions written as ``M X - center``, with ``M`` and ``center`` in
-    their columns, as Anipose writes a run it turned into the frame of ``[triangulation] axes``
-    (:func:`graph.anipose.frame.anipose_frame`). Without it, the calibration's frame (identity, 0)."""
-    pos = np.asarray(result.positions, dtype=np.float64)
+    Positions in units of ``metres_per_unit`` metres (1: metres; 0.001: millimetres, as ``anipose
+    triangulate`` writes a project calibrated in millimetres): ``X / metres_per_unit``.
+    ``frame = (M, center)``: the positions written as ``M X - center`` (``center`` in the same units),
+    with ``M`` and ``center`` in their columns, as Anipose writes a run it turned into the frame of
+    ``[triangulation] axes`` (:func:`graph.anipose.frame.anipose_frame`). Without it, the
+    calibration's frame (identity, 0)."""
+    if not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
+        raise ValueError(f"metres_per_unit must be a positive number, not {metres_per_unit!r}")
+    pos = np.asarray(result.positions, dtype=np.float64) / metres_per_unit
     M, center = ((np.eye(3), np.zeros(3)) if frame is None
                  else (np.asarray(frame[0], float), np.asarray(frame[1], float)))
     if frame is not None:
