@@ -210,25 +210,28 @@ def register(sub) -> None:
     p.set_defaults(func=run_solve)
 
 
-KEYPOINTS_HELP = ("DeepLabCut CSV or H5 or SLEAP analysis HDF5 (.analysis.h5), one per camera in the calibration's "
-                  "order; an ensemble of pose models as CAM_a.csv+CAM_b.csv (one observation, its members' spread "
-                  "weighing the cameras)")
+KEYPOINTS_HELP = ("DeepLabCut CSV or H5, SLEAP .slp or analysis HDF5 (.analysis.h5), or an OpenPose JSON folder, "
+                  "one per camera in the calibration's order; an ensemble of pose models as CAM_a.csv+CAM_b.csv "
+                  "(one observation, its members' spread weighing the cameras)")
 
 
-def read_cameras(paths: list[str], individual: str | None = None) -> list:
-    """One :class:`~graph.io.keypoints.Keypoints` per camera argument: a file, or an ensemble's files
-    joined by ``+`` (combined by :func:`graph.solve.ensemble.combine`; a file whose own name has a ``+``
-    is read as one file)."""
+def read_cameras(paths: list[str], individual: str | None = None, openpose_model: str | None = None) -> list:
+    """One :class:`~graph.io.keypoints.Keypoints` per camera argument: a file (or an OpenPose JSON
+    folder), or an ensemble's files joined by ``+`` (combined by :func:`graph.solve.ensemble.combine`;
+    a file whose own name has a ``+`` is read as one file)."""
     from graph.io.keypoints import read_keypoints
+
+    def read(p: str):
+        return read_keypoints(p, individual=individual, openpose_model=openpose_model)
 
     out = []
     for arg in paths:
         if "+" in arg and not Path(arg).exists():
             from graph.solve.ensemble import combine
 
-            out.append(combine([read_keypoints(p, individual=individual) for p in arg.split("+") if p]))
+            out.append(combine([read(p) for p in arg.split("+") if p]))
         else:
-            out.append(read_keypoints(arg, individual=individual))
+            out.append(read(arg))
     return out
 
 
@@ -265,6 +268,9 @@ def add_solve_options(p) -> None:
                         "marker from the data (fte, with the motion scale fitted)")
     p.add_argument("--individual", default=None, metavar="NAME",
                    help="multi-animal files: which individual (a SLEAP file's track name)")
+    p.add_argument("--openpose-model", default=None, choices=["BODY_25", "BODY_25B", "COCO"],
+                   help="OpenPose JSON folders: the model that wrote them, which names the keypoints (default: "
+                        "kp0, kp1, ...; BODY_25 and BODY_25B both have 25 keypoints, in other orders)")
     p.add_argument("--calibration-units", choices=list(CALIBRATION_UNITS), default="auto",
                    help="units of the calibration's translations (default: auto, which recognises millimetres)")
     p.add_argument("--no-uncertainty", dest="uncertainty", action="store_false",
@@ -406,7 +412,7 @@ def run_solve(args: argparse.Namespace) -> int:
     if len(args.keypoints) != len(calibration):
         raise InputError(f"has {len(calibration)} cameras but {len(args.keypoints)} keypoint files "
                          "were given (one per camera, in the calibration's order)", args.calibration)
-    keypoints = read_cameras(args.keypoints, args.individual)
+    keypoints = read_cameras(args.keypoints, args.individual, args.openpose_model)
     check_same_frames(keypoints)
     fps, fps_from = frame_rate(args.fps, keypoints)
     options = solve_options(args, fps)

@@ -111,7 +111,7 @@ def run_loco(args: argparse.Namespace) -> int:
     if len(args.keypoints) != len(calibration):
         raise InputError(f"has {len(calibration)} cameras but {len(args.keypoints)} keypoint files "
                          "were given (one per camera, in the calibration's order)", args.calibration)
-    keypoints = read_cameras(args.keypoints, args.individual)
+    keypoints = read_cameras(args.keypoints, args.individual, args.openpose_model)
     fps, fps_from = frame_rate(args.fps, keypoints)
     options = solve_options(args, fps)
     variants = [(text, _variant(args, text, keypoints)) for text in args.versus]

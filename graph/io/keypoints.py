@@ -65,14 +65,22 @@ _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 # ------------------------------------------------------------------------------------- reading
 
 
-def read_keypoints(path: str | Path, individual: str | None = None, limits: ReadLimits = NO_LIMITS) -> Keypoints:
-    """Read a DeepLabCut CSV or H5 file or a SLEAP analysis HDF5 file (chosen by content, not extension).
+def read_keypoints(path: str | Path, individual: str | None = None, limits: ReadLimits = NO_LIMITS,
+                   openpose_model: str | None = None) -> Keypoints:
+    """Read a DeepLabCut CSV or H5 file, a SLEAP analysis HDF5 or labels (.slp) file (chosen by
+    content, not extension), or a folder of OpenPose JSON files (:mod:`graph.io.openpose`, its
+    keypoints named by ``openpose_model``).
 
     ``individual`` picks one animal from a multi-animal file (a SLEAP track by its name); by default
     the first one (not counting ``single``), with a warning naming the others. Single-animal files ignore it.
     A file over ``limits`` raises :class:`~graph.errors.TooLargeInput` before its data are read.
     """
     path = Path(path)
+    if path.is_dir():
+        from graph.io import openpose
+
+        if openpose.is_openpose_folder(path):
+            return openpose.read_openpose(path, limits, openpose_model)
     try:
         with open(path, "rb") as f:
             head = f.read(8)
