@@ -449,6 +449,7 @@ def _perturbed(rig, seed=0, mm=30.0, deg=0.3):
     return Calibration(cams, source="perturbed")
 
 
+@pytest.mark.slow  # over 12 s here
 def test_refine_improves_a_perturbed_rig_and_leaves_a_good_one(rig, tmp_path):
     """A cheetah run on the AcinoSet rig (3 px noise, 5 % outliers, most of them confident). From a rig
     whose cameras are 2-5 cm and 0.2-0.8 degrees off, refinement brings the triangulated markers back
@@ -495,6 +496,7 @@ def test_refine_improves_a_perturbed_rig_and_leaves_a_good_one(rig, tmp_path):
     assert len(load_calibration(tmp_path / "new.toml")) == 6
 
 
+@pytest.mark.slow  # over 12 s here
 def test_refine_on_a_real_recording_in_millimetres(tmp_path):
     """The fly of the EKS repository (three near-telecentric cameras, a rig in millimetres, 40
     frames): GTSAM once found a step's linear system indeterminate there and the command died with

@@ -163,6 +163,7 @@ def _cli(*args, cwd=None):
                           cwd=cwd, timeout=600)
 
 
+@pytest.mark.slow  # over 12 s here
 def test_cli_body_and_sync_round_trip(tmp_path, rig):
     """--body estimate writes the lengths; a second run of the same animal takes them back
     (--body REPORT); --time-offsets and --sync estimate; bad values are one line, exit 2."""
@@ -223,6 +224,7 @@ def _solved_to_the_last_bit(graph, ordering, like):
     return out, np.linalg.cond(H) * np.finfo(float).eps * np.abs(x).max()
 
 
+@pytest.mark.slow  # over 12 s here
 def test_the_compiled_joint_step_is_gtsams_elimination(rig):
     """With the body's lengths and the clocks estimated (the frames coupled to their neighbours by
     the offsets, every frame to W): the compiled step solves the same system as GTSAM's elimination

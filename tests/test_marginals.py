@@ -33,6 +33,7 @@ def _arrow(N: int, d: int, G: int, seed: int, stiff: float):
 
 
 @pytest.mark.parametrize("N, d, G, stiff", [(3, 2, 2, 1.0), (12, 3, 2, 10.0), (40, 4, 3, 1e4), (30, 3, 0, 1e3)])
+@pytest.mark.slow  # over 12 s here
 def test_banded_marginals_are_the_blocks_of_the_inverse(N, d, G, stiff):
     G_frames, band, B, Dw, full = _arrow(N, d, G, seed=N + G, stiff=stiff)
     inv = np.linalg.inv(full)

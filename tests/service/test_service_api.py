@@ -344,6 +344,7 @@ def test_an_h5_upload_carrying_a_pickle_is_refused_without_running_it(alice, sma
     assert not marker.exists()
 
 
+@pytest.mark.slow  # over 12 s here
 def test_an_upload_after_the_api_threads_idled_out_is_read(alice, small_run):
     """The upload readers were spawned from whichever API thread submitted first and die with
     that thread (PR_SET_PDEATHSIG); the thread pool retires a thread idle for 10 s, so the next

@@ -195,6 +195,7 @@ def test_cameras_with_no_shared_view_fail_with_the_reason(alice, tmp_path):
 
 
 @pytest.mark.skipif(not have_redis(), reason="needs Debian's redis-server (.ci/run installs it)")
+@pytest.mark.slow  # over 12 s here
 def test_a_calibration_runs_on_an_rq_worker(tmp_path, ex1, alice):
     """The inputs travel to an RQ worker and the rig's files back: the same files as the embedded run."""
     redis = Redis(tmp_path / "redis", tmp_path / "redis.log").start()

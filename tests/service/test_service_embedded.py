@@ -87,6 +87,7 @@ def test_a_job_whose_process_keeps_dying_fails_after_max_attempts(client, long_r
     assert len(set(pids)) == 3
 
 
+@pytest.mark.slow  # over 12 s here
 def test_kill_9_of_the_whole_service_loses_nothing(tmp_path, long_run, small_run):
     data = tmp_path / "data"
     token = add_user(data, "frank")
@@ -123,6 +124,7 @@ def test_kill_9_of_the_whole_service_loses_nothing(tmp_path, long_run, small_run
     assert leftovers == []
 
 
+@pytest.mark.slow  # over 12 s here
 def test_an_orderly_stop_gives_running_jobs_back_without_using_an_attempt(tmp_path, long_run):
     data = tmp_path / "data"
     token = add_user(data, "mia")

@@ -205,6 +205,7 @@ def test_rq_a_dead_worker_machine_loses_no_job(pool, client, long_run):
     pool.start_workers([name + "b"])
 
 
+@pytest.mark.slow  # over 12 s here
 def test_rq_kill_9_of_everything_loses_nothing(tmp_path, long_run, small_run):
     pool = Pool(tmp_path)
     pool.start_redis()
@@ -323,6 +324,7 @@ def test_rq_a_result_that_cannot_be_read_fails_its_job_alone(tmp_path, long_run,
         pool.stop()
 
 
+@pytest.mark.slow  # over 12 s here
 def test_rq_queue_is_fair_between_users(tmp_path, long_run):
     """One worker, one user's five jobs queued first: another user's job, submitted after them,
     does not wait for all five (Redis is handed only a few jobs at a time, the fewest-jobs user's

@@ -24,6 +24,7 @@ MAX_SECONDS = 50
 CONFIG = Path(__file__).with_name("schemathesis.toml")
 
 
+@pytest.mark.slow  # over 12 s here
 def test_the_running_server_keeps_its_openapi_contract(tmp_path):
     data = tmp_path / "data"
     token = add_user(data, "sam")

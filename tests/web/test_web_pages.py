@@ -68,6 +68,7 @@ def _submit(page, run, **choices) -> str:
     return page.url.rsplit("/", 1)[1]
 
 
+@pytest.mark.slow  # over 12 s here
 def test_sign_in_submit_watch_scrub_and_download(page, server, simulated_run, tmp_path):
     base, token = server
     page.goto("/login")
@@ -230,6 +231,7 @@ def test_controls_are_labelled(page, server):
         assert page.evaluate(UNLABELLED) == [], path
 
 
+@pytest.mark.slow  # over 12 s here
 def test_offline_playback_file(browser, simulated_run, tmp_path):
     """`acinoset solve --h5` then `acinoset plot`: the HTML file opens from disk with no server and
     no network, draws the skeleton and follows the frame slider."""

@@ -51,6 +51,7 @@ def _sign_in(page, token: str) -> None:
     page.wait_for_url(re.compile(r"/$"))
 
 
+@pytest.mark.slow  # over 12 s here
 def test_the_job_video_plays_and_follows_the_slider(page, server, video_job):
     import numpy as np
 
