@@ -149,6 +149,13 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
             raise InputError(f"{names[i]}: the images are {v.image_size[0]}x{v.image_size[1]}, the intrinsics are "
                              f"for {cam.size[0]}x{cam.size[1]} (mismatched resolutions)", v.source or None)
     # 1. the overlap graph
+    for i, v in enumerate(views):
+        seen: dict[str, str] = {}
+        for f in v.frames:
+            other = seen.setdefault(frame_key(f), f)
+            if other != f:
+                raise InputError(f"{names[i]}: views {other} and {f} are both frame {frame_key(f)} (frames are "
+                                 "matched across cameras by the last number in their names)", v.source or None)
     shared = overlap_graph(views)
     groups = connected_groups(n, [e for e, f in shared.items() if f])
     if len(groups) > 1:

@@ -14,6 +14,7 @@ its detection cache in the same layout, with a ``board`` spec and the source's i
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,10 +50,18 @@ class BoardViews:
 
 
 def frame_key(name: str) -> str:
-    """The name frames are matched by across cameras: the frame's name without an image extension
-    (``"610.png"`` and ``"610"`` are the same instant)."""
+    """The name frames are matched by across cameras: the last number in the frame's name without an
+    image extension, else that name. ``"610.png"``, ``"610"`` and ``"img_0610.png"`` are the same
+    instant, and so are ``"back-02242022135219-3.jpg"`` and ``"side-02242022135220-3.jpg"`` (a
+    camera's name and its clock's time stamp before the shared index, as rigs that save one image
+    per camera and trigger name them)."""
     p = Path(str(name))
-    return p.stem if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff") else str(name)
+    stem = p.stem if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff") else str(name)
+    numbers = _DIGITS.findall(stem)
+    return str(int(numbers[-1])) if numbers else stem
+
+
+_DIGITS = re.compile(r"\d+")
 
 
 def read_detections(path: str | Path, board: Board | None = None, name: str | None = None) -> BoardViews:

@@ -181,7 +181,7 @@ def test_bad_uploads_are_one_line_4xx(alice, tmp_path, case, status, fragment):
 def test_cameras_with_no_shared_view_fail_with_the_reason(alice, tmp_path):
     """Accepted (each file is fine on its own), then failed by the solve with its one-line reason."""
     doc = json.loads(EX1[1].read_text())
-    doc["points"] = {f"other_{k}": v for k, v in doc["points"].items()}
+    doc["points"] = {f"{int(k.split('.')[0]) + 1_000_000}.png": v for k, v in doc["points"].items()}  # none shared
     apart = tmp_path / "points_cam4.json"
     apart.write_text(json.dumps(doc))
     r = post_calibration(alice, detections=[EX1[0], apart])
