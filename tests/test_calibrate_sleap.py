@@ -59,3 +59,21 @@ def test_with_the_rig_from_the_images_side_agrees_with_the_others(rig):
     side_ours, side_shipped = ours.cameras[2].median_px, shipped.cameras[2].median_px
     assert side_shipped > 80 and side_ours < 20, (side_ours, side_shipped)
     assert ours.median_px < 0.6 * shipped.median_px, (ours.median_px, shipped.median_px)
+
+
+def test_the_rig_is_drawn_upright():
+    """With camera 1 as the world frame (z its optical axis), the picture's up is the cameras' mean image
+    up: on the AcinoSet rig (six GoPros, world z up) within 3 degrees of the true vertical."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from graph.calibrate.report import viewing_frame
+    from graph.camera import Calibration
+    from graph.io.calibration import default_rig_path
+
+    cal = load_calibration(default_rig_path())
+    c0 = cal.cameras[0]  # x_1 = R_0 x + t_0, so camera i sees x_i = R_i R_0^T (x_1 - t_0) + t_i
+    cams = [replace(c, R=c.R @ c0.R.T, t=c.t - c.R @ c0.R.T @ c0.t) for c in cal.cameras]
+    V = viewing_frame(SimpleNamespace(origin="camera1", calibration=Calibration(cameras=cams)))
+    assert np.degrees(np.arccos(V[2] @ (c0.R @ [0.0, 0.0, 1.0]))) < 3.0
+    assert np.allclose(V @ V.T, np.eye(3)) and np.isclose(np.linalg.det(V), 1.0)

@@ -49,10 +49,21 @@ def register(sub) -> None:
     q.add_argument("--out", required=True, metavar="CAMERA.json")
     q.set_defaults(func=run_intrinsics)
 
-    q = cmds.add_parser("extrinsics", help="a rig from board views the cameras share",
-                        description="The rig from board views seen by several cameras at the same frames, by "
-                        "one bundle adjustment of camera and board poses.")
+    for step, helptext in (("extrinsics", "a rig from board views the cameras share"),
+                           ("rig", "the same: a whole rig from each camera's board footage, in one command")):
+        q = cmds.add_parser(step, help=helptext,
+                            description="The rig from board views seen by several cameras at the same frames (matched "
+                            "by the last number in each view's name, a video's by frame index): each camera's "
+                            "intrinsics from its own views unless given, then one bundle adjustment of camera and "
+                            "board poses.")
+        _rig_options(q, sources)
+    _register_refine(cmds)
+
+
+def _rig_options(q, sources) -> None:
     sources(q, many=True)
+    q.add_argument("--names", metavar="A,B,...", help="the cameras' names in calibration.toml, in order "
+                   "(default cam1, cam2, ...)")
     q.add_argument("--intrinsics", nargs="+", metavar="CAM.json",
                    help="each camera's intrinsics (AcinoSet camera JSON); calibrated from the views if not given")
     q.add_argument("--refine-intrinsics", action="store_true",
@@ -65,6 +76,8 @@ def register(sub) -> None:
     q.add_argument("--figures", metavar="DIR", help="write PNG figures here (rig, residuals, coverage)")
     q.set_defaults(func=run_extrinsics)
 
+
+def _register_refine(cmds) -> None:
     q = cmds.add_parser("refine", help="refine a rig's extrinsics from an animal's keypoints",
                         description="Refine the cameras' poses from confident DeepLabCut keypoints, jointly "
                         "with their 3D positions; keeps the old rig when leave-one-camera-out "
@@ -89,14 +102,14 @@ def _progress_bar():
     return (lambda stage, fraction: bar(Progress(stage, fraction))), bar
 
 
-def _load_sources(paths: list[str], board, every: int, cache: bool) -> list:
+def _load_sources(paths: list[str], board, every: int, cache: bool, names: list[str] | None = None) -> list:
     from graph.calibrate.detect import detect_views
 
     report, bar = _progress_bar()
     out = []
     try:
         for k, src in enumerate(paths):
-            name = f"cam{k + 1}" if len(paths) > 1 else Path(src).stem
+            name = names[k] if names else f"cam{k + 1}" if len(paths) > 1 else Path(src).stem
             step = (lambda done, total, k=k, src=src: report(f"detect {Path(src).name}", (k + done / max(total, 1))
                                                              / len(paths))) if report else None
             out.append(detect_views(src, board, every=every, cache=cache, progress=step, name=name))
@@ -157,7 +170,8 @@ def run_extrinsics(args: argparse.Namespace) -> int:
         if args.refine_intrinsics:
             raise InputError("--refine-intrinsics needs the intrinsics calibrated here (their uncertainty is "
                              "the prior): leave out --intrinsics")
-    views = _load_sources(args.sources, board, args.every, not args.no_cache)
+    names = _camera_names(args.names, len(args.sources))
+    views = _load_sources(args.sources, board, args.every, not args.no_cache, names)
     report, bar = _progress_bar()
     try:
         result = calibrate_extrinsics(views, board, intrinsics, model=args.model, origin=args.origin,
@@ -188,6 +202,16 @@ def run_extrinsics(args: argparse.Namespace) -> int:
         print(f"  {c.name}: RMS {c.rms_px:.3f} px, {c.views_used} views, position sd "
               f"{max(c.position_std_mm):.2f} mm, rotation sd {max(c.rotation_std_deg):.3f} deg")
     return 0
+
+
+def _camera_names(text: str | None, count: int) -> list[str] | None:
+    """``--names A,B,...``: one distinct, non-empty name per source."""
+    if text is None:
+        return None
+    names = [n.strip() for n in text.split(",")]
+    if len(names) != count or not all(names) or len(set(names)) != count:
+        raise InputError(f"--names: {count} distinct names, one per source, separated by commas (got {text!r})")
+    return names
 
 
 def run_refine(args: argparse.Namespace) -> int:

@@ -11,28 +11,50 @@ from graph.calibrate.extrinsics import RigResult
 from graph.viewer.figures import _figure, _set_equal_3d
 
 
+def viewing_frame(result: RigResult) -> np.ndarray:
+    """The rotation ``V`` (3, 3) the rig is drawn in, ``x' = V x``: the world itself when its z is up
+    (``--origin board:FRAME``); with camera 1 as the world (z its optical axis, not up) the drawing's
+    z is the cameras' mean up, ``u = -mean_i R_i[1]`` (an image's y runs down, and cameras are mostly
+    mounted upright: the average of the cameras' up vectors, as structure-from-motion tools level a
+    reconstruction), and its x camera 1's viewing direction made level."""
+    if result.origin != "camera1":
+        return np.eye(3)
+    cams = result.calibration.cameras
+    up = -np.mean([c.R[1] for c in cams], axis=0)
+    if np.linalg.norm(up) < 1e-6:
+        return np.eye(3)
+    up /= np.linalg.norm(up)
+    ahead = cams[0].R[2] - (cams[0].R[2] @ up) * up
+    if np.linalg.norm(ahead) < 1e-6:  # camera 1 looks straight up or down
+        ahead = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
+    ahead /= np.linalg.norm(ahead)
+    return np.stack([ahead, np.cross(up, ahead), up])
+
+
 def rig_figure(result: RigResult, path: Path, board_outline: np.ndarray) -> Path:
-    """Cameras (centre and viewing direction) and the board of every view used, in the world frame."""
+    """Cameras (centre and viewing direction) and the board of every view used, drawn upright
+    (:func:`viewing_frame`)."""
     fig = _figure(7.5, 6.0)
     ax = fig.add_subplot(projection="3d")
     cams = result.calibration.cameras
-    centres = np.stack([c.center for c in cams])
-    boards = [board_outline @ T[:3, :3].T + T[:3, 3] for T in result.board_poses.values()]
+    V = viewing_frame(result)
+    centres = np.stack([c.center for c in cams]) @ V.T
+    boards = [(board_outline @ T[:3, :3].T + T[:3, 3]) @ V.T for T in result.board_poses.values()]
     scale = 0.1 * float(np.ptp(np.vstack([centres, *boards]), axis=0).max())
     pts = [centres]
     for X in boards:
         ax.plot(*np.vstack([X, X[:1]]).T, color="0.55", lw=0.8)
         pts.append(X)
-    for c, name in zip(cams, result.calibration.names):
-        C = c.center
-        d = c.R[2] * scale
+    for c, C, name in zip(cams, centres, result.calibration.names):
+        d = (V @ c.R[2]) * scale
         ax.scatter(*C, color="tab:blue", s=24)
         ax.plot(*np.stack([C, C + d]).T, color="tab:blue", lw=1.5)
         ax.text(*(C + 0.3 * d), name, fontsize=8)
     _set_equal_3d(ax, np.vstack(pts), min_extent=0.1)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_zlabel("z (m)")
+    upright = result.origin != "camera1"
+    ax.set_xlabel("x (m)" if upright else "ahead of camera 1 (m)")
+    ax.set_ylabel("y (m)" if upright else "left (m)")
+    ax.set_zlabel("z (m)" if upright else "up (m)")
     ax.set_title(f"{len(cams)} cameras, {len(result.board_poses)} board views, RMS {result.rms_px:.2f} px "
                  f"(origin: {result.origin})", fontsize=9)
     fig.savefig(path)
