@@ -12,11 +12,15 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from graph.types import Progress
 
 
-class ProgressBar:
-    """A plain one-line progress bar on a terminal: ``[#####-----]  50% solve it 12 cost 3.1e+03``.
-    Called with a :class:`graph.types.Progress`; :meth:`show` draws any fraction and text."""
+class ProgressLine:
+    """A plain one-line progress bar on a terminal, ``[#####-----]  50% text``: :meth:`show` draws
+    any fraction and text."""
 
     def __init__(self, stream, width: int = 30, min_interval: float = 0.1):
         self.stream = stream
@@ -38,21 +42,25 @@ class ProgressBar:
         self.stream.flush()
         self._shown = True
 
-    def __call__(self, p) -> None:
-        text = p.stage
-        if p.iteration:
-            text += f" it {p.iteration}"
-        if p.cost == p.cost:  # not NaN
-            text += f" cost {p.cost:.3g}"
-        self.show(p.fraction, text)
-
     def close(self) -> None:
         if self._shown:
             self.stream.write("\n")
             self.stream.flush()
 
 
-class FrameProgress(ProgressBar):
+class ProgressBar(ProgressLine):
+    """``[#####-----]  50% solve it 12 cost 3.1e+03``, called with a :class:`graph.types.Progress`."""
+
+    def __call__(self, p: Progress) -> None:
+        text: str = p.stage
+        if p.iteration:
+            text += f" it {p.iteration}"
+        if p.cost == p.cost:  # not NaN
+            text += f" cost {p.cost:.3g}"
+        self.show(p.fraction, text)
+
+
+class FrameProgress(ProgressLine):
     """``[#####-----]  50% 450/900 camera-frames, 52/s`` on one terminal line, called with
     ``(done, total)``."""
 

@@ -198,8 +198,10 @@ def _rig_json() -> dict:
 
 
 def _toml_text(**overrides) -> str:
-    fields = {"name": '"A"', "size": "[640, 480]", "matrix": "[[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]]",
-              "distortions": "[0.1, 0.0, 0.0, 0.0, 0.0]", "rotation": "[0.0, 0.0, 0.0]", "translation": "[0.0, 0.0, 0.0]"}
+    fields = {"name": '"A"', "size": "[640, 480]",
+              "matrix": "[[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]]",
+              "distortions": "[0.1, 0.0, 0.0, 0.0, 0.0]", "rotation": "[0.0, 0.0, 0.0]",
+              "translation": "[0.0, 0.0, 0.0]"}
     fields.update(overrides)
     body = "\n".join(f"{k} = {v}" for k, v in fields.items() if v is not None)
     return f"[cam_0]\n{body}\n\n[cam_1]\n{body}\n\n[metadata]\n"
@@ -222,13 +224,15 @@ BAD_FILES = {
     "binary.toml": (b"\x89PNG\r\n\x1a\n\x00\x00\xff\xfe", "binary"),
     "no_k.json": (_json_with(lambda d: d["cameras"][2].pop("k")), 'camera 3: missing "k"'),
     "k_2x3.json": (_json_with(lambda d: d["cameras"][0].update(k=[[1, 0, 1], [0, 1, 1]])), "3x3"),
-    "k_negative.json": (_json_with(lambda d: d["cameras"][0]["k"][0].__setitem__(0, -5.0)), "focal lengths must be positive"),
+    "k_negative.json": (_json_with(lambda d: d["cameras"][0]["k"][0].__setitem__(0, -5.0)),
+                        "focal lengths must be positive"),
     "k_ragged.json": (_json_with(lambda d: d["cameras"][0].update(k=[[1, 0], [0, 1, 1], [0, 0, 1]])), "regular array"),
     "r_scaled.json": (_json_with(lambda d: d["cameras"][1].update(r=(np.array(d["cameras"][1]["r"]) * 1.01).tolist())),
                       "not a rotation"),
     "r_reflection.json": (_json_with(lambda d: d["cameras"][1].update(r=(-np.array(d["cameras"][1]["r"])).tolist())),
                           "not a rotation"),
-    "r_random.json": (_json_with(lambda d: d["cameras"][0].update(r=[[1, 2, 3], [4, 5, 6], [7, 8, 9]])), "not a rotation"),
+    "r_random.json": (_json_with(lambda d: d["cameras"][0].update(r=[[1, 2, 3], [4, 5, 6], [7, 8, 9]])),
+                      "not a rotation"),
     "t_nan.json": (_json_with(lambda d: d["cameras"][3].update(t=[[0.0], [float("nan")], [1.0]])), "NaN"),
     "t_short.json": (_json_with(lambda d: d["cameras"][3].update(t=[[0.0], [1.0]])), "expected 3 numbers"),
     "d_5.json": (_json_with(lambda d: d["cameras"][0].update(d=[[0.1]] * 5)), "4 coefficients"),

@@ -1,4 +1,5 @@
-"""The body's proportions and the cameras' clocks estimated with the trajectory (graph.solve.joint, graph.solve.sync)."""
+"""The body's proportions and the cameras' clocks estimated with the trajectory (graph.solve.joint,
+graph.solve.sync)."""
 
 import json
 import subprocess
@@ -262,7 +263,8 @@ def test_the_compiled_joint_step_is_gtsams_elimination(rig):
         sk = tp.prob.skeleton
         for solved in (ours, vv):
             Q, W = (solved.Q, solved.W) if solved is ours else (tp._solution(solved), solved.at(tp.w_key))
-            assert np.abs(np.clip(Q, sk.lower, sk.upper) - np.clip(tp._solution(exact), sk.lower, sk.upper)).max() <= floor
+            Q_exact = np.clip(tp._solution(exact), sk.lower, sk.upper)
+            assert np.abs(np.clip(Q, sk.lower, sk.upper) - Q_exact).max() <= floor
             assert np.abs(np.clip(W, tp.unknowns.lower, tp.unknowns.upper)
                           - np.clip(exact.at(tp.w_key), tp.unknowns.lower, tp.unknowns.upper)).max() <= floor
         assert 0 < floor < 1e-7

@@ -112,6 +112,7 @@ def test_bad_specs_are_one_line_errors(tmp_path):
     with pytest.raises(InputError, match="bad.toml") as e:
         load_skeleton(bad)
     assert "\n" not in str(e.value)
-    bad.write_text('params = [{ name = "x" }]\nsegments = []\npoints = [{ name = "a", base = "b", segment = "s", offset = [0,0,0] }]\n')
+    bad.write_text('params = [{ name = "x" }]\nsegments = []\n'
+                   'points = [{ name = "a", base = "b", segment = "s", offset = [0,0,0] }]\n')
     with pytest.raises(InputError, match="before its base"):
         load_skeleton(bad)

@@ -34,7 +34,8 @@ def test_redescending_loss_pieces():
 def test_kernel_gradient_matches_finite_differences(run):
     prob = build(run.keypoints, run.calibration, SolveOptions(method="fte"))
     Q = run.params[:3] + 0.01
-    prob = replace(prob, meas=prob.meas[:3], valid=prob.valid[:3], likelihood=prob.likelihood[:3])  # the problem is frozen
+    # the problem is frozen
+    prob = replace(prob, meas=prob.meas[:3], valid=prob.valid[:3], likelihood=prob.likelihood[:3])
     tp = TrajectoryProblem(prob, Q)
     H, g, _, s, w, cost = tp.normals(Q)
     eps = 1e-6
@@ -151,7 +152,8 @@ def test_initial_poses_from_exact_points_are_exact(rig):
     X[:, [prob.skeleton.markers.index(m) for m in run.markers]] = run.positions
     Q = initial_poses(prob, X)
     err = np.linalg.norm(prob.skeleton.positions(Q) - X, axis=-1)
-    assert np.nanmean(err) < 1e-3 and np.nanmax(err) < 4e-3, f"{np.nanmean(err) * 1000:.1f}, {np.nanmax(err) * 1000:.1f} mm"
+    assert np.nanmean(err) < 1e-3 and np.nanmax(err) < 4e-3, \
+        f"{np.nanmean(err) * 1000:.1f}, {np.nanmax(err) * 1000:.1f} mm"
 
 
 @pytest.mark.parametrize("seed", [1, 2])

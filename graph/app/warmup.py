@@ -14,11 +14,12 @@ import time
 from graph.api import solve
 from graph.io.calibration import default_rig_path, load_calibration
 from graph.simulate import simulate_run
-from graph.types import SolveOptions
+from graph.types import Method, SolveOptions
 
 log = logging.getLogger("acinoset")
 
-WARM_UP_RUNS = (("tri", "points"), ("fte", "points"), ("fte", "cheetah"), ("ekf", "cheetah"))
+WARM_UP_RUNS: tuple[tuple[Method, str], ...] = (("tri", "points"), ("fte", "points"), ("fte", "cheetah"),
+                                                ("ekf", "cheetah"))
 
 
 def warm_up() -> float:

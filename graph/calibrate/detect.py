@@ -45,7 +45,8 @@ class Detector:
         cv2 = self._cv2
         h, w = gray.shape[:2]
         scale = min(1.0, SEARCH_WIDTH / w)
-        small = cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA) if scale < 1 else gray
+        small = (cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+                 if scale < 1 else gray)
         flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
         found, corners = cv2.findChessboardCorners(small, self.board.corner_grid, flags=flags)
         if not found:

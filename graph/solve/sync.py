@@ -114,7 +114,8 @@ def coarse_offsets(calibration: Calibration, meas: np.ndarray, valid: np.ndarray
 
 def shift_and_fraction(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Camera frame ``m`` is at time ``m + tau`` = window ``n + f``: ``m = n + shift``,
-    ``shift = -floor(tau)``, ``f = tau - floor(tau)`` in [0, 1) (what :func:`graph.solve.kernels.window_normals` takes)."""
+    ``shift = -floor(tau)``, ``f = tau - floor(tau)`` in [0, 1) (what
+    :func:`graph.solve.kernels.window_normals` takes)."""
     whole = np.floor(tau)
     return (-whole).astype(np.int64), (tau - whole).astype(np.float64)
 

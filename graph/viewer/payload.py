@@ -169,13 +169,14 @@ def result_payload(result: Result, calibration=None) -> dict:
     """Everything the result view draws, as JSON-safe data (NaN -> ``null``). Shapes: N frames,
     M markers, C cameras, P pose parameters.
 
-    ``markers`` and ``cameras`` are names; ``bones`` pairs of marker names. ``positions``, ``std`` (N, M, 3) metres; ``ncams`` (N, M) cameras that saw each marker;
-    ``score`` (N, M) mean likelihood; ``reprojection_error_px`` (N, M) the mean over the cameras
-    whose detection was used; ``residuals`` (C, N, M) px per camera; ``outliers`` a list of
-    ``[camera, frame, marker]`` index triples; ``error_table`` {median, observations, outliers}
-    (C, M); ``frame_error`` (N,) px; ``camera_centers`` (C, 3) or null; ``params``, ``params_std``
-    (N, P) or null, with ``param_units`` "m" or "rad"; ``report``
-    the solver's report; ``options`` the options the run was solved with.
+    ``markers`` and ``cameras`` are names; ``bones`` pairs of marker names. ``positions``, ``std``
+    (N, M, 3) metres; ``ncams`` (N, M) cameras that saw each marker; ``score`` (N, M) mean
+    likelihood; ``reprojection_error_px`` (N, M) the mean over the cameras whose detection was used;
+    ``residuals`` (C, N, M) px per camera; ``outliers`` a list of ``[camera, frame, marker]`` index
+    triples; ``error_table`` {median, observations, outliers} (C, M); ``frame_error`` (N,) px;
+    ``camera_centers`` (C, 3) or null; ``params``, ``params_std`` (N, P) or null, with
+    ``param_units`` "m" or "rad"; ``report`` the solver's report; ``options`` the options the run
+    was solved with.
     """
     N, M = result.positions.shape[:2]
     bones = [[a, b] for a, b in result.bones if a in result.markers and b in result.markers]

@@ -153,7 +153,8 @@ def api_docs(request: Request) -> HTMLResponse:
                         f"<td>{e(op.get('summary', ''))}</td><td>{e(params)}</td><td>{e(answers)}</td></tr>")
     body = (f'<!doctype html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>API · acinoset</title>\n'
             f'<link rel="stylesheet" href="/static/app.css">\n</head>\n<body>\n<a class="skip" href="#main">Skip to '
-            f'content</a>\n<main id="main">\n<h1>{e(spec["info"]["title"])} REST API {e(spec["info"]["version"])}</h1>\n'
+            f'content</a>\n<main id="main">\n'
+            f'<h1>{e(spec["info"]["title"])} REST API {e(spec["info"]["version"])}</h1>\n'
             + "".join(f"<p>{e(par)}</p>\n" for par in spec["info"].get("description", "").split("\n\n"))
             + '<p>The whole contract: <a href="/openapi.json">/openapi.json</a> (OpenAPI 3).</p>\n'
             '<table>\n<thead><tr><th>method</th><th>path</th><th>what</th><th>parameters</th><th>answers</th></tr>'

@@ -189,7 +189,8 @@ def test_deeply_nested_files_and_options_are_422_not_a_recursion_error(app_clien
         files.append(("calibration", ("calibration.toml", small_run.calibration.read_bytes(), "text/plain")))
     r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), files=files, data=data)
     assert r.status_code == 422, r.text
-    assert r.json()["detail"] == f"{name or 'options'}: arrays or tables nested too deeply (hundreds of levels inside each other)"
+    assert r.json()["detail"] == (f"{name or 'options'}: arrays or tables nested too deeply "
+                                  "(hundreds of levels inside each other)")
 
 
 @pytest.mark.parametrize("cursor", ["9" * 19, "9" * 30, "9" * 5000, "-1", "1e3", "\u0661"])
@@ -276,6 +277,8 @@ def test_labels_filters_warnings_without_paths_and_what_failed(app_client, small
     assert listed(since="2999-01-01T00:00:00Z") == [] and warned["id"] in listed(since="2000-01-01T00:00:00")
     bad = app_client.get("/v1/jobs", params={"method": "magic"}, headers=_auth(app_client, "ada"))
     assert bad.status_code == 422
-    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"), data={"options": json.dumps({"label": "x" * 201})},
-                        files=[("keypoints", ("a.csv", b"x", "text/csv")), ("calibration", ("c.toml", b"x", "text/plain"))])
+    r = app_client.post("/v1/jobs", headers=_auth(app_client, "ada"),
+                        data={"options": json.dumps({"label": "x" * 201})},
+                        files=[("keypoints", ("a.csv", b"x", "text/csv")),
+                               ("calibration", ("c.toml", b"x", "text/plain"))])
     assert r.status_code == 422 and "label must be at most 200" in r.json()["detail"]

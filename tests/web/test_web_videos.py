@@ -15,8 +15,9 @@ pytest.importorskip("imageio_ffmpeg", reason="videos need the video extra")
 
 FRAMES = 30
 # one video frame as pixels on a canvas: what the browser decoded at its current time
-GRAB = """(v) => { const c = document.createElement('canvas'); c.width = v.videoWidth; c.height = v.videoHeight;
-  const g = c.getContext('2d'); g.drawImage(v, 0, 0); return Array.from(g.getImageData(0, 0, c.width, c.height).data); }"""
+GRAB = """(v) => { const c = document.createElement('canvas');
+  c.width = v.videoWidth; c.height = v.videoHeight; const g = c.getContext('2d'); g.drawImage(v, 0, 0);
+  return Array.from(g.getImageData(0, 0, c.width, c.height).data); }"""
 
 
 @pytest.fixture(scope="module")

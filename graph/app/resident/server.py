@@ -63,7 +63,8 @@ def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> 
     t0 = time.perf_counter()
     import importlib
 
-    for module in ("graph.app.cli", "graph.api", "graph.io.results", "graph.solve.kernels", "graph.kinematics", "graph.io.calibration", "graph.io.keypoints",
+    for module in ("graph.app.cli", "graph.api", "graph.io.results", "graph.solve.kernels", "graph.kinematics",
+                   "graph.io.calibration", "graph.io.keypoints",
                    "graph.solve.ensemble", "h5py"):
         try:
             importlib.import_module(module)
@@ -253,9 +254,9 @@ def _warm_cli(where: Path) -> None:
             cams = [str(d / f"{name}.csv") for name in cal.names]
             for path, kp in zip(cams, run.keypoints):
                 write_dlc_csv(path, kp)
-            entry_function(ENTRIES[0])(["solve", *cams, "--calibration", str(d / "calibration.toml"), "--fps", str(run.fps),
-                                "--out", str(d / "run.csv"), "--h5", str(d / "run.h5"),
-                                "--report", str(d / "report.json")])
+            entry_function(ENTRIES[0])(["solve", *cams, "--calibration", str(d / "calibration.toml"),
+                                        "--fps", str(run.fps), "--out", str(d / "run.csv"), "--h5", str(d / "run.h5"),
+                                        "--report", str(d / "report.json")])
     except Exception:  # noqa: BLE001 - a colder first solve, nothing worse
         pass
     finally:
