@@ -142,9 +142,9 @@ class SolveOptions:
 
 @dataclass
 class Progress:
-    """A progress report: ``fraction`` in [0, 1] of the whole solve."""
+    """A progress report: ``fraction`` in [0, 1] of the whole solve (or calibration)."""
 
-    stage: Stage
+    stage: str  # a solve's: one of STAGES; a calibration's: "detect", "intrinsics <camera>", ...
     fraction: float
     iteration: int = 0
     cost: float = float("nan")

@@ -53,7 +53,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import re2  # type: ignore[import-untyped]
+import re2
 
 from graph.errors import NESTED_TOO_DEEPLY, InputError
 from graph.types import SolveOptions

@@ -35,9 +35,9 @@ from graph.io import results as result_files
 from graph.io.calibration import default_rig_path, load_calibration
 from graph.metrics import evaluate
 from graph.simulate import simulate_run, write_run
-from graph.types import SolveOptions
+from graph.types import Method, SolveOptions
 
-DEMO_METHODS = ("tri", "ekf", "fte")
+DEMO_METHODS: tuple[Method, ...] = ("tri", "ekf", "fte")
 
 
 def run_demo(out: str | Path, frames: int = 200, fps: float = 120.0, noise: float = 5.0, outliers: float = 0.1,

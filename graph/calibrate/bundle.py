@@ -131,7 +131,7 @@ class Settings:
     free_intrinsics: dict = field(default_factory=dict)
     huber_px: float | None = None
     board_dof: int = 6
-    fixed_distance: tuple | None = None
+    fixed_distance: tuple[int, int, float] | None = None
     max_iterations: int = 100
     tolerance: float = 1e-9
 
@@ -144,7 +144,7 @@ class Solution:
     iterations: int
     cost: float
     seconds: float
-    graph: object = None  # the final gtsam.GaussianFactorGraph (undamped)
+    graph: gtsam.GaussianFactorGraph | None = None  # the final linear system (undamped)
 
 
 def cam_key(i: int) -> int:
@@ -206,9 +206,10 @@ def _robust(e: np.ndarray, k: float | None) -> tuple[np.ndarray, np.ndarray]:
     return w, rho
 
 
-def _distance_term(rig: Rig, settings: Settings) -> tuple[float, np.ndarray]:
-    """The fixed distance's whitened residual and its derivative by camera j's ``(w, v)`` (6,)."""
-    i, j, d = settings.fixed_distance
+def _distance_term(rig: Rig, fixed: tuple[int, int, float]) -> tuple[float, np.ndarray]:
+    """The fixed distance's (:attr:`Settings.fixed_distance`) whitened residual and its derivative by
+    camera j's ``(w, v)`` (6,)."""
+    i, j, d = fixed
     u = rig.t_cam[j] - rig.t_cam[i]
     L = float(np.linalg.norm(u))
     J = np.zeros(6)
@@ -219,7 +220,7 @@ def _distance_term(rig: Rig, settings: Settings) -> tuple[float, np.ndarray]:
 def _prior_cost(rig: Rig, settings: Settings) -> float:
     total = 0.0
     if settings.fixed_distance is not None:
-        total += 0.5 * _distance_term(rig, settings)[0] ** 2
+        total += 0.5 * _distance_term(rig, settings.fixed_distance)[0] ** 2
     for i, prior in settings.free_intrinsics.items():
         if prior is not None:
             theta0, L = prior
@@ -264,9 +265,9 @@ def linearize(rig: Rig, obs: Observations, settings: Settings):
     sq_c = per_key(Jc * Jc, obs.cam, len(rig.models))
     sq_k = per_key(Jk * Jk, obs.cam, len(rig.models))
     diag.update({board_key(j): sq_b[j] for j in np.unique(obs.board)})
-    diag.update({cam_key(i): sq_c[i] for i in np.flatnonzero(cam_free) if i in set(obs.cam.tolist())})
-    diag.update({intrinsics_key(i): sq_k[i, :N_INTRINSICS[rig.models[i]]] for i in np.flatnonzero(k_free)})
-    unit = {}
+    diag.update({cam_key(int(i)): sq_c[i] for i in np.flatnonzero(cam_free) if i in set(obs.cam.tolist())})
+    diag.update({intrinsics_key(int(i)): sq_k[i, :N_INTRINSICS[rig.models[i]]] for i in np.flatnonzero(k_free)})
+    unit: dict[int, gtsam.noiseModel.Unit] = {}
     bkeys = [board_key(int(j)) for j in obs.board]
     ckeys = [cam_key(int(i)) for i in range(len(rig.models))]
     kkeys = [intrinsics_key(int(i)) for i in range(len(rig.models))]
@@ -275,16 +276,20 @@ def linearize(rig: Rig, obs: Observations, settings: Settings):
         if z == a:
             continue
         i = int(obs.cam[v])
-        args = [bkeys[v], Jb[a:z]]
-        if cam_free[i]:
-            args += [ckeys[i], Jc[a:z]]
-        if k_free[i]:
-            args += [kkeys[i], Jk[a:z, :N_INTRINSICS[rig.models[i]]]]
         rows = z - a
         noise = unit.get(rows) or unit.setdefault(rows, gtsam.noiseModel.Unit.Create(rows))
-        factors.append(gtsam.JacobianFactor(*args, -e_w[a:z], noise))
+        board, b = (bkeys[v], Jb[a:z]), -e_w[a:z]
+        cam, lens = (ckeys[i], Jc[a:z]), (kkeys[i], Jk[a:z, :N_INTRINSICS[rig.models[i]]])
+        if cam_free[i] and k_free[i]:
+            factors.append(gtsam.JacobianFactor(*board, *cam, *lens, b, noise))
+        elif cam_free[i]:
+            factors.append(gtsam.JacobianFactor(*board, *cam, b, noise))
+        elif k_free[i]:
+            factors.append(gtsam.JacobianFactor(*board, *lens, b, noise))
+        else:
+            factors.append(gtsam.JacobianFactor(*board, b, noise))
     if settings.fixed_distance is not None:
-        r, J = _distance_term(rig, settings)
+        r, J = _distance_term(rig, settings.fixed_distance)
         key = cam_key(settings.fixed_distance[1])
         factors.append(gtsam.JacobianFactor(key, J[None, :], np.array([-r]), gtsam.noiseModel.Unit.Create(1)))
         diag[key] = diag.get(key, 0.0) + J * J
@@ -378,6 +383,8 @@ def view_rms(e: np.ndarray, obs: Observations) -> np.ndarray:
 def covariances(solution: Solution, keys: list[int], sigma: float) -> dict[int, np.ndarray]:
     """Marginal covariances of ``keys`` from GTSAM's marginals of the final linear system, scaled by
     the detection noise ``sigma^2`` (the factors are whitened to 1 px)."""
+    if solution.graph is None:
+        raise ValueError("the solution keeps no linear system to take marginals of")
     zero = gtsam.VectorValues()
     marginals = gtsam.Marginals(solution.graph, zero)
     return {k: marginals.marginalCovariance(k) * sigma * sigma for k in keys}

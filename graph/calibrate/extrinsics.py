@@ -199,11 +199,11 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
     priors = {}
     if refine_intrinsics:
         for i, cam in enumerate(intrinsics):
-            cov = intrinsic_results[i].covariance if intrinsic_results else None
-            if cov is None:
+            prior_cov = intrinsic_results[i].covariance if intrinsic_results else None
+            if prior_cov is None:
                 raise InputError(f"{names[i]}: refining intrinsics needs their uncertainty (calibrate them "
                                  "here, or leave them fixed)")
-            priors[i] = (intrinsics_of(cam), np.linalg.cholesky(np.linalg.inv(cov)).T)
+            priors[i] = (intrinsics_of(cam), np.linalg.cholesky(np.linalg.inv(prior_cov)).T)
     # 3. the bundle adjustment, dropping outlier views
     obs = observations(views, board, which, list(range(n)), boards)
     view_cam = obs.cam.copy()
@@ -228,9 +228,9 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
         if not bad.any():
             break
         idx = np.flatnonzero(keep)
-        for v in np.flatnonzero(bad):
-            g = idx[v]
-            dropped[view_cam[g]].append({"frame": view_frame[g], "reason": f"outlier: {rms[v]:.2f} px RMS, "
+        for worst_view in np.flatnonzero(bad):
+            g = idx[worst_view]
+            dropped[view_cam[g]].append({"frame": view_frame[g], "reason": f"outlier: {rms[worst_view]:.2f} px RMS, "
                                          f"median view {np.median(rms):.2f} px"})
             keep[g] = False
             # the frame's board pose again, from the views left (it may have followed the wrong one)
@@ -299,7 +299,7 @@ def worst_per_frame(bad: np.ndarray, rms: np.ndarray, frames: list[str]) -> np.n
     worst: dict[str, int] = {}
     for v in np.flatnonzero(bad):
         if frames[v] not in worst or rms[v] > rms[worst[frames[v]]]:
-            worst[frames[v]] = v
+            worst[frames[v]] = int(v)
     out[list(worst.values())] = True
     return out
 

@@ -48,7 +48,7 @@ class IntrinsicsResult:
     sigma_px: float
     iterations: int = 0
     seconds: float = 0.0
-    coverage_map: np.ndarray = field(default=None, repr=False)
+    coverage_map: np.ndarray | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         c = self.camera

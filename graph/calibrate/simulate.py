@@ -53,7 +53,7 @@ def dome_rig(cameras: int = 6, radius: float = 3.0, height: float = 2.5, size: t
         right = _unit(np.cross(fwd, [0.0, 0.0, 1.0]))
         R = np.stack([right, np.cross(fwd, right), fwd])
         K = np.array([[focal_px, 0, size[0] / 2 + 3.0 * k], [0, focal_px, size[1] / 2 - 2.0 * k], [0, 0, 1]])
-        dist = LENS_DISTORTION.get(model, ())
+        dist = np.array(LENS_DISTORTION.get(model, ()), dtype=np.float64)
         cams.append(Camera(K=K, dist=dist, R=R, t=-R @ C, model=model, size=size, name=f"cam{k + 1}"))
     return Calibration(cams, source=f"dome of {cameras}")
 

@@ -23,6 +23,7 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -258,7 +259,7 @@ def read_result(path: str | Path) -> Result:
                 elif name in _ARRAYS:
                     raise InputError(f"result file lacks the dataset '{name}'", path)
             bones = [(_text(a), _text(b)) for a, b in f["bones"][()]] if "bones" in f else []
-            fields = {
+            fields: dict[str, Any] = {
                 "method": _attr(f, "method"),
                 "skeleton": _attr(f, "skeleton"),
                 "fps": float(f.attrs["fps"]),
@@ -266,8 +267,8 @@ def read_result(path: str | Path) -> Result:
                 "camera_names": _read_strings(f, "camera_names"),
                 "param_names": _read_strings(f, "param_names"),
                 "bones": bones,
-                "options": _options(json.loads(_attr(f, "options"))),
-                "report": _report(json.loads(_attr(f, "report"))),
+                "options": _options(json.loads(_attr(f, "options") or "")),
+                "report": _report(json.loads(_attr(f, "report") or "")),
             }
         except (KeyError, ValueError, TypeError) as e:
             if isinstance(e, InputError):
@@ -397,7 +398,7 @@ def read_motion(path: str | Path) -> tuple[dict[str, float], dict[str, int] | No
     data = _earlier_report(path, "no such file (give a number, auto, or the report JSON or result H5 of a "
                                  "solve with the motion scale fitted)")
     scales = data.get("motion_scales") if isinstance(data, dict) else None
-    if not isinstance(scales, dict) or not scales:
+    if not isinstance(data, dict) or not isinstance(scales, dict) or not scales:
         raise InputError("holds no motion_scales (solve one run with --motion-scale auto and give its report)", path)
     orders = data.get("motion_orders")
     for name, v in scales.items():

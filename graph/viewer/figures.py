@@ -21,6 +21,7 @@ People judge a 3D reconstruction by looking at it. Every picture here answers on
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -37,7 +38,7 @@ from graph.viewer.payload import (
 )
 
 
-def _figure(width: float, height: float, layout: str | None = "constrained"):
+def _figure(width: float, height: float, layout: Literal["constrained"] | None = "constrained"):
     from matplotlib.figure import Figure
 
     return Figure(figsize=(width, height), dpi=110, layout=layout)

@@ -182,8 +182,8 @@ def result_payload(result: Result, calibration=None) -> dict:
     bones = [[a, b] for a, b in result.bones if a in result.markers and b in result.markers]
     table = error_table(result)
     out = np.argwhere(np.asarray(result.outlier, dtype=bool) & np.isfinite(result.residuals))
-    report = result.report.to_dict() if hasattr(result.report, "to_dict") else dict(result.report)
-    options = result.options.to_dict() if hasattr(result.options, "to_dict") else dict(result.options or {})
+    report = result.report.to_dict()
+    options = result.options.to_dict()
     cc = camera_centers(result, calibration)
     cd = _camera_directions(result, calibration)
     params = result.params

@@ -5,12 +5,22 @@ Thin like :mod:`service.api.routes` (whose router settings, caller and job servi
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 from fastapi import APIRouter, Depends, File, Form, Query, Response, Security, UploadFile
 from fastapi.responses import FileResponse
 
-from service.api.deps import AUTH_ERRORS, BAD_REQUEST, BEARER, SERVER_ERROR, UPLOAD_ERRORS, CurrentUser, Jobs, error_doc
+from service.api.deps import (
+    AUTH_ERRORS,
+    BAD_REQUEST,
+    BEARER,
+    SERVER_ERROR,
+    UPLOAD_ERRORS,
+    CurrentUser,
+    Jobs,
+    Responses,
+    error_doc,
+)
 from service.api.models import CalibrationList, CalibrationOut, calibration_out
 from service.core.calibrations import CalibrationService
 from service.core.jobs import Upload
@@ -19,8 +29,11 @@ from service.store.jobfiles import CALIBRATION_FILES, CALIBRATION_KIND
 
 router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR}, dependencies=[Security(BEARER)],
                    tags=["calibrations"])
-NOT_FOUND = {404: error_doc("No such calibration, or it belongs to another user")}
-CalibrationFile = Literal[tuple(CALIBRATION_FILES)]  # type: ignore[valid-type]
+NOT_FOUND: Responses = {404: error_doc("No such calibration, or it belongs to another user")}
+if TYPE_CHECKING:
+    CalibrationFile = str
+else:  # the files a calibration writes, a Literal made from jobfiles at import
+    CalibrationFile = Literal[tuple(CALIBRATION_FILES)]
 
 
 async def _calibrations(jobs: Jobs) -> CalibrationService:
@@ -41,17 +54,19 @@ def submit_calibration(
     user: CurrentUser, calibrations: Calibrations, response: Response,
     board: Annotated[str, Form(description="checkerboard:COLSxROWS:SQUARE_M (inner corners, square side in metres) "
                                            "or charuco:SQUARESXxSQUARESY:SQUARE_M:MARKER_M:DICT")],
+    # the optional fields' ignores: the spec declares a file (or string), not a nullable one,
+    # and FastAPI passes None when the field is absent
     detections: Annotated[list[UploadFile], File(
         description="board detections, AcinoSet's detections JSON (board_shape, board_square_len, "
                     "camera_resolution, points: {frame: corners}), one per camera, repeated, in camera order; views "
-                    "are matched across cameras by frame name (or give videos)")] = None,
+                    "are matched across cameras by frame name (or give videos)")] = None,  # type: ignore[assignment]
     videos: Annotated[list[UploadFile], File(
         description="instead of detections: a short video of the board per camera, in camera order, filmed at the "
                     "same instants (frames are matched by index); the board is found on the server in every "
-                    "options.every-th frame")] = None,
+                    "options.every-th frame")] = None,  # type: ignore[assignment]
     intrinsics: Annotated[list[UploadFile], File(
         description="optional: each camera's intrinsics (AcinoSet camera JSON: camera_resolution, k, d), in camera "
-                    "order; calibrated from the views if not given")] = None,
+                    "order; calibrated from the views if not given")] = None,  # type: ignore[assignment]
     options: Annotated[str, Form(description='JSON object: {"model": "fisheye" (default) or "pinhole", "origin": '
                                              '"camera1" (default) or "board:FRAME", "every": N (videos: every N-th '
                                              'frame, default 1), "label": "..."}')] = "{}",

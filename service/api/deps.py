@@ -7,7 +7,7 @@ Each dependency is an ``Annotated`` type for a route's parameter, e.g. ``user: C
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPBearer
@@ -19,18 +19,21 @@ from service.core.jobs import JobService
 from service.settings import Settings
 from service.store import Store, User
 
+# the spec's error answers of a route, as FastAPI's ``responses=`` takes them
+Responses = dict[int | str, dict[str, Any]]
 
-def error_doc(description: str) -> dict:
+
+def error_doc(description: str) -> dict[str, Any]:
     """The spec's entry for an error answer (``responses={404: error_doc("No such job")}``): its
     body is :class:`service.api.models.ErrorBody`, ``{"detail": "..."}``."""
     return {"model": ErrorBody, "description": description}
 
 
-AUTH_ERRORS = {401: error_doc("No token, or an unknown or revoked one")}
-BAD_REQUEST = {422: error_doc("A request parameter or field is missing or malformed")}
-SERVER_ERROR = {500: error_doc("A fault of the server (logged there)")}
+AUTH_ERRORS: Responses = {401: error_doc("No token, or an unknown or revoked one")}
+BAD_REQUEST: Responses = {422: error_doc("A request parameter or field is missing or malformed")}
+SERVER_ERROR: Responses = {500: error_doc("A fault of the server (logged there)")}
 # what every upload route may answer while it receives the body (service.core.uploads)
-UPLOAD_ERRORS = {400: error_doc("The body is not valid multipart/form-data"),
+UPLOAD_ERRORS: Responses = {400: error_doc("The body is not valid multipart/form-data"),
                  408: error_doc("The upload stalled or took too long (ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS, "
                                 "ACINOSET_UPLOAD_TIMEOUT_SECONDS)"),
                  503: error_doc("Too many uploads arriving at once; try again after Retry-After seconds"),

@@ -87,7 +87,7 @@ class UploadGuard:
         ``max_upload_bytes``, 408 when no byte came for ``upload_idle_timeout_seconds`` or the body
         took longer than ``upload_timeout_seconds``."""
         s = self.settings
-        body = tempfile.SpooledTemporaryFile(self.SPOOL_IN_MEMORY, dir=s.jobs_dir)
+        body = tempfile.SpooledTemporaryFile(self.SPOOL_IN_MEMORY, dir=str(s.jobs_dir))
         deadline = time.monotonic() + s.upload_timeout_seconds
         seen = 0
         try:

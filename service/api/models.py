@@ -8,7 +8,7 @@ from __future__ import annotations
 import re
 import time
 from datetime import datetime, timezone
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 from pydantic import BaseModel, Field
 
@@ -17,7 +17,10 @@ from graph.types import STAGES as SOLVER_STAGES
 from service.store import COMPILING, DONE, READING, RENDERING, STARTING, WRITING, ErrorKind, Job, JobStatus
 from service.store.jobfiles import DOWNLOADS, EXPORT_FILES, RESULT_FILES, download_name
 
-ResultFormat = Literal[tuple(DOWNLOADS)]  # type: ignore[valid-type]  # the download formats
+if TYPE_CHECKING:
+    ResultFormat = str
+else:  # the download formats, a Literal made from the registry at import
+    ResultFormat = Literal[tuple(DOWNLOADS)]
 
 # a job's own result files as the API and the job page name them: format -> (label, what the file holds);
 # the export formats say it themselves (graph.export.Format's label and help)
@@ -237,15 +240,23 @@ def _ts(t: float | None) -> datetime | None:
     return None if t is None else datetime.fromtimestamp(t, tz=timezone.utc)
 
 
+def _created(t: float) -> datetime:
+    return datetime.fromtimestamp(t, tz=timezone.utc)
+
+
 # An absolute path in a message (a server's file, say /srv/acinoset/jobs/<id>/input/keypoints/01/cam1.csv):
 # a slash not after a word character, a dot, a colon or a slash (so not inside a URL), then directories.
 _ABSOLUTE_PATH = re.compile(r"(?<![\w.:/])/(?:[^\s/'\"()<>,;:]+/)+([^\s/'\"()<>,;:]+)")
 
 
+def _without_paths(text: str) -> str:
+    return _ABSOLUTE_PATH.sub(r"\1", text)
+
+
 def without_paths(text: str | None) -> str | None:
     """``text`` with every absolute path cut to its file name: what the solver says of the server's
     files names them the way the user uploaded them, not where the server keeps them."""
-    return None if text is None else _ABSOLUTE_PATH.sub(r"\1", text)
+    return None if text is None else _without_paths(text)
 
 
 def summary_of(report: dict | None) -> ResultSummary | None:
@@ -253,7 +264,7 @@ def summary_of(report: dict | None) -> ResultSummary | None:
         return None
     keys = ResultSummary.model_fields.keys() - {"formats"}
     summary = ResultSummary(**{k: report[k] for k in keys if report.get(k) is not None})
-    summary.warnings = [without_paths(w) for w in summary.warnings]
+    summary.warnings = [_without_paths(w) for w in summary.warnings]
     return summary
 
 
@@ -264,7 +275,8 @@ def _timings(job: Job) -> Timings:
     run = None
     if job.started_at:
         run = (job.finished_at or now) - job.started_at if job.status != "queued" else None
-    return Timings(created_at=_ts(job.created_at), started_at=_ts(job.started_at), finished_at=_ts(job.finished_at),
+    return Timings(created_at=_created(job.created_at), started_at=_ts(job.started_at),
+                   finished_at=_ts(job.finished_at),
                    queued_seconds=queued, run_seconds=run)
 
 
@@ -284,7 +296,8 @@ def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
         progress=progress,
         timings=_timings(job),
         options=job.options, inputs=Inputs(**job.inputs), error=without_paths(job.error),
-        error_kind=job.error_kind if job.status == "failed" else None, interruption=without_paths(job.interruption),
+        error_kind=cast(ErrorKind | None, job.error_kind) if job.status == "failed" else None,
+        interruption=without_paths(job.interruption),
         worker=job.worker, result=result,
         links=Links(self=href,
                     result={f: f"{href}/result?format={f}" for f in offered_formats()}
@@ -325,7 +338,8 @@ def batch_out(view: dict, base: str = "/v1") -> BatchOut:
     """A batch as the API shows it, from :meth:`service.core.batches.BatchService.status`."""
     trials = [BatchTrial(**t, link=f"{base}/jobs/{t['job_id']}" if t.get("job_id") else None)
               for t in view["trials"]]
-    return BatchOut(id=view["id"], owner=view["owner"], created_at=_ts(view["created_at"]), project=view["project"],
+    return BatchOut(id=view["id"], owner=view["owner"], created_at=_created(view["created_at"]),
+                    project=view["project"],
                     status=view["status"], counts=view["counts"], trials=trials, ignored=view["ignored"],
                     notes=view["notes"], links={"self": f"{base}/batches/{view['id']}"})
 
@@ -378,7 +392,8 @@ def calibration_out(job: Job, base: str = "/v1/calibrations") -> CalibrationOut:
         id=job.id, owner=job.owner, label=job.label, status=job.status, attempts=job.attempts,
         max_attempts=job.max_attempts, progress=_progress(job), timings=_timings(job),
         options={k: v for k, v in job.options.items() if k != "kind"}, inputs=CalibrationInputs(**job.inputs),
-        error=without_paths(job.error), error_kind=job.error_kind if job.status == "failed" else None,
+        error=without_paths(job.error),
+        error_kind=cast(ErrorKind | None, job.error_kind) if job.status == "failed" else None,
         worker=job.worker, report=job.summary if job.status == "succeeded" else None, links=links)
 
 

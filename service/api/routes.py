@@ -6,7 +6,7 @@ import re
 import shutil
 import time
 from datetime import datetime, timezone
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, Response, Security, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse
@@ -28,6 +28,7 @@ from service.api.deps import (
     JobBackend,
     Jobs,
     JobTable,
+    Responses,
     ServerSettings,
     error_doc,
 )
@@ -57,7 +58,7 @@ from service.store.jobfiles import DOWNLOADS, JOB_ID, download_name
 
 IsoTime = Annotated[datetime, BeforeValidator(lambda v: _iso_only(v))]
 
-NOT_FOUND = {404: error_doc("No such job, or it belongs to another user")}
+NOT_FOUND: Responses = {404: error_doc("No such job, or it belongs to another user")}
 
 router = APIRouter(responses={**AUTH_ERRORS, **BAD_REQUEST, **SERVER_ERROR}, dependencies=[Security(BEARER)])
 public = APIRouter(responses=SERVER_ERROR)
@@ -79,11 +80,13 @@ def submit_job(
     keypoints: Annotated[list[UploadFile], File(
         description="DeepLabCut keypoints (.csv or .h5), one file per camera, repeated, in the calibration's order",
         json_schema_extra={"minItems": 1})],
+    # the optional fields' ignores: the spec declares a file (or string), not a nullable one,
+    # and FastAPI passes None when the field is absent
     calibration: Annotated[UploadFile, File(
-        description="AcinoSet scene JSON or Anipose calibration TOML (or give calibration_id)")] = None,
+        description="AcinoSet scene JSON or Anipose calibration TOML (or give calibration_id)")] = None,  # type: ignore[assignment]
     calibration_id: Annotated[str, Form(
         description="instead of a calibration file: the id of one of the caller's succeeded calibrations "
-                    "(POST /v1/calibrations)")] = None,
+                    "(POST /v1/calibrations)")] = None,  # type: ignore[assignment]
     options: Annotated[str, Form(
         description='JSON object of solve options, e.g. {"method": "fte", "fps": 120, "skeleton": "cheetah", '
                     '"likelihood_threshold": 0.5, "measurement_std_px": 5}; fps (the cameras\' frame rate) is '
@@ -97,14 +100,14 @@ def submit_job(
                     'camera) or "estimate"; see GET /v1/skeletons')] = "{}",
     # a file or nothing: declared as a file only (a form field "null" is no file, and is refused)
     skeleton: Annotated[UploadFile, File(
-        description="optional skeleton spec (.toml) to use instead of a named skeleton")] = None,
+        description="optional skeleton spec (.toml) to use instead of a named skeleton")] = None,  # type: ignore[assignment]
     videos: Annotated[list[UploadFile], File(
         description="optional: each camera's video, repeated, in the keypoint files' order (the footage the "
-                    "keypoints came from, one frame per row); the job then also renders the labelled videos")] = None,
+                    "keypoints came from, one frame per row); the job then also renders the labelled videos")] = None,  # type: ignore[assignment]
     video_paths: Annotated[list[str], Form(
         description="optional, instead of videos: each camera's video as a path on the server's shared storage, "
                     "repeated, under the folder its admin allows (ACINOSET_VIDEO_ROOT; absolute or relative to it)")
-    ] = None,
+    ] = None,  # type: ignore[assignment]
 ) -> JobOut:
     """Validate the files with the library's readers, store them and queue the solve. Answers 202 with
     the job; poll its ``links.self`` until ``status`` is ``succeeded`` or ``failed``."""
@@ -336,7 +339,8 @@ def healthz(backend: JobBackend, store: JobTable, s: ServerSettings):
     counts = store.status_counts()
     du = shutil.disk_usage(s.jobs_dir)
     oldest = store.oldest_queued_at()
-    status, detail = "ok", h.get("detail")
+    status: Literal["ok", "starting", "degraded"] = "ok"
+    detail = h.get("detail")
     if not h["ok"]:
         status = "degraded"
     elif du.free <= s.min_free_bytes:

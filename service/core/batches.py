@@ -158,7 +158,7 @@ class BatchService:
             trials.append({**t, "status": status, "error": t.get("error") or (job.error if job else None)})
         active = sum(counts[s] for s in ACTIVE)
         ok = counts["succeeded"]
-        status = ("running" if active else "succeeded" if ok == len(trials)
-                  else "failed" if ok == 0 else "partial")
-        return {**{k: v for k, v in record.items() if k != "owner_id"}, "status": status, "counts": counts,
+        overall = ("running" if active else "succeeded" if ok == len(trials)
+                   else "failed" if ok == 0 else "partial")
+        return {**{k: v for k, v in record.items() if k != "owner_id"}, "status": overall, "counts": counts,
                 "trials": trials}

@@ -187,6 +187,7 @@ def calibration_upload(jobs: JobService, user: User, upload: Upload | None,
     if upload is not None:
         yield upload
         return
+    assert calibration_id is not None  # exactly one of them, checked above
     path = CalibrationService(jobs).owned_calibration_file(user, calibration_id)
     with open(path, "rb") as f:
         yield Upload("calibration.toml", f)
@@ -214,7 +215,7 @@ def _video_facts(path: Path) -> dict:
     cap = cv2.VideoCapture(str(path))
     try:
         ok, frame = cap.read() if cap.isOpened() else (False, None)
-        if not ok:
+        if not ok or frame is None:
             raise Unprocessable(f"{path.name}: not a video OpenCV can read")
         return {"frames": int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None,
                 "resolution": [int(frame.shape[1]), int(frame.shape[0])]}

@@ -12,6 +12,7 @@ readers (CSV, h5py without pickles, JSON, TOML): nothing uploaded is executed.
 
 from __future__ import annotations
 
+import builtins
 import dataclasses
 import json
 import os
@@ -402,7 +403,7 @@ class JobService:
             raise NotReady(f"job {job.id} is {job.status}{why}; its videos are ready when it succeeded")
         return jobfiles.job_dir(self.settings.jobs_dir, job.id)
 
-    def video_views(self, job: Job) -> list[str]:
+    def video_views(self, job: Job) -> builtins.list[str]:  # builtins: this class has a method named list
         """The labelled videos a succeeded job with videos has: its cameras' numbers, 3d, combined
         (none when they could not be rendered: its report's warnings say why)."""
         if job.status != "succeeded" or not (job.inputs or {}).get("videos"):

@@ -59,7 +59,8 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
         raise Unprocessable(f"upload: {NESTED_TOO_DEEPLY}") from None
     except (OSError, ValueError, KeyError, IndexError, TypeError, UnicodeDecodeError, MemoryError) as e:
         # a reader tripped on something it did not foresee: still a bad file, still one line
-        where = Path(e.filename).name if getattr(e, "filename", None) else "upload"
+        filename = getattr(e, "filename", None)
+        where = Path(filename).name if filename else "upload"
         raise Unprocessable(f"{where}: cannot be read ({type(e).__name__}: {e})") from None
     return {
         "cameras": len(kps), "frames": max(k.frames for k in kps), "bodyparts": list(kps[0].bodyparts),
@@ -133,7 +134,7 @@ class UploadReader:
             return inspect_upload(**kwargs)
         pool = self._executor()
         try:
-            return self._handover.submit(pool.submit, inspect_upload, **kwargs).result().result()
+            return self._handover.submit(lambda: pool.submit(inspect_upload, **kwargs)).result().result()
         except BrokenProcessPool:
             with self._lock:
                 if self._pool is pool:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Callable
 
 from service.store import READING, WRITING, jobfiles
 from service.store.jobfiles import inside, read_manifest
@@ -28,9 +29,12 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
     board = parse_board(opts["board"])
     if m.get("videos"):  # the board found in every ``every``-th frame, the progress per video
         n = len(m["videos"])
+
+        def detecting(i: int) -> Callable[[int, int], None]:
+            return lambda done, total: progress(Progress("detect", (i + done / max(total, 1)) / n))
+
         views = [detect_views(inside(input_dir, rel), board, every=opts.get("every", 1), cache=False,
-                              name=f"cam{i + 1}", progress=lambda done, total, i=i: progress(
-                                  Progress("detect", (i + done / max(total, 1)) / n)))
+                              name=f"cam{i + 1}", progress=detecting(i))
                  for i, rel in enumerate(m["videos"])]
     else:
         views = [read_detections(inside(input_dir, rel), board, name=f"cam{i + 1}")

@@ -33,7 +33,7 @@ from typing import Callable
 
 import numpy as np
 
-from service.store import READING, RENDERING, WRITING, jobfiles
+from service.store import READING, RENDERING, WRITING, ErrorKind, jobfiles
 from service.store.jobfiles import (
     ERROR_LOG,
     INPUT,
@@ -221,7 +221,7 @@ def one_line(e: BaseException) -> str:
     return text if isinstance(e, InputError) else f"{type(e).__name__}: {text}"
 
 
-def error_kind(e: BaseException) -> str:
+def error_kind(e: BaseException) -> ErrorKind:
     """``input`` when the solver refused the job's files or options (:class:`graph.errors.InputError`),
     ``limit`` when the run ran out of memory, ``internal`` for any other error (a fault of the software)."""
     from graph.errors import InputError
@@ -260,7 +260,7 @@ def die_with_server() -> None:
         fd = getattr(forkserver._forkserver, "_forkserver_alive_fd", None)
         if fd is not None:
             os.close(fd)
-            forkserver._forkserver._forkserver_alive_fd = None
+            forkserver._forkserver._forkserver_alive_fd = None  # type: ignore[attr-defined]  # CPython's own
     except (ImportError, AttributeError, OSError):
         pass
     die_with_parent()
@@ -343,7 +343,7 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -
     t0 = time.time()
     token = rq_job.id if rq_job is not None else job_id
     archive = get_archive(rq_job.connection, input_key(token)) if rq_job is not None else None
-    if archive is None:
+    if rq_job is None or archive is None:
         return {"status": "failed", "error": "the job's input files are no longer in Redis", "worker": worker}
     with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-") as tmp:
         input_dir, out_dir = Path(tmp) / INPUT, Path(tmp) / RESULT

@@ -130,7 +130,7 @@ class _Signals:
     """The client's handlers of :data:`FORWARDED` while it hands a solve over: signals that come
     before the child runs are kept, and sent to it once it does (:meth:`forward_to`)."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.pid = 0
         self.pending: list[int] = []
         self.previous = {s: signal.signal(s, self._handle) for s in FORWARDED + JOB_CONTROL}

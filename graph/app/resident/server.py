@@ -78,14 +78,15 @@ def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> 
 
     gc.collect()
     gc.freeze()  # the children share these pages instead of touching them
-    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         place.socket.unlink()  # a killed resident's
     except FileNotFoundError:
         pass
-    listener.bind(str(place.socket))
+    sock.bind(str(place.socket))
     os.chmod(place.socket, 0o600)
-    listener.listen(64)
+    sock.listen(64)
+    listener: socket.socket | None = sock  # None once it stops listening
     ino = place.socket.stat().st_ino
     info["ready"] = True
     _write_info(lock_fd, info)
@@ -95,7 +96,7 @@ def _serve(place: Place, lock_fd: int, env: dict[str, str], info: dict, log) -> 
     os.set_blocking(wake_r, False)
     os.set_blocking(wake_w, False)
     signal.set_wakeup_fd(wake_w)
-    held = (listener.fileno(), wake_r, wake_w, lock_fd)  # the resident's own: a child closes them
+    held = (sock.fileno(), wake_r, wake_w, lock_fd)  # the resident's own: a child closes them
     stop = []
     signal.signal(signal.SIGCHLD, lambda *_: None)
     signal.signal(signal.SIGTERM, lambda *_: stop.append("stopped (SIGTERM)"))
@@ -426,11 +427,12 @@ def _run(request: dict, log) -> int:
         sys.argv = ["acinoset", *argv]
         code = main(argv, tuple(tuple(c) for c in request["commands"]))
     except SystemExit as e:
-        code = e.code
-        if code is None:
+        if e.code is None:
             code = 0
-        elif not isinstance(code, int):
-            print(code, file=sys.stderr)
+        elif isinstance(e.code, int):
+            code = e.code
+        else:
+            print(e.code, file=sys.stderr)
             code = 1
     except KeyboardInterrupt:  # a Ctrl-C forwarded before the command's own handler was in place
         print("acinoset: interrupted", file=sys.stderr)
