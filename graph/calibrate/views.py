@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.calibrate.board import CHECKERBOARD, Board
-from graph.errors import InputError
+from graph.errors import InputError, unreadable
 
 
 @dataclass
@@ -70,10 +70,10 @@ def read_detections(path: str | Path, board: Board | None = None, name: str | No
     path = Path(path)
     try:
         doc = json.loads(path.read_text(encoding="utf-8-sig"))
-    except FileNotFoundError:
-        raise InputError("no such file", path) from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"cannot read detections: {e}", path) from None
+    except OSError as e:
+        raise unreadable(e, path, "a detections file") from None
+    except UnicodeDecodeError:
+        raise InputError("not a detections file (binary, not UTF-8 text)", path) from None
     except json.JSONDecodeError as e:
         raise InputError(f"not valid JSON (line {e.lineno}: {e.msg})", path) from None
     if not isinstance(doc, dict) or not isinstance(doc.get("points"), dict):

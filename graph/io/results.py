@@ -29,7 +29,7 @@ import numpy as np
 
 from graph import __version__
 from graph.camera import DISTORTION_SLOTS, Calibration, Camera
-from graph.errors import InputError
+from graph.errors import InputError, unreadable
 from graph.io.calibration import in_metres
 from graph.io.keypoints import Keypoints, spreadsheet_safe, write_dlc_csv
 from graph.types import Result, SolveOptions, SolveReport, jsonable
@@ -100,12 +100,10 @@ def read_anipose_csv(path: str | Path) -> Points3D:
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise InputError("no such file", path) from None
     except UnicodeDecodeError:
         raise InputError("not an Anipose CSV (binary, not UTF-8 text)", path) from None
     except OSError as e:
-        raise InputError(f"cannot read: {e.strerror}", path) from None
+        raise unreadable(e, path, "an Anipose CSV") from None
     rows = [r for r in csv.reader(text.splitlines()) if r]  # blank lines only; ",,," is a row
     if not rows:
         raise InputError("file is empty", path)
