@@ -67,6 +67,17 @@ def _bombs(d: Path) -> dict[str, str]:
         _set_attrs(g, {"pandas_type": b"frame_table", "table_type": b"appendable_frame"})
         t = g.create_dataset("table", shape=(2_000_000,), dtype=dtype, chunks=(10_000,), compression="gzip")
         _set_attrs(t, {"CLASS": b"TABLE", "values_block_0_kind": _Pickled(pickle.dumps(cols, protocol=0))})
+    strings = np.dtype([("index", "<i8"), ("values_block_0", "S20000", (60,))])
+    with h5py.File(d / "table_strings.h5", "w") as f:  # 50,000 rows of 60 strings of 20 kB, unwritten: 60 GB
+        g = f.create_group("df_with_missing")
+        _set_attrs(g, {"pandas_type": b"frame_table", "table_type": b"appendable_frame"})
+        t = g.create_dataset("table", shape=(50_000,), dtype=strings, chunks=(64,), compression="gzip")
+        _set_attrs(t, {"CLASS": b"TABLE", "values_block_0_kind": _Pickled(pickle.dumps(cols, protocol=0))})
+    _h5py_fixed(d / "fixed_level_bytes.h5", cols, np.zeros((2, 60)))
+    with h5py.File(d / "fixed_level_bytes.h5", "r+") as f:  # 100 labels of 10 MB each, unwritten: 1 GB
+        del f["df_with_missing/axis0_level1"]
+        f["df_with_missing"].create_dataset("axis0_level1", shape=(100,), dtype="S10000000", chunks=(1,),
+                                            compression="gzip")
     wide = 3 * 100_000  # 100,000 bodyparts in one header: every GET of such a job was megabytes
     (d / "wide.csv").write_text("scorer" + ",s" * wide + "\nbodyparts" + "".join(f",b{j // 3}" for j in range(wide))
                                 + "\ncoords" + ",x,y,likelihood" * (wide // 3) + "\n0" + ",1" * wide + "\n")
@@ -82,7 +93,8 @@ def _bombs(d: Path) -> dict[str, str]:
     _h5py_table(d / "deep_label.h5", _columns(["nose"]), np.zeros((3, 3)), kind_attr=deep)
     return {"fixed_rows.h5": "2000000 frames", "fixed_labels.h5": "bodyparts", "table_rows.h5": "2000000 frames",
             "wide.csv": "longer than", "long.csv": "more than 50000 frames", "nested_label.h5": "MultiIndex",
-            "deep_label.h5": "labels"}
+            "deep_label.h5": "labels", "table_strings.h5": "not numbers",
+            "fixed_level_bytes.h5": "10000000 bytes each; at most 4096"}
 
 
 def _mutants(d: Path, count: int, seed: int = 7) -> list[Path]:

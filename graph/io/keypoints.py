@@ -55,6 +55,7 @@ from graph.errors import InputError, TooLargeInput, unreadable
 from graph.io.keypoint_types import NO_LIMITS, Keypoints, ReadLimits
 
 CSV_BLOCK_ROWS = 4096  # rows parsed at a time
+MAX_LABEL_BYTES = 4096  # one column label of an H5 file (a scorer's, a bodypart's name)
 
 SINGLE = "single"  # DeepLabCut's pseudo-individual holding the unique bodyparts
 _LEVELS_SINGLE = ("scorer", "bodyparts", "coords")
@@ -306,6 +307,10 @@ def _h5_table(group, path: Path, limits: ReadLimits) -> tuple[list[tuple], np.nd
         raise InputError(f"H5 table has shape {table.shape}, expected one row per frame", path)
     limits.check_frames(table.shape[0], path)
     limits.check_columns(sum(int(np.prod(table.dtype[b].shape)) for b in blocks), path)
+    for b in blocks:  # the element size too: a 3 KB file of 50,000 unwritten rows of S20000 is a gigabyte read
+        base = table.dtype[b].base
+        if base.kind not in "fiub" or base.itemsize > 8:
+            raise InputError(f"H5 table's {b} holds {base} values, not numbers", path)
     data = table.fields(blocks)[()] if len(blocks) > 1 else {blocks[0]: table.fields(blocks[0])[()]}
     columns: list[tuple] = []
     parts = []
@@ -375,7 +380,9 @@ def _fixed_index(group, prefix: str, path: Path, limits: ReadLimits) -> list[tup
             if not hasattr(d, "shape") or d.ndim != 1:
                 raise InputError(f"H5 {d.name} is not a list of column labels", path)
             limits.check_columns(d.shape[0], path)
-        levels = [_text(x) for x in level_set[()]]
+        if code_set.dtype.kind not in "iu" or code_set.dtype.itemsize > 8:
+            raise InputError(f"H5 {code_set.name} codes are {code_set.dtype}, not integers", path)
+        levels = _labels(level_set, path)
         codes = np.asarray(code_set[()], dtype=np.int64)
         if codes.size and (codes.min() < -1 or codes.max() >= len(levels)):
             raise InputError(f"H5 {prefix}_label{i} codes out of range", path)
@@ -384,6 +391,26 @@ def _fixed_index(group, prefix: str, path: Path, limits: ReadLimits) -> list[tup
     if any(len(v) != n for v in level_values):
         raise InputError(f"H5 {prefix} levels differ in length", path)
     return [tuple(v[j] for v in level_values) for j in range(n)]
+
+
+def _labels(dataset, path: Path) -> list[str]:
+    """A level's labels, each at most :data:`MAX_LABEL_BYTES`, checked before they are read: from the
+    element size of fixed-length strings, one at a time for variable-length ones."""
+    kind, size = dataset.dtype.kind, dataset.dtype.itemsize
+    if kind in "SU" and size > MAX_LABEL_BYTES * (4 if kind == "U" else 1):
+        raise InputError(f"H5 {dataset.name} labels are {size} bytes each; at most {MAX_LABEL_BYTES}", path)
+    if kind == "O":
+        out = []
+        for i in range(dataset.shape[0]):
+            text = _text(dataset[i])
+            if len(text) > MAX_LABEL_BYTES:
+                raise InputError(f"H5 {dataset.name} label {i} is {len(text)} characters; at most {MAX_LABEL_BYTES}",
+                                 path)
+            out.append(text)
+        return out
+    if kind not in "SUiuf" or size > MAX_LABEL_BYTES * 4:
+        raise InputError(f"H5 {dataset.name} labels are {dataset.dtype}, not names", path)
+    return [_text(x) for x in dataset[()]]
 
 
 def _attr_bytes(value) -> bytes:
