@@ -83,16 +83,23 @@ def jobs_page() -> HTMLResponse:
     return _page("jobs.html", "Jobs")
 
 
+_DOT_SEGMENTS = {".", "..", "%2e", ".%2e", "%2e.", "%2e%2e"}  # what a browser's URL parser resolves away
+
+
 def same_origin_path(target: str) -> bool:
     """Whether ``target`` (a decoded ``next`` parameter) is a path on this server and nothing else:
     it starts with one ``/``, has no backslash or control character (browsers read ``/\\host``
-    and ``/\t/host`` as another host) and no scheme or host of its own."""
+    and ``/\t/host`` as another host), no scheme or host of its own, and no empty or dot segment in
+    its path (a browser resolves ``/.//host`` and ``/..//host`` to ``//host``, another host)."""
     if not target.startswith("/") or target.startswith("//"):
         return False
     if "\\" in target or any(ord(c) < 0x20 or ord(c) == 0x7F for c in target):
         return False
     parts = urlsplit(target)
-    return not parts.scheme and not parts.netloc
+    if parts.scheme or parts.netloc:
+        return False
+    segments = parts.path.split("/")[1:]
+    return not any(s.lower() in _DOT_SEGMENTS for s in segments) and "" not in segments[:-1]
 
 
 @router.get("/login", response_class=HTMLResponse)

@@ -24,7 +24,11 @@
     } catch (e) {
       return "/";
     }
-    if (url.origin !== location.origin || url.pathname.startsWith("/login")) return "/";
+    // the parser resolves dot segments: "/.//evil.example" becomes the path "//evil.example", which
+    // location.assign would read as another host
+    if (url.origin !== location.origin || url.pathname.startsWith("//") || url.pathname.startsWith("/login")) {
+      return "/";
+    }
     return url.pathname + url.search + url.hash;
   }
 

@@ -278,7 +278,8 @@ def test_offline_playback_file(browser, simulated_run, tmp_path):
 
 
 BAD_NEXT = ["/%5Cevil.example/", "/%09/evil.example/", "/%0a/evil.example/", "//evil.example/", "/%5C%5Cevil.example",
-            "https://evil.example/", "/%2F/evil.example/", "javascript:alert(1)"]
+            "https://evil.example/", "/%2F/evil.example/", "javascript:alert(1)", "/.//evil.example/",
+            "/..//evil.example/", "/%2e//evil.example/", "/jobs/..//evil.example/"]
 
 
 @pytest.mark.parametrize("bad", BAD_NEXT)
