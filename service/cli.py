@@ -144,13 +144,15 @@ def serve(args: argparse.Namespace) -> int:
     except DataDirInUse as e:
         raise Refused(str(e)) from None
     probe.release()
+    from service.settings import redacted
+
     if s.backend == "rq":
         try:
             from redis import Redis
 
             Redis.from_url(s.redis_url, socket_connect_timeout=3).ping()
         except Exception as e:
-            raise Refused(f"cannot reach Redis at {s.redis_url}: {e}") from None
+            raise Refused(f"cannot reach Redis at {redacted(s.redis_url)}: {e}") from None
 
     store = Store(s.db_path)
     n_users = len(store.users())
@@ -158,7 +160,7 @@ def serve(args: argparse.Namespace) -> int:
     shown = socket.gethostname() if s.host in ("0.0.0.0", "::") else s.host
     url = f"http://{shown}:{s.port}"
     how = (f"{s.workers} solves at once in this process's children" if s.backend == "embedded"
-           else f"solves on 'acinoset worker --redis-url {s.redis_url}' processes")
+           else f"solves on 'acinoset worker --redis-url {redacted(s.redis_url)}' processes")
     print(f"acinoset {_version()} serving on {url}  (API docs {url}/docs)", flush=True)
     print(f"  data dir {s.data_dir}; backend {s.backend}: {how}", flush=True)
     if n_users == 0:
@@ -189,8 +191,11 @@ def worker(args: argparse.Namespace) -> int:
     import socket
 
     from redis import Redis
-    from rq import Queue, Worker
+    from rq import Queue
     from rq.serializers import JSONSerializer
+
+    from service.backends.rq import project_worker_class
+    from service.settings import redacted
 
     s = _settings(args, "redis_url", "queue_name", "log_level")
     logging.basicConfig(level=s.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -198,7 +203,7 @@ def worker(args: argparse.Namespace) -> int:
     try:
         conn.ping()
     except Exception as e:
-        raise Refused(f"cannot reach Redis at {s.redis_url}: {e}") from None
+        raise Refused(f"cannot reach Redis at {redacted(s.redis_url)}: {e}") from None
     from service.run.worker import preload_modules, prepare_solver_environment
 
     prepare_solver_environment()  # work horses fork from this process
@@ -211,9 +216,9 @@ def worker(args: argparse.Namespace) -> int:
             pass
     queue = Queue(s.queue_name, connection=conn, serializer=JSONSerializer)
     name = args.name or f"{socket.gethostname()}.{os.getpid()}.{secrets.token_hex(2)}"
-    w = Worker([queue], connection=conn, serializer=JSONSerializer, name=name, worker_ttl=WORKER_TTL,
+    w = project_worker_class()([queue], connection=conn, serializer=JSONSerializer, name=name, worker_ttl=WORKER_TTL,
                job_monitoring_interval=max(1, int(round(s.heartbeat_seconds))))
-    print(f"acinoset worker {w.name}: taking jobs from {s.redis_url} queue {s.queue_name}", flush=True)
+    print(f"acinoset worker {w.name}: taking jobs from {redacted(s.redis_url)} queue {s.queue_name}", flush=True)
     try:
         w.work(burst=bool(args.burst), logging_level=s.log_level.upper())
     except ValueError as e:

@@ -247,7 +247,7 @@ class Redis(Proc):
             try:
                 with socket.create_connection(("127.0.0.1", self.port), timeout=1) as s:
                     s.sendall(b"PING\r\n")
-                    if s.recv(16).startswith(b"+PONG"):
+                    if s.recv(16).startswith((b"+PONG", b"-NOAUTH")):  # up (with a password: asks for it)
                         return self
             except OSError:
                 time.sleep(0.05)

@@ -30,10 +30,31 @@ import time
 from dataclasses import dataclass
 
 from service.backends.base import Backend, log
-from service.settings import Settings
+from service.settings import Settings, redacted
 from service.store import Job, Store
 
 RQ_FUNCTION = "service.run.worker.run_rq_job"
+
+
+def project_worker_class():
+    """RQ's ``Worker``, refusing every job whose function is not :data:`RQ_FUNCTION`.
+
+    RQ runs whatever importable function a job in its queue names (``os.system`` with arguments of
+    the enqueuer's choice), the JSON serializer notwithstanding: anyone who can write to Redis could
+    run code on every worker. A job naming another function is failed without being run (its
+    function never imported), and the worker says so in its log and goes on."""
+    from rq import Worker
+
+    class ProjectWorker(Worker):
+        def execute_job(self, job, queue):
+            name = job.func_name  # read from the job's JSON; nothing is imported to know it
+            if name != RQ_FUNCTION:
+                log.warning("refused RQ job %s: it names %r, not this project's %s", job.id, name, RQ_FUNCTION)
+                self.handle_job_failure(job, queue, exc_string=f"refused: {name!r} is not {RQ_FUNCTION}")
+                return
+            super().execute_job(job, queue)
+
+    return ProjectWorker
 
 
 def _rq():
@@ -164,7 +185,8 @@ class RQBackend(Backend):
             self.redis.ping()
             workers = Worker.count(queue=self.queue)
         except Exception as e:
-            return {"ok": False, "workers": 0, "detail": f"Redis at {self.settings.redis_url} unreachable: {e}"}
+            return {"ok": False, "workers": 0,
+                    "detail": f"Redis at {redacted(self.settings.redis_url)} unreachable: {e}"}
         alive = self._thread_alive()
         detail = None
         if not alive:

@@ -71,17 +71,26 @@ def test_serve_and_users_as_an_admin_would(tmp_path, small_run, long_run):
         server.stop()
 
 
-def test_the_compose_file_runs_an_api_two_workers_and_a_durable_redis():
+def test_the_compose_file_runs_an_api_two_workers_and_a_durable_redis_behind_a_password():
+    """Redis publishes no port and needs a password (security issue 25: it published 6379 on every
+    interface with none, and whoever reaches it can queue work for the workers); every service gets
+    the password through its environment, none on a command line."""
     import yaml
 
     doc = yaml.safe_load((ROOT / "docker" / "compose.yaml").read_text())
     services = doc["services"]
-    assert "--appendonly" in services["redis"]["command"]
-    assert services["redis"]["command"][services["redis"]["command"].index("--appendonly") + 1] == "yes"
+    redis = services["redis"]
+    assert "ports" not in redis and "--appendonly yes" in redis["command"][-1]
+    assert '--requirepass "$$ACINOSET_REDIS_PASSWORD"' in redis["command"][-1]
+    assert redis["environment"]["ACINOSET_REDIS_PASSWORD"].startswith("${ACINOSET_REDIS_PASSWORD:?")
     api = services["api"]["command"]
-    assert api[:2] == ["acinoset", "serve"] and "rq" in api and "redis://redis:6379/0" in api
+    assert api[:2] == ["acinoset", "serve"] and "rq" in api and not any("redis://" in a for a in api)
     workers = [s for s in services.values() if s.get("command", [])[:2] == ["acinoset", "worker"]]
     assert len(workers) == 2
+    for s in [services["api"], *workers]:
+        url = s["environment"]["ACINOSET_REDIS_URL"]
+        assert url.startswith("redis://:${ACINOSET_REDIS_PASSWORD:?") and url.endswith("@redis:6379/0")
+    assert [p for s in services.values() for p in s.get("ports", [])] == ["8000:8000"]
     dockerfile = (ROOT / "docker" / "Dockerfile").read_text()
     assert "pip install ." in dockerfile and 'CMD ["acinoset", "serve"' in dockerfile
 

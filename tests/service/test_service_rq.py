@@ -13,6 +13,7 @@ import pytest
 from servers import (
     Redis,
     Server,
+    acinoset,
     add_user,
     children,
     have_redis,
@@ -145,6 +146,56 @@ def test_rq_round_trip_gives_the_embedded_result(pool, client, small_run, tmp_pa
     r = redis_lib.Redis.from_url(pool.redis.url)
     left = [k for k in r.keys("rq:job:*") + r.keys("acinoset:*") if any(j.encode() in k for j in ids)]
     assert left == []
+
+
+def test_rq_workers_run_no_function_but_the_projects(pool, client, small_run, tmp_path):
+    """Anyone who can write to Redis can enqueue an RQ job naming any importable function (os.system
+    with a command of their choice), the JSON serializer notwithstanding. The project's workers fail
+    such a job without running it, and go on serving real ones."""
+    import redis as redis_lib
+    from rq import Queue
+    from rq.job import Job as RQJob
+    from rq.serializers import JSONSerializer
+
+    marker = tmp_path / "ran"
+    conn = redis_lib.Redis.from_url(pool.redis.url)
+    queue = Queue("acinoset", connection=conn, serializer=JSONSerializer)
+    foreign = [queue.enqueue("os.system", f"touch {marker}"), queue.enqueue("builtins.print", "hello")]
+    deadline = time.time() + 60
+    while time.time() < deadline and not all(j.get_status(refresh=True) == "failed" for j in foreign):
+        time.sleep(0.1)
+    assert [j.get_status(refresh=True) for j in foreign] == ["failed", "failed"]
+    assert not marker.exists()
+    assert "refused" in (RQJob.fetch(foreign[0].id, connection=conn, serializer=JSONSerializer).exc_info or "")
+    job = submit_ok(client, small_run, {"method": "tri", "skeleton": "points", "fps": small_run.fps})
+    assert wait_finished(client, job)["status"] == "succeeded"
+
+
+def test_rq_behind_a_password(tmp_path, small_run):
+    """Redis with requirepass, as docker/compose.yaml runs it: the server and a worker given the
+    password in the URL solve a job; a worker without it is refused in one line; the password is
+    in no log line and no answer."""
+    password = "pw-" + os.urandom(8).hex()
+    redis = Redis(tmp_path / "redis", tmp_path / "redis.log", config=("--requirepass", password)).start()
+    url = f"redis://:{password}@127.0.0.1:{redis.port}/0"
+    procs = [redis]
+    try:
+        token = add_user(tmp_path / "data", "pia")
+        srv = Server(tmp_path / "data", tmp_path / "server.log", backend="rq", redis_url=url, env=ENV).start()
+        procs.append(srv)
+        procs.append(worker(url, tmp_path / "w1.log", "w1").start())
+        no_password = acinoset("worker", "--redis-url", url.replace(f":{password}@", ""), "--burst")
+        assert no_password.returncode != 0 and "cannot reach Redis at redis://127.0.0.1" in no_password.stderr
+        assert password not in no_password.stderr + no_password.stdout
+        with srv.client(token) as c:
+            job = submit_ok(c, small_run, {"method": "tri", "skeleton": "points", "fps": small_run.fps})
+            assert wait_finished(c, job)["status"] == "succeeded"
+            assert password not in c.get("/healthz").text
+        for p in procs[1:]:
+            assert password not in p.log()
+    finally:
+        for p in reversed(procs):
+            p.stop(10)
 
 
 def test_rq_files_larger_than_a_redis_value_go_and_come_back_in_chunks(pool, client, tmp_path_factory):
