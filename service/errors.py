@@ -5,6 +5,8 @@ upload readers' processes raise them too (they pickle)."""
 
 from __future__ import annotations
 
+import re
+
 
 class JobError(Exception):
     """A request the job service refuses, with one line saying why."""
@@ -55,3 +57,19 @@ def storage_full(exc: BaseException) -> bool:
 
 
 DISK_FULL = "the server's disk is full; delete finished jobs to make room, or ask the admin"
+
+
+# An absolute path in a message (a server's file, say /srv/acinoset/jobs/<id>/input/keypoints/01/cam1.csv):
+# a slash not after a word character, a dot, a colon or a slash (so not inside a URL), then directories.
+_ABSOLUTE_PATH = re.compile(r"(?<![\w.:/])/(?:[^\s/'\"()<>,;:]+/)+([^\s/'\"()<>,;:]+)")
+
+
+def strip_paths(text: str) -> str:
+    """``text`` with every absolute path cut to its file name (:func:`without_paths`)."""
+    return _ABSOLUTE_PATH.sub(r"\1", text)
+
+
+def without_paths(text: str | None) -> str | None:
+    """``text`` with every absolute path cut to its file name: what the solver says of the server's
+    files names them the way the user uploaded them, not where the server keeps them."""
+    return None if text is None else strip_paths(text)

@@ -5,7 +5,6 @@ Separate from the job table (:mod:`service.store`): a :class:`JobOut` is built f
 
 from __future__ import annotations
 
-import re
 import time
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, Literal, cast
@@ -14,6 +13,7 @@ from pydantic import BaseModel, Field
 
 from graph.export import REGISTRY, available
 from graph.types import STAGES as SOLVER_STAGES
+from service.errors import strip_paths, without_paths
 from service.store import COMPILING, DONE, READING, RENDERING, STARTING, WRITING, ErrorKind, Job, JobStatus
 from service.store.jobfiles import DOWNLOADS, EXPORT_FILES, RESULT_FILES, download_name
 
@@ -244,27 +244,12 @@ def _created(t: float) -> datetime:
     return datetime.fromtimestamp(t, tz=timezone.utc)
 
 
-# An absolute path in a message (a server's file, say /srv/acinoset/jobs/<id>/input/keypoints/01/cam1.csv):
-# a slash not after a word character, a dot, a colon or a slash (so not inside a URL), then directories.
-_ABSOLUTE_PATH = re.compile(r"(?<![\w.:/])/(?:[^\s/'\"()<>,;:]+/)+([^\s/'\"()<>,;:]+)")
-
-
-def _without_paths(text: str) -> str:
-    return _ABSOLUTE_PATH.sub(r"\1", text)
-
-
-def without_paths(text: str | None) -> str | None:
-    """``text`` with every absolute path cut to its file name: what the solver says of the server's
-    files names them the way the user uploaded them, not where the server keeps them."""
-    return None if text is None else _without_paths(text)
-
-
 def summary_of(report: dict | None) -> ResultSummary | None:
     if not report:
         return None
     keys = ResultSummary.model_fields.keys() - {"formats"}
     summary = ResultSummary(**{k: report[k] for k in keys if report.get(k) is not None})
-    summary.warnings = [_without_paths(w) for w in summary.warnings]
+    summary.warnings = [strip_paths(w) for w in summary.warnings]
     return summary
 
 

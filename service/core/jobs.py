@@ -479,8 +479,11 @@ def export_result(job_dir: Path, fmt: str) -> None:
     h5 = result_path(job_dir, "h5")
     if not h5.is_file():
         return
+    from graph.io.calibration import load_calibration
+
     input_dir = job_dir / INPUT
-    calibration = jobfiles.inside(input_dir, jobfiles.read_manifest(input_dir)["calibration"])
+    path = jobfiles.inside(input_dir, jobfiles.read_manifest(input_dir)["calibration"])
+    calibration = dataclasses.replace(load_calibration(path), source=path.name)  # no server path in the file
     target = result_path(job_dir, fmt)
     tmp_dir = target.parent / f".export-{uuid.uuid4().hex}"  # the file keeps its name (TRC writes it inside)
     tmp_dir.mkdir()

@@ -20,6 +20,7 @@ tried again.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -33,6 +34,7 @@ from typing import Callable
 
 import numpy as np
 
+from service.errors import strip_paths
 from service.store import READING, RENDERING, WRITING, ErrorKind, jobfiles
 from service.store.jobfiles import (
     ERROR_LOG,
@@ -118,8 +120,21 @@ def load_inputs(input_dir: Path):
         options["skeleton"] = str(inside(input_dir, m["skeleton"]))
     opts = TypeAdapter(SolveOptions).validate_python(options)
     keypoints = [read_keypoints(inside(input_dir, rel), individual=opts.individual) for rel in m["keypoints"]]
+    for k, rel in zip(keypoints, m["keypoints"]):
+        k.source = Path(rel).name  # what the results say they came from: the upload's name, no server path
     calibration = load_calibration(inside(input_dir, m["calibration"]))
+    calibration = dataclasses.replace(calibration, source=Path(m["calibration"]).name)
     return keypoints, calibration, opts
+
+
+def without_server_paths(result):
+    """The result as its files are written for the user: the skeleton option by its file's name, and
+    no server path in a warning (the report, the H5 and every export say only the uploads' names)."""
+    skeleton = result.options.skeleton
+    if "/" in skeleton:
+        result = dataclasses.replace(result, options=dataclasses.replace(result.options, skeleton=Path(skeleton).name))
+    result.report.warnings = [strip_paths(w) for w in result.report.warnings]
+    return result
 
 
 # -- outputs -----------------------------------------------------------------------------------
@@ -183,7 +198,7 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
 
     progress.report(READING, 0.0)
     keypoints, calibration, options = load_inputs(input_dir)
-    result = solve(keypoints, calibration, options, progress=progress)
+    result = without_server_paths(solve(keypoints, calibration, options, progress=progress))
     progress.report(WRITING, 1.0, result.report.iterations, result.report.cost)
     report = write_results(result, out_dir, calibration)
     videos = input_videos(input_dir)
@@ -194,7 +209,8 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
             render_labelled_videos(result, videos, out_dir, progress)
         except InputError as e:  # the solve stands: the job succeeds, with the reason it has no videos
             shutil.rmtree(out_dir / VIDEOS_DIR, ignore_errors=True)
-            report["warnings"] = [*report.get("warnings", []), f"the labelled videos could not be rendered: {e}"]
+            report["warnings"] = [*report.get("warnings", []),
+                                  strip_paths(f"the labelled videos could not be rendered: {e}")]
             (out_dir / RESULT_FILES["report"][0]).write_text(json.dumps(report, indent=2))
     return report
 
