@@ -108,10 +108,15 @@ def parse_board(spec: str) -> Board:
     raise InputError(f"board: {usage}")
 
 
+MAX_SIDE = 1000  # squares or inner corners along one side of a board
+
+
 def _grid(text: str, usage: str) -> tuple[int, int]:
     m = _SIZE.match(text)
     if not m:
         raise InputError(f"board: {usage}")
+    if any(len(g) > 6 or int(g) > MAX_SIDE for g in m.groups()):
+        raise InputError(f"board: at most {MAX_SIDE} squares or corners a side, got {text[:40]!r}")
     return int(m.group(1)), int(m.group(2))
 
 

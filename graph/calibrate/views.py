@@ -14,13 +14,14 @@ its detection cache in the same layout, with a ``board`` spec and the source's i
 from __future__ import annotations
 
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from graph.calibrate.board import CHECKERBOARD, Board
+from graph.calibrate.board import CHECKERBOARD, MAX_SIDE, Board
 from graph.errors import InputError, unreadable
 
 
@@ -64,6 +65,9 @@ def frame_key(name: str) -> str:
 _DIGITS = re.compile(r"\d+")
 
 
+MAX_IMAGE_SIDE = 100_000  # pixels
+
+
 def read_detections(path: str | Path, board: Board | None = None, name: str | None = None) -> BoardViews:
     """Read a detections JSON (AcinoSet's layout). With ``board``, its shape must agree with the
     file's ``board_shape``, and a file's square length that differs from the board's is an error."""
@@ -76,22 +80,30 @@ def read_detections(path: str | Path, board: Board | None = None, name: str | No
         raise InputError("not a detections file (binary, not UTF-8 text)", path) from None
     except json.JSONDecodeError as e:
         raise InputError(f"not valid JSON (line {e.lineno}: {e.msg})", path) from None
+    except RecursionError:
+        raise InputError("not a detections file: arrays nested too deeply", path) from None
+    except ValueError:  # Python's limit on the digits of an integer (4300)
+        raise InputError("not a detections file: a number with thousands of digits", path) from None
     if not isinstance(doc, dict) or not isinstance(doc.get("points"), dict):
         raise InputError('not a detections file: no "points" object of frame -> corners', path)
     shape = None
     if "board_shape" in doc:
-        s = np.asarray(doc["board_shape"]).ravel()
-        if s.size != 2 or not np.all(s == np.round(s)) or not np.all(s > 0):
-            raise InputError(f"board_shape: expected [COLS, ROWS], got {doc['board_shape']!r}", path)
+        bs = doc["board_shape"]
+        if not (isinstance(bs, list) and len(bs) == 2
+                and all(_whole(v, MAX_SIDE) for v in bs)):
+            raise InputError(f"board_shape: expected [COLS, ROWS], got {str(bs)[:80]!r}", path)
+        s = np.asarray(bs)
         shape = (int(s[0]), int(s[1]))
     square = doc.get("board_square_len", doc.get("board_edge_len"))
     if square is not None and not (isinstance(square, (int, float)) and square > 0):
         raise InputError(f"board_square_len: expected a positive length, got {square!r}", path)
     if "camera_resolution" not in doc:
         raise InputError("camera_resolution missing ([width, height] of the images)", path)
-    res = np.asarray(doc["camera_resolution"]).ravel()
-    if res.size != 2 or not np.all(res > 0):
-        raise InputError(f"camera_resolution: expected [width, height], got {doc['camera_resolution']!r}", path)
+    res = doc["camera_resolution"]
+    if not (isinstance(res, list) and len(res) == 2
+            and all(_whole(v, MAX_IMAGE_SIDE) for v in res)):
+        raise InputError(f"camera_resolution: expected [width, height] in pixels (whole numbers up to "
+                         f"{MAX_IMAGE_SIDE}), got {str(res)[:80]}", path)
     size = (int(res[0]), int(res[1]))
     n = None
     if board is not None:
@@ -122,6 +134,12 @@ def read_detections(path: str | Path, board: Board | None = None, name: str | No
     meta = {k: doc[k] for k in ("board", "source_size", "source_mtime", "every") if k in doc}
     return BoardViews(name or path.stem, size, frames, np.stack(corners), str(path), shape,
                       float(square) if square is not None else None, meta)
+
+
+def _whole(v, most: int) -> bool:
+    """A whole number from 1 to ``most`` (``1920`` or ``1920.0``; not a bool, infinity or text)."""
+    return (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v == int(v)
+            and 0 < v <= most)
 
 
 def _flatten_points(pts) -> list:

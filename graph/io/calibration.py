@@ -60,13 +60,21 @@ def load_calibration(path: str | Path) -> Calibration:
         raise InputError("calibration file is empty", path)
     start = text.lstrip()[:1]
     if start in ("{", "["):  # JSON, or a TOML file that starts with a [table]
+        parsed, is_json = None, False
         try:
-            return _from_acinoset(json.loads(text), path)
+            parsed, is_json = json.loads(text), True
         except json.JSONDecodeError as e:
             if start == "{":
                 raise InputError(f"not valid JSON (line {e.lineno}: {e.msg})", path) from None
         except RecursionError:
             raise InputError(NESTED_TOO_DEEPLY, path) from None
+        except ValueError:  # Python's limit on an integer's digits (4300)
+            raise InputError("not a calibration file: a number with thousands of digits", path) from None
+        if is_json:
+            try:
+                return _from_acinoset(parsed, path)
+            except RecursionError:
+                raise InputError(NESTED_TOO_DEEPLY, path) from None
     try:
         doc = tomllib.loads(text)
     except RecursionError:
@@ -74,6 +82,8 @@ def load_calibration(path: str | Path) -> Calibration:
     except tomllib.TOMLDecodeError as e:
         kind = "JSON or TOML" if path.suffix.lower() not in (".toml", ".json") else path.suffix[1:].upper()
         raise InputError(f"not a calibration file: not valid {kind} ({e})", path) from None
+    except ValueError:  # Python's limit on an integer's digits (4300)
+        raise InputError("not a calibration file: a number with thousands of digits", path) from None
     return _from_anipose(doc, path)
 
 

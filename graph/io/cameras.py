@@ -49,6 +49,8 @@ def float_array(value, what: str, path: Path) -> np.ndarray:
     """``value`` as an array of finite float64 (a field ``what`` of the file ``path``)."""
     try:
         a = np.asarray(value, dtype=np.float64)
+    except OverflowError:  # an integer beyond any float (1 and 400 zeros)
+        raise InputError(f"{what}: a number too large for a float", path) from None
     except (TypeError, ValueError):
         raise InputError(f"{what}: expected numbers in a regular array", path) from None
     if not np.all(np.isfinite(a)):

@@ -161,6 +161,8 @@ class JobService:
             raise Unprocessable(f"options: not valid JSON ({e.msg} at line {e.lineno} column {e.colno})")
         except RecursionError:
             raise Unprocessable(f"options: {NESTED_TOO_DEEPLY}") from None
+        except ValueError:  # Python's limit on an integer's digits (4300)
+            raise Unprocessable("options: a number with thousands of digits") from None
         if not isinstance(data, dict):
             raise Unprocessable("options: must be a JSON object such as {\"method\": \"fte\", \"fps\": 120}")
         label = parse_label(data.pop("label", None))
