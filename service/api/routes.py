@@ -211,8 +211,10 @@ def list_videos(job_id: str, user: CurrentUser, jobs: Jobs) -> VideoList:
                                                                                            "format": "binary"}}}},
                206: {"description": "The byte range asked for (Range: bytes=A-B)",
                      "content": {"video/mp4": {"schema": {"type": "string", "format": "binary"}}}},
+               400: error_doc("A malformed Range header"),
                401: error_doc("No token, or the link's token was revoked or its user removed"),
-               **NOT_FOUND, 409: error_doc("The job has not succeeded (yet)")})
+               **NOT_FOUND, 409: error_doc("The job has not succeeded (yet)"),
+               416: error_doc("A Range beyond the end of the file")})
 def get_video(job_id: str, view: str, request: Request, jobs: Jobs,
               access: Annotated[str | None, Query(max_length=200, description="the access key of a link of GET "
                                                   "/v1/jobs/{id}/videos (instead of the Authorization header)")] = None
@@ -226,8 +228,26 @@ def get_video(job_id: str, view: str, request: Request, jobs: Jobs,
                                  "list the job's videos again for new links", headers={"WWW-Authenticate": "Bearer"})
     job = jobs.visible(holder or current_user(request), job_id)
     path = jobs.video_file(job, view)
+    _check_range(request.headers.get("range"), path.stat().st_size)
     return FileResponse(path, media_type="video/mp4", filename=f"{job.id}.{path.stem}.mp4",
                         content_disposition_type="inline", headers={"Cache-Control": "private, max-age=3600"})
+
+
+_RANGE = re.compile(r"^bytes=\s*(\d*)\s*-\s*(\d*)\s*(,\s*(\d*)\s*-\s*(\d*)\s*)*$")
+
+
+def _check_range(header: str | None, size: int) -> None:
+    """A ``Range`` header the file can answer, or the refusal as the API's other errors are, JSON
+    ``{"detail": ...}`` (the file response itself would answer plain text): 400 for a malformed one,
+    416 (with ``Content-Range: bytes */size``) for one that starts past the end."""
+    if header is None:
+        return
+    if len(header) > 1000 or not _RANGE.match(header):
+        raise HTTPException(400, f"Range: expected bytes=START-END, got {header[:60]!r}")
+    starts = [int(a) for a, b in re.findall(r"(\d*)\s*-\s*(\d*)", header.split("=", 1)[1]) if a]
+    if any(s >= size for s in starts):
+        raise HTTPException(416, f"Range: starts past the end of the file ({size} bytes)",
+                            headers={"Content-Range": f"bytes */{size}"})
 
 
 @router.get(

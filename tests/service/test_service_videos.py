@@ -78,6 +78,15 @@ def test_videos_answer_range_requests(served, job):
     assert part.status_code == 206, part.text
     assert part.content == whole[100:200]
     assert part.headers["content-range"] == f"bytes 100-199/{len(whole)}"
+    # a bad Range is refused as every API error is, JSON with a detail (it was 400 text/plain)
+    for bad in ("bytes=abc", "pages=1-2", "bytes=1-2,x"):
+        r = client.get(href, headers={"Range": bad})
+        assert r.status_code == 400 and r.headers["content-type"] == "application/json", (bad, r.text)
+        assert r.json()["detail"].startswith("Range: expected bytes=START-END")
+    r = client.get(href, headers={"Range": f"bytes={len(whole)}-"})
+    assert r.status_code == 416 and r.headers["content-range"] == f"bytes */{len(whole)}"
+    assert r.json()["detail"].startswith("Range: starts past the end")
+    assert client.get(href, headers={"Range": "bytes=-100"}).content == whole[-100:]  # the last 100 bytes
 
 
 def test_access_keys_open_one_job_only_and_are_checked(served, job):
