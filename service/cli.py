@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import functools
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -171,9 +172,27 @@ def serve(args: argparse.Namespace) -> int:
     # Requests are short and solves run elsewhere: hand the GIL over sooner than the 5 ms default so a
     # status poll does not queue behind an upload being stored.
     sys.setswitchinterval(0.001)
-    uvicorn.run(create_app(s), host=s.host, port=s.port, log_level=s.log_level, access_log=bool(args.access_log),
-                timeout_graceful_shutdown=10, limit_concurrency=s.max_connections, timeout_keep_alive=5)
+    config = uvicorn.Config(create_app(s), host=s.host, port=s.port, log_level=s.log_level,
+                            access_log=bool(args.access_log), timeout_graceful_shutdown=10,
+                            limit_concurrency=s.max_connections, timeout_keep_alive=5)
+    import logging
+
+    logging.getLogger("uvicorn.access").addFilter(_hide_access_keys)
+    uvicorn.Server(config).run()
     return 0
+
+
+_ACCESS_KEY = re.compile(r"([?&]access=)[^&\s]*")
+
+
+def _hide_access_keys(record) -> bool:
+    """The access log's request line without a video link's access key (``?access=KEY`` opens the
+    video to whoever holds the line): the key shown as ``***``."""
+    if isinstance(record.args, tuple) and len(record.args) >= 3 and isinstance(record.args[2], str):
+        args = list(record.args)
+        args[2] = _ACCESS_KEY.sub(r"\1***", args[2])
+        record.args = tuple(args)
+    return True
 
 
 def _version() -> str:
