@@ -263,8 +263,8 @@ def test_a_project_kept_to_its_folder_and_walks_bounded(tmp_path, monkeypatch):
 
 def test_a_millimetre_project_gets_millimetres(tmp_path):
     """A project calibrated in millimetres (Anipose's default: the board's units) gets pose-3d in
-    millimetres, as ``anipose triangulate`` writes it: the CSV is the H5's metres x 1000, and agrees
-    with aniposelib's own triangulation from the same calibration file, in its units."""
+    millimetres, as ``anipose triangulate`` writes it: the CSV is the H5's metres x 1000, and
+    aniposelib, reading the same calibration file, projects the CSV's points onto the detections."""
     from dataclasses import replace
 
     from graph.anipose import run_project
@@ -286,8 +286,10 @@ def test_a_millimetre_project_gets_millimetres(tmp_path):
     group = aniposelib.CameraGroup.load(str(root / "s" / "calibration" / "calibration.toml"))
     kps = [read_keypoints(p) for p in outcome.trial.pose_files]
     xy = np.stack([np.where((k.likelihood >= 0.5)[..., None], k.xy, np.nan) for k in kps])  # (C, N, M, 2)
-    theirs = group.triangulate(xy.reshape(len(kps), -1, 2), progress=False).reshape(csv.positions.shape)
-    gap, size = np.linalg.norm(csv.positions - theirs, axis=-1), np.linalg.norm(theirs, axis=-1)
-    # the same units: ours a median 12 mm from theirs (their DLT takes the simulated outliers in), the
-    # points 6.7 m from the origin; a CSV in metres would be 1000x off
-    assert np.nanmedian(gap) < 0.01 * np.nanmedian(size), f"{np.nanmedian(gap):.1f} of {np.nanmedian(size):.0f} mm"
+    P = csv.positions.reshape(-1, 3)
+    seen = np.isfinite(P).all(axis=1)
+    uv = np.full((len(kps), len(P), 2), np.nan)
+    uv[:, seen] = group.project(P[seen])  # aniposelib's projection (OpenCV's), in the file's units
+    err = np.linalg.norm(uv - xy.reshape(len(kps), -1, 2), axis=-1)
+    # the same units: a few px (the simulated noise and outliers); a CSV in metres projects thousands off
+    assert np.nanmedian(err) < 10.0, f"{np.nanmedian(err):.1f} px"
