@@ -19,6 +19,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 import graph
+from service.api.auth import TokenFailures
 from service.api.headers import SecurityHeaders
 from service.api.limits import UploadGuard
 from service.backends import make_backend
@@ -120,6 +121,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             backend = make_backend(settings, store)
             reader = UploadReader(settings.upload_readers, settings.upload_niceness)
             app.state.store = store
+            app.state.token_failures = TokenFailures(settings.max_token_failures_per_minute)
             app.state.backend = backend
             app.state.jobs = JobService(settings, store, backend, reader)
             backend.start()

@@ -60,6 +60,8 @@ class Settings(BaseSettings):
     upload_timeout_seconds: float = Field(1800.0, gt=0)  # a whole upload's body at most (408)
     max_receiving_uploads: int = Field(16, ge=1)  # upload bodies received at once (503 beyond)
     max_connections: int = Field(512, ge=1)  # open connections to the server (503 beyond)
+    # invalid tokens one address may send in a minute; past it every call from there is 429 for the minute
+    max_token_failures_per_minute: int = Field(30, ge=1)
     upload_readers: int = Field(2, ge=0, le=64)  # processes that read uploads (0: in the API process)
     upload_niceness: int = Field(5, ge=0, le=19)  # they yield the CPU to the API
     # a batch's Anipose project is read in a process of its own (service.run.batch_reader), within these (422 beyond)

@@ -29,7 +29,10 @@ def error_doc(description: str) -> dict[str, Any]:
     return {"model": ErrorBody, "description": description}
 
 
-AUTH_ERRORS: Responses = {401: error_doc("No token, or an unknown or revoked one")}
+AUTH_ERRORS: Responses = {401: error_doc("No token, or an unknown or revoked one"),
+                          429: error_doc("Too many invalid tokens from the caller's address in the last minute "
+                                         "(ACINOSET_MAX_TOKEN_FAILURES_PER_MINUTE); try again after Retry-After "
+                                         "seconds")}
 BAD_REQUEST: Responses = {422: error_doc("A request parameter or field is missing or malformed")}
 SERVER_ERROR: Responses = {500: error_doc("A fault of the server (logged there)")}
 # what every upload route may answer while it receives the body (service.core.uploads)

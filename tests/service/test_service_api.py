@@ -6,6 +6,7 @@ import json
 import subprocess
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from servers import PY, ROOT, Server, add_user, server_with_users, submit, submit_ok, wait_finished
@@ -365,3 +366,22 @@ def test_an_upload_after_the_api_threads_idled_out_is_read(alice, small_run):
     busy()
     second = submit(alice, small_run, FAST)
     assert second.status_code == 202, second.text
+
+
+def test_an_address_guessing_tokens_is_refused_for_a_minute(tmp_path):
+    """Tokens are 256-bit, but nothing slowed an address sending wrong ones (security issue 25, minor):
+    past the limit every call from it is 429 with Retry-After, a valid token's too, for the minute."""
+    data = tmp_path / "data"
+    token = add_user(data, "ann")
+    srv = Server(data, tmp_path / "server.log", env={"ACINOSET_MAX_TOKEN_FAILURES_PER_MINUTE": "5"}).start()
+    try:
+        with srv.client("x" * 43) as wrong, srv.client(token) as right:
+            assert right.get("/v1/me").status_code == 200
+            assert [wrong.get("/v1/me").status_code for _ in range(5)] == [401] * 5
+            r = wrong.get("/v1/me")
+            assert r.status_code == 429 and 50 <= int(r.headers["retry-after"]) <= 60, (r.status_code, r.headers)
+            assert r.json()["detail"].startswith("too many invalid tokens from this address")
+            assert right.get("/v1/me").status_code == 429
+            assert httpx.get(srv.url + "/healthz", timeout=30).status_code in (200, 503)  # needs no token
+    finally:
+        srv.stop()
