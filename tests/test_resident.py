@@ -480,3 +480,53 @@ def test_a_resident_runs_only_the_command_lines_it_knows():
     for name in ("os:system", "graph.app.cli:_run", "graph.app.cli"):
         with pytest.raises(ValueError):
             protocol.entry_function(name)
+
+
+def test_a_listener_that_is_not_the_resident_gets_nothing(run_dir, tmp_path):
+    """Another process listening at the resident's socket path (possible in a shared runtime folder):
+    the client sent it the solve's argv, folder, whole environment and its terminal (security issue
+    25). It checks the listener's credentials first (SO_PEERCRED: this uid and the pid in the lock the
+    resident holds); here the lock is held and names another pid, the listener gets no byte, and the
+    solve runs in the client's own process."""
+    import fcntl
+    import socket
+    import threading
+
+    env = make_env(tmp_path / "rt")
+    place = protocol.place_of(env)
+    place.dir.mkdir(parents=True, exist_ok=True)
+    lock = os.open(place.lock, os.O_RDWR | os.O_CREAT, 0o600)
+    fcntl.flock(lock, fcntl.LOCK_EX)  # held, as a live resident holds it, naming a pid not the listener's
+    os.write(lock, json.dumps({"pid": 1, "key": place.key, "ready": True}).encode())
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(str(place.socket))
+    listener.listen(4)
+    received: list[bytes] = []
+
+    def serve():
+        listener.settimeout(60)
+        try:
+            conn, _ = listener.accept()
+        except OSError:
+            return
+        conn.settimeout(5)
+        try:
+            while chunk := conn.recv(65536):
+                received.append(chunk)
+        except OSError:
+            pass
+        conn.close()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        out = tmp_path / "out"
+        out.mkdir()
+        proc = acinoset(env, *solve_args(run_dir, out), cwd=run_dir)
+        assert proc.returncode == 0, proc.stderr
+        assert (out / "run.csv").is_file()
+        thread.join(10)
+        assert b"".join(received) == b"", b"".join(received)[:200]
+    finally:
+        listener.close()
+        os.close(lock)

@@ -73,6 +73,26 @@ def solve(argv: list[str], commands, run_here: Callable[[], int], exit_when_serv
         start(place, env)
 
 
+def trusted_peer(sock: socket.socket, place: Place) -> bool:
+    """Whether the process listening at the other end of ``sock`` is this user's resident of
+    ``place``: its uid is ours and its pid is the one the resident wrote in the lock it holds
+    (``SO_PEERCRED``: the kernel's word, not the peer's). A socket path in a shared runtime folder
+    could be bound by another user's process; a solve's argv, folder, environment and terminal
+    must not go to it."""
+    try:
+        creds = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    except (OSError, AttributeError):  # no SO_PEERCRED on this system: no way to know, so no
+        return False
+    pid, uid, _ = struct.unpack("3i", creds)
+    if uid != os.getuid() or not protocol.lock_held(place.lock):
+        return False
+    try:
+        info = json.loads(place.lock.read_text(encoding="utf-8") or "{}")
+    except (OSError, ValueError):
+        return False
+    return isinstance(info, dict) and info.get("pid") == pid
+
+
 def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str], entry: str) -> int | None:
     """Steps 1-4 of the protocol; None if the solve was not taken (nothing was run)."""
     try:
@@ -83,6 +103,8 @@ def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str], ent
     try:
         sock.settimeout(CONNECT_TIMEOUT_S)
         sock.connect(str(place.socket))
+        if not trusted_peer(sock, place):  # nothing is sent to a listener that is not our resident
+            raise OSError("the process listening on the resident's socket is not its resident")
         sock.settimeout(ANSWER_TIMEOUT_S)
         umask = os.umask(0o022)
         os.umask(umask)
