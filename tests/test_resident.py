@@ -530,3 +530,13 @@ def test_a_listener_that_is_not_the_resident_gets_nothing(run_dir, tmp_path):
     finally:
         listener.close()
         os.close(lock)
+
+
+def test_only_what_a_solve_reads_of_the_environment_is_sent():
+    env = {"ACINOSET_RESIDENT_IDLE": "60", "NUMBA_NUM_THREADS": "2", "OMP_NUM_THREADS": "1", "HOME": "/home/a",
+           "PATH": "/usr/bin", "LC_ALL": "C.UTF-8", "COLUMNS": "120", "PYTHONPATH": "/src",
+           "AWS_SECRET_ACCESS_KEY": "k", "GITHUB_TOKEN": "t", "SSH_AUTH_SOCK": "/tmp/ssh", "OTHER": "x"}
+    sent = client.solve_env(env)
+    assert set(sent) == {"ACINOSET_RESIDENT_IDLE", "NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "HOME", "PATH", "LC_ALL",
+                         "COLUMNS", "PYTHONPATH"}
+    assert all(sent[k] == env[k] for k in sent)

@@ -73,6 +73,19 @@ def solve(argv: list[str], commands, run_here: Callable[[], int], exit_when_serv
         start(place, env)
 
 
+# what of the client's environment a solve reads (its options, numba's and the BLAS' threads, the
+# locale, the terminal's width for the progress bar, temporary and cache folders, the path to ffmpeg)
+SOLVE_ENV_PREFIXES = ("ACINOSET_", "NUMBA_", "OMP_", "OPENBLAS_", "MKL_", "XDG_", "LC_", "PYTHON")
+SOLVE_ENV_NAMES = frozenset({"HOME", "PATH", "LANG", "LANGUAGE", "TMPDIR", "TEMP", "TMP", "TERM", "COLUMNS", "LINES",
+                             "NO_COLOR", "TZ", "USER", "LOGNAME", "MPLBACKEND", "MPLCONFIGDIR"})
+
+
+def solve_env(env: dict[str, str]) -> dict[str, str]:
+    """The part of the client's environment the resident's child runs the solve in: what a solve
+    reads, not the rest (a shell's tokens and keys stay in the client)."""
+    return {k: v for k, v in env.items() if k in SOLVE_ENV_NAMES or k.startswith(SOLVE_ENV_PREFIXES)}
+
+
 def trusted_peer(sock: socket.socket, place: Place) -> bool:
     """Whether the process listening at the other end of ``sock`` is this user's resident of
     ``place``: its uid is ours and its pid is the one the resident wrote in the lock it holds
@@ -108,7 +121,7 @@ def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str], ent
         sock.settimeout(ANSWER_TIMEOUT_S)
         umask = os.umask(0o022)
         os.umask(umask)
-        body = json.dumps({"argv": argv, "cwd": os.getcwd(), "env": env, "umask": umask, "entry": entry,
+        body = json.dumps({"argv": argv, "cwd": os.getcwd(), "env": solve_env(env), "umask": umask, "entry": entry,
                            "commands": [[c.name, c.module, c.help] for c in commands]}).encode()
         sock.sendall(struct.pack(">Q", len(body)) + body)
         lines = Lines(sock)
