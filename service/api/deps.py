@@ -37,10 +37,10 @@ BAD_REQUEST: Responses = {422: error_doc("A request parameter or field is missin
 SERVER_ERROR: Responses = {500: error_doc("A fault of the server (logged there)")}
 # what every upload route may answer while it receives the body (service.core.uploads)
 UPLOAD_ERRORS: Responses = {400: error_doc("The body is not valid multipart/form-data"),
-                 408: error_doc("The upload stalled or took too long (ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS, "
-                                "ACINOSET_UPLOAD_TIMEOUT_SECONDS)"),
-                 503: error_doc("Too many uploads arriving at once; try again after Retry-After seconds"),
-                 507: error_doc("The server's disk or its storage for jobs is full")}
+                            408: error_doc("The upload stalled or took too long (ACINOSET_UPLOAD_IDLE_TIMEOUT_SECONDS, "
+                                           "ACINOSET_UPLOAD_TIMEOUT_SECONDS)"),
+                            503: error_doc("Too many uploads arriving at once; try again after Retry-After seconds"),
+                            507: error_doc("The server's disk or its storage for jobs is full")}
 
 # Declares the bearer scheme of every /v1 call in the spec; the check itself is service.api.auth's
 # (current_user), which answers 401 with the same challenge whether or not a token was sent.
