@@ -122,32 +122,21 @@ class CalibrationService:
 
     def _store_upload(self, detections: list[Upload], intrinsics: list[Upload], options: dict,
                       videos: bool = False) -> tuple[str, dict]:
-        from graph.calibrate import parse_board, read_detections
-        from graph.io.cameras import load_camera_json
-
+        """Write the files into a new job directory, streamed, and read them in the upload readers'
+        processes (:func:`service.core.uploads.inspect_calibration_upload`), not in the API's."""
         s = self.jobs.settings
-        board = parse_board(options["board"])
         with jobfiles.staged_input(s.jobs_dir) as (job_id, input_dir):
             det_paths = [_save(u, input_dir / (VIDEOS_DIR if videos else DETECTIONS_DIR) / f"{i + 1:02d}",
                                f"camera{i + 1}.mp4" if videos else f"camera{i + 1}.json", videos)
                          for i, u in enumerate(detections)]
             cam_paths = [_save(u, input_dir / INTRINSICS_DIR / f"{i + 1:02d}", f"camera{i + 1}.json")
                          for i, u in enumerate(intrinsics)]
-            described = []
-            try:
-                for p in det_paths if videos else []:
-                    described.append({"name": p.name, "bytes": p.stat().st_size, **_video_facts(p)})
-                for p in [] if videos else det_paths:
-                    views = read_detections(p, board)
-                    described.append({"name": p.name, "bytes": p.stat().st_size, "views": len(views.frames),
-                                      "resolution": list(views.image_size)})
-                for p in cam_paths:
-                    load_camera_json(str(p))
-            except InputError as e:
-                raise Unprocessable(str(e)) from None
+            rel = lambda p: p.relative_to(input_dir).as_posix()  # noqa: E731
+            described = self.jobs.reader.inspect_calibration(
+                input_dir=str(input_dir), views=[rel(p) for p in det_paths], intrinsics=[rel(p) for p in cam_paths],
+                board=options["board"], videos=videos)
             inputs = {"cameras": len(det_paths), "videos" if videos else "detections": described,
                       "intrinsics": [{"name": p.name, "bytes": p.stat().st_size} for p in cam_paths]}
-            rel = lambda p: p.relative_to(input_dir).as_posix()  # noqa: E731
             manifest = {"kind": CALIBRATION_KIND, "videos" if videos else "detections": [rel(p) for p in det_paths],
                         "intrinsics": [rel(p) for p in cam_paths], "options": options}
             jobfiles.write_manifest(input_dir, manifest)
@@ -207,17 +196,3 @@ def _save(upload: Upload, dest_dir: Path, default: str, video: bool = False) -> 
         shutil.copyfileobj(upload.file, f, 1 << 20)
     return path
 
-
-def _video_facts(path: Path) -> dict:
-    """Frames and size of a video, from its first frame; :class:`Unprocessable` if OpenCV cannot read it."""
-    import cv2
-
-    cap = cv2.VideoCapture(str(path))
-    try:
-        ok, frame = cap.read() if cap.isOpened() else (False, None)
-        if not ok or frame is None:
-            raise Unprocessable(f"{path.name}: not a video OpenCV can read")
-        return {"frames": int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None,
-                "resolution": [int(frame.shape[1]), int(frame.shape[0])]}
-    finally:
-        cap.release()

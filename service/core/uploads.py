@@ -1,10 +1,13 @@
 """Reading an upload with the core's readers, in helper processes.
 
 :func:`inspect_upload` reads a job's stored input files the way the solve will (keypoints,
-calibration, skeleton) and describes them, or says in one line what is wrong. It is CPU work that
-holds the GIL for tens of milliseconds per file, so :class:`UploadReader` runs it in a small pool
-of processes of its own: a burst of uploads does not stall the status polls the API answers
-meanwhile, and a file that makes a reader crash or blow up takes down a helper, not the server.
+calibration, skeleton) and describes them, or says in one line what is wrong;
+:func:`inspect_calibration_upload` does the same for a calibration's detections JSON (or videos)
+and intrinsics. It is CPU work that holds the GIL for tens of milliseconds per file (a detections
+JSON of 60,000 views: seconds, and hundreds of MB of Python objects), so :class:`UploadReader`
+runs it in a small pool of processes of its own: a burst of uploads does not stall the status
+polls the API answers meanwhile, the memory a parse takes is the helper's and is given back when
+it ends, and a file that makes a reader crash or blow up takes down a helper, not the server.
 The helpers are spawned, not forked from the solves' forkserver: that one compiles the solver's
 kernels before it forks anything (a minute and a half on a new install), and an upload must not
 wait for it. A helper imports only the readers (about a second, once per helper).
@@ -74,6 +77,56 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
     }
 
 
+def inspect_calibration_upload(input_dir: str, views: list[str], intrinsics: list[str], board: str,
+                               videos: bool = False) -> list[dict]:
+    """Read a calibration's stored files (paths relative to ``input_dir``) the way its run will:
+    each of ``views`` a detections JSON read against ``board`` (a board spec), or with ``videos`` a
+    video whose first frame OpenCV can read; each of ``intrinsics`` an AcinoSet camera JSON.
+    Returns the description of each view file for the job table; raises
+    :class:`~service.errors.Unprocessable` in one line naming the file."""
+    from graph.calibrate import parse_board, read_detections
+    from graph.errors import NESTED_TOO_DEEPLY, InputError
+    from graph.io.cameras import load_camera_json
+
+    base = Path(input_dir)
+    grid = parse_board(board)
+    described = []
+    try:
+        for path in (inside(base, rel) for rel in views):
+            if videos:
+                described.append({"name": path.name, "bytes": path.stat().st_size, **video_facts(path)})
+            else:
+                found = read_detections(path, grid)
+                described.append({"name": path.name, "bytes": path.stat().st_size, "views": len(found.frames),
+                                  "resolution": list(found.image_size)})
+        for rel in intrinsics:
+            load_camera_json(str(inside(base, rel)))
+    except InputError as e:
+        raise Unprocessable(str(e)) from None
+    except RecursionError:
+        raise Unprocessable(f"upload: {NESTED_TOO_DEEPLY}") from None
+    except (OSError, ValueError, KeyError, IndexError, TypeError, UnicodeDecodeError, MemoryError) as e:
+        filename = getattr(e, "filename", None)
+        where = Path(filename).name if filename else "upload"
+        raise Unprocessable(f"{where}: cannot be read ({type(e).__name__}: {e})") from None
+    return described
+
+
+def video_facts(path: Path) -> dict:
+    """Frames and size of a video, from its first frame; :class:`Unprocessable` if OpenCV cannot read it."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    try:
+        ok, frame = cap.read() if cap.isOpened() else (False, None)
+        if not ok or frame is None:
+            raise Unprocessable(f"{path.name}: not a video OpenCV can read")
+        return {"frames": int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None,
+                "resolution": [int(frame.shape[1]), int(frame.shape[0])]}
+    finally:
+        cap.release()
+
+
 def recorded_frame_rate(keypoints: list[float | None], videos: list[float]) -> float | None:
     """The frame rate the upload records: the keypoint files' (SLEAP's may record one, DeepLabCut's
     never do), else the videos'; None when neither does, or when those that do disagree."""
@@ -104,7 +157,8 @@ def _helper_init(niceness: int) -> None:
 
 
 class UploadReader:
-    """:func:`inspect_upload` in ``processes`` helper processes (0: in the calling thread), run at
+    """:func:`inspect_upload` (and :func:`inspect_calibration_upload`) in ``processes`` helper
+    processes (0: in the calling thread), run at
     a lower priority than the API (``niceness``) so that a burst of uploads waits for the CPU
     rather than the status polls.
 
@@ -130,18 +184,26 @@ class UploadReader:
             return self._pool
 
     def inspect(self, **kwargs) -> dict:
+        """:func:`inspect_upload` of a job's files."""
+        return self._run(inspect_upload, Path(kwargs["keypoints"][0]).name, **kwargs)
+
+    def inspect_calibration(self, **kwargs) -> list[dict]:
+        """:func:`inspect_calibration_upload` of a calibration's files."""
+        return self._run(inspect_calibration_upload, Path(kwargs["views"][0]).name, **kwargs)
+
+    def _run(self, read, first: str, **kwargs):
         if self.processes <= 0:
-            return inspect_upload(**kwargs)
+            return read(**kwargs)
         pool = self._executor()
         try:
-            return self._handover.submit(lambda: pool.submit(inspect_upload, **kwargs)).result().result()
+            return self._handover.submit(lambda: pool.submit(read, **kwargs)).result().result()
         except BrokenProcessPool:
             with self._lock:
                 if self._pool is pool:
                     self._pool = None
             pool.shutdown(wait=False, cancel_futures=True)
-            raise Unprocessable(f"{Path(kwargs['keypoints'][0]).name} ...: reading the upload crashed a reader "
-                               "process (a malformed or oversized file?)") from None
+            raise Unprocessable(f"{first} ...: reading the upload crashed a reader process (a malformed or "
+                               "oversized file?)") from None
 
     def close(self) -> None:
         with self._lock:

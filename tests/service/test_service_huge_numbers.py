@@ -88,3 +88,38 @@ def test_a_number_no_reader_foresaw_is_a_422_naming_it(client, case):
     assert r.status_code == 422, (case, r.status_code, r.text[:300])
     detail = r.json()["detail"]
     assert words in detail and "\n" not in detail and "internal error" not in detail, (case, detail)
+
+
+# -- a detections file too large to parse in the process that serves everyone ----------------------
+
+def _peak_rss(pid: int) -> int:
+    status = open(f"/proc/{pid}/status").read()
+    return int(next(line for line in status.splitlines() if line.startswith("VmHWM:")).split()[1]) * 1024
+
+
+def test_a_calibrations_detections_are_parsed_outside_the_api_process(client):
+    """Two cameras' detections of 20,000 views each (22 MB of JSON, 2 million corners): parsed in the
+    API process, its peak memory rose by hundreds of MB (the Python objects of the whole file); read
+    in the upload readers' processes, by little more than the streamed copy's buffers. The files are
+    real detections files (they calibrate) and the job is accepted."""
+    import numpy as np
+
+    srv, token, _ = client
+    rng = np.random.default_rng(0)
+    corners = np.mgrid[0:9, 0:6].T.reshape(-1, 2) * 40.0 + 300.0
+    views = {f"{n}.png": (corners + rng.normal(0, 0.3, corners.shape)).reshape(6, 9, 2).round(3).tolist()
+             for n in range(20_000)}
+    text = json.dumps({**GOOD, "points": views}).encode()
+    assert len(text) > 20e6
+    files = [("detections", (f"points_cam{k}.json", text, "application/json")) for k in (1, 2)]
+    del views
+    open(f"/proc/{srv.pid}/clear_refs", "w").write("5")  # the peak starts again from now
+    before = _peak_rss(srv.pid)
+    with srv.client(token) as c:
+        r = c.post("/v1/calibrations", files=files, data={"board": "checkerboard:9x6:0.03"}, timeout=300)
+        assert r.status_code == 202, r.text[:300]
+        grew = _peak_rss(srv.pid) - before
+        assert c.delete(f"/v1/calibrations/{r.json()['id']}").status_code in (200, 204)
+    described = r.json()["inputs"]["detections"]
+    assert [d["views"] for d in described] == [20_000, 20_000]
+    assert grew < 64 * 2**20, f"the API process's peak memory grew by {grew / 2**20:.0f} MiB"
