@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from shared_data import ACINOSET_CALIB, EKS_FLY
 
 from graph.calibrate import bundle
 from graph.calibrate.board import parse_board
@@ -27,7 +28,7 @@ from graph.errors import InputError
 from graph.io.calibration import load_calibration
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / "tests" / "data" / "acinoset_calib"  # AcinoSet's public detections and results (SOURCE.md)
+DATA = ACINOSET_CALIB  # AcinoSet's public detections and results (SOURCE.md)
 INTRINSIC = DATA / "intrinsic_calib_2021"
 EX1 = DATA / "Ex1_static"
 BOARD_2021 = "checkerboard:9x6:0.031"
@@ -502,9 +503,8 @@ def test_refine_on_a_real_recording_in_millimetres(tmp_path):
     frames): GTSAM once found a step's linear system indeterminate there and the command died with
     its traceback; a damped step is now tried instead. The changes are reported in millimetres of
     the rig's own units (they had been read as metres: a camera 'moved 15 m' on a rig 0.11 m across)."""
-    fly = next((b / "shared" / "data" / "eks_fly" for b in Path(__file__).resolve().parents
-                if (b / "shared" / "data" / "eks_fly").is_dir()), None)
-    if fly is None:
+    fly = EKS_FLY
+    if not fly.is_dir():
         pytest.skip("the shared eks_fly data is not here")
     paths = []
     for cam in "ABC":

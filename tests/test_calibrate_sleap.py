@@ -5,10 +5,9 @@ must make side agree with the others on the mouse's keypoints."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from shared_data import SLEAP_MINIMAL, needs
 
 from graph.calibrate import calibrate_extrinsics, parse_board
 from graph.calibrate.detect import detect_views
@@ -18,10 +17,10 @@ from graph.io.keypoints import read_keypoints
 from graph.metrics import leave_one_camera_out
 from graph.types import SolveOptions
 
-SESSION = Path("/work/shared/data/sleap_minimal")
+SESSION = SLEAP_MINIMAL
 CAMERAS = ("back", "mid", "side", "top")
 BOARD = "charuco:8x11:0.024:0.01875:DICT_4X4_1000"  # the session's board.toml, in metres
-pytestmark = pytest.mark.skipif(not SESSION.is_dir(), reason="the SLEAP session is not on this machine")
+pytestmark = needs(SESSION)
 
 
 def test_frames_match_by_the_last_number_in_their_names():

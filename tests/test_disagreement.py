@@ -6,10 +6,10 @@ from __future__ import annotations
 import dataclasses
 import re
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
+from shared_data import SLEAP_MINIMAL
 
 from graph.api import SolveOptions, solve
 from graph.camera import Calibration
@@ -18,7 +18,7 @@ from graph.io.keypoints import read_keypoints
 from graph.simulate import simulate_run
 from graph.solve import disagreement, problem
 
-SESSION = Path("/work/shared/data/sleap_minimal")
+SESSION = SLEAP_MINIMAL
 CAMERAS = ("back", "mid", "side", "top")
 NAMED = re.compile(r"camera (\w+) disagrees with the others: its detections sit (\d+) px")
 

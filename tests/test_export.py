@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from shared_data import EKS_FLY
 
 from graph.errors import InputError
 from graph.export import export, load_input
@@ -23,11 +24,9 @@ TOL = 1e-6  # metres
 
 
 def _shared_data() -> Path:
-    for base in Path(__file__).resolve().parents:
-        p = base / "shared" / "data" / "eks_fly"
-        if p.is_dir():
-            return p
-    pytest.skip("the shared eks_fly data is not here")
+    if not EKS_FLY.is_dir():
+        pytest.skip("the shared eks_fly data is not here")
+    return EKS_FLY
 
 
 @pytest.fixture(scope="module")

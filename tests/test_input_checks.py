@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from shared_data import EKS_FLY
 
 from graph.api import SolveOptions, solve
 from graph.errors import InputError
@@ -42,9 +43,7 @@ def test_file_names_give_the_camera_order_only_when_they_say_it():
 
 
 def test_the_command_refuses_files_named_for_other_cameras(tmp_path):
-    from pathlib import Path
-
-    fly = Path(__file__).resolve().parents[2] / "shared" / "data" / "eks_fly"
+    fly = EKS_FLY
     if not fly.is_dir():
         pytest.skip("the shared real recording is not beside the project")
     proc = subprocess.run([sys.executable, "-m", "graph.app.cli", "solve", str(fly / "camB.rng1.csv"),

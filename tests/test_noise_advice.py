@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import re
 import warnings
-from pathlib import Path
 
 import pytest
+from shared_data import EKS_FLY
 
 from graph.api import SolveOptions, solve
 from graph.io.calibration import default_rig_path, load_calibration
@@ -18,7 +18,7 @@ from graph.metrics import leave_one_camera_out
 from graph.simulate import simulate_run
 from graph.solve import disagreement, problem
 
-FLY = Path("/work/shared/data/eks_fly")
+FLY = EKS_FLY
 ADVICE = re.compile(r"set the detection noise to ([\d.]+) px")
 
 

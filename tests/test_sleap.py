@@ -12,15 +12,16 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from shared_data import SLEAP_MINIMAL, needs
 
 from graph.errors import InputError, TooLargeInput
 from graph.io.keypoints import ReadLimits, read_keypoints
 
-SESSION = Path("/work/shared/data/sleap_minimal")
+SESSION = SLEAP_MINIMAL
 CAMERAS = ("back", "mid", "side", "top")
 NODES = ["Nose", "Ear_R", "Ear_L", "TTI", "TailTip", "Head", "Trunk", "Tail_0", "Tail_1", "Tail_2",
          "Shoulder_left", "Shoulder_right", "Haunch_left", "Haunch_right", "Neck"]
-pytestmark = pytest.mark.skipif(not SESSION.is_dir(), reason="the SLEAP session is not on this machine")
+pytestmark = needs(SESSION)
 
 
 def analysis(camera: str) -> Path:

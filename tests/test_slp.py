@@ -13,15 +13,16 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from shared_data import SLEAP_MINIMAL, needs
 
 from graph.errors import InputError, TooLargeInput
 from graph.io.keypoints import ReadLimits, read_keypoints
 
 sio = pytest.importorskip("sleap_io")
 
-SESSION = Path("/work/shared/data/sleap_minimal")
+SESSION = SLEAP_MINIMAL
 CAMERAS = ("back", "mid", "side", "top")
-pytestmark = pytest.mark.skipif(not SESSION.is_dir(), reason="the SLEAP session is not on this machine")
+pytestmark = needs(SESSION)
 
 
 def slp(camera: str) -> Path:

@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from servers import Redis, Server, add_user, have_redis, server_with_users, wait_finished, worker
+from shared_data import ACINOSET_CALIB
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "acinoset_calib"
+DATA = ACINOSET_CALIB
 EX1 = [DATA / "Ex1_static" / f"points_cam{n}.json" for n in (3, 4)]
 INTRINSICS = [DATA / "intrinsic_calib_2021" / f"camera_{n}.json" for n in (3, 4)]
 SBA_BASELINE_M = 0.3924  # AcinoSet's bundle-adjusted scene of the pair (SOURCE.md)

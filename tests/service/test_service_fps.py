@@ -11,11 +11,12 @@ import h5py
 import pytest
 from fastapi.testclient import TestClient
 from servers import add_user
+from shared_data import SLEAP_MINIMAL
 
 from service.app import create_app
 from service.settings import Settings
 
-SESSION = Path("/work/shared/data/sleap_minimal")
+SESSION = SLEAP_MINIMAL
 CAMERAS = ("back", "mid", "side", "top")
 
 

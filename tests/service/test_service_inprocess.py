@@ -6,12 +6,12 @@ from __future__ import annotations
 import json
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from servers import add_user
+from shared_data import EKS_FLY, needs
 
 import graph
 from service.app import create_app
@@ -126,7 +126,7 @@ def test_nan_infinite_or_impossible_options_are_422_and_leave_nothing(app_client
     assert set(jobs_dir.iterdir()) == before
 
 
-FLY = Path("/work/shared/data/eks_fly") if Path("/work/shared/data/eks_fly").is_dir() else None
+FLY = EKS_FLY
 
 
 def _fly_files() -> list:
@@ -135,7 +135,7 @@ def _fly_files() -> list:
     return files
 
 
-@pytest.mark.skipif(FLY is None, reason="needs the fly recording")
+@needs(FLY)
 def test_a_skeleton_matching_no_bodypart_is_refused_at_upload_with_the_points_hint(app_client):
     """Issue item 5: the fly's legs under the cheetah skeleton were accepted (202) and failed 0.4 s later."""
     jobs_dir = app_client.app.state.settings.jobs_dir

@@ -7,12 +7,12 @@ download format and the job's own answer are searched for the data dir."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 from servers import ROOT, Server, add_user, wait_finished
+from shared_data import SLEAP_MINIMAL, needs
 
-SESSION = Path("/work/shared/data/sleap_minimal")
+SESSION = SLEAP_MINIMAL
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +53,7 @@ def test_an_uploaded_skeleton_and_calibration_are_named_by_their_file_names(serv
         assert b"/input/" not in content, fmt
 
 
-@pytest.mark.skipif(not SESSION.is_dir(), reason="the SLEAP session is not on this machine")
+@needs(SESSION)
 def test_warnings_that_name_the_inputs_name_them_without_the_server_path(server):
     client, data = server
     files = [("keypoints", (f"{c}.analysis.h5", (SESSION / c / f"minimal_{c}_proofread.analysis.h5").read_bytes(),

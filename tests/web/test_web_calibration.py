@@ -11,8 +11,9 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from shared_data import ACINOSET_CALIB
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "acinoset_calib"
+DATA = ACINOSET_CALIB
 
 
 def _calibrate(base: str, token: str) -> str:
