@@ -142,8 +142,9 @@ def test_uncertainty_can_be_skipped(run):
 
 def test_initial_poses_from_exact_points_are_exact(rig):
     """Inverse kinematics on the true 3D points gives back the true pose: under a millimetre on
-    average (the weak pull towards the previous frame costs at most a few millimetres where the
-    legs swing fastest)."""
+    average (the weak pull towards the previous frame, and the 5-frame running median the points go
+    through first, cost at most a few millimetres where the legs swing fastest: 4 without the median,
+    5.6 with it)."""
     from graph.solve.initial import initial_poses
 
     run = simulate_run(rig, frames=120, fps=120, noise=0.0, outliers=0.0, seed=2)
@@ -152,7 +153,7 @@ def test_initial_poses_from_exact_points_are_exact(rig):
     X[:, [prob.skeleton.markers.index(m) for m in run.markers]] = run.positions
     Q = initial_poses(prob, X)
     err = np.linalg.norm(prob.skeleton.positions(Q) - X, axis=-1)
-    assert np.nanmean(err) < 1e-3 and np.nanmax(err) < 4e-3, \
+    assert np.nanmean(err) < 1e-3 and np.nanmax(err) < 7e-3, \
         f"{np.nanmean(err) * 1000:.1f}, {np.nanmax(err) * 1000:.1f} mm"
 
 
@@ -255,3 +256,18 @@ def test_the_start_leaves_a_wrong_tail_branch_a_frame_of_outliers_put_it_on():
     good = tri < 0.04
     assert good.sum() > 250
     assert np.percentile(start[good], 95) < 0.06, np.percentile(start[good], 95)
+
+
+@pytest.mark.parametrize("length_over_noise", [0.5, 1.5, 4.0, 20.0])
+def test_a_bone_measured_between_noisy_points_is_not_longer_than_the_bone(length_over_noise):
+    """The median of ``|L e + n|``, ``n ~ N(0, tau^2 I_3)``, is longer than ``L`` (at ``L = tau``
+    by some 60 %); :func:`unbiased_length` gives ``L`` back from it (within the sample's own
+    scatter), and NaN where the distances are no longer than the noise alone makes them."""
+    from graph.solve.initial import unbiased_length
+
+    tau, L = 0.08, 0.08 * length_over_noise
+    n = np.random.default_rng(int(length_over_noise * 10)).normal(0, tau, (200_000, 3))
+    d = np.linalg.norm(np.array([L, 0.0, 0.0]) + n, axis=1)
+    assert np.median(d) > L * 1.001
+    assert unbiased_length(float(np.median(d)), tau) == pytest.approx(L, rel=0.02, abs=0.002)
+    assert np.isnan(unbiased_length(0.9 * tau, tau))
