@@ -3,7 +3,7 @@
     .venv/bin/python bench/bench_fly_loco.py [--data DIR] [--repeats 3] [--eks-repeats 1]
                                             [--eks-python eks-venv/bin/python]
 
-The data (``/work/shared/data/eks_fly``, see its SOURCE.md): a tethered fly, 3 cameras of 832x632 px,
+The data (:data:`harness.EKS_FLY`, see its SOURCE.md): a tethered fly, 3 cameras of 832x632 px,
 500 frames, 12 leg keypoints, two DeepLabCut ensemble members per camera (``camX.rng1.csv``,
 ``camX.rng2.csv``), an Anipose calibration in millimetres with near-telecentric lenses. There is no
 3D truth, so every method is scored by :func:`graph.metrics.leave_one_camera_out`: for each camera,
@@ -68,7 +68,7 @@ from graph.io.keypoints import read_keypoints
 from graph.metrics import leave_one_camera_out, loco_difference
 from graph.solve.ensemble import combine
 
-DATA = Path("/work/shared/data/eks_fly")
+DATA = h.EKS_FLY
 FPS = 300.0  # assumed (SOURCE.md)
 LETTERS = "ABC"
 

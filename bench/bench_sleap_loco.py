@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/bench_sleap_loco.py [--data DIR] [--repeats 1] [--out sleap_loco]
 
-The data (``/work/shared/data/sleap_minimal``, see its SOURCE.md): one mouse, four cameras (back, mid,
+The data (:data:`harness.SLEAP_MINIMAL`, see its SOURCE.md): one mouse, four cameras (back, mid,
 side, top; 1280x1024), SLEAP's proofread predictions per camera as analysis HDF5 files
 (``<cam>/minimal_<cam>_proofread.analysis.h5``, read by :mod:`graph.io.sleap`), 120 frames of 15
 nodes, 30 frames per second, and the Anipose calibration in millimetres. Its entry for ``side`` is a
@@ -50,7 +50,7 @@ from graph.io.keypoints import read_keypoints
 from graph.metrics import leave_one_camera_out, loco_difference
 from graph.solve import disagreement, problem
 
-DATA = Path("/work/shared/data/sleap_minimal")
+DATA = h.SLEAP_MINIMAL
 CAMERAS = ("back", "mid", "side", "top")
 FPS = 30.0
 

@@ -11,6 +11,10 @@ sigma 100 px. In the paper's protocol an outlier is indistinguishable by its lik
 every outlier keeps a high likelihood (``confident_outliers=1``): no method can drop them by the
 likelihood threshold. ``--realistic`` runs the simulator's default instead (30 % confident, the
 rest with a low likelihood that the threshold removes).
+
+The benchmarks on real recordings read them in place from the shared data folder (:data:`SHARED_DATA`:
+``$ACINOSET_SHARED_DATA`` when set, otherwise the first ``shared/data`` beside the project root or
+beside one of its ancestors); nothing of it is copied into the project.
 """
 
 from __future__ import annotations
@@ -39,6 +43,21 @@ from graph.metrics import position_error  # noqa: E402
 from graph.simulate import simulate_run  # noqa: E402
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+def _shared_data() -> Path:
+    given = os.environ.get("ACINOSET_SHARED_DATA")
+    if given:
+        return Path(given).expanduser().resolve()
+    found = (base / "shared" / "data" for base in ROOT.parents)
+    return next((p for p in found if p.is_dir()), ROOT.parent / "shared" / "data")
+
+
+SHARED_DATA = _shared_data()
+ACINOSET_CALIB = SHARED_DATA / "acinoset_calib"  # AcinoSet's public board detections and calibrations
+EKS_FLY = SHARED_DATA / "eks_fly"  # the EKS repository's tethered fly: 3 cameras, Anipose calibration in mm
+SLEAP_MINIMAL = SHARED_DATA / "sleap_minimal"  # SLEAP's minimal multi-camera session: one mouse, 4 cameras
+ACINOSET_RIG = SHARED_DATA / "acinoset_2019_rig.json"  # AcinoSet's 2019 six-camera rig
 
 TARGET = {"fps": 120.0, "noise": 5.0, "outliers": 0.1, "outlier_std": 100.0}
 
