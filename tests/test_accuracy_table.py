@@ -15,6 +15,7 @@ The table is printed (``pytest -s``) and is in every failure's message.
 from __future__ import annotations
 
 import copy
+import functools
 import warnings
 from dataclasses import dataclass, field
 
@@ -102,7 +103,10 @@ class Row:
         return (max(self.errors_mm) - min(self.errors_mm)) / min(self.errors_mm)
 
 
-def run_of(regime: Regime) -> tuple[SimulatedRun, Calibration]:
+@functools.cache
+def run_of(name: str) -> tuple[SimulatedRun, Calibration]:
+    """The regime's simulated run (seed 0) and its rig, simulated once for all the tests here."""
+    regime = REGIMES[name]
     cal = RIGS[regime.rig]()
     return simulate_run(cal, fps=120.0, seed=0, **regime.simulate), cal
 
@@ -113,7 +117,7 @@ def table() -> dict[str, Row]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for name, regime in REGIMES.items():
-            run, cal = run_of(regime)
+            run, cal = run_of(name)
             results = [solve(jittered(run, j), cal, SolveOptions(fps=120.0, **regime.options)) for j in range(JITTERS)]
             rows[name] = Row([error_mm(r, run) for r in results], [r.report.iterations for r in results],
                              regime.floor_mm)
@@ -142,8 +146,7 @@ def test_no_regime_moves_with_a_thousandth_of_a_pixel(table, name):
 
 def test_proportions_off_within_1_2x_of_the_solve_given_the_true_body(table):
     """The same solver, told the animal's true lengths (the oracle), on the same detections."""
-    regime = REGIMES["proportions off"]
-    run, cal = run_of(regime)
+    run, cal = run_of("proportions off")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         oracle = error_mm(solve(run.keypoints, cal, SolveOptions(fps=120.0, body="given",
@@ -164,8 +167,7 @@ EKF_OVER_FTE = 1.84  # measured on the drop-outs (ekf 10.98 mm, fte 5.97 mm); th
 def test_ekf_on_the_drop_outs_does_not_fall_further_behind_fte(table):
     """ekf, a fixed-lag smoother, carries a blind stretch longer than its lag from one side; held to its
     measured ratio to fte (the smoother, both sides), which misses the 1.5x aimed at."""
-    regime = REGIMES["camera drop-outs"]
-    run, cal = run_of(regime)
+    run, cal = run_of("camera drop-outs")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ekf = error_mm(solve(run.keypoints, cal, SolveOptions(fps=120.0, method="ekf")), run)
