@@ -57,6 +57,24 @@ def served_lines(env: dict) -> list[str]:
     return [line for line in place.log.read_text().splitlines() if " served child " in line]
 
 
+def settled_served_lines(env: dict) -> list[str]:
+    """The log's served lines once the resident serves nothing: each child it has is the spare
+    (still in the resident's own folder; a served child works in its client's), and each child it
+    reaped is logged (its count in the lock file, written before the log line, is reached)."""
+    def settled() -> list[str] | None:
+        r = ready(env)[0]
+        home = os.readlink(f"/proc/{r.pid}/cwd")
+        for c in resident_children(r.pid):
+            try:
+                if os.readlink(f"/proc/{c}/cwd") != home:
+                    return None
+            except OSError:  # a zombie, not reaped yet
+                return None
+        lines = served_lines(env)
+        return lines if len(lines) >= r.served else None
+    return wait_for(settled, 60, "the resident to serve nothing")
+
+
 def served_since(env: dict, before: int, count: int = 1) -> list[str]:
     """The log's served lines once ``count`` more than ``before`` are there: the child tells its
     client the end itself, and the resident logs it when it reaps the child, a moment later."""
@@ -315,6 +333,9 @@ def test_ctrl_z_stops_and_resumes_the_served_solve(env, warm, run_dir, tmp_path)
     shell's job, not an orphaned group, whatever the test runner's own group is.)"""
     before = len(served_lines(env))
     proc, child = start_long_solve(env, tmp_path, process_group=0)
+    # the child has the client's terminal (its stdout) once the hand-over is done
+    wait_for(lambda: os.readlink(f"/proc/{child}/fd/1") == os.readlink(f"/proc/{proc.pid}/fd/1"), 30,
+             "the child to hold the client's stdout")
     proc.send_signal(signal.SIGTSTP)
     wait_for(lambda: state(child) == "T" and state(proc.pid) == "T", 30, "the client and its child to stop")
     time.sleep(0.3)
@@ -343,7 +364,7 @@ def test_ctrl_z_in_an_orphaned_process_group_stops_nothing(env, warm, run_dir, t
 
 
 def test_the_off_switch(env, warm, run_dir, tmp_path):
-    before = len(served_lines(env))
+    before = len(settled_served_lines(env))
     proc = acinoset(dict(env, ACINOSET_RESIDENT="0"), *solve_args(run_dir, tmp_path), cwd=run_dir)
     assert proc.returncode == 0, proc.stderr
     assert len(served_lines(env)) == before
@@ -354,7 +375,7 @@ def test_a_changed_key_starts_a_new_resident(env, warm, run_dir, tmp_path):
     makes a new key: that solve runs in its own process and starts a second resident."""
     other = dict(env, ACINOSET_KEY_PROBE="1")
     assert protocol.key_of(other) != protocol.key_of(env)
-    before = len(served_lines(env))
+    before = len(settled_served_lines(env))
     proc = acinoset(other, *solve_args(run_dir, tmp_path), cwd=run_dir)
     assert proc.returncode == 0, proc.stderr
     assert len(served_lines(env)) == before  # not served by the first one
@@ -369,7 +390,7 @@ def test_a_hung_resident_leaves_the_solve_to_the_client(env, warm, run_dir, tmp_
     """A resident that accepts but does not answer (stopped here with SIGSTOP): after the
     hand-over's timeout the client solves in its own process; the resident, continued, runs nothing."""
     pid = ready(env)[0].pid
-    before = len(served_lines(env))
+    before = len(settled_served_lines(env))
     os.kill(pid, signal.SIGSTOP)
     try:
         t0 = time.monotonic()

@@ -127,6 +127,8 @@ def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str], ent
         lines = Lines(sock)
         answer = lines.next()
         pid = int(answer.split()[1]) if answer.startswith("pid ") else 0
+        if pid > 0:
+            signals.stops_with(pid)
         # the descriptors go only to a child that answered: none is left in flight in a hung
         # resident's queue, where it would hold the client's pipes open
         taken = pid > 0 and socket.send_fds(sock, [b"go\n"], [0, 1, 2]) > 0 and lines.next() == "run"
@@ -163,10 +165,14 @@ def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str], ent
 
 class _Signals:
     """The client's handlers of :data:`FORWARDED` while it hands a solve over: signals that come
-    before the child runs are kept, and sent to it once it does (:meth:`forward_to`)."""
+    before the child runs are kept, and sent to it once it does (:meth:`forward_to`). Job control
+    (Ctrl-Z, and the shell's SIGCONT) reaches the child from the moment it answers with its pid
+    (:meth:`stops_with`): a Ctrl-Z in the hand-over stops the child with the client, so neither
+    runs on while the shell holds the job stopped."""
 
     def __init__(self) -> None:
-        self.pid = 0
+        self.pid = 0  # the child running the solve: every forwarded signal goes to it
+        self.child = 0  # the child that answered: it stops and resumes with this process
         self.pending: list[int] = []
         self.previous = {s: signal.signal(s, self._handle) for s in FORWARDED + JOB_CONTROL}
 
@@ -174,8 +180,8 @@ class _Signals:
         if signum == signal.SIGTSTP:  # Ctrl-Z: the child stops with us; we stop as we would have
             self._stop_together()
         elif signum == signal.SIGCONT:
-            if self.pid:
-                forward_signal(self.pid, signal.SIGCONT)
+            if self.child:
+                forward_signal(self.child, signal.SIGCONT)
         elif self.pid:
             forward_signal(self.pid, signum)
         else:
@@ -187,8 +193,8 @@ class _Signals:
         resume it) the kernel discards that: then the child goes on too. Whether this process
         stopped shows as a SIGCONT pending once it runs again (held blocked meanwhile); its handler
         resumes the child."""
-        if self.pid:
-            forward_signal(self.pid, signal.SIGSTOP)
+        if self.child:
+            forward_signal(self.child, signal.SIGSTOP)
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGCONT})
         try:
             signal.signal(signal.SIGTSTP, signal.SIG_DFL)
@@ -197,11 +203,14 @@ class _Signals:
             stopped = signal.SIGCONT in signal.sigpending()
         finally:
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGCONT})
-        if not stopped and self.pid:
-            forward_signal(self.pid, signal.SIGCONT)
+        if not stopped and self.child:
+            forward_signal(self.child, signal.SIGCONT)
+
+    def stops_with(self, pid: int) -> None:
+        self.child = pid
 
     def forward_to(self, pid: int) -> None:
-        self.pid = pid
+        self.pid = self.child = pid
         for signum in self.pending:
             forward_signal(pid, signum)
         self.pending.clear()
