@@ -46,17 +46,27 @@ class NoSpace(JobError):
 
 def storage_full(exc: BaseException) -> bool:
     """Whether ``exc`` says the disk is full: ENOSPC or EDQUOT from the OS, :class:`service.store.StoreFull`
-    from the job table."""
+    from the job table, or an error raised while handling one of those."""
     import errno
 
     from service.store.errors import StoreFull
 
-    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        return True
-    return isinstance(exc, StoreFull)
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:  # the error itself, or one it was raised from
+        seen.add(id(e))
+        if isinstance(e, StoreFull) or isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if isinstance(e, OSError) and e.errno is None and "No space left on device" in str(e):
+            return True  # HDF5's own writes: errno is in the text, not the exception
+        e = e.__cause__ or e.__context__
+    return False
 
 
 DISK_FULL = "the server's disk is full; delete finished jobs to make room, or ask the admin"
+# A job process's exit status when the disk was full and it could not record its own failure
+# (ENOSPC's number): its scheduler fails the job with DISK_FULL once the table has room.
+EXIT_DISK_FULL = 28
 
 
 # An absolute path in a message (a server's file, say /srv/acinoset/jobs/<id>/input/keypoints/01/cam1.csv):

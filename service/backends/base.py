@@ -10,20 +10,27 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from abc import ABC, abstractmethod
 
 from service.settings import Settings
-from service.store import Store
+from service.store import Store, StoreFull
 
 log = logging.getLogger("acinoset.service")
 
 
 class Backend(ABC):
     """A backend dispatches from one thread of its own: :meth:`_tick` every :attr:`TICK` seconds,
-    or at once when woken (``self._wake.set()``)."""
+    or at once when woken (``self._wake.set()``).
+
+    While the job table cannot be written for want of room (:class:`StoreFull` from a tick), each
+    tick tries again, and the log says so once when it starts and once when it ends, not a
+    traceback a tick. Every :attr:`RESERVE_CHECK_S` seconds the table's reserve is made again if it
+    was spent and the disk has room (:meth:`service.store.database.Database.keep_reserve`)."""
 
     name: str
     TICK: float
+    RESERVE_CHECK_S = 5.0
 
     def __init__(self, settings: Settings, store: Store):
         self.settings = settings
@@ -31,6 +38,8 @@ class Backend(ABC):
         self._wake = threading.Event()
         self._halt = threading.Event()
         self._thread: threading.Thread | None = None
+        self._table_full: str | None = None  # why the table cannot be written, while it cannot
+        self._reserve_checked = 0.0
 
     # -- the dispatch thread -----------------------------------------------------------------
 
@@ -59,11 +68,27 @@ class Backend(ABC):
             self._wake.clear()
             if self._halt.is_set():
                 break
+            self._guarded_tick()
+
+    def _guarded_tick(self) -> None:
+        try:
             self._tick()
+        except StoreFull as e:
+            if self._table_full is None:
+                log.error("the disk is full: %s; jobs wait, and runs that end are recorded once there is room", e)
+            self._table_full = str(e)
+            time.sleep(0.5)
+            return
+        if self._table_full is not None:
+            log.warning("the job table can be written again")
+            self._table_full = None
+        if time.monotonic() - self._reserve_checked >= self.RESERVE_CHECK_S:
+            self._reserve_checked = time.monotonic()
+            self.store.keep_reserve()
 
     @abstractmethod
     def _tick(self) -> None:
-        """One pass of the dispatch thread; it must not raise (log and carry on)."""
+        """One pass of the dispatch thread; it must not raise but :class:`StoreFull` (log and carry on)."""
 
     # -- what the app calls ------------------------------------------------------------------
 

@@ -31,8 +31,9 @@ import time
 from dataclasses import dataclass
 
 from service.backends.base import Backend, log
+from service.errors import DISK_FULL, EXIT_DISK_FULL
 from service.settings import Settings
-from service.store import COMPILING, Store
+from service.store import COMPILING, Store, StoreFull
 
 WAITING_FOR_SOLVER = ("starting: the solver's kernels are being compiled (once after an install or upgrade, "
                       "about 1-2 minutes); jobs wait in the queue until then")
@@ -139,12 +140,16 @@ class EmbeddedBackend(Backend):
             self._enforce()
             self._renew()
             self._fill()
+        except StoreFull:  # the disk is full: the loop says so once (Backend._guarded_tick)
+            raise
         except Exception:  # keep scheduling whatever one tick hit (e.g. a locked database)
             log.exception("scheduler tick failed")
             time.sleep(0.5)
 
     def _reap(self) -> None:
-        """Ended processes: a run that did not record its end was interrupted. A run is forgotten
+        """Ended processes: a run that did not record its end was interrupted, but for one that
+        exited with :data:`EXIT_DISK_FULL` (the disk full, it could not record its failure): that
+        one is failed, naming the disk, not run again. A run is forgotten
         only once the table says so: if recording the interruption fails (a full disk, a locked
         table), the run stays watched and the next tick tries again; dropping it first had left
         its job ``running`` with no process until a restart."""
@@ -153,7 +158,10 @@ class EmbeddedBackend(Backend):
         for r in ended:
             code = r.process.exitcode
             r.process.join(timeout=1)
-            if not r.cancelled:
+            if not r.cancelled and code == EXIT_DISK_FULL:  # it could not record its own end
+                if self.store.finish(r.job_id, r.token, "failed", error=DISK_FULL, error_kind="limit"):  # may raise
+                    log.warning("job %s: failed: %s", r.job_id, DISK_FULL)
+            elif not r.cancelled:
                 status = self.store.interrupt(r.job_id, r.token, _describe_exit(code))  # may raise: kept
                 if status is not None:
                     log.warning("job %s: %s; now %s", r.job_id, _describe_exit(code), status)

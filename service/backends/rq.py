@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 from service.backends.base import Backend, log
 from service.settings import Settings, redacted
-from service.store import Job, Store
+from service.store import Job, Store, StoreFull
 
 RQ_FUNCTION = "service.run.worker.run_rq_job"
 
@@ -249,6 +249,8 @@ class RQBackend(Backend):
             if self._redis_error:
                 log.warning("Redis reachable again")
             self._redis_error = None
+        except StoreFull:  # the disk is full: the loop says so once (Backend._guarded_tick)
+            raise
         except Exception as e:
             if str(e) != self._redis_error:
                 log.exception("RQ collector")

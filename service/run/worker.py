@@ -34,7 +34,7 @@ from typing import Callable
 
 import numpy as np
 
-from service.errors import strip_paths
+from service.errors import DISK_FULL, EXIT_DISK_FULL, storage_full, strip_paths
 from service.store import READING, RENDERING, WRITING, ErrorKind, jobfiles
 from service.store.jobfiles import (
     ERROR_LOG,
@@ -317,11 +317,29 @@ def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_
     except JobCancelled:
         pass
     except Exception as e:  # noqa: BLE001 - any error of the solve fails the job with its message
-        _log_traceback(job_dir)
-        store.finish(job_id, token, "failed", error=one_line(e), error_kind=error_kind(e))
+        if storage_full(e):
+            _fail_disk_full(store, job_id, token, tmp)
+        else:
+            _log_traceback(job_dir)
+            store.finish(job_id, token, "failed", error=one_line(e), error_kind=error_kind(e))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
         store.close()
+
+
+def _fail_disk_full(store, job_id: str, token: str, tmp: Path) -> None:
+    """The disk is full (a result file, the job table): fail the job now, naming the disk, not run
+    again (it would only fill it again). Its partial results go first, to make room; the table's
+    reserve, spent by the write that failed, is room for the record. If even that cannot be written,
+    exit with :data:`~service.errors.EXIT_DISK_FULL`: the scheduler records it once it can."""
+    from service.store import StoreFull
+
+    shutil.rmtree(tmp, ignore_errors=True)
+    print(f"job {job_id}: {DISK_FULL}", file=sys.stderr, flush=True)
+    try:
+        store.finish(job_id, token, "failed", error=DISK_FULL, error_kind="limit")
+    except StoreFull:
+        raise SystemExit(EXIT_DISK_FULL) from None
 
 
 def _log_traceback(job_dir: Path) -> None:

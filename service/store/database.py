@@ -7,11 +7,18 @@ one short ``BEGIN IMMEDIATE`` transaction (the write lock taken at once, so two 
 deadlock upgrading a read lock), so a crash leaves each row either before or after the change,
 never half-way. Every ``sqlite3`` error of a read or a transaction is raised as its
 :class:`service.store.errors.StoreError`.
+
+A full disk: beside the file the server keeps a *reserve*, a file of :data:`RESERVE_BYTES`
+(:meth:`Database.keep_reserve`). The first transaction that fails for want of room
+(:class:`~service.store.errors.StoreFull`) deletes it, so the next one (the record of a job failed
+by the full disk, say) has room to commit; the reserve is made again once the disk has room.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
+import shutil
 import sqlite3
 import threading
 from contextlib import contextmanager
@@ -19,9 +26,10 @@ from pathlib import Path
 from typing import Iterator
 
 from service.store import schema
-from service.store.errors import translated
+from service.store.errors import StoreFull, translated
 
 BUSY_TIMEOUT_SECONDS = 30.0  # how long a write waits for another's lock before StoreBusy
+RESERVE_BYTES = 1 << 20  # room for some hundred small transactions once the disk is full
 
 
 class Database:
@@ -68,15 +76,52 @@ class Database:
         """One write transaction, taken at once (``BEGIN IMMEDIATE``) so it never deadlocks on upgrade.
         Anything raised inside rolls it back; a failed commit too (SQLite may keep the transaction
         open after one: the next would find it and fail to begin)."""
-        with translated(self.path):
-            db = self._db()
-            db.execute("BEGIN IMMEDIATE")
+        try:
+            with translated(self.path):
+                db = self._db()
+                db.execute("BEGIN IMMEDIATE")
+                try:
+                    yield db
+                    db.execute("COMMIT")
+                except BaseException:
+                    _rollback(db)
+                    raise
+        except StoreFull:
+            self.release_reserve()
+            raise
+
+    @property
+    def reserve(self) -> Path:
+        return self.path.with_name(self.path.name + ".reserve")
+
+    def release_reserve(self) -> bool:
+        """Delete the reserve (the disk is full): whether there was one."""
+        try:
+            self.reserve.unlink()
+            return True
+        except OSError:
+            return False
+
+    def keep_reserve(self) -> bool:
+        """Make the reserve if it is missing and the disk has room for it four times over; whether
+        it is there. Written whole under a temporary name, then renamed: never a part of one."""
+        if self.reserve.exists():
+            return True
+        try:
+            if shutil.disk_usage(self.path.parent).free < 4 * RESERVE_BYTES:
+                return False
+            part = self.reserve.with_name(self.reserve.name + ".part")
             try:
-                yield db
-                db.execute("COMMIT")
-            except BaseException:
-                _rollback(db)
-                raise
+                with open(part, "wb") as f:
+                    f.write(b"\0" * RESERVE_BYTES)
+                    f.flush()
+                    os.fsync(f.fileno())
+                os.replace(part, self.reserve)
+            finally:
+                part.unlink(missing_ok=True)
+        except OSError:
+            return False
+        return True
 
     def close(self) -> None:
         """Close this thread's connection (the next use opens another)."""

@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import multiprocessing
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
-from servers import Server, add_user, submit, submit_ok, wait_finished
+from servers import Server, add_user, make_run, submit, submit_ok, wait_finished, wait_solving
 
 from service.backends.embedded import EmbeddedBackend, _Run
+from service.errors import DISK_FULL
 from service.settings import Settings
 from service.store import Store, StoreFull
 
@@ -123,9 +125,9 @@ def test_a_run_that_ended_while_the_table_could_not_be_written_is_requeued_later
     dead.join()
     backend = EmbeddedBackend(settings, store)
     backend._runs[job.id] = _Run(job.id, job.run_token, dead, 0.0)
-    backend._tick()  # the write fails: the run must stay watched
+    backend._guarded_tick()  # the write fails: the run must stay watched
     assert store.job(job.id).status == "running"
-    backend._tick()
+    backend._guarded_tick()
     assert store.job(job.id).status == "queued"
     assert "exited with status 1" in store.job(job.id).interruption
     assert job.id not in backend._runs
@@ -133,3 +135,80 @@ def test_a_run_that_ended_while_the_table_could_not_be_written_is_requeued_later
 
 def _exit_1() -> None:
     raise SystemExit(1)
+
+
+def test_a_job_running_when_the_disk_fills_fails_at_once_naming_the_disk(small_disk, tmp_path, long_run):
+    """The disk fills while a solve runs. Before: the job stayed ``running`` with no process while
+    the disk was full, the scheduler logged a traceback every 0.75 s (150 of them), and once space
+    returned the job ran again or failed as 'interrupted'. Now it fails within seconds, saying the
+    disk is full, the log says so a few times (not once a tick, no traceback), and once the disk
+    has room the table's reserve is made again and a new job runs."""
+    small = make_run(tmp_path / "small", frames=60, cameras=3, seed=1)
+    data = small_disk / "data"
+    token = add_user(data, "dora")
+    env = {"ACINOSET_WARM_START": "0", "ACINOSET_MIN_FREE_BYTES": "0"}
+    srv = Server(data, tmp_path / "server.log", workers=1, env=env).start(ready=(200,))
+    reserve = Path(f"{Settings(data_dir=data).db_path}.reserve")
+    try:
+        with srv.client(token) as c:
+            job_id = submit_ok(c, long_run, {"method": "fte", "skeleton": "cheetah"})
+            wait_solving(c, job_id, 60)
+            assert reserve.exists()  # made by the scheduler within its first seconds
+            filler = _fill(small_disk)
+            done = wait_finished(c, job_id, 60)
+            assert done["status"] == "failed" and done["attempts"] == 1, done
+            assert done["error"] == DISK_FULL and done["error_kind"] == "limit"
+            filler.unlink()
+            again = submit_ok(c, small, FAST)
+            assert wait_finished(c, again)["status"] == "succeeded"
+            deadline = time.monotonic() + 30
+            while not reserve.exists() and time.monotonic() < deadline:
+                time.sleep(0.2)
+            assert reserve.exists() and reserve.stat().st_size > 0
+        log = srv.log()
+        assert "Traceback" not in log, log[-3000:]
+        assert sum("disk is full" in line for line in log.splitlines()) <= 4, log[-3000:]
+    finally:
+        srv.stop()
+
+
+def test_a_run_that_could_not_record_its_disk_full_failure_is_failed_by_the_scheduler(tmp_path, caplog):
+    """A job process that exits with EXIT_DISK_FULL (the disk full, its own record of the failure
+    not written): the scheduler fails the job naming the disk, not queued again, once the table
+    can be written; while it cannot, the log says so once, not once a tick."""
+    from service.errors import EXIT_DISK_FULL
+
+    class FullTwice(Store):
+        failures = 2
+
+        def finish(self, job_id, token, status, **kw):
+            if self.failures:
+                self.failures -= 1
+                raise StoreFull(f"job table {self.path}: database or disk is full")
+            return super().finish(job_id, token, status, **kw)
+
+    settings = Settings(data_dir=tmp_path, workers=1, warm_start=False)
+    store = FullTwice(settings.db_path)
+    owner, _ = store.add_user("gus")
+    store.insert_job("1" * 32, owner.id, "embedded", {}, {}, max_attempts=3)
+    job = store.claim_next("test:1", 30, "embedded")
+    dead = multiprocessing.get_context("fork").Process(target=_exit_with, args=(EXIT_DISK_FULL,))
+    dead.start()
+    dead.join()
+    backend = EmbeddedBackend(settings, store)
+    backend._runs[job.id] = _Run(job.id, job.run_token, dead, 0.0)
+    with caplog.at_level("WARNING", logger="acinoset.service"):
+        backend._guarded_tick()
+        backend._guarded_tick()
+        assert store.job(job.id).status == "running" and job.id in backend._runs
+        backend._guarded_tick()
+    done = store.job(job.id)
+    assert done.status == "failed" and done.error == DISK_FULL and done.error_kind == "limit"
+    assert job.id not in backend._runs
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("the disk is full" in m for m in said) == 1 and not any(r.exc_info for r in caplog.records)
+    assert any("can be written again" in m for m in said)
+
+
+def _exit_with(code: int) -> None:
+    raise SystemExit(code)

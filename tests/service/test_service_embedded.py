@@ -8,7 +8,7 @@ import signal
 import time
 
 import pytest
-from servers import Server, add_user, make_run, pid_alive, submit_ok, wait_dead, wait_finished, wait_for, wait_solving
+from servers import Server, add_user, pid_alive, submit_ok, wait_dead, wait_finished, wait_for, wait_solving
 
 LONG = {"method": "fte", "skeleton": "cheetah"}
 FAST = {"method": "tri", "skeleton": "points", "fps": 120.0}
@@ -146,21 +146,14 @@ def test_an_orderly_stop_gives_running_jobs_back_without_using_an_attempt(tmp_pa
         srv2.stop()
 
 
-@pytest.fixture(scope="module")
-def longer_run(tmp_path_factory):
-    """6000 frames: an fte/cheetah solve of several seconds (4000 took 6.4 s from a shell here;
-    800 frames take under 2 s once the kernels are cached, too close to a limit of 1.5 s)."""
-    return make_run(tmp_path_factory.mktemp("longer_run"), frames=6000, cameras=3, seed=2)
-
-
-def test_a_solve_over_the_time_limit_fails(tmp_path, longer_run):
+def test_a_solve_over_the_time_limit_fails(tmp_path, long_run):
     data = tmp_path / "data"
     token = add_user(data, "noa")
     srv = Server(data, tmp_path / "server.log", workers=1,
                  env={"ACINOSET_JOB_TIMEOUT_SECONDS": "1.5", "ACINOSET_WARM_START": "0"}).start()
     try:
         with srv.client(token) as c:
-            job_id = submit_ok(c, longer_run, LONG)
+            job_id = submit_ok(c, long_run, LONG)
             pid = _pid(wait_for(c, job_id, lambda j: j["status"] == "running" and j["worker"]
                                 and not j["worker"].endswith(":starting"), 60))
             done = wait_finished(c, job_id, 60)
