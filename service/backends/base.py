@@ -38,7 +38,7 @@ class Backend(ABC):
         self._wake = threading.Event()
         self._halt = threading.Event()
         self._thread: threading.Thread | None = None
-        self._table_full: str | None = None  # why the table cannot be written, while it cannot
+        self._table_full = False  # the table cannot be written for want of room
         self._reserve_checked = 0.0
 
     # -- the dispatch thread -----------------------------------------------------------------
@@ -74,14 +74,14 @@ class Backend(ABC):
         try:
             self._tick()
         except StoreFull as e:
-            if self._table_full is None:
+            if not self._table_full:
                 log.error("the disk is full: %s; jobs wait, and runs that end are recorded once there is room", e)
-            self._table_full = str(e)
+            self._table_full = True
             time.sleep(0.5)
             return
-        if self._table_full is not None:
+        if self._table_full:
             log.warning("the job table can be written again")
-            self._table_full = None
+            self._table_full = False
         if time.monotonic() - self._reserve_checked >= self.RESERVE_CHECK_S:
             self._reserve_checked = time.monotonic()
             self.store.keep_reserve()

@@ -149,10 +149,10 @@ class EmbeddedBackend(Backend):
     def _reap(self) -> None:
         """Ended processes: a run that did not record its end was interrupted, but for one that
         exited with :data:`EXIT_DISK_FULL` (the disk full, it could not record its failure): that
-        one is failed, naming the disk, not run again. A run is forgotten
-        only once the table says so: if recording the interruption fails (a full disk, a locked
-        table), the run stays watched and the next tick tries again; dropping it first had left
-        its job ``running`` with no process until a restart."""
+        one is failed, naming the disk, not run again. A run is forgotten only once the table says
+        so: if recording its end fails (a full disk, a locked table), the run stays watched and the
+        next tick tries again; dropping it first had left its job ``running`` with no process until
+        a restart."""
         with self._lock:
             ended = [r for r in self._runs.values() if r.process.exitcode is not None]
         for r in ended:

@@ -35,7 +35,7 @@ from typing import Callable
 import numpy as np
 
 from service.errors import DISK_FULL, EXIT_DISK_FULL, storage_full, strip_paths
-from service.store import READING, RENDERING, WRITING, ErrorKind, jobfiles
+from service.store import READING, RENDERING, WRITING, ErrorKind, StoreFull, jobfiles
 from service.store.jobfiles import (
     ERROR_LOG,
     INPUT,
@@ -332,8 +332,6 @@ def _fail_disk_full(store, job_id: str, token: str, tmp: Path) -> None:
     again (it would only fill it again). Its partial results go first, to make room; the table's
     reserve, spent by the write that failed, is room for the record. If even that cannot be written,
     exit with :data:`~service.errors.EXIT_DISK_FULL`: the scheduler records it once it can."""
-    from service.store import StoreFull
-
     shutil.rmtree(tmp, ignore_errors=True)
     print(f"job {job_id}: {DISK_FULL}", file=sys.stderr, flush=True)
     try:

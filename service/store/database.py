@@ -94,13 +94,10 @@ class Database:
     def reserve(self) -> Path:
         return self.path.with_name(self.path.name + ".reserve")
 
-    def release_reserve(self) -> bool:
-        """Delete the reserve (the disk is full): whether there was one."""
-        try:
+    def release_reserve(self) -> None:
+        """Delete the reserve (the disk is full), if there is one."""
+        with contextlib.suppress(OSError):
             self.reserve.unlink()
-            return True
-        except OSError:
-            return False
 
     def keep_reserve(self) -> bool:
         """Make the reserve if it is missing and the disk has room for it four times over; whether
