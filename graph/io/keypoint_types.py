@@ -39,6 +39,8 @@ class ReadLimits:
 
 
 NO_LIMITS = ReadLimits()
+EVERY = "\x00every individual"  # a reader's ``individual``: all of them, as Tracks (no name can be this)
+MAX_SLOTS = 64  # individuals read at once from one file
 
 
 @dataclass
@@ -65,3 +67,47 @@ class Keypoints:
     @property
     def frames(self) -> int:
         return self.xy.shape[0]
+
+
+@dataclass
+class Tracks:
+    """One camera's detections of several individuals: N frames, K slots, M bodyparts.
+
+    A slot is what the 2D tracker calls one individual (a DeepLabCut individual, a SLEAP track);
+    ``names`` (K,) name them. ``identified``: the slots carry identities across frames (a tracker's
+    tracks); False where they do not (OpenPose's people, in each frame's own order).
+    ``xy`` (N, K, M, 2) pixels, NaN where missing; ``likelihood`` (N, K, M) in [0, 1], 0 where missing.
+    """
+
+    bodyparts: list[str]
+    names: list[str]
+    xy: np.ndarray
+    likelihood: np.ndarray
+    identified: bool = True
+    scorer: str = "acinoset"
+    source: str = ""
+    fps: float | None = None
+
+    def __post_init__(self) -> None:
+        self.xy = np.asarray(self.xy, dtype=np.float64)
+        self.likelihood = np.asarray(self.likelihood, dtype=np.float64)
+
+    @property
+    def frames(self) -> int:
+        return self.xy.shape[0]
+
+    @property
+    def slots(self) -> int:
+        return self.xy.shape[1]
+
+    def slot(self, k: int) -> Keypoints:
+        """Slot ``k`` alone, as the single-individual :class:`Keypoints`."""
+        return Keypoints(bodyparts=list(self.bodyparts), xy=self.xy[:, k].copy(),
+                         likelihood=self.likelihood[:, k].copy(), scorer=self.scorer, source=self.source, fps=self.fps)
+
+
+def as_tracks(keypoints: Keypoints) -> Tracks:
+    """A single individual's detections as :class:`Tracks` of one slot."""
+    return Tracks(bodyparts=list(keypoints.bodyparts), names=[""], xy=keypoints.xy[:, None],
+                  likelihood=keypoints.likelihood[:, None], scorer=keypoints.scorer, source=keypoints.source,
+                  fps=keypoints.fps)

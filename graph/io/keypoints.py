@@ -52,7 +52,7 @@ from typing import NamedTuple
 import numpy as np
 
 from graph.errors import InputError, TooLargeInput, unreadable
-from graph.io.keypoint_types import NO_LIMITS, Keypoints, ReadLimits
+from graph.io.keypoint_types import EVERY, NO_LIMITS, Keypoints, ReadLimits, Tracks, as_tracks
 
 CSV_BLOCK_ROWS = 4096  # rows parsed at a time
 MAX_LABEL_BYTES = 4096  # one column label of an H5 file (a scorer's, a bodypart's name)
@@ -76,11 +76,27 @@ def read_keypoints(path: str | Path, individual: str | None = None, limits: Read
     the first one (not counting ``single``), with a warning naming the others. Single-animal files ignore it.
     A file over ``limits`` raises :class:`~graph.errors.TooLargeInput` before its data are read.
     """
-    path = Path(path)
+    out = _read(Path(path), individual, limits, openpose_model)
+    assert isinstance(out, Keypoints)
+    return out
+
+
+def read_tracks(path: str | Path, limits: ReadLimits = NO_LIMITS, openpose_model: str | None = None) -> Tracks:
+    """Every individual of one camera's file, as :class:`Tracks` (read as :func:`read_keypoints`
+    reads one): DeepLabCut's individuals but ``single``, SLEAP's tracks (an untracked file: one slot),
+    OpenPose's people (``identified`` False). A single-animal file gives one slot."""
+    out = _read(Path(path), EVERY, limits, openpose_model)
+    assert isinstance(out, Tracks)
+    return out
+
+
+def _read(path: Path, individual: str | None, limits: ReadLimits, openpose_model: str | None) -> Keypoints | Tracks:
     if path.is_dir():
         from graph.io import openpose
 
         if openpose.is_openpose_folder(path):
+            if individual == EVERY:
+                return openpose.read_openpose_people(path, limits, openpose_model)
             return openpose.read_openpose(path, limits, openpose_model)
     try:
         with open(path, "rb") as f:
@@ -94,7 +110,7 @@ def read_keypoints(path: str | Path, individual: str | None = None, limits: Read
     return _read_csv(path, individual, limits)
 
 
-def _read_csv(path: Path, individual: str | None, limits: ReadLimits) -> Keypoints:
+def _read_csv(path: Path, individual: str | None, limits: ReadLimits) -> Keypoints | Tracks:
     """Stream the file: the header rows first (their width checked against ``limits`` before they
     are split), then the data a block of :data:`CSV_BLOCK_ROWS` rows at a time, the row count
     checked as it grows."""
@@ -126,7 +142,7 @@ def _text_lines(f, path: Path, max_chars: int | None):
         yield number, line.rstrip("\r\n")
 
 
-def _parse_csv(f, path: Path, individual: str | None, limits: ReadLimits) -> Keypoints:
+def _parse_csv(f, path: Path, individual: str | None, limits: ReadLimits) -> Keypoints | Tracks:
     # a generous bound on a line's length where columns are bounded: 64 characters a cell
     max_chars = None if limits.max_columns is None else 64 * (limits.max_columns + 8) + 4096
     lines = _text_lines(f, path, max_chars)
@@ -238,7 +254,7 @@ def _csv_row(line: str, path: Path) -> list[str]:
         raise InputError(f"not a valid CSV file ({e})", path) from None
 
 
-def _read_h5(path: Path, individual: str | None, limits: ReadLimits) -> Keypoints:
+def _read_h5(path: Path, individual: str | None, limits: ReadLimits) -> Keypoints | Tracks:
     import h5py
 
     try:
@@ -532,9 +548,11 @@ def _literal_unpickle(data: bytes, path: Path, what: str):
 # ------------------------------------------------------------------------- columns to Keypoints
 
 
-def _from_columns(columns: list[tuple], values: np.ndarray, path: Path, individual: str | None) -> Keypoints:
+def _from_columns(columns: list[tuple], values: np.ndarray, path: Path,
+                  individual: str | None) -> Keypoints | Tracks:
     """Turn DeepLabCut columns ``(scorer, [individual,] bodypart, coord)`` and values (N, C)
-    into :class:`Keypoints` for one individual."""
+    into :class:`Keypoints` for one individual, or (``individual`` :data:`EVERY`) :class:`Tracks`
+    of every individual but ``single``."""
     if not columns:
         raise InputError("no data columns", path)
     nlev = len(columns[0])
@@ -544,21 +562,36 @@ def _from_columns(columns: list[tuple], values: np.ndarray, path: Path, individu
     scorers = list(dict.fromkeys(c[0] for c in columns))
     if len(scorers) > 1:
         raise InputError("several scorers in one file (" + ", ".join(scorers[:4]) + ")", path)
-    if nlev == 4:
-        names = list(dict.fromkeys(c[1] for c in columns))
-        animals = [n for n in names if n != SINGLE] or names
-        if individual is None:
-            chosen = animals[0]
-            if len(animals) > 1:
-                warnings.warn(f"{path.name}: {len(animals)} individuals ({', '.join(animals)}); "
-                              f"using '{chosen}' (choose another with --individual)", stacklevel=4)
-        elif individual in names:
-            chosen = individual
-        else:
-            raise InputError(f"no individual '{individual}' (the file has {', '.join(names)})", path)
-        keep = [j for j, c in enumerate(columns) if c[1] == chosen]
-        columns = [(c[0], c[2], c[3]) for c in (columns[j] for j in keep)]
-        values = values[:, keep]
+    if nlev == 3:
+        one = _individual(columns, values, path, scorers[0])
+        return as_tracks(one) if individual == EVERY else one
+    names = list(dict.fromkeys(c[1] for c in columns))
+    animals = [n for n in names if n != SINGLE] or names
+
+    def pick(name: str) -> Keypoints:
+        keep = [j for j, c in enumerate(columns) if c[1] == name]
+        return _individual([(c[0], c[2], c[3]) for c in (columns[j] for j in keep)], values[:, keep], path, scorers[0])
+
+    if individual == EVERY:
+        each = [pick(a) for a in animals]
+        if any(k.bodyparts != each[0].bodyparts for k in each):
+            raise InputError(f"the individuals have different bodyparts ({', '.join(animals[:4])})", path)
+        return Tracks(bodyparts=each[0].bodyparts, names=animals, xy=np.stack([k.xy for k in each], axis=1),
+                      likelihood=np.stack([k.likelihood for k in each], axis=1), scorer=scorers[0], source=str(path))
+    if individual is None:
+        chosen = animals[0]
+        if len(animals) > 1:
+            warnings.warn(f"{path.name}: {len(animals)} individuals ({', '.join(animals)}); "
+                          f"using '{chosen}' (choose another with --individual)", stacklevel=4)
+    elif individual in names:
+        chosen = individual
+    else:
+        raise InputError(f"no individual '{individual}' (the file has {', '.join(names)})", path)
+    return pick(chosen)
+
+
+def _individual(columns: list[tuple], values: np.ndarray, path: Path, scorer: str) -> Keypoints:
+    """One individual's columns ``(scorer, bodypart, coord)`` and values as :class:`Keypoints`."""
     bodyparts = list(dict.fromkeys(c[1] for c in columns))
     where: dict[tuple[str, str], int] = {}
     for j, (_, bp, coord) in enumerate(columns):
@@ -582,7 +615,7 @@ def _from_columns(columns: list[tuple], values: np.ndarray, path: Path, individu
     xy[missing] = np.nan
     lik = np.clip(np.nan_to_num(lik, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
     lik[missing] = 0.0
-    return Keypoints(bodyparts=bodyparts, xy=xy, likelihood=lik, scorer=scorers[0], source=str(path))
+    return Keypoints(bodyparts=bodyparts, xy=xy, likelihood=lik, scorer=scorer, source=str(path))
 
 
 # ------------------------------------------------------------------------------------- writing

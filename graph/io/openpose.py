@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.errors import InputError, TooLargeInput
-from graph.io.keypoint_types import Keypoints, ReadLimits
+from graph.io.keypoint_types import MAX_SLOTS, Keypoints, ReadLimits, Tracks
 
 MODELS: dict[str, tuple[str, ...]] = {
     "BODY_25": ("Nose", "Neck", "RShoulder", "RElbow", "RWrist", "LShoulder", "LElbow", "LWrist", "MidHip", "RHip",
@@ -53,7 +53,52 @@ def is_openpose_folder(path: Path) -> bool:
 
 
 def read_openpose(folder: str | Path, limits: ReadLimits, model: str | None = None) -> Keypoints:
-    """One camera's OpenPose JSON folder as :class:`Keypoints` (see the module docstring)."""
+    """One camera's OpenPose JSON folder as :class:`Keypoints`: each frame's most confident person
+    (see the module docstring)."""
+    folder, names, frames, first, people = _read_folder(folder, limits, model)
+    K = len(names)
+    xy = np.full((frames, K, 2), np.nan)
+    likelihood = np.zeros((frames, K))
+    crowded = 0
+    for t, arr in people:
+        if not arr:
+            continue
+        best = max(range(len(arr)), key=lambda i: float(np.nansum(arr[i][:, 2])))
+        crowded += len(arr) > 1
+        _put(arr[best], xy[t], likelihood[t])
+    if crowded:
+        warnings.warn(f"{folder.name}: {crowded} of {frames} frames hold several people; each frame's most confident "
+                      "is taken, and identities across frames are not tracked", stacklevel=4)
+    return Keypoints(bodyparts=names, xy=xy, likelihood=likelihood, scorer="openpose", source=str(folder))
+
+
+def read_openpose_people(folder: str | Path, limits: ReadLimits, model: str | None = None) -> Tracks:
+    """One camera's OpenPose JSON folder as :class:`Tracks`: every person of each frame, in the file's
+    order, in as many slots as the most crowded frame has people (``identified`` False: OpenPose
+    gives no identities across frames)."""
+    folder, names, frames, first, people = _read_folder(folder, limits, model)
+    slots = max(len(arr) for _, arr in people)
+    if slots > MAX_SLOTS:
+        raise InputError(f"{slots} people in a frame; at most {MAX_SLOTS} are solved at once", folder)
+    K = len(names)
+    xy = np.full((frames, slots, K, 2), np.nan)
+    likelihood = np.zeros((frames, slots, K))
+    for t, arr in people:
+        for j, a in enumerate(arr):
+            _put(a, xy[t, j], likelihood[t, j])
+    return Tracks(bodyparts=names, names=[f"person{j + 1}" for j in range(slots)], xy=xy, likelihood=likelihood,
+                  identified=False, scorer="openpose", source=str(folder))
+
+
+def _put(a: np.ndarray, xy: np.ndarray, likelihood: np.ndarray) -> None:
+    """One person's (K, 3) rows into ``xy`` (K, 2) and ``likelihood`` (K,): found keypoints only."""
+    found = a[:, 2] > 0
+    xy[found] = a[found, :2]
+    likelihood[found] = np.clip(a[found, 2], 0.0, 1.0)
+
+
+def _read_folder(folder: str | Path, limits: ReadLimits, model: str | None):
+    """The folder, its keypoint names, frame count, first frame number and ``(frame, [person (K, 3)])``."""
     folder = Path(folder)
     if model is not None and model not in MODELS:
         raise InputError(f"unknown OpenPose model {model!r} (known: {', '.join(MODELS)})", folder)
@@ -76,8 +121,8 @@ def read_openpose(folder: str | Path, limits: ReadLimits, model: str | None = No
     limits.check_frames(frames, folder)
     if len({n for n, _ in files}) != len(files):
         raise InputError("two files have the same frame number", folder)
-    people = [(n - first, _people(p)) for n, p in files]
-    counts = {len(person) // 3 for _, ps in people for person in ps}
+    raw = [(n - first, _people(p)) for n, p in files]
+    counts = {len(person) // 3 for _, ps in raw for person in ps}
     if not counts:
         raise InputError("no person is detected in any frame", folder)
     if len(counts) > 1:
@@ -90,25 +135,13 @@ def read_openpose(folder: str | Path, limits: ReadLimits, model: str | None = No
     names = list(MODELS[model]) if model else [f"kp{i}" for i in range(K)]
     if len(names) != K:
         raise InputError(f"{K} keypoints a person, but OpenPose's {model} has {len(names)}", folder)
-    xy = np.full((frames, K, 2), np.nan)
-    likelihood = np.zeros((frames, K))
-    crowded = 0
-    for t, ps in people:
-        if not ps:
-            continue
+    people = []
+    for t, ps in raw:
         arr = [np.asarray(p, dtype=np.float64).reshape(K, 3) for p in ps]
-        best = max(range(len(arr)), key=lambda i: float(np.nansum(arr[i][:, 2])))
-        crowded += len(arr) > 1
-        a = arr[best]
-        if not np.isfinite(a).all():
+        if any(not np.isfinite(a).all() for a in arr):
             raise InputError(f"frame {t + first}: a keypoint is not a finite number", folder)
-        found = a[:, 2] > 0
-        xy[t, found] = a[found, :2]
-        likelihood[t, found] = np.clip(a[found, 2], 0.0, 1.0)
-    if crowded:
-        warnings.warn(f"{folder.name}: {crowded} of {frames} frames hold several people; each frame's most confident "
-                      "is taken, and identities across frames are not tracked", stacklevel=4)
-    return Keypoints(bodyparts=names, xy=xy, likelihood=likelihood, scorer="openpose", source=str(folder))
+        people.append((t, arr))
+    return folder, names, frames, first, people
 
 
 def _people(path: Path) -> list[list[float]]:

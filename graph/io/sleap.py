@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.errors import InputError
-from graph.io.keypoint_types import Keypoints, ReadLimits
+from graph.io.keypoint_types import EVERY, MAX_SLOTS, Keypoints, ReadLimits, Tracks
 
 AXES = ("track", "xy", "node", "frame")
 MATLAB_ORDER = ("track", "xy", "node", "frame")  # SLEAP's default export (transposed for MATLAB)
@@ -53,10 +53,11 @@ def is_analysis(f) -> bool:
     return all(f.get(k, getclass=True) is h5py.Dataset for k in ("tracks", "node_names"))
 
 
-def read_analysis(f, path: Path, individual: str | None, limits: ReadLimits) -> Keypoints:
+def read_analysis(f, path: Path, individual: str | None, limits: ReadLimits) -> Keypoints | Tracks:
     """The chosen track of the open SLEAP analysis file ``f`` (:func:`is_analysis`) as :class:`Keypoints`.
 
-    ``individual`` names a track; by default the first, with a warning naming the others."""
+    ``individual`` names a track; by default the first, with a warning naming the others;
+    :data:`~graph.io.keypoint_types.EVERY`: all of them (at most ``MAX_SLOTS``) as :class:`Tracks`."""
     tracks = f["tracks"]
     order = _axes(f, tracks, path)
     if tracks.ndim != 4 or tracks.dtype.kind not in "fiu":
@@ -81,7 +82,24 @@ def read_analysis(f, path: Path, individual: str | None, limits: ReadLimits) -> 
     names = _names(f["track_names"], path, "track_names") if "track_names" in f else []
     if names and len(names) != size["track"]:
         raise InputError(f"{len(names)} track_names for {size['track']} tracks", path)
-    k = _choose(names, size["track"], individual, path)
+    if individual == EVERY:
+        if size["track"] > MAX_SLOTS:
+            raise InputError(f"{size['track']} tracks; at most {MAX_SLOTS} are solved at once", path)
+        chosen = list(range(size["track"]))
+    else:
+        chosen = [_choose(names, size["track"], individual, path)]
+    points = [_points(f, tracks, order, size, k, path) for k in chosen]
+    if individual != EVERY:
+        xy, likelihood = points[0]
+        return Keypoints(bodyparts=nodes, xy=xy, likelihood=likelihood, scorer="sleap", source=str(path),
+                         fps=_frame_rate(f))
+    return Tracks(bodyparts=nodes, names=names or [f"track_{k}" for k in chosen],
+                  xy=np.stack([p[0] for p in points], axis=1), likelihood=np.stack([p[1] for p in points], axis=1),
+                  scorer="sleap", source=str(path), fps=_frame_rate(f))
+
+
+def _points(f, tracks, order: tuple[str, ...], size: dict, k: int, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Track ``k``'s pixels (frame, node, 2) and likelihoods (frame, node), missing points NaN with 0."""
     xy = _slice(tracks, order, k)  # (frame, node, xy)
     likelihood = _scores(f, order, size, k, path)
     if np.isinf(xy).any():
@@ -90,8 +108,7 @@ def read_analysis(f, path: Path, individual: str | None, limits: ReadLimits) -> 
     xy[missing] = np.nan
     likelihood = np.clip(np.nan_to_num(likelihood, nan=1.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
     likelihood[missing] = 0.0
-    return Keypoints(bodyparts=nodes, xy=xy, likelihood=likelihood, scorer="sleap", source=str(path),
-                     fps=_frame_rate(f))
+    return xy, likelihood
 
 
 def _axes(f, tracks, path: Path) -> tuple[str, ...]:

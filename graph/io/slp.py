@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.errors import InputError, TooLargeInput
-from graph.io.keypoint_types import Keypoints, ReadLimits
+from graph.io.keypoint_types import EVERY, MAX_SLOTS, Keypoints, ReadLimits, Tracks
 
 TABLES = ("frames", "instances")
 MAX_TRACKS = 1000  # animals in one file
@@ -70,10 +70,12 @@ def check_slp(f, path: Path, limits: ReadLimits) -> None:
         limits.check_frames(last + 1, path)
 
 
-def read_slp(path: Path, individual: str | None, limits: ReadLimits) -> Keypoints:
+def read_slp(path: Path, individual: str | None, limits: ReadLimits) -> Keypoints | Tracks:
     """The chosen track of the SLEAP labels file at ``path`` (:func:`is_slp`) as :class:`Keypoints`.
 
-    ``individual`` names a track; by default the first, with a warning naming the others."""
+    ``individual`` names a track; by default the first, with a warning naming the others;
+    :data:`~graph.io.keypoint_types.EVERY`: every track (at most ``MAX_SLOTS``; an untracked file's
+    instances, in each frame's order, not identified) as :class:`Tracks`."""
     try:
         import sleap_io
     except ImportError:
@@ -98,9 +100,12 @@ def read_slp(path: Path, individual: str | None, limits: ReadLimits) -> Keypoint
     if not len(labels):
         raise InputError("the SLEAP file has no labelled frames", path)
     untracked = not names
-    if untracked and any(len(lf.instances) > 1 for lf in labels):
+    every = individual == EVERY
+    if untracked and not every and any(len(lf.instances) > 1 for lf in labels):
         warnings.warn(f"{path.name}: several untracked instances in a frame; using each frame's first", stacklevel=6)
-    k = _choose(names, individual, path)
+    if every and len(names) > MAX_SLOTS:
+        raise InputError(f"{len(names)} tracks; at most {MAX_SLOTS} are solved at once", path)
+    k = 0 if every else _choose(names, individual, path)
     try:
         arr = labels.numpy(video=0, untracked=untracked, return_confidence=True)  # (frame, track, node, 3)
     except Exception as e:  # noqa: BLE001
@@ -108,15 +113,22 @@ def read_slp(path: Path, individual: str | None, limits: ReadLimits) -> Keypoint
     if arr.ndim != 4 or arr.shape[1] <= k or arr.shape[2] != len(nodes):
         raise InputError(f"SLEAP's points came out as {arr.shape}, not (frames, tracks, {len(nodes)}, 3)", path)
     limits.check_frames(arr.shape[0], path)
-    xy = np.asarray(arr[:, k, :, :2], dtype=np.float64)
-    score = np.asarray(arr[:, k, :, 2], dtype=np.float64)
+    if every and arr.shape[1] > MAX_SLOTS:
+        raise InputError(f"{arr.shape[1]} instances in a frame; at most {MAX_SLOTS} are solved at once", path)
+    part = arr if every else arr[:, k:k + 1]
+    xy = np.asarray(part[..., :2], dtype=np.float64)
+    score = np.asarray(part[..., 2], dtype=np.float64)
     if np.isinf(xy).any():
         raise InputError("infinite pixel coordinates", path)
     missing = ~np.isfinite(xy).all(axis=-1)
     xy[missing] = np.nan
     likelihood = np.clip(np.nan_to_num(score, nan=1.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
     likelihood[missing] = 0.0
-    return Keypoints(bodyparts=nodes, xy=xy, likelihood=likelihood, scorer="sleap", source=str(path))
+    if not every:
+        return Keypoints(bodyparts=nodes, xy=xy[:, 0], likelihood=likelihood[:, 0], scorer="sleap", source=str(path))
+    slots = names or [f"instance_{j}" for j in range(xy.shape[1])]
+    return Tracks(bodyparts=nodes, names=slots, xy=xy, likelihood=likelihood, identified=not untracked or
+                  xy.shape[1] == 1, scorer="sleap", source=str(path))
 
 
 def _choose(names: list[str], individual: str | None, path: Path) -> int:
