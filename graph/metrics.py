@@ -675,3 +675,44 @@ def loco_difference(a: LeaveOneCameraOut, b: LeaveOneCameraOut, resamples: int =
                           p90_interval=(float(lo[1]), float(hi[1])),
                           share_b_p90_lower=float(np.mean(draws[:, 1] < 0)), block_frames=L, blocks=runs,
                           resamples=resamples, count=int(both.sum()))
+
+
+class GroupError(NamedTuple):
+    """Several individuals' estimates against several animals' truth (:func:`group_error`)."""
+
+    match: list[int]  # the animal each individual is, by its whole run (-1: none)
+    switches: int  # frames in which an individual is nearer another animal than in its last frame
+    animal_frames: int  # individual-frames with an estimate
+    errors: list[PositionError]  # each individual's error against its animal
+
+    @property
+    def switches_per_10k(self) -> float:
+        return 1e4 * self.switches / max(self.animal_frames, 1)
+
+
+def group_error(estimates: np.ndarray, truth: np.ndarray, markers: list[str]) -> GroupError:
+    """Estimates (I, N, M, 3) of I individuals against A animals' truth (N, A, M, 3).
+
+    Each frame, individual ``i`` is the animal nearest it (median marker distance); a 3D identity
+    switch is a frame in which that animal differs from the one of its last frame with an estimate.
+    The run's match (individual to animal) is the assignment with the least summed median distance
+    (Hungarian method); each individual's :class:`PositionError` is against its matched animal."""
+    from scipy.optimize import linear_sum_assignment
+
+    count = estimates.shape[0]
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        d = np.nanmedian(np.linalg.norm(estimates[:, None] - truth.transpose(1, 0, 2, 3)[None], axis=-1), axis=-1)
+        whole = np.nanmedian(d, axis=-1)  # (I, A)
+    rows, cols = linear_sum_assignment(np.where(np.isfinite(whole), whole, 1e12))
+    match = [-1] * count
+    for r, c in zip(rows, cols):
+        match[int(r)] = int(c)
+    switches = frames = 0
+    for i in range(count):
+        have = np.isfinite(d[i]).any(axis=0)
+        nearest = np.argmin(np.where(np.isfinite(d[i]), d[i], np.inf), axis=0)[have]
+        frames += int(have.sum())
+        switches += int((np.diff(nearest) != 0).sum())
+    errors = [position_error(estimates[i], truth[:, match[i]], markers) for i in range(count) if match[i] >= 0]
+    return GroupError(match=match, switches=switches, animal_frames=frames, errors=errors)

@@ -97,9 +97,10 @@ def _put(a: np.ndarray, xy: np.ndarray, likelihood: np.ndarray) -> None:
     likelihood[found] = np.clip(a[found, 2], 0.0, 1.0)
 
 
-def _read_folder(folder: str | Path, limits: ReadLimits, model: str | None):
+def _read_folder(given: str | Path, limits: ReadLimits,
+                 model: str | None) -> tuple[Path, list[str], int, int, list[tuple[int, list[np.ndarray]]]]:
     """The folder, its keypoint names, frame count, first frame number and ``(frame, [person (K, 3)])``."""
-    folder = Path(folder)
+    folder = Path(given)
     if model is not None and model not in MODELS:
         raise InputError(f"unknown OpenPose model {model!r} (known: {', '.join(MODELS)})", folder)
     cap = limits.max_frames
