@@ -267,7 +267,12 @@ def add_solve_options(p) -> None:
                         "acceleration, the default), 2, 1 (what aniposelib smooths), or 'auto' to choose it per "
                         "marker from the data (fte, with the motion scale fitted)")
     p.add_argument("--individual", default=None, metavar="NAME",
-                   help="multi-animal files: which individual (a SLEAP file's track name)")
+                   help="multi-animal files: solve this individual alone, trusting the 2D tracker's identities (a "
+                        "SLEAP file's track name)")
+    p.add_argument("--individuals", default=None, type=_positive_int, metavar="N",
+                   help="multi-animal files: how many individuals (default: found); each camera's detections are "
+                        "assigned to them by 3D geometry and motion, and each is solved and written as "
+                        "OUT.<name>.csv")
     p.add_argument("--openpose-model", default=None, choices=["BODY_25", "BODY_25B", "COCO"],
                    help="OpenPose JSON folders: the model that wrote them, which names the keypoints (default: "
                         "kp0, kp1, ...; BODY_25 and BODY_25B both have 25 keypoints, in other orders)")
@@ -284,6 +289,17 @@ def add_solve_options(p) -> None:
                    help="the cameras' clocks: as given (in sync, or --time-offsets) or estimated with the trajectory")
     p.add_argument("--time-offsets", default=None, metavar="T1,T2,...",
                    help="each camera's time offset in frames (camera frame n is at n + T), camera 1 the reference")
+
+
+def _positive_int(text: str) -> int:
+    """``--individuals``: a whole number of at least 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"takes a whole number, not {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
+    return value
 
 
 def _auto_option(text: str, option: str = "--measurement-std", unit: str = "a number of pixels"):
@@ -399,7 +415,6 @@ def solve_options(args: argparse.Namespace, fps: float | None = None):
 
 
 def run_solve(args: argparse.Namespace) -> int:
-    from graph import api
     from graph.io.calibration import load_calibration
     from graph.io.keypoints import check_same_frames
 
@@ -412,35 +427,118 @@ def run_solve(args: argparse.Namespace) -> int:
     if len(args.keypoints) != len(calibration):
         raise InputError(f"has {len(calibration)} cameras but {len(args.keypoints)} keypoint files "
                          "were given (one per camera, in the calibration's order)", args.calibration)
-    keypoints = read_cameras(args.keypoints, args.individual, args.openpose_model)
-    check_same_frames(keypoints)
-    fps, fps_from = frame_rate(args.fps, keypoints)
-    options = solve_options(args, fps)
+    group = read_group(args.keypoints, args.individual, args.individuals, args.openpose_model)
+    if group is None:
+        keypoints = read_cameras(args.keypoints, args.individual, args.openpose_model)
+        check_same_frames(keypoints)
+        fps, fps_from = frame_rate(args.fps, keypoints)
+        result = _solve_one(keypoints, calibration, solve_options(args, fps))
+        written = write_outputs(args, result, calibration, Path(args.out))
+        print(_summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
+        return 0
 
+    from graph.solve.identity import assign
+
+    tracks = group
+    check_same_frames([t.slot(0) for t in tracks])
+    fps, fps_from = frame_rate(args.fps, [t.slot(0) for t in tracks])
+    options = solve_options(args, fps)
+    ids = assign(tracks, calibration, args.individuals, options.likelihood_threshold)
+    for note in ids.notes:
+        warnings.warn(note, stacklevel=2)
+    if len(ids.names) == 1:
+        result = _solve_one(ids.keypoints[0], calibration, options)
+        written = write_outputs(args, result, calibration, Path(args.out), identity=ids.to_dict())
+        print(_summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
+        return 0
+    switches = ", ".join(f"{cam} {n}" for cam, n in zip(ids.cameras, ids.switches))
+    print(f"{len(ids.names)} individuals ({'found' if ids.found else 'given'}: {', '.join(ids.names)}); 2D identity "
+          f"switches corrected per camera: {switches}")
+    reports: dict[str, dict] = {}
+    for name, keypoints in zip(ids.names, ids.keypoints):
+        result = _solve_one(keypoints, calibration, options)
+        written = write_outputs(args, result, calibration, individual_path(Path(args.out), name), report=False,
+                                individual=name)
+        reports[name] = result.report.to_dict()
+        print(f"{name}: " + _summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
+    if args.report:
+        doc = {"identity": ids.to_dict(), "individuals": reports}
+        Path(args.report).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+        print(f"report -> {args.report}")
+    return 0
+
+
+def read_group(paths: list[str], individual: str | None, individuals: int | None,
+               openpose_model: str | None) -> list | None:
+    """Every camera's :class:`~graph.io.keypoint_types.Tracks` when the files hold several individuals
+    (or ``individuals`` is given) and none is chosen by name; None for a single-animal solve (one
+    individual named, an ensemble's ``+``, or one slot in every file and no count given)."""
+    if individual is not None or any("+" in p and not Path(p).exists() for p in paths):
+        if individuals is not None and individual is not None:
+            raise UsageError("--individual NAME solves one individual; --individuals N finds N: give one of them")
+        return None
+    from graph.io.keypoints import read_tracks
+
+    tracks = [read_tracks(p, openpose_model=openpose_model) for p in paths]
+    if individuals is None and all(t.slots == 1 for t in tracks):
+        return None
+    return tracks
+
+
+def individual_path(path: Path, name: str) -> Path:
+    """``run.csv`` of individual ``name``: ``run.<name>.csv`` (:func:`safe_name`)."""
+    return path.with_name(f"{path.stem}.{safe_name(name)}{path.suffix}")
+
+
+def safe_name(name: str) -> str:
+    """An individual's name as part of a file name (:func:`graph.io.results.safe_name`)."""
+    from graph.io.results import safe_name as file_name_part
+
+    return file_name_part(name, "individual")
+
+
+def _solve_one(keypoints: list, calibration, options):
+    """One individual's solve, with the progress bar and the compile note on a terminal."""
+    from graph import api
     from graph.progress import ProgressBar, compile_notice
 
     bar = ProgressBar(sys.stderr) if sys.stderr.isatty() else None
     try:
         with compile_notice(lambda line: print(f"{PROG}: {line}", file=sys.stderr, flush=True)):
-            result = api.solve(keypoints, calibration, options, progress=bar)
+            return api.solve(keypoints, calibration, options, progress=bar)
     finally:
         if bar is not None:
             bar.close()
 
+
+def write_outputs(args: argparse.Namespace, result, calibration, out: Path, report: bool = True,
+                  individual: str | None = None, identity: dict | None = None) -> list:
+    """The CSV at ``out`` and what ``--h5``, ``--report`` (when ``report``) and ``--reprojections`` ask
+    for; an ``individual``'s H5 and reprojections are named after it. The paths written."""
     from graph.io import results
 
-    written = [args.out]
-    results.write_anipose_csv(args.out, result)
+    written: list = [out]
+    results.write_anipose_csv(out, result)
     if args.h5:
-        results.write_h5(args.h5, result, calibration=calibration)
-        written.append(args.h5)
-    if args.report:
-        Path(args.report).write_text(json.dumps(result.report.to_dict(), indent=2) + "\n", encoding="utf-8")
+        h5 = Path(args.h5) if individual is None else individual_path(Path(args.h5), individual)
+        results.write_h5(h5, result, calibration=calibration)
+        written.append(h5)
+    if args.report and report:
+        doc = result.report.to_dict()
+        if identity is not None:
+            doc["identity"] = identity
+        Path(args.report).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
         written.append(args.report)
     if args.reprojections:
         stems = [f"{Path(p.split('+')[0] if not Path(p).exists() else p).stem}_reprojected" for p in args.keypoints]
-        results.write_reprojections_dlc(args.reprojections, result, stems=stems)
-        written.append(args.reprojections)
+        where = Path(args.reprojections) if individual is None else Path(args.reprojections) / safe_name(individual)
+        results.write_reprojections_dlc(where, result, stems=stems)
+        written.append(where)
+    return written
+
+
+def _summary(result, options, fps: float, fps_from: str) -> str:
+    """The one line a solve prints."""
     rep = result.report
     rmse = "n/a" if rep.reprojection_rmse_px != rep.reprojection_rmse_px else f"{rep.reprojection_rmse_px:.2f} px"
     noise = f", detection noise {rep.sigma_px:.2f} px (measured)" if options.measurement_std_px == "auto" else ""
@@ -451,9 +549,8 @@ def run_solve(args: argparse.Namespace) -> int:
     if rep.motion_orders and options.motion_order == "auto":
         counts = {k: list(rep.motion_orders.values()).count(k) for k in sorted(set(rep.motion_orders.values()))}
         noise += ", motion order " + ", ".join(f"{k} for {n}" for k, n in counts.items())
-    print(f"{rep.method}: {rep.frames} frames, {rep.cameras} cameras, {rep.markers} markers, {fps:g} fps ({fps_from}), "
-          f"reprojection RMSE {rmse}{noise}, {rep.seconds.get('total', 0.0):.2f} s -> {', '.join(map(str, written))}")
-    return 0
+    return (f"{rep.method}: {rep.frames} frames, {rep.cameras} cameras, {rep.markers} markers, {fps:g} fps "
+            f"({fps_from}), reprojection RMSE {rmse}{noise}, {rep.seconds.get('total', 0.0):.2f} s")
 
 
 if __name__ == "__main__":  # ``python -m graph.app.cli``: the library's commands, from the module proper

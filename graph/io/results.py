@@ -329,7 +329,7 @@ def write_reprojections_dlc(directory: str | Path, result: Result, stems: list[s
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     reproj = np.asarray(result.reprojections, dtype=np.float64)
-    stems = list(stems) if stems is not None else [_safe_name(c) for c in result.camera_names]
+    stems = list(stems) if stems is not None else [safe_name(c) for c in result.camera_names]
     if len(stems) != reproj.shape[0]:
         raise ValueError(f"{len(stems)} file names for {reproj.shape[0]} cameras")
     paths = []
@@ -344,8 +344,10 @@ def write_reprojections_dlc(directory: str | Path, result: Result, stems: list[s
     return paths
 
 
-def _safe_name(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("._") or "camera"
+def safe_name(name: str, default: str = "camera") -> str:
+    """A name (a camera's, an individual's) as part of a file name: letters, digits, ``_ . -`` (others
+    ``_``), no leading dot, so a name from an upload cannot leave the output folder."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("._") or default
 
 
 # ----------------------------------------------------------------------------------- a body, reused
