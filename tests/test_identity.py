@@ -1,0 +1,205 @@
+"""Several animals at once: each camera's 2D slots assigned to 3D individuals by geometry and motion,
+however the 2D tracker swapped them, and ``acinoset solve`` on multi-animal DeepLabCut files (written
+by pandas as DeepLabCut writes them), SLEAP files with several tracks (written by sleap-io) and
+OpenPose folders of several people."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from graph.io.calibration import write_anipose_toml
+from graph.io.keypoint_types import Tracks
+from graph.io.results import read_anipose_csv
+from graph.metrics import group_error
+from graph.simulate import ring_rig
+from graph.simulate_group import simulate_group
+from graph.solve.identity import assign, count_individuals
+from graph.solve.triangulate import robust_points
+
+RIG = ring_rig(4)
+
+
+def triangulated(keypoints: list, threshold: float = 0.5) -> np.ndarray:
+    """(N, M, 3) robust triangulation of one individual's detections per camera."""
+    meas = np.stack([k.xy for k in keypoints], axis=1)
+    valid = np.stack([k.likelihood >= threshold for k in keypoints], axis=1)
+    return robust_points(RIG, meas, valid)[0]
+
+
+@pytest.mark.parametrize("animals,seed", [(2, 0), (2, 1), (3, 0), (3, 2)])
+def test_swapped_2d_identities_do_not_swap_the_3d_animals(animals, seed):
+    run = simulate_group(RIG, animals=animals, frames=1500, seed=seed)
+    true_swaps = [int((np.diff(o, axis=0) != 0).any(axis=1).sum()) for o in run.owner]
+    assert min(true_swaps) >= 15  # the tracker swapped in every camera
+    ids = assign(run.tracks, RIG)
+    assert ids.found and len(ids.names) == animals
+    assert ids.names == [f"animal{k + 1}" for k in range(animals)]  # the names the 2D slots carried most
+    ours = group_error(np.stack([triangulated(k) for k in ids.keypoints]), run.positions, run.markers)
+    assert ours.switches == 0 and sorted(ours.match) == list(range(animals))
+    oracle = group_error(np.stack([triangulated([t.slot(a) for t in run.true_tracks()]) for a in range(animals)]),
+                         run.positions, run.markers)
+    for e, o in zip(ours.errors, (oracle.errors[ours.match.index(a)] for a in range(animals))):
+        assert e.mean_mm <= 1.05 * o.mean_mm + 0.1 and e.coverage >= 0.97 * o.coverage
+    as_given = group_error(np.stack([triangulated([t.slot(k) for t in run.tracks]) for k in range(animals)]),
+                           run.positions, run.markers)
+    assert as_given.switches_per_10k > 300 and min(e.mean_mm for e in as_given.errors) > 10 * max(
+        e.mean_mm for e in ours.errors)
+    # every true 2D swap seen is corrected once; a swap next to a missing detection may count twice
+    for c in range(len(RIG)):
+        assert 0.9 * true_swaps[c] <= ids.switches[c] <= 1.4 * true_swaps[c] + 2
+
+
+def test_people_in_no_order_are_tracked_as_well():
+    """OpenPose gives no identities: the slots are shuffled in every frame and the answer is the same."""
+    run = simulate_group(RIG, animals=3, frames=800, seed=4)
+    rng = np.random.default_rng(0)
+    shuffled = []
+    for t in run.true_tracks():
+        order = np.argsort(rng.random(t.xy.shape[:2]), axis=1)
+        rows = np.arange(t.frames)[:, None]
+        shuffled.append(Tracks(bodyparts=t.bodyparts, names=["person1", "person2", "person3"], xy=t.xy[rows, order],
+                               likelihood=t.likelihood[rows, order], identified=False))
+    ids = assign(shuffled, RIG)
+    assert ids.names == ["individual1", "individual2", "individual3"] and ids.switches == [0, 0, 0, 0]
+    ours = group_error(np.stack([triangulated(k) for k in ids.keypoints]), run.positions, run.markers)
+    assert ours.switches == 0 and max(e.mean_mm for e in ours.errors) < 10
+
+
+def test_the_count_is_found_or_given():
+    run = simulate_group(RIG, animals=3, frames=300, seed=5)
+    assert count_individuals(run.tracks, 0.5) == 3
+    two = assign(run.tracks, RIG, individuals=2)
+    assert not two.found and len(two.names) == 2
+    four = assign(run.tracks, RIG, individuals=4)
+    assert len(four.names) == 4 and any("never seen" in n for n in four.notes)
+
+
+# ------------------------------------------------------------------------------------ the command line
+
+
+def run_cli(*args, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "graph.app.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=600, cwd=cwd)
+
+
+def write_dlc_multi(path: Path, t: Tracks, names: list[str] | None = None) -> Path:
+    """A multi-animal DeepLabCut CSV as DeepLabCut writes it (pandas, the 4-level column index)."""
+    pd = pytest.importorskip("pandas")
+    cols, data = [], []
+    for k, name in enumerate(names or t.names):
+        for m, bp in enumerate(t.bodyparts):
+            for j, coord in enumerate(("x", "y", "likelihood")):
+                cols.append(("DLC_resnet50_groupDec4shuffle1_100000", name, bp, coord))
+                data.append(t.xy[:, k, m, j] if j < 2 else t.likelihood[:, k, m])
+    index = pd.MultiIndex.from_tuples(cols, names=["scorer", "individuals", "bodyparts", "coords"])
+    pd.DataFrame(np.stack(data, axis=1), columns=index).to_csv(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("pair")
+    run = simulate_group(RIG, animals=2, frames=400, seed=6)
+    write_anipose_toml(folder / "calibration.toml", RIG)
+    names = ["dam", "../../cub"]  # a name from an upload must not leave the output folder
+    files = [write_dlc_multi(folder / f"cam{c + 1}.csv", t, names) for c, t in enumerate(run.tracks)]
+    return folder, run, files
+
+
+def test_solve_writes_each_individual_and_the_identities(pair):
+    folder, run, files = pair
+    out = folder / "out"
+    out.mkdir()
+    p = run_cli("solve", *files, "--calibration", folder / "calibration.toml", "--fps", "60", "--skeleton", "points",
+                "--out", out / "run.csv", "--report", out / "run.json", "--h5", out / "run.h5", cwd=folder)
+    assert p.returncode == 0, p.stderr
+    assert "Traceback" not in p.stderr
+    assert sorted(x.name for x in out.iterdir()) == ["run.cub.csv", "run.cub.h5", "run.dam.csv", "run.dam.h5",
+                                                      "run.json"]
+    assert "2 individuals (found: ../../cub, dam)" in p.stdout
+    est = np.stack([read_anipose_csv(out / f"run.{n}.csv").positions for n in ("cub", "dam")])
+    g = group_error(est, run.positions, run.markers)
+    assert g.switches == 0 and max(e.mean_mm for e in g.errors) < 8
+    report = json.loads((out / "run.json").read_text())
+    assert report["identity"]["individuals"] == ["../../cub", "dam"] and report["identity"]["count"] == "found"
+    assert set(report["identity"]["switches_corrected"]) == {"cam1", "cam2", "cam3", "cam4"}
+    assert min(report["identity"]["switches_corrected"].values()) >= 1
+    assert set(report["individuals"]) == {"../../cub", "dam"}
+    assert all(r["method"] == "fte" and r["frames"] == 400 for r in report["individuals"].values())
+
+
+def test_one_individual_by_name_trusts_the_2d_identities(pair):
+    folder, _, files = pair
+    out = folder / "one"
+    out.mkdir()
+    p = run_cli("solve", *files, "--calibration", folder / "calibration.toml", "--fps", "60", "--skeleton", "points",
+                "--method", "tri", "--individual", "dam", "--out", out / "run.csv", cwd=folder)
+    assert p.returncode == 0, p.stderr
+    assert sorted(x.name for x in out.iterdir()) == ["run.csv"]
+
+
+def test_a_count_and_a_name_together_are_refused(pair):
+    folder, _, files = pair
+    p = run_cli("solve", *files, "--calibration", folder / "calibration.toml", "--fps", "60", "--individual", "dam",
+                "--individuals", "2", "--out", folder / "x.csv", cwd=folder)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "give one of them" in p.stderr
+
+
+def test_sleap_files_with_two_tracks(tmp_path):
+    """Two tracked mice per camera in .slp files that sleap-io writes; its tracks swap in each camera."""
+    sio = pytest.importorskip("sleap_io")
+    run = simulate_group(RIG, animals=2, frames=200, seed=7)
+    skeleton = sio.Skeleton(list(run.markers))
+    files = []
+    for c, t in enumerate(run.tracks):
+        tracks = [sio.Track(n) for n in ("mouse a", "mouse b")]
+        video = sio.Video(filename=f"cam{c}.mp4", open_backend=False)
+        frames = []
+        for n in range(t.frames):
+            inst = [sio.PredictedInstance.from_numpy(points_data=t.xy[n, k], point_scores=t.likelihood[n, k], score=1.0,
+                                                     skeleton=skeleton, track=tracks[k])
+                    for k in range(2) if np.isfinite(t.xy[n, k]).any()]
+            frames.append(sio.LabeledFrame(video=video, frame_idx=n, instances=inst))
+        path = tmp_path / f"cam{c + 1}.slp"
+        sio.save_slp(sio.Labels(labeled_frames=frames, videos=[video], skeletons=[skeleton], tracks=tracks), str(path))
+        files.append(path)
+    write_anipose_toml(tmp_path / "calibration.toml", RIG)
+    p = run_cli("solve", *files, "--calibration", tmp_path / "calibration.toml", "--fps", "60", "--skeleton", "points",
+                "--method", "tri", "--out", tmp_path / "run.csv", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    est = np.stack([read_anipose_csv(tmp_path / f"run.mouse_{x}.csv").positions for x in "ab"])
+    g = group_error(est, run.positions, run.markers)
+    assert g.switches == 0 and max(e.median_mm for e in g.errors) < 8
+
+
+def test_openpose_folders_of_two_people(tmp_path):
+    """OpenPose's JSON files, two people a frame in no fixed order (as OpenPose writes them)."""
+    run = simulate_group(RIG, animals=2, frames=150, seed=8)
+    rng = np.random.default_rng(1)
+    folders = []
+    for c, t in enumerate(run.true_tracks()):
+        folder = tmp_path / f"cam{c + 1}_json"
+        folder.mkdir()
+        for n in range(t.frames):
+            people = []
+            for k in rng.permutation(2):
+                found = np.isfinite(t.xy[n, k]).all(-1)
+                flat = np.where(found[:, None], np.column_stack([np.nan_to_num(t.xy[n, k]), t.likelihood[n, k]]), 0.0)
+                if found.any():
+                    people.append({"person_id": [-1], "pose_keypoints_2d": flat.ravel().tolist()})
+            (folder / f"cam{c + 1}_{n:012d}_keypoints.json").write_text(json.dumps({"version": 1.3, "people": people}))
+        folders.append(folder)
+    write_anipose_toml(tmp_path / "calibration.toml", RIG)
+    p = run_cli("solve", *folders, "--calibration", tmp_path / "calibration.toml", "--fps", "60", "--skeleton",
+                "points", "--method", "tri", "--out", tmp_path / "run.csv", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert "2 individuals (found: individual1, individual2)" in p.stdout
+    est = np.stack([read_anipose_csv(tmp_path / f"run.individual{i}.csv").positions for i in (1, 2)])
+    g = group_error(est, run.positions, run.markers)
+    assert g.switches == 0 and max(e.median_mm for e in g.errors) < 8
