@@ -461,3 +461,28 @@ def test_a_ctrl_c_numba_wrapped_reads_as_interrupted():
     other = raised(ValueError("bad"), SystemError("x"), SystemError("y"))
     assert not _caused_by_ctrl_c(other)
     assert not _caused_by_ctrl_c(SystemError("plain"))
+
+
+def test_the_csv_in_the_calibrations_units(run_dir, tmp_path):
+    """``--units auto`` writes the CSV in the calibration's units (a rig measured in millimetres gives
+    millimetres, as ``anipose triangulate`` writes it), ``--units mm`` in millimetres from any rig; the
+    H5 stays in metres."""
+    import dataclasses
+
+    rig = load_calibration(run_dir / "calibration.toml")
+    in_mm = Calibration([dataclasses.replace(c, t=1000 * c.t) for c in rig.cameras])
+    write_anipose_toml(tmp_path / "mm.toml", in_mm)
+    common = ("--method", "tri", "--skeleton", "points", "--fps", FPS)
+    metres = run_cli("solve", *cams(run_dir), "--calibration", run_dir / "calibration.toml", *common,
+                     "--out", tmp_path / "m.csv")
+    auto = run_cli("solve", *cams(run_dir), "--calibration", tmp_path / "mm.toml", *common, "--units", "auto",
+                   "--out", tmp_path / "auto.csv", "--h5", tmp_path / "auto.h5")
+    mm = run_cli("solve", *cams(run_dir), "--calibration", run_dir / "calibration.toml", *common, "--units", "mm",
+                 "--out", tmp_path / "mm.csv")
+    for p in (metres, auto, mm):
+        assert p.returncode == 0, p.stderr
+    assert "auto.csv (in mm)" in auto.stdout and "(in " not in metres.stdout
+    m = read_anipose_csv(tmp_path / "m.csv").positions
+    np.testing.assert_allclose(read_anipose_csv(tmp_path / "auto.csv").positions, 1000 * m, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(read_anipose_csv(tmp_path / "mm.csv").positions, 1000 * m, rtol=1e-9)
+    np.testing.assert_allclose(read_result(tmp_path / "auto.h5").positions, m, rtol=1e-6, atol=1e-9)

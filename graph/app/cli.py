@@ -203,6 +203,9 @@ def register(sub) -> None:
                    help="Anipose calibration.toml or AcinoSet scene JSON")
     add_solve_options(p)
     p.add_argument("--out", required=True, metavar="OUT.csv", help="3D result in Anipose's CSV layout")
+    p.add_argument("--units", choices=["m", "cm", "mm", "auto"], default="m",
+                   help="the CSV's units (default m); auto: the calibration's own (--calibration-units), as "
+                        "'anipose triangulate' writes a project calibrated in millimetres; the H5 is in metres")
     p.add_argument("--h5", default=None, metavar="OUT.h5", help="also write everything as HDF5")
     p.add_argument("--report", default=None, metavar="REPORT.json", help="also write the solver report")
     p.add_argument("--reprojections", default=None, metavar="DIR",
@@ -517,8 +520,10 @@ def write_outputs(args: argparse.Namespace, result, calibration, out: Path, repo
     for; an ``individual``'s H5 and reprojections are named after it. The paths written."""
     from graph.io import results
 
-    written: list = [out]
-    results.write_anipose_csv(out, result)
+    per_unit = csv_metres_per_unit(args.units, calibration, result)
+    unit = {1.0: "m", 0.01: "cm", 0.001: "mm"}[per_unit]
+    written: list = [out if unit == "m" else f"{out} (in {unit})"]
+    results.write_anipose_csv(out, result, metres_per_unit=per_unit)
     if args.h5:
         h5 = Path(args.h5) if individual is None else individual_path(Path(args.h5), individual)
         results.write_h5(h5, result, calibration=calibration)
@@ -535,6 +540,16 @@ def write_outputs(args: argparse.Namespace, result, calibration, out: Path, repo
         results.write_reprojections_dlc(where, result, stems=stems)
         written.append(where)
     return written
+
+
+def csv_metres_per_unit(units: str, calibration, result) -> float:
+    """``--units`` as metres per CSV unit: the calibration's own units for ``auto`` (as the solve took them)."""
+    from graph.camera import CALIBRATION_UNITS
+    from graph.io.calibration import resolve_units
+
+    if units == "auto":
+        units = resolve_units(calibration, result.options.calibration_units)[0]
+    return CALIBRATION_UNITS[units]
 
 
 def _summary(result, options, fps: float, fps_from: str) -> str:
