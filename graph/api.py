@@ -1,7 +1,9 @@
-"""The library's front door: :func:`solve`, and the registry of solvers it dispatches to.
+"""The library's front door: :func:`solve`, and the registry of solvers it dispatches to;
+:func:`solve_group` for several individuals.
 
 The CLI and the REST service both call ``solve(keypoints, calibration, options, progress)`` and
-read a :class:`~graph.types.Result`; neither reaches into the solvers. The types live in
+read a :class:`~graph.types.Result` (``solve_group``: a :class:`GroupResult`); neither reaches into
+the solvers. The types live in
 :mod:`graph.types` and are re-exported here.
 """
 
@@ -9,9 +11,11 @@ from __future__ import annotations
 
 import time
 import warnings
-from typing import Protocol
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
 
 from graph.camera import Calibration
+from graph.io.keypoint_types import Tracks
 from graph.io.keypoints import Keypoints
 from graph.solve import disagreement, problem
 from graph.solve.joint import solve_fte_joint
@@ -20,8 +24,11 @@ from graph.solve.problem import Problem
 from graph.solve.tri import solve_tri
 from graph.types import METHODS, Method, Progress, ProgressCallback, Result, SolveOptions, SolveReport
 
-__all__ = ["solve", "SOLVERS", "Solver", "METHODS", "Method", "Progress", "ProgressCallback", "Result",
-           "SolveOptions", "SolveReport"]
+if TYPE_CHECKING:
+    from graph.solve.identity import Identities
+
+__all__ = ["solve", "solve_group", "GroupResult", "SOLVERS", "Solver", "METHODS", "Method", "Progress",
+           "ProgressCallback", "Result", "SolveOptions", "SolveReport"]
 
 
 class Solver(Protocol):
@@ -53,3 +60,35 @@ def solve(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
             warnings.warn(said, stacklevel=2)
     result.report.seconds["total"] = time.perf_counter() - t0
     return result
+
+
+@dataclass
+class GroupResult:
+    """Several individuals solved: who is who (:class:`graph.solve.identity.Identities`) and each
+    one's :class:`~graph.types.Result`, in the order of ``identities.names``."""
+
+    identities: "Identities"
+    results: list[Result]
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.identities.names)
+
+    def report(self) -> dict:
+        """The identities and each individual's report, as JSON values."""
+        return {"identity": self.identities.to_dict(),
+                "individuals": {n: r.report.to_dict() for n, r in zip(self.names, self.results)}}
+
+
+def solve_group(tracks: list[Tracks], calibration: Calibration, options: SolveOptions | None = None,
+                progress: ProgressCallback | None = None) -> GroupResult:
+    """Several individuals from one :class:`~graph.io.keypoint_types.Tracks` per camera: each camera's
+    detections assigned to ``options.individuals`` individuals (None: found) by geometry and motion
+    (:func:`graph.solve.identity.assign`), then each solved by :func:`solve` with ``options``."""
+    from graph.solve.identity import assign
+
+    options = options or SolveOptions()
+    ids = assign(tracks, calibration, options.individuals, options.likelihood_threshold)
+    for note in ids.notes:
+        warnings.warn(note, stacklevel=2)
+    return GroupResult(identities=ids, results=[solve(k, calibration, options, progress) for k in ids.keypoints])

@@ -36,6 +36,7 @@ MAX_NOISE_PX = 1000.0
 MAX_ITERATIONS = 10000
 MAX_MOTION_SCALE = 1e6
 MAX_LAG_SECONDS = 60.0
+MAX_INDIVIDUALS = 64  # individuals solved from one recording (graph.io.keypoint_types.MAX_SLOTS)
 MAX_MIN_VIEWS = 100
 
 
@@ -74,7 +75,10 @@ class SolveOptions:
     # factor); "fte" with motion_scale "auto" only; {group: k}: per group, as a report's motion_orders
     motion_order: int | Literal["auto"] | dict[str, int] = 3
     bone_lengths: list[tuple[str, str]] | None = None  # soft bone-length terms for "points"
-    individual: str | None = None  # multi-animal DLC files: which individual
+    individual: str | None = None  # multi-animal files: which individual, alone (its 2D identities trusted)
+    # multi-animal files: how many individuals to assign the detections to by geometry and motion
+    # (graph.solve.identity; api.solve_group); None: found
+    individuals: int | None = None
     lag_seconds: float = 0.25  # "ekf": the fixed-lag window
     uncertainty: bool = True  # per-marker 3D std from the marginals ("fte": about a third of the time)
     calibration_units: str = "auto"  # "m", "cm", "mm", or "auto" (a rig measured in mm is recognised)
@@ -102,6 +106,13 @@ class SolveOptions:
                                                        and 0 < self.measurement_std_px <= MAX_NOISE_PX):
             raise ValueError(f"measurement_std_px must be a positive number of pixels or 'auto', "
                              f"not {self.measurement_std_px!r}")
+        if self.individuals is not None and not (isinstance(self.individuals, int) and not isinstance(
+                self.individuals, bool) and 1 <= self.individuals <= MAX_INDIVIDUALS):
+            raise ValueError(f"individuals must be a whole number from 1 to {MAX_INDIVIDUALS}, "
+                             f"not {self.individuals!r}")
+        if self.individuals is not None and self.individual is not None:
+            raise ValueError("individual names one individual to solve alone, individuals counts them: "
+                             "give one of them")
         if self.calibration_units not in CALIBRATION_UNITS:
             raise ValueError(f"calibration_units must be one of {', '.join(CALIBRATION_UNITS)}")
         if not (1 <= self.max_iterations <= MAX_ITERATIONS):

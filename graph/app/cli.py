@@ -409,6 +409,7 @@ def solve_options(args: argparse.Namespace, fps: float | None = None):
                                motion_scale=motion,
                                motion_order=order,
                                likelihood_threshold=args.likelihood_threshold, individual=args.individual,
+                               individuals=args.individuals,
                                min_views=args.min_views,
                                calibration_units=args.calibration_units, bone_lengths=bones,
                                uncertainty=args.uncertainty)
@@ -440,33 +441,26 @@ def run_solve(args: argparse.Namespace) -> int:
         print(_summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
         return 0
 
-    from graph.solve.identity import assign
-
     tracks = group
     check_same_frames([t.slot(0) for t in tracks])
     fps, fps_from = frame_rate(args.fps, [t.slot(0) for t in tracks])
     options = solve_options(args, fps)
-    ids = assign(tracks, calibration, args.individuals, options.likelihood_threshold)
-    for note in ids.notes:
-        warnings.warn(note, stacklevel=2)
+    solved = _solve_group(tracks, calibration, options)
+    ids = solved.identities
     if len(ids.names) == 1:
-        result = _solve_one(ids.keypoints[0], calibration, options)
+        result = solved.results[0]
         written = write_outputs(args, result, calibration, Path(args.out), identity=ids.to_dict())
         print(_summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
         return 0
     switches = ", ".join(f"{cam} {n}" for cam, n in zip(ids.cameras, ids.switches))
     print(f"{len(ids.names)} individuals ({'found' if ids.found else 'given'}: {', '.join(ids.names)}); 2D identity "
           f"switches corrected per camera: {switches}")
-    reports: dict[str, dict] = {}
-    for name, keypoints in zip(ids.names, ids.keypoints):
-        result = _solve_one(keypoints, calibration, options)
+    for name, result in zip(ids.names, solved.results):
         written = write_outputs(args, result, calibration, individual_path(Path(args.out), name), report=False,
                                 individual=name)
-        reports[name] = result.report.to_dict()
         print(f"{name}: " + _summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
     if args.report:
-        doc = {"identity": ids.to_dict(), "individuals": reports}
-        Path(args.report).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+        Path(args.report).write_text(json.dumps(solved.report(), indent=2) + "\n", encoding="utf-8")
         print(f"report -> {args.report}")
     return 0
 
@@ -477,8 +471,6 @@ def read_group(paths: list[str], individual: str | None, individuals: int | None
     (or ``individuals`` is given) and none is chosen by name; None for a single-animal solve (one
     individual named, an ensemble's ``+``, or one slot in every file and no count given)."""
     if individual is not None or any("+" in p and not Path(p).exists() for p in paths):
-        if individuals is not None and individual is not None:
-            raise UsageError("--individual NAME solves one individual; --individuals N finds N: give one of them")
         return None
     from graph.io.keypoints import read_tracks
 
@@ -503,12 +495,25 @@ def safe_name(name: str) -> str:
 def _solve_one(keypoints: list, calibration, options):
     """One individual's solve, with the progress bar and the compile note on a terminal."""
     from graph import api
+
+    return _with_progress(lambda bar: api.solve(keypoints, calibration, options, progress=bar))
+
+
+def _solve_group(tracks: list, calibration, options):
+    """Several individuals' solve (:func:`graph.api.solve_group`), as :func:`_solve_one`."""
+    from graph import api
+
+    return _with_progress(lambda bar: api.solve_group(tracks, calibration, options, progress=bar))
+
+
+def _with_progress(run):
+    """``run(bar)`` with a progress bar on a terminal (None otherwise) and the compile note."""
     from graph.progress import ProgressBar, compile_notice
 
     bar = ProgressBar(sys.stderr) if sys.stderr.isatty() else None
     try:
         with compile_notice(lambda line: print(f"{PROG}: {line}", file=sys.stderr, flush=True)):
-            return api.solve(keypoints, calibration, options, progress=bar)
+            return run(bar)
     finally:
         if bar is not None:
             bar.close()

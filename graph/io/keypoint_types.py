@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.errors import TooLargeInput
+from graph.types import MAX_INDIVIDUALS
 
 
 @dataclass(frozen=True)
@@ -40,7 +41,7 @@ class ReadLimits:
 
 NO_LIMITS = ReadLimits()
 EVERY = "\x00every individual"  # a reader's ``individual``: all of them, as Tracks (no name can be this)
-MAX_SLOTS = 64  # individuals read at once from one file
+MAX_SLOTS = MAX_INDIVIDUALS  # individuals read at once from one file
 
 
 @dataclass
