@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from group_files import write_dlc_multi
 
 from graph.io.calibration import write_anipose_toml
 from graph.io.keypoint_types import Tracks
@@ -86,20 +87,6 @@ def test_the_count_is_found_or_given():
 def run_cli(*args, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "graph.app.cli", *map(str, args)], capture_output=True, text=True,
                           timeout=600, cwd=cwd)
-
-
-def write_dlc_multi(path: Path, t: Tracks, names: list[str] | None = None) -> Path:
-    """A multi-animal DeepLabCut CSV as DeepLabCut writes it (pandas, the 4-level column index)."""
-    pd = pytest.importorskip("pandas")
-    cols, data = [], []
-    for k, name in enumerate(names or t.names):
-        for m, bp in enumerate(t.bodyparts):
-            for j, coord in enumerate(("x", "y", "likelihood")):
-                cols.append(("DLC_resnet50_groupDec4shuffle1_100000", name, bp, coord))
-                data.append(t.xy[:, k, m, j] if j < 2 else t.likelihood[:, k, m])
-    index = pd.MultiIndex.from_tuples(cols, names=["scorer", "individuals", "bodyparts", "coords"])
-    pd.DataFrame(np.stack(data, axis=1), columns=index).to_csv(path)
-    return path
 
 
 @pytest.fixture(scope="module")

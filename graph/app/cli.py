@@ -431,9 +431,11 @@ def run_solve(args: argparse.Namespace) -> int:
     if len(args.keypoints) != len(calibration):
         raise InputError(f"has {len(calibration)} cameras but {len(args.keypoints)} keypoint files "
                          "were given (one per camera, in the calibration's order)", args.calibration)
-    group = read_group(args.keypoints, args.individual, args.individuals, args.openpose_model)
-    if group is None:
-        keypoints = read_cameras(args.keypoints, args.individual, args.openpose_model)
+    from graph.io.keypoints import Keypoints
+
+    cameras = read_inputs(args.keypoints, args.individual, args.individuals, args.openpose_model)
+    if all(isinstance(c, Keypoints) for c in cameras):
+        keypoints = cameras
         check_same_frames(keypoints)
         fps, fps_from = frame_rate(args.fps, keypoints)
         result = _solve_one(keypoints, calibration, solve_options(args, fps))
@@ -441,7 +443,7 @@ def run_solve(args: argparse.Namespace) -> int:
         print(_summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
         return 0
 
-    tracks = group
+    tracks = cameras
     check_same_frames([t.slot(0) for t in tracks])
     fps, fps_from = frame_rate(args.fps, [t.slot(0) for t in tracks])
     options = solve_options(args, fps)
@@ -465,19 +467,16 @@ def run_solve(args: argparse.Namespace) -> int:
     return 0
 
 
-def read_group(paths: list[str], individual: str | None, individuals: int | None,
-               openpose_model: str | None) -> list | None:
-    """Every camera's :class:`~graph.io.keypoint_types.Tracks` when the files hold several individuals
-    (or ``individuals`` is given) and none is chosen by name; None for a single-animal solve (one
-    individual named, an ensemble's ``+``, or one slot in every file and no count given)."""
+def read_inputs(paths: list[str], individual: str | None, individuals: int | None,
+                openpose_model: str | None) -> list:
+    """Each camera's detections as a solve takes them: :class:`~graph.io.keypoints.Keypoints` for one
+    individual (named, an ensemble's ``+``, or one slot in every file and no count given), else
+    :class:`~graph.io.keypoint_types.Tracks` (:func:`graph.io.keypoints.read_recording`)."""
     if individual is not None or any("+" in p and not Path(p).exists() for p in paths):
-        return None
-    from graph.io.keypoints import read_tracks
+        return read_cameras(paths, individual, openpose_model)
+    from graph.io.keypoints import read_recording
 
-    tracks = [read_tracks(p, openpose_model=openpose_model) for p in paths]
-    if individuals is None and all(t.slots == 1 for t in tracks):
-        return None
-    return tracks
+    return read_recording(paths, individuals=individuals, openpose_model=openpose_model)
 
 
 def individual_path(path: Path, name: str) -> Path:

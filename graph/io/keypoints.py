@@ -90,6 +90,19 @@ def read_tracks(path: str | Path, limits: ReadLimits = NO_LIMITS, openpose_model
     return out
 
 
+def read_recording(paths: list, individual: str | None = None, individuals: int | None = None,
+                   limits: ReadLimits = NO_LIMITS, openpose_model: str | None = None) -> list[Keypoints] | list[Tracks]:
+    """One camera's detections per path, as a solve takes them: :class:`Keypoints` for one individual
+    (``individual`` named, or every file holding one and no count ``individuals`` given), else
+    :class:`Tracks` for :func:`graph.api.solve_group`. Each file is read once."""
+    if individual is not None:
+        return [read_keypoints(p, individual, limits, openpose_model) for p in paths]
+    tracks = [read_tracks(p, limits, openpose_model) for p in paths]
+    if individuals is None and all(t.slots == 1 for t in tracks):
+        return [t.slot(0) for t in tracks]
+    return tracks
+
+
 def _read(path: Path, individual: str | None, limits: ReadLimits, openpose_model: str | None) -> Keypoints | Tracks:
     if path.is_dir():
         from graph.io import openpose
