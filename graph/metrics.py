@@ -683,7 +683,7 @@ class GroupError(NamedTuple):
     match: list[int]  # the animal each individual is, by its whole run (-1: none)
     switches: int  # frames in which an individual is nearer another animal than in its last frame
     animal_frames: int  # individual-frames with an estimate
-    errors: list[PositionError]  # each individual's error against its animal
+    errors: list[PositionError | None]  # each individual's error against its animal (None: matched to none)
 
     @property
     def switches_per_10k(self) -> float:
@@ -714,5 +714,6 @@ def group_error(estimates: np.ndarray, truth: np.ndarray, markers: list[str]) ->
         nearest = np.argmin(np.where(np.isfinite(d[i]), d[i], np.inf), axis=0)[have]
         frames += int(have.sum())
         switches += int((np.diff(nearest) != 0).sum())
-    errors = [position_error(estimates[i], truth[:, match[i]], markers) for i in range(count) if match[i] >= 0]
+    errors = [position_error(estimates[i], truth[:, match[i]], markers) if match[i] >= 0 else None
+              for i in range(count)]
     return GroupError(match=match, switches=switches, animal_frames=frames, errors=errors)
