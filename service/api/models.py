@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, Literal, cast
+from urllib.parse import quote
 
 from pydantic import BaseModel, Field
 
@@ -15,7 +16,7 @@ from graph.export import REGISTRY, available
 from graph.types import STAGES as SOLVER_STAGES
 from service.errors import strip_paths, without_paths
 from service.store import COMPILING, DONE, READING, RENDERING, STARTING, WRITING, ErrorKind, Job, JobStatus
-from service.store.jobfiles import DOWNLOADS, EXPORT_FILES, RESULT_FILES, download_name
+from service.store.jobfiles import DOWNLOADS, EXPORT_FILES, RESULT_FILES, download_name, individual_names
 
 if TYPE_CHECKING:
     ResultFormat = str
@@ -95,6 +96,8 @@ class Inputs(BaseModel):
                                                          "was given (GET /v1/calibrations/{id}), if one was")
     skeleton: InputFile | None = None
     videos: list[InputFile] | None = Field(None, description="each camera's video, when the job was given them")
+    individuals: int = Field(1, description="the most individuals one keypoint file holds (several: each camera's "
+                                            "detections are assigned to individuals and each is solved)")
 
 
 class ResultSummary(BaseModel):
@@ -118,13 +121,21 @@ class ResultSummary(BaseModel):
     motion_orders: dict[str, int] | None = Field(None, description="the order each fitted scale is for")
     warnings: list[str] = Field(default_factory=list)
     formats: list[ResultFormat] = Field(default_factory=offered_formats)
+    identity: dict[str, Any] | None = Field(
+        None, description="several individuals: who is who (their names, in order; count found or given; the 2D "
+                          "identity switches corrected per camera); the headline numbers above are the first's, and "
+                          "each one's files are downloaded with &individual=NAME (links.individuals)")
 
 
 class Links(BaseModel):
     self: str
-    result: dict[str, str] | None = Field(None, description="download link per format, once succeeded")
+    result: dict[str, str] | None = Field(None, description="download link per format, once succeeded (a job of "
+                                                            "several individuals: its report; each one's in "
+                                                            "individuals)")
     cancel: str | None = Field(None, description="DELETE this to cancel (active) or delete (finished) the job")
     videos: str | None = Field(None, description="the labelled videos, once succeeded, when the job had videos")
+    individuals: dict[str, dict[str, str]] | None = Field(
+        None, description="several individuals: each one's download link per format, once succeeded")
 
 
 class JobOut(BaseModel):
@@ -275,6 +286,7 @@ def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
     href = f"{base}/{job.id}"
     progress = _progress(job)
     result = summary_of(job.summary) if job.status == "succeeded" else None
+    names = individual_names(job.summary) if job.status == "succeeded" else None
     return JobOut(
         id=job.id, owner=job.owner, label=job.label, status=job.status,
         has_warnings=bool(result is not None and result.warnings), attempts=job.attempts, max_attempts=job.max_attempts,
@@ -285,11 +297,13 @@ def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
         interruption=without_paths(job.interruption),
         worker=job.worker, result=result,
         links=Links(self=href,
-                    result={f: f"{href}/result?format={f}" for f in offered_formats()}
+                    result={f: f"{href}/result?format={f}" for f in offered_formats() if not names or f == "report"}
                     if job.status == "succeeded" else None,
                     cancel=href,
                     videos=f"{href}/videos" if job.status == "succeeded" and (job.inputs or {}).get("videos")
-                    else None))
+                    else None,
+                    individuals={n: {f: f"{href}/result?format={f}&individual={quote(n, safe='')}"
+                                     for f in offered_formats()} for n in names} if names else None))
 
 
 # -- batches ---------------------------------------------------------------------------------------

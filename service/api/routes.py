@@ -185,9 +185,13 @@ def _file_schema(media_type: str) -> dict:
                    media_type: {"schema": _file_schema(media_type)} for _, media_type in DOWNLOADS.values()}},
                **NOT_FOUND, 409: error_doc("The job has not succeeded (yet)")})
 def get_result(job_id: str, user: CurrentUser, jobs: Jobs,
-               format: Annotated[ResultFormat, Query(description=formats_help())] = "csv") -> FileResponse:
-    path = jobs.result_file(user, job_id, format)
-    return FileResponse(path, media_type=DOWNLOADS[format][1], filename=download_name(job_id, format))
+               format: Annotated[ResultFormat, Query(description=formats_help())] = "csv",
+               individual: Annotated[str | None, Query(
+                   max_length=200, description="a job that solved several individuals: whose result (one of "
+                                               "result.identity.individuals); the report alone is the job's")] = None,
+               ) -> FileResponse:
+    path = jobs.result_file(user, job_id, format, individual)
+    return FileResponse(path, media_type=DOWNLOADS[format][1], filename=download_name(job_id, format, individual))
 
 
 @router.get("/v1/jobs/{job_id}/videos", response_model=VideoList, tags=["videos"], summary="A job's labelled videos",

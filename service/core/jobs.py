@@ -39,7 +39,16 @@ from service.errors import (
 )
 from service.settings import Settings
 from service.store import STATUSES, Job, QuotaExceeded, Store, StoreFull, User, jobfiles
-from service.store.jobfiles import CALIBRATION_DIR, INPUT, JOB_ID, SKELETON_DIR, keypoints_dir, result_path, video_dir
+from service.store.jobfiles import (
+    CALIBRATION_DIR,
+    INPUT,
+    JOB_ID,
+    SKELETON_DIR,
+    individual_names,
+    keypoints_dir,
+    result_path,
+    video_dir,
+)
 
 KEYPOINT_SUFFIXES = (".csv", ".h5", ".hdf5", ".slp")
 CURSOR = re.compile(r"^[0-9]{1,18}$")
@@ -298,7 +307,7 @@ class JobService:
             inputs = self.reader.inspect(
                 input_dir=str(input_dir), keypoints=manifest["keypoints"], calibration=manifest["calibration"],
                 skeleton_file=manifest["skeleton"], skeleton=options["skeleton"],
-                individual=options.get("individual"), max_frames=s.max_frames,
+                individual=options.get("individual"), individuals=options.get("individuals"), max_frames=s.max_frames,
                 max_bodyparts=s.max_bodyparts,
                 videos=[str(p) for p in (video_files or video_paths or [])] or None)
             recorded = inputs.pop("recorded_fps", None)
@@ -384,18 +393,40 @@ class JobService:
         jobs = jobs[:limit]
         return jobs, total, (str(jobs[-1].seq) if more and jobs else None)
 
-    def result_file(self, user: User, job_id: str, fmt: str) -> Path:
-        """The job's result file of download format ``fmt`` (:data:`service.store.jobfiles.DOWNLOADS`)."""
+    def result_file(self, user: User, job_id: str, fmt: str, individual: str | None = None) -> Path:
+        """The job's result file of download format ``fmt`` (:data:`service.store.jobfiles.DOWNLOADS`);
+        of a job that solved several individuals, ``individual``'s (its report: the job's, without one)."""
         job = self.visible(user, job_id)
         if job.status != "succeeded":
             why = f": {job.error}" if job.status == "failed" and job.error else ""
             raise NotReady(f"job {job_id} is {job.status}{why}; its result is ready when it succeeded")
-        path = result_path(jobfiles.job_dir(self.settings.jobs_dir, job.id), fmt)
+        k = self._individual(job, fmt, individual)
+        job_dir = jobfiles.job_dir(self.settings.jobs_dir, job.id)
+        path = result_path(job_dir, fmt, k)
         if fmt in jobfiles.EXPORT_FILES and not path.is_file():
-            export_result(jobfiles.job_dir(self.settings.jobs_dir, job.id), fmt)
+            export_result(job_dir, fmt, k)
         if not path.is_file():
             raise NotFound(f"job {job_id} has no {jobfiles.DOWNLOADS[fmt][0]} (its result files were removed)")
         return path
+
+    @staticmethod
+    def _individual(job: Job, fmt: str, individual: str | None) -> int | None:
+        """The index of ``individual`` among the job's (None: the job's own files)."""
+        names = individual_names(job.summary)
+        if names is None:
+            if individual is not None:
+                raise Unprocessable(f"individual: job {job.id} solved one individual; download its result without "
+                                    "individual")
+            return None
+        if individual is None:
+            if fmt == "report":
+                return None
+            shown = ", ".join(names[:8]) + (", ..." if len(names) > 8 else "")
+            raise Unprocessable(f"individual: job {job.id} solved {len(names)} individuals ({shown}); give "
+                                "individual=NAME for one's result")
+        if individual not in names:
+            raise NotFound(f"job {job.id} has no individual {individual[:60]!r}")
+        return names.index(individual)
 
     # -- videos ------------------------------------------------------------------------------
 
@@ -470,15 +501,15 @@ class JobService:
         return None
 
 
-def export_result(job_dir: Path, fmt: str) -> None:
-    """Write the export ``fmt`` of a succeeded job from its result.h5 and its uploaded calibration
-    (:func:`graph.export.export`), under a temporary name first, so concurrent downloads of the same
-    format each see a whole file."""
+def export_result(job_dir: Path, fmt: str, individual: int | None = None) -> None:
+    """Write the export ``fmt`` of a succeeded job (or of its ``individual``-th individual) from its
+    result.h5 and its uploaded calibration (:func:`graph.export.export`), under a temporary name first,
+    so concurrent downloads of the same format each see a whole file."""
     from graph.export import available, export
 
     if not available(fmt):
         raise Unprocessable(f"this server cannot write {fmt}: it needs acinoset[export] installed")
-    h5 = result_path(job_dir, "h5")
+    h5 = result_path(job_dir, "h5", individual)
     if not h5.is_file():
         return
     from graph.io.calibration import load_calibration
@@ -486,7 +517,7 @@ def export_result(job_dir: Path, fmt: str) -> None:
     input_dir = job_dir / INPUT
     path = jobfiles.inside(input_dir, jobfiles.read_manifest(input_dir)["calibration"])
     calibration = dataclasses.replace(load_calibration(path), source=path.name)  # no server path in the file
-    target = result_path(job_dir, fmt)
+    target = result_path(job_dir, fmt, individual)
     tmp_dir = target.parent / f".export-{uuid.uuid4().hex}"  # the file keeps its name (TRC writes it inside)
     tmp_dir.mkdir()
     try:

@@ -27,7 +27,7 @@ from service.store.jobfiles import inside
 
 def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skeleton_file: str | None,
                    skeleton: str, individual: str | None, max_frames: int, max_bodyparts: int,
-                   videos: list[str] | None = None) -> dict:
+                   videos: list[str] | None = None, individuals: int | None = None) -> dict:
     """Read the stored files (paths relative to ``input_dir``) and describe them for the job table.
     Each keypoint file's frames and columns are checked before its data are read
     (:class:`graph.io.keypoints.ReadLimits`). ``videos`` (absolute paths, one per camera) are probed:
@@ -35,7 +35,8 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
     :class:`~service.errors.Unprocessable`."""
     from graph.errors import NESTED_TOO_DEEPLY, InputError, TooLargeInput
     from graph.io.calibration import load_calibration
-    from graph.io.keypoints import ReadLimits, check_same_frames, read_keypoints, require_a_marker
+    from graph.io.keypoint_types import Tracks
+    from graph.io.keypoints import ReadLimits, check_same_frames, read_recording, require_a_marker
     from graph.skeleton import load_skeleton
 
     base = Path(input_dir)
@@ -44,7 +45,8 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
     sk_path = inside(base, skeleton_file) if skeleton_file else None
     try:
         limits = ReadLimits(max_frames=max_frames, max_bodyparts=max_bodyparts)
-        kps = [read_keypoints(p, individual=individual, limits=limits) for p in kp_paths]
+        cameras = read_recording(kp_paths, individual, individuals, limits)
+        kps = [c.slot(0) if isinstance(c, Tracks) else c for c in cameras]
         check_same_frames(kps)
         cal = load_calibration(cal_path)
         if len(cal) != len(kps):
@@ -73,6 +75,7 @@ def inspect_upload(input_dir: str, keypoints: list[str], calibration: str, skele
         "skeleton": {"name": sk_path.name, "bytes": sk_path.stat().st_size} if sk_path is not None else None,
         "videos": None if infos is None else [{"name": Path(i.path).name, "bytes": Path(i.path).stat().st_size,
                                                "frames": i.frames} for i in infos],
+        "individuals": max((c.slots for c in cameras if isinstance(c, Tracks)), default=1),
         "recorded_fps": recorded_frame_rate([k.fps for k in kps], [i.fps for i in infos or []]),
     }
 

@@ -107,24 +107,27 @@ class JobCancelled(Exception):
 # -- inputs ------------------------------------------------------------------------------------
 
 def load_inputs(input_dir: Path):
-    """The job's keypoints (one per camera), calibration and solve options, read with the core's readers."""
+    """The job's detections (one per camera: :class:`~graph.io.keypoints.Keypoints`, or
+    :class:`~graph.io.keypoint_types.Tracks` when they hold several individuals,
+    :func:`graph.io.keypoints.read_recording`), calibration and solve options, read with the core's readers."""
     from pydantic import TypeAdapter
 
     from graph.api import SolveOptions
     from graph.io.calibration import load_calibration
-    from graph.io.keypoints import read_keypoints
+    from graph.io.keypoint_types import Keypoints, Tracks
+    from graph.io.keypoints import read_recording
 
     m = read_manifest(input_dir)
     options = dict(m["options"])
     if m.get("skeleton"):
         options["skeleton"] = str(inside(input_dir, m["skeleton"]))
     opts = TypeAdapter(SolveOptions).validate_python(options)
-    keypoints = [read_keypoints(inside(input_dir, rel), individual=opts.individual) for rel in m["keypoints"]]
-    for k, rel in zip(keypoints, m["keypoints"]):
+    cameras = read_recording([inside(input_dir, rel) for rel in m["keypoints"]], opts.individual, opts.individuals)
+    for k, rel in zip(list[Keypoints | Tracks](cameras), m["keypoints"]):
         k.source = Path(rel).name  # what the results say they came from: the upload's name, no server path
     calibration = load_calibration(inside(input_dir, m["calibration"]))
     calibration = dataclasses.replace(calibration, source=Path(m["calibration"]).name)
-    return keypoints, calibration, opts
+    return cameras, calibration, opts
 
 
 def without_server_paths(result):
@@ -197,8 +200,12 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
         return run_calibration(input_dir, out_dir, progress)
 
     progress.report(READING, 0.0)
-    keypoints, calibration, options = load_inputs(input_dir)
-    result = without_server_paths(solve(keypoints, calibration, options, progress=progress))
+    cameras, calibration, options = load_inputs(input_dir)
+    from graph.io.keypoint_types import Tracks
+
+    if all(isinstance(c, Tracks) for c in cameras):
+        return solve_group_job(cameras, calibration, options, out_dir, progress)
+    result = without_server_paths(solve(cameras, calibration, options, progress=progress))
     progress.report(WRITING, 1.0, result.report.iterations, result.report.cost)
     report = write_results(result, out_dir, calibration)
     videos = input_videos(input_dir)
@@ -212,6 +219,30 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
             report["warnings"] = [*report.get("warnings", []),
                                   strip_paths(f"the labelled videos could not be rendered: {e}")]
             (out_dir / RESULT_FILES["report"][0]).write_text(json.dumps(report, indent=2))
+    return report
+
+
+def solve_group_job(tracks: list, calibration, options, out_dir: Path, progress: "ThrottledProgress") -> dict:
+    """Several individuals (:func:`graph.api.solve_group`): each one's result files in its folder
+    (:func:`service.store.jobfiles.individual_folder`, in the order of the report's ``individuals``),
+    and the job's report: the first individual's headline numbers, who is who (``identity``), each
+    one's report (``individuals``) and every warning, each prefixed with its individual's name."""
+    from graph.api import solve_group
+
+    group = solve_group(tracks, calibration, options, progress=progress)
+    results = [without_server_paths(r) for r in group.results]
+    progress.report(WRITING, 1.0, results[0].report.iterations, results[0].report.cost)
+    doc = group.report()
+    if len(results) == 1:  # one found: the job's own files, as a job of one animal
+        report = write_results(results[0], out_dir, calibration)
+        report["identity"] = doc["identity"]
+    else:
+        for k, result in enumerate(results):
+            write_results(result, out_dir / jobfiles.individual_folder(k), calibration)
+        report = {**doc["individuals"][group.names[0]], **doc}
+        report["warnings"] = [f"{name}: {w}" for name, r in zip(group.names, results) for w in r.report.warnings]
+    report["warnings"] = [*group.identities.notes, *report.get("warnings", [])]
+    (out_dir / RESULT_FILES["report"][0]).write_text(json.dumps(report, indent=2))
     return report
 
 

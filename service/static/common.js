@@ -70,9 +70,12 @@
     return res.json();
   }
 
-  /** Fetch a file with the token and hand it to the browser as a download. */
+  /** Fetch a file with the token and hand it to the browser as a download, under the name the
+   * server gives it (its Content-Disposition), else ``filename``. */
   async function download(path, filename) {
     const res = await api(path, { raw: true, headers: { Accept: "*/*" } });
+    const named = /filename="([^"]+)"/.exec(res.headers.get("content-disposition") || "");
+    if (named) filename = named[1];
     const blob = await res.blob();
     const url = URL.createObjectURL(blob);
     const a = el("a", { href: url, download: filename });

@@ -57,8 +57,15 @@
     fact("Ran", t.run_seconds != null ? A.fmtSeconds(t.run_seconds) : null);
     if (job.attempts > 1) fact("Attempts", `${job.attempts} of ${job.max_attempts}`);
     const r = job.result;
+    if (r && r.identity) {
+      const who = r.identity;
+      fact("Individuals", `${(who.individuals || []).join(", ")} (${who.count === "given" ? "as many as asked for" : "found in the files"})`);
+      const sw = who.switches_corrected || {};
+      fact("2D identity switches corrected", Object.keys(sw).map((c) => `${c} ${sw[c]}`).join(", "));
+    }
     if (r) {
-      fact("Reprojection RMSE", r.reprojection_rmse_px != null ? `${r.reprojection_rmse_px.toFixed(2)} px` : null);
+      fact(r.identity ? "Reprojection RMSE (first individual)" : "Reprojection RMSE",
+        r.reprojection_rmse_px != null ? `${r.reprojection_rmse_px.toFixed(2)} px` : null);
       fact("Rejected detections", r.outliers != null ? `${r.outliers} of ${r.observations}` : null);
 
     }
@@ -132,28 +139,48 @@
       } }));
   }
 
-  function drawDownloads(job) {
-    const links = (job.links && job.links.result) || {};
-    const formats = Object.keys(links);
-    downloads.hidden = !formats.length;
-    downloadButtons.replaceChildren(...formats.map((f) => {
-      const { label, description: what, extension } = formatInfo[f] ||
-        { label: f.toUpperCase(), description: "", extension: `.${f}` };
-      return el("button", { type: "button", "data-format": f, "aria-describedby": null, onclick: async (ev) => {
-        downloadError.hidden = true;
-        ev.target.disabled = true;
-        try { await A.download(links[f], `${id}${extension}`); }
-        catch (e) { downloadError.textContent = `The ${label} file could not be downloaded: ${e.message}`; downloadError.hidden = false; }
-        finally { ev.target.disabled = false; }
-      } }, el("strong", { text: `Download ${label}` }), what ? el("span", { class: "muted", text: ` — ${what}` }) : null);
-    }));
+  function downloadButton(href, f, whose) {
+    const { label, description: what, extension } = formatInfo[f] ||
+      { label: f.toUpperCase(), description: "", extension: `.${f}` };
+    return el("button", { type: "button", "data-format": f, "data-individual": whose || null, onclick: async (ev) => {
+      downloadError.hidden = true;
+      ev.target.disabled = true;
+      try { await A.download(href, `${id}${extension}`); }
+      catch (e) { downloadError.textContent = `The ${label} file could not be downloaded: ${e.message}`; downloadError.hidden = false; }
+      finally { ev.target.disabled = false; }
+    } }, el("strong", { text: `Download ${label}` }), what ? el("span", { class: "muted", text: ` — ${what}` }) : null);
   }
 
-  async function showResult(job) {
+  function drawDownloads(job) {
+    const links = (job.links && job.links.result) || {};
+    const each = (job.links && job.links.individuals) || {};
+    const formats = Object.keys(links);
+    downloads.hidden = !formats.length;
+    downloadButtons.replaceChildren(...formats.map((f) => downloadButton(links[f], f, null)),
+      ...Object.keys(each).map((name) => el("div", { class: "individual-downloads", "data-individual": name },
+        el("h3", { text: name }), ...Object.keys(each[name]).map((f) => downloadButton(each[name][f], f, name)))));
+  }
+
+  /** The result drawn: the job's, or with several individuals the one picked (the first at first). */
+  function individualPicker(job, draw) {
+    const each = job.links.individuals;
+    if (!each) return null;
+    const names = Object.keys(each);
+    const select = el("select", { id: "individual-picker", "aria-label": "Individual to draw",
+      onchange: () => draw(each[select.value].json) }, ...names.map((n) => el("option", { value: n, text: n })));
+    return el("p", { class: "picker" }, el("label", { for: "individual-picker", text: "Individual: " }), select);
+  }
+
+  async function showResult(job, chosen) {
     resultShown = true;
+    if (job.links.individuals && !document.getElementById("individual-picker")) {
+      resultBox.before(individualPicker(job, (href) => showResult(job, href)));
+    }
     resultBox.replaceChildren(el("p", { class: "muted", role: "status", text: "Loading the result for drawing…" }));
     try {
-      const href = (job.links.result && job.links.result.json) || `/v1/jobs/${encodeURIComponent(id)}/result?format=json`;
+      const first = job.links.individuals ? Object.values(job.links.individuals)[0].json : null;
+      const href = chosen || first || (job.links.result && job.links.result.json) ||
+        `/v1/jobs/${encodeURIComponent(id)}/result?format=json`;
       const payload = await A.api(href);
       if (typeof window.Plotly === "undefined" || !window.AcinoResultView) throw new Error("the plotting scripts did not load");
       let view = null;

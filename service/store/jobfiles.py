@@ -4,6 +4,8 @@ A job's directory, ``<data dir>/jobs/<id>`` (:func:`job_dir`; ids match :data:`J
 
     input/                             the upload, as stored by the API (below)
     result/                            :data:`RESULT_FILES`, one per download format, once succeeded;
+                                       with several individuals, report.json holds who is who and
+                                       individuals/01/ ... (:func:`individual_folder`) each one's RESULT_FILES;
                                        videos/camera01.mp4 ..., 3d.mp4, combined.mp4 when the job had videos
                                        (:func:`video_result_name`);
                                        :data:`EXPORT_FILES` made from result.h5 when first downloaded
@@ -72,6 +74,22 @@ OUTPUT_NAMES: tuple[str, ...] = tuple(dict.fromkeys([*RESULT_NAMES, *CALIBRATION
 VIDEOS_DIR = "videos"  # input: each camera's footage; result: the labelled videos
 VIDEO_VIEWS = ("3d", "combined")  # the labelled videos beside the cameras' (named by camera number, from 1)
 _VIDEO_RESULT = re.compile(r"^videos/(camera[0-9]{2}|3d|combined)\.mp4$")
+INDIVIDUALS_DIR = "individuals"  # result: one folder per individual of a job with several
+_INDIVIDUAL_RESULT = re.compile(rf"^{INDIVIDUALS_DIR}/[0-9]{{2}}/({'|'.join(map(re.escape, RESULT_NAMES))})$")
+
+
+def individual_names(summary: dict | None) -> list[str] | None:
+    """The individuals of a job that solved several (its report's ``identity``), in the order of their
+    folders (:func:`individual_folder`); None for a job of one."""
+    names = ((summary or {}).get("identity") or {}).get("individuals")
+    return [str(n) for n in names] if isinstance(names, list) and len(names) > 1 else None
+
+
+def individual_folder(k: int) -> str:
+    """The result folder of a job's ``k``-th individual (0-based; at most 99): ``individuals/01``, ..."""
+    if not 0 <= k < 99:
+        raise ValueError(f"individual {k}: a job holds at most 99")
+    return f"{INDIVIDUALS_DIR}/{k + 1:02d}"
 
 
 def video_dir(input_dir: Path, camera: int) -> Path:
@@ -90,8 +108,9 @@ def video_result_name(view: str) -> str:
 
 
 def is_result_name(rel: str) -> bool:
-    """Whether ``rel`` is a file a run may put in a job's result dir (:data:`OUTPUT_NAMES`, the videos)."""
-    return rel in OUTPUT_NAMES or bool(_VIDEO_RESULT.match(rel))
+    """Whether ``rel`` is a file a run may put in a job's result dir (:data:`OUTPUT_NAMES`, the videos,
+    an individual's results)."""
+    return rel in OUTPUT_NAMES or bool(_VIDEO_RESULT.match(rel)) or bool(_INDIVIDUAL_RESULT.match(rel))
 
 
 def new_job_id() -> str:
@@ -141,13 +160,19 @@ def install_result(job_dir: Path, tmp: Path) -> None:
     os.replace(tmp, final)
 
 
-def result_path(job_dir: Path, fmt: str) -> Path:
-    return job_dir / RESULT / DOWNLOADS[fmt][0]
+def result_path(job_dir: Path, fmt: str, individual: int | None = None) -> Path:
+    """The result file of download format ``fmt``: the job's, or its ``individual``-th individual's (0-based)."""
+    folder = job_dir / RESULT if individual is None else job_dir / RESULT / individual_folder(individual)
+    return folder / DOWNLOADS[fmt][0]
 
 
-def download_name(job_id: str, fmt: str) -> str:
-    """The file name a download of format ``fmt`` is offered under: ``<id>.csv``, ``<id>.report.json``."""
-    return f"{job_id}.{DOWNLOADS[fmt][0].removeprefix(RESULT + '.')}"
+def download_name(job_id: str, fmt: str, individual: str | None = None) -> str:
+    """The file name a download of format ``fmt`` is offered under: ``<id>.csv``, ``<id>.report.json``;
+    an individual's ``<id>.<name>.csv`` (the name made safe for a file name)."""
+    from graph.io.results import safe_name
+
+    middle = "" if individual is None else f"{safe_name(individual, 'individual')}."
+    return f"{job_id}.{middle}{DOWNLOADS[fmt][0].removeprefix(RESULT + '.')}"
 
 
 def disk_bytes(path: Path) -> int:
@@ -257,7 +282,9 @@ def written_outputs(out_dir: Path) -> list[str]:
     relative to it (what travels back from an RQ worker)."""
     out_dir = Path(out_dir)
     videos = sorted(f"{VIDEOS_DIR}/{p.name}" for p in (out_dir / VIDEOS_DIR).glob("*.mp4"))
-    return [*(name for name in OUTPUT_NAMES if (out_dir / name).is_file()), *(v for v in videos if is_result_name(v))]
+    each = sorted(p.relative_to(out_dir).as_posix() for p in (out_dir / INDIVIDUALS_DIR).glob("*/*") if p.is_file())
+    return [*(name for name in OUTPUT_NAMES if (out_dir / name).is_file()),
+            *(v for v in [*videos, *each] if is_result_name(v))]
 
 
 def pack_files(base: Path, rels: list[str]) -> bytes:

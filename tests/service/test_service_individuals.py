@@ -1,0 +1,113 @@
+"""A job of several animals through a real embedded server: multi-animal DeepLabCut files in, each
+camera's detections assigned to individuals by geometry, each one's result downloaded by name, the
+job's report saying who is who."""
+
+from __future__ import annotations
+
+import json
+from urllib.parse import quote
+
+import numpy as np
+import pytest
+from group_files import write_dlc_multi
+from servers import Server, add_user, wait_finished
+
+from graph.io.calibration import write_anipose_toml
+from graph.io.results import read_anipose_csv
+from graph.metrics import group_error
+from graph.simulate import ring_rig
+from graph.simulate_group import simulate_group
+
+NAMES = ["dam", "cub #2"]  # a name that needs quoting in a link
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("pair_files")
+    rig = ring_rig(4)
+    run = simulate_group(rig, animals=2, frames=300, seed=11)
+    write_anipose_toml(folder / "calibration.toml", rig)
+    cams = [write_dlc_multi(folder / f"cam{c + 1}.csv", t, NAMES) for c, t in enumerate(run.tracks)]
+    return run, cams, folder / "calibration.toml"
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    data = tmp_path_factory.mktemp("individuals_data")
+    token = add_user(data, "alice")
+    srv = Server(data, data.parent / "individuals_server.log").start()
+    with srv.client(token) as c:
+        yield c
+    srv.stop()
+
+
+def post(client, cams, calibration, options: dict):
+    files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in cams]
+    files.append(("calibration", (calibration.name, calibration.read_bytes(), "application/octet-stream")))
+    return client.post("/v1/jobs", files=files, data={"options": json.dumps(options)})
+
+
+@pytest.fixture(scope="module")
+def done(client, pair):
+    _, cams, calibration = pair
+    r = post(client, cams, calibration, {"method": "fte", "skeleton": "points", "fps": 60})
+    assert r.status_code == 202, r.text
+    assert r.json()["inputs"]["individuals"] == 2
+    job = wait_finished(client, r.json()["id"], timeout=300)
+    assert job["status"] == "succeeded", job
+    return job
+
+
+def test_each_individual_is_solved_and_downloaded_by_name(client, pair, done):
+    run, _, _ = pair
+    identity = done["result"]["identity"]
+    assert sorted(identity["individuals"]) == sorted(NAMES) and identity["count"] == "found"
+    assert set(identity["switches_corrected"]) == {"cam1", "cam2", "cam3", "cam4"}
+    links = done["links"]["individuals"]
+    assert set(links) == set(NAMES)
+    assert links["cub #2"]["csv"] == f"/v1/jobs/{done['id']}/result?format=csv&individual={quote('cub #2', safe='')}"
+    est = []
+    for name in identity["individuals"]:
+        r = client.get(links[name]["csv"])
+        assert r.status_code == 200, r.text
+        safe = "cub_2" if name == "cub #2" else name
+        assert r.headers["content-disposition"].endswith(f'filename="{done["id"]}.{safe}.csv"')
+        path = pair[2].parent / f"got.{safe}.csv"
+        path.write_bytes(r.content)
+        est.append(read_anipose_csv(path).positions)
+    g = group_error(np.stack(est), run.positions, run.markers)
+    assert g.switches == 0 and max(e.mean_mm for e in g.errors) < 8
+
+
+def test_the_report_is_the_jobs_and_each_format_is_each_ones(client, done):
+    report = client.get(f"/v1/jobs/{done['id']}/result?format=report")
+    assert report.status_code == 200
+    doc = report.json()
+    assert set(doc["individuals"]) == set(NAMES) and doc["identity"] == done["result"]["identity"]
+    for fmt in ("h5", "json", "trc"):
+        r = client.get(done["links"]["individuals"]["dam"][fmt])
+        assert r.status_code == 200, (fmt, r.text)
+    own = client.get(done["links"]["individuals"]["dam"]["report"]).json()
+    assert own["method"] == "fte" and own["frames"] == 300 and "identity" not in own
+
+
+def test_a_download_that_names_no_one_or_no_one_known(client, done):
+    r = client.get(f"/v1/jobs/{done['id']}/result?format=csv")
+    assert r.status_code == 422 and "give individual=NAME" in r.json()["detail"]
+    assert "dam" in r.json()["detail"] and "\n" not in r.json()["detail"]
+    r = client.get(f"/v1/jobs/{done['id']}/result?format=csv&individual=nobody")
+    assert r.status_code == 404 and "no individual 'nobody'" in r.json()["detail"]
+
+
+def test_the_count_is_an_option(client, pair):
+    _, cams, calibration = pair
+    r = post(client, cams, calibration, {"method": "tri", "skeleton": "points", "fps": 60, "individuals": 0})
+    assert r.status_code == 422 and "individuals" in r.json()["detail"]
+    r = post(client, cams, calibration, {"method": "tri", "skeleton": "points", "fps": 60, "individual": "dam"})
+    assert r.status_code == 202, r.text
+    one = wait_finished(client, r.json()["id"], timeout=300)
+    assert one["status"] == "succeeded" and one["result"].get("identity") is None
+    assert one["links"]["individuals"] is None
+    assert client.get(one["links"]["result"]["csv"]).status_code == 200
+    r = client.get(one["links"]["result"]["csv"] + "&individual=dam")
+    assert r.status_code == 422 and "solved one individual" in r.json()["detail"]
