@@ -343,13 +343,11 @@ class _Matcher:
 
 def _median_cost(d: np.ndarray, ok: np.ndarray) -> np.ndarray:
     """Median of ``d`` (..., M) over the markers ``ok``; inf with fewer than :data:`MIN_COMMON`."""
-    masked = np.where(ok, d, np.nan)
+    ranked = np.sort(np.where(ok, d, np.inf), axis=-1)  # the markers ok first, in order
     count = ok.sum(-1)
-    out = np.full(count.shape, np.inf)
-    enough = count >= MIN_COMMON
-    if enough.any():
-        out[enough] = np.nanmedian(masked[enough], axis=-1)
-    return out
+    lo = np.take_along_axis(ranked, np.maximum((count - 1) // 2, 0)[..., None], axis=-1)[..., 0]
+    hi = np.take_along_axis(ranked, np.maximum(count // 2, 0)[..., None], axis=-1)[..., 0]
+    return np.where(count >= MIN_COMMON, 0.5 * (lo + hi), np.inf)
 
 
 def _homogeneous(x: np.ndarray) -> np.ndarray:
