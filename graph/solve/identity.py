@@ -52,8 +52,11 @@ least :data:`FOUND_SHARE` of frames.
 
 from __future__ import annotations
 
+import re
+import warnings
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from graph.camera import Calibration, undistort_points
@@ -99,12 +102,9 @@ def count_individuals(tracks: list[Tracks], likelihood_threshold: float) -> int:
     """How many individuals the cameras see (module docstring); at least 1."""
     counts = np.stack([_present(t, likelihood_threshold).sum(axis=1) for t in tracks])  # (C, N)
     seeing = np.where(counts > 0, counts, np.nan)
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            per_frame = np.floor(np.nanmedian(seeing, axis=0))
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        per_frame = np.floor(np.nanmedian(seeing, axis=0))
     per_frame = per_frame[np.isfinite(per_frame)].astype(int)
     if per_frame.size == 0:
         return 1
@@ -135,8 +135,6 @@ def assign(tracks: list[Tracks], calibration: Calibration, individuals: int | No
     if n_ind < 1:
         raise InputError(f"--individuals must be at least 1, not {n_ind}")
     matcher = _Matcher(tracks, calibration, likelihood_threshold)
-    import numba
-
     threads = numba.get_num_threads()
     numba.set_num_threads(1)  # a frame's few points: threads only wait on each other (3000 frames with one core
     # busy elsewhere: 14-37 s with two threads, 6 s with one)
@@ -181,12 +179,9 @@ class _Matcher:
     @staticmethod
     def _sizes(xy: np.ndarray, conf: np.ndarray) -> np.ndarray:
         pts = np.where(conf[..., None], xy, np.nan)
-        with np.errstate(all="ignore"):
-            import warnings
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                span = np.nanmax(pts, axis=2) - np.nanmin(pts, axis=2)  # (N, K, 2)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            span = np.nanmax(pts, axis=2) - np.nanmin(pts, axis=2)  # (N, K, 2)
         return np.maximum(np.nan_to_num(np.hypot(span[..., 0], span[..., 1])), MIN_SIZE_PX)
 
     def run(self, n_ind: int) -> list[np.ndarray]:
@@ -308,12 +303,9 @@ class _Matcher:
         unborn = [i for i in free if not born[i]]
         if unborn and not lost:
             return unborn[0]
-        with np.errstate(all="ignore"):
-            import warnings
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                d = [float(np.nanmedian(np.linalg.norm(X[i] - Xg, axis=-1))) for i in lost]
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            d = [float(np.nanmedian(np.linalg.norm(X[i] - Xg, axis=-1))) for i in lost]
         d = [v if np.isfinite(v) else BIG for v in d]
         return unborn[0] if unborn and min(d) == BIG else lost[int(np.argmin(d))]
 
@@ -385,8 +377,6 @@ def _names(tracks: list[Tracks], owner: list[np.ndarray], n_ind: int) -> list[st
 
 def _natural(name: str) -> tuple:
     """A name's sort key with its runs of digits as numbers."""
-    import re
-
     return tuple(int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name))
 
 
