@@ -269,7 +269,10 @@ def _ekf_with_shared(prob: Problem, progress: ProgressCallback | None) -> Result
     for field_name in ("body_lengths", "time_offsets_frames", "time_offsets_std_frames", "offsets_not_identified"):
         setattr(result.report, field_name, getattr(rep, field_name))
     result.report.warnings += [w for w in rep.warnings if w not in result.report.warnings]
-    result.report.seconds["init"] += time.perf_counter() - t0 - result.report.seconds.get("total", 0.0)
+    # the shared start's time is init's too: what this took beyond the stream's own phases
+    # ("total" is the caller's, set after)
+    seconds = result.report.seconds
+    seconds["init"] += time.perf_counter() - t0 - sum(v for k, v in seconds.items() if k != "total")
     return result
 
 
