@@ -45,7 +45,8 @@ def test_swapped_2d_identities_do_not_swap_the_3d_animals(animals, seed):
     assert ours.switches == 0 and sorted(ours.match) == list(range(animals))
     oracle = group_error(np.stack([triangulated([t.slot(a) for t in run.true_tracks()]) for a in range(animals)]),
                          run.positions, run.markers)
-    for e, o in zip(ours.errors, (oracle.errors[ours.match.index(a)] for a in range(animals))):
+    for i, e in enumerate(ours.errors):  # against the oracle's error of the same animal
+        o = oracle.errors[oracle.match.index(ours.match[i])]
         assert e.mean_mm <= 1.05 * o.mean_mm + 0.1 and e.coverage >= 0.97 * o.coverage
     as_given = group_error(np.stack([triangulated([t.slot(k) for t in run.tracks]) for k in range(animals)]),
                            run.positions, run.markers)
@@ -190,3 +191,35 @@ def test_openpose_folders_of_two_people(tmp_path):
     est = np.stack([read_anipose_csv(tmp_path / f"run.individual{i}.csv").positions for i in (1, 2)])
     g = group_error(est, run.positions, run.markers)
     assert g.switches == 0 and max(e.median_mm for e in g.errors) < 8
+
+
+def test_each_individual_exports_to_nwb_as_movement_reads_a_group(pair):
+    """Each individual's H5 names it; its NWB is one subject (NWB holds one a file), identified by the
+    name, so movement's loader names the individual and merging the files gives the group."""
+    pytest.importorskip("ndx_pose")
+    load_poses = pytest.importorskip("movement.io.load_poses")
+    import xarray as xr
+
+    from graph.io.results import read_individual
+
+    folder, run, files = pair
+    out = folder / "nwb"
+    out.mkdir()
+    p = run_cli("solve", *files, "--calibration", folder / "calibration.toml", "--fps", "60", "--skeleton", "points",
+                "--method", "tri", "--out", out / "run.csv", "--h5", out / "run.h5", cwd=folder)
+    assert p.returncode == 0, p.stderr
+    assert read_individual(out / "run.dam.h5") == "dam" and read_individual(out / "run.cub.h5") == "../../cub"
+    sets = []
+    for name in ("dam", "cub"):
+        e = run_cli("export", out / f"run.{name}.h5", "--format", "nwb", "--out", out / f"{name}.nwb", cwd=folder)
+        assert e.returncode == 0, e.stderr
+        sets.append(load_poses.from_nwb_file(out / f"{name}.nwb"))
+    group = xr.merge(sets, join="outer", compat="no_conflicts")
+    assert list(group.individuals.values) == sorted(["dam", "../../cub"])
+    for name in ("dam", "cub"):
+        table = read_anipose_csv(out / f"run.{name}.csv")
+        csv = table.positions  # (N, M, 3)
+        ind = "dam" if name == "dam" else "../../cub"
+        got = group.position.sel(individuals=ind, keypoints=table.markers)
+        got = got.transpose("time", "keypoints", "space").values
+        np.testing.assert_allclose(got, csv, rtol=1e-9, atol=1e-12)

@@ -530,7 +530,7 @@ def write_outputs(args: argparse.Namespace, result, calibration, out: Path, repo
     results.write_anipose_csv(out, result, metres_per_unit=per_unit)
     if args.h5:
         h5 = Path(args.h5) if individual is None else individual_path(Path(args.h5), individual)
-        results.write_h5(h5, result, calibration=calibration)
+        results.write_h5(h5, result, calibration=calibration, individual=individual)
         written.append(h5)
     if args.report and report:
         doc = result.report.to_dict()

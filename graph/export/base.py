@@ -24,6 +24,7 @@ class ExportInput:
     result: Result
     calibration: Calibration | None = None
     source: str = ""  # the file it came from, for descriptions
+    individual: str | None = None  # whose result, of several individuals solved together
 
 
 @dataclass(frozen=True)
@@ -63,21 +64,23 @@ def load_input(source: str | Path | Result, calibration: str | Path | Calibratio
     """A result H5 (with the rig stored in it, if any) or a :class:`Result`, plus an explicit
     calibration file or object, which wins over the stored one."""
     from graph.io.calibration import in_metres, load_calibration
-    from graph.io.results import read_calibration, read_result
+    from graph.io.results import read_calibration, read_individual, read_result
 
     stored = None
+    individual = None
     if isinstance(source, Result):
         result, name = source, ""
     else:
         result, name = read_result(source), Path(source).name
         stored = read_calibration(source)
+        individual = read_individual(source)
     if calibration is not None:
         cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
         stored, _ = in_metres(cal, result.options.calibration_units)
         if len(stored) != len(result.camera_names):
             raise InputError(f"has {len(stored)} cameras, the result {len(result.camera_names)}",
                              calibration if not isinstance(calibration, Calibration) else None)
-    return ExportInput(result=result, calibration=stored, source=name)
+    return ExportInput(result=result, calibration=stored, source=name, individual=individual)
 
 
 def require(module: str, package: str):

@@ -16,6 +16,12 @@ Layout (``pip install 'acinoset[export]'``: pynwb and ndx-pose >= 0.4)::
                                            kept beside the series and not in their ``confidence``.
 
 Positions are stored as float64 (ndx-pose's float32 is the minimum the schema asks for).
+
+One of several individuals solved together (its H5 names it) is one NWB file, as NWB holds one
+subject a file and movement writes them: ``subject`` is a ``pynwb.file.Subject`` whose
+``subject_id`` is the individual's name, and the file's ``identifier`` is that name too, which
+movement's ``load_poses.from_nwb_file`` takes for the individual's (``xarray.merge`` of the files
+gives the group).
 """
 
 from __future__ import annotations
@@ -50,11 +56,14 @@ def write(path: str | Path, run: ExportInput, session_description: str | None = 
     res = run.result
     X = np.asarray(res.positions, dtype=np.float64)
     sd = np.asarray(res.std, dtype=np.float64)
+    who = f" of {run.individual}" if run.individual else ""
     nwb = pynwb.NWBFile(
-        session_description=session_description or f"3D pose of {res.skeleton} by acinoset {res.method}"
+        session_description=session_description or f"3D pose{who} ({res.skeleton}) by acinoset {res.method}"
                                                    f"{' from ' + run.source if run.source else ''}",
-        identifier=identifier or str(uuid.uuid4()),
+        identifier=identifier or run.individual or str(uuid.uuid4()),
         session_start_time=session_start_time or datetime.now(timezone.utc),
+        subject=pynwb.file.Subject(subject_id=run.individual, description="one of several individuals solved "
+                                   "together by acinoset") if run.individual else None,
     )
     if run.calibration is not None:
         for cam, name in zip(run.calibration.cameras, run.calibration.names):

@@ -155,12 +155,16 @@ def _cells(row: list[float]) -> str:
 # ------------------------------------------------------------------------------------ HDF5 archive
 
 
-def write_h5(path: str | Path, result: Result, calibration: Calibration | None = None) -> None:
+def write_h5(path: str | Path, result: Result, calibration: Calibration | None = None,
+             individual: str | None = None) -> None:
     """Everything in ``result`` as plain HDF5 (readable from any language; no pickles); with
-    ``calibration`` (the one solved with), also the rig in metres (:func:`read_calibration`)."""
+    ``calibration`` (the one solved with), also the rig in metres (:func:`read_calibration`); with
+    ``individual``, whose result it is (one of several solved together: :func:`read_individual`)."""
     import h5py
 
     with h5py.File(path, "w") as f:
+        if individual is not None:
+            f.attrs["individual"] = individual
         f.attrs["format"] = RESULT_FORMAT
         f.attrs["format_version"] = RESULT_FORMAT_VERSION
         f.attrs["version"] = __version__
@@ -217,6 +221,14 @@ def _write_calibration(f, calibration: Calibration) -> None:
     g.create_dataset("t", data=np.stack([c.t for c in cams]))
     g.create_dataset("dist", data=np.stack([np.pad(c.dist, (0, DISTORTION_SLOTS - c.dist.size), constant_values=np.nan)
                                             for c in cams]))
+
+
+def read_individual(path: str | Path) -> str | None:
+    """The individual a result file is of (several solved together), or None."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return _attr(f, "individual")
 
 
 def read_calibration(path: str | Path) -> Calibration | None:

@@ -142,16 +142,16 @@ def without_server_paths(result):
 
 # -- outputs -----------------------------------------------------------------------------------
 
-def write_results(result, out_dir: Path, calibration=None) -> dict:
+def write_results(result, out_dir: Path, calibration=None, individual: str | None = None) -> dict:
     """Write every result format into ``out_dir`` (the H5 with the calibration solved with, so the
-    exports carry the rig); return the report as a dict."""
+    exports carry the rig, and the ``individual`` it is of, one of several); return the report as a dict."""
     from graph.io.results import write_anipose_csv, write_h5
     from graph.viewer.payload import result_payload  # what the job page draws: one definition for both sides
 
     out_dir.mkdir(parents=True, exist_ok=True)
     name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}
     write_anipose_csv(out_dir / name["csv"], result)
-    write_h5(out_dir / name["h5"], result, calibration=calibration)
+    write_h5(out_dir / name["h5"], result, calibration=calibration, individual=individual)
     report = result.report.to_dict()
     (out_dir / name["json"]).write_text(json.dumps(result_payload(result), separators=(",", ":"), allow_nan=False))
     (out_dir / name["report"]).write_text(json.dumps(report, indent=2))
@@ -238,7 +238,7 @@ def solve_group_job(tracks: list, calibration, options, out_dir: Path, progress:
         report["identity"] = doc["identity"]
     else:
         for k, result in enumerate(results):
-            write_results(result, out_dir / jobfiles.individual_folder(k), calibration)
+            write_results(result, out_dir / jobfiles.individual_folder(k), calibration, individual=group.names[k])
         report = {**doc["individuals"][group.names[0]], **doc}
         report["warnings"] = [f"{name}: {w}" for name, r in zip(group.names, results) for w in r.report.warnings]
     report["warnings"] = [*group.identities.notes, *report.get("warnings", [])]

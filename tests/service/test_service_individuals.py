@@ -91,6 +91,20 @@ def test_the_report_is_the_jobs_and_each_format_is_each_ones(client, done):
     assert own["method"] == "fte" and own["frames"] == 300 and "identity" not in own
 
 
+def test_an_individuals_nwb_is_its_own_subject(client, done, tmp_path):
+    """NWB holds one subject a file: each individual's export is one, named as movement names it."""
+    pynwb = pytest.importorskip("pynwb")
+    pytest.importorskip("ndx_pose")
+    r = client.get(done["links"]["individuals"]["cub #2"]["nwb"])
+    assert r.status_code == 200, r.text
+    path = tmp_path / "cub.nwb"
+    path.write_bytes(r.content)
+    with pynwb.NWBHDF5IO(str(path), "r") as io:
+        nwb = io.read()
+        assert nwb.subject.subject_id == "cub #2" and nwb.identifier == "cub #2"
+        assert "PoseEstimation" in nwb.processing["behavior"].data_interfaces
+
+
 def test_a_download_that_names_no_one_or_no_one_known(client, done):
     r = client.get(f"/v1/jobs/{done['id']}/result?format=csv")
     assert r.status_code == 422 and "give individual=NAME" in r.json()["detail"]
