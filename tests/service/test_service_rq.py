@@ -398,3 +398,40 @@ def test_rq_queue_is_fair_between_users(tmp_path, long_run):
     finally:
         srv.stop()
         pool.stop()
+
+
+def test_rq_a_job_of_two_animals_brings_each_ones_files_back(pool, client, tmp_path):
+    """Several individuals on the RQ backend: a worker hands back each one's folder (the result
+    whitelist knows them), and each one's CSV is what the same upload gives the embedded server."""
+    import json
+
+    from group_files import write_dlc_multi
+
+    from graph.io.calibration import write_anipose_toml
+    from graph.simulate import ring_rig
+    from graph.simulate_group import simulate_group
+
+    rig = ring_rig(4)
+    run = simulate_group(rig, animals=2, frames=200, seed=13)
+    write_anipose_toml(tmp_path / "calibration.toml", rig)
+    cams = [write_dlc_multi(tmp_path / f"cam{c + 1}.csv", t, ["dam", "cub"]) for c, t in enumerate(run.tracks)]
+
+    def post(c):
+        files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in cams]
+        files.append(("calibration", ("calibration.toml", (tmp_path / "calibration.toml").read_bytes(), "text/plain")))
+        r = c.post("/v1/jobs", files=files, data={"options": json.dumps(FAST | {"fps": 60.0})})
+        assert r.status_code == 202, r.text
+        job = wait_finished(c, r.json()["id"])
+        assert job["status"] == "succeeded", job
+        return {n: c.get(links["csv"]).content for n, links in job["links"]["individuals"].items()}
+
+    over_rq = post(client)
+    assert set(over_rq) == {"cub", "dam"} and all(len(v) > 1000 for v in over_rq.values())
+    data = tmp_path / "emb"
+    token = add_user(data, "h")
+    emb = Server(data, tmp_path / "emb.log", workers=1, env={"ACINOSET_WARM_START": "0"}).start()
+    try:
+        with emb.client(token) as c:
+            assert post(c) == over_rq
+    finally:
+        emb.stop()
