@@ -294,3 +294,58 @@ def test_plot_frame_picker_draws_one_cameras_frame(filmed, tmp_path):
     bad = run_cli("plot", h5, "--out", tmp_path / "p", "--frame", "99", "--camera", "cam3", "--video", videos[2])
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--frame 99" in bad.stderr
 
+
+
+def test_several_individuals_each_in_its_own_colour(tmp_path):
+    """Two animals solved together, their H5s given to `acinoset video`: each one's bones in its own
+    colour where its reprojections are, in every camera; the 3D view holds both."""
+    from group_files import write_dlc_multi
+
+    from graph.io.calibration import write_anipose_toml
+    from graph.io.results import read_result
+    from graph.simulate import ring_rig
+    from graph.simulate_group import simulate_group
+    from graph.video.draw import marker_colors
+
+    W, H, frames = 640, 360, 24
+    rig = ring_rig(4, focal_px=470.0, size=(W, H))
+    run = simulate_group(rig, animals=2, frames=frames, seed=21, swap_rate=0.0, missing_instances=0.0)
+    write_anipose_toml(tmp_path / "calibration.toml", rig)
+    cams = [write_dlc_multi(tmp_path / f"cam{c + 1}.csv", t, ["dam", "cub"]) for c, t in enumerate(run.tracks)]
+    cli = [sys.executable, "-m", "graph.app.cli"]
+    solved = subprocess.run([*cli, "solve", *map(str, cams), "--calibration", str(tmp_path / "calibration.toml"),
+                             "--fps", "60", "--skeleton", "points", "--method", "tri",
+                             "--bones", "nose-neck,neck-spine,spine-hip,hip-tail_base",
+                             "--out", str(tmp_path / "run.csv"), "--h5", str(tmp_path / "run.h5")],
+                            capture_output=True, text=True, timeout=300)
+    assert solved.returncode == 0, solved.stderr
+    videos = []
+    for c in range(len(rig)):  # flat grey footage
+        p = tmp_path / f"c{c}.mp4"
+        with FrameWriter(p, W, H, 60.0) as w:
+            for _ in range(frames):
+                f = YuvFrame(W, H)
+                f.y[:], f.u[:], f.v[:] = 90, 128, 128
+                w.write(f)
+        videos.append(p)
+    h5s = [tmp_path / "run.cub.h5", tmp_path / "run.dam.h5"]
+    done = subprocess.run([*cli, "video", *map(str, h5s), "--videos", *map(str, videos), "--out",
+                           str(tmp_path / "out")],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    tints = marker_colors(2)  # cub, dam: in the order given
+    raw = subprocess.run([ffmpeg_exe(), "-v", "error", "-i", str(tmp_path / "out" / "c0_labeled.mp4"), "-f",
+                          "rawvideo", "-pix_fmt", "bgr24", "-"], capture_output=True, check=True).stdout
+    bgr = np.frombuffer(raw, np.uint8).reshape(-1, H, W, 3)
+    assert len(bgr) == frames
+    n = frames // 2
+    for k, h5 in enumerate(h5s):
+        res = read_result(h5)
+        uv = res.reprojections[0, n]  # (M, 2) camera 1's frame n
+        i, j = res.markers.index("spine"), res.markers.index("hip")
+        mid = 0.5 * (uv[i] + uv[j])
+        x, y = int(round(mid[0])), int(round(mid[1]))
+        patch = bgr[n, y - 1:y + 2, x - 1:x + 2].reshape(-1, 3).astype(int)
+        close = np.abs(patch - np.array(tints[k])).max(axis=1) < 70
+        assert close.any(), (h5.name, patch.tolist(), tints[k])
+    assert (tmp_path / "out" / "3d.mp4").stat().st_size > 0

@@ -1,4 +1,5 @@
-"""``acinoset video RESULT.h5 --videos CAM1.mp4 ... --out DIR [--frames A:B] [--combined]``."""
+"""``acinoset video RESULT.h5 [MORE.h5 ...] --videos CAM1.mp4 ... --out DIR [--frames A:B] [--combined]``:
+several results are several individuals solved together, drawn in colours of their own."""
 
 from __future__ import annotations
 
@@ -21,7 +22,9 @@ def register(sub) -> None:
                     "every view. H.264 MP4 (yuv420p) at the videos' size, rate and frame count; frames where a "
                     "camera has no estimate are left as they are. The cameras' time offsets of the solve are "
                     "honoured when the grid matches their frames.")
-    p.add_argument("result", type=Path, help="RESULT.h5 written by `acinoset solve --h5`")
+    p.add_argument("result", type=Path, nargs="+", metavar="RESULT.h5",
+                   help="RESULT.h5 written by `acinoset solve --h5`; several individuals solved together: each "
+                        "one's (RUN.<name>.h5), drawn each in its own colour")
     p.add_argument("--videos", nargs="+", required=True, metavar="CAM.mp4",
                    help="one video per camera, in the result's camera order (the videos the keypoints came from)")
     p.add_argument("--out", type=Path, required=True, help="folder to write the videos into")
@@ -34,20 +37,22 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from graph.io.results import read_result
+    from graph.io.results import read_individual, read_result
     from graph.video import render_videos
 
-    if not Path(args.result).is_file():
-        raise InputError("no such file", args.result)
+    for path in args.result:
+        if not Path(path).is_file():
+            raise InputError("no such file", path)
     for v in args.videos:
         if not Path(v).is_file():
             raise InputError("no such video file", v)
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise InputError("--out must be a folder, and this is a file", args.out)
-    result = read_result(args.result)
+    results = [(read_individual(path) or Path(path).stem, read_result(path)) for path in args.result]
     bar = FrameProgress(sys.stderr) if sys.stderr.isatty() else None
     try:
-        done = render_videos(result, args.videos, args.out, frames=args.frames, combined=args.combined,
+        done = render_videos(results[0][1] if len(results) == 1 else results, args.videos, args.out,
+                             frames=args.frames, combined=args.combined,
                              up=np.array(AXES[args.up], dtype=float), progress=bar)
     finally:
         if bar is not None:

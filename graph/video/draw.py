@@ -165,10 +165,19 @@ class CameraOverlay:
     likelihood: np.ndarray | None
     outlier: np.ndarray
     threshold: float = 0.5
+    # one of several individuals: its colour for every bone and detection, its name beside it, and
+    # whether this overlay writes the camera's title (the first individual's does)
+    tint: tuple[int, int, int] | None = None
+    label: str = ""
+    title: bool = True
 
     def __post_init__(self) -> None:
-        self.bone_colors = [bone_color(self.markers[i], self.markers[j]) for i, j in self.bones]
-        self.colors = marker_colors(len(self.markers))
+        if self.tint is not None:
+            self.bone_colors = [self.tint] * len(self.bones)
+            self.colors = [self.tint] * len(self.markers)
+        else:
+            self.bone_colors = [bone_color(self.markers[i], self.markers[j]) for i, j in self.bones]
+            self.colors = marker_colors(len(self.markers))
         self.has_estimate = np.isfinite(self.reprojections).all(axis=-1).any(axis=-1)  # (N,)
 
     @property
@@ -207,5 +216,10 @@ def draw_camera_frame(frame: YuvFrame, overlay: CameraOverlay, n: int, style: St
     if overlay.detections is not None:
         for m in np.flatnonzero(seen & overlay.outlier[n]).tolist():
             paint.cross(z[m], style.detection * 1.4, OUTLIER, style.bone)
-    paint.text((8 * style.text / 0.45, 30 * style.text / 0.45), f"{overlay.name}  frame {n}", style.text)
+    if overlay.label:
+        top = min((m for m, visible in enumerate(ok) if visible), key=lambda m: uv[m][1])  # above the highest joint
+        paint.text((uv[top][0] + style.detection, uv[top][1] - 2 * style.detection), overlay.label, style.text,
+                   overlay.tint or TEXT)
+    if overlay.title:
+        paint.text((8 * style.text / 0.45, 30 * style.text / 0.45), f"{overlay.name}  frame {n}", style.text)
     return True

@@ -23,6 +23,7 @@ of frames as the input (or as ``frames`` asks).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import tempfile
 import time
@@ -38,7 +39,7 @@ import numpy as np
 from graph.errors import InputError
 from graph.types import Result
 from graph.video.codec import FrameReader, FrameWriter, VideoInfo, YuvFrame, probe, read_frame
-from graph.video.draw import CameraOverlay, Painter, Style, draw_camera_frame
+from graph.video.draw import CameraOverlay, Painter, Style, draw_camera_frame, marker_colors
 from graph.video.scene import SceneView
 
 SCENE_SIZE = (1280, 720)
@@ -84,6 +85,33 @@ def camera_overlays(result: Result) -> list[CameraOverlay]:
             outlier=np.asarray(result.outlier[c], dtype=bool),
             threshold=float(result.options.likelihood_threshold)))
     return out
+
+
+def group_overlays(group: Sequence[tuple[str, Result]]):
+    """Each camera's overlays (one an individual, each with its own colour when several) and the 3D
+    view's parts: every individual's markers side by side (``positions`` (N, sum M, 3), ``markers``
+    named ``<individual> <marker>``, ``bones`` into them and their colours; None: by side)."""
+    if len(group) == 1:
+        r = group[0][1]
+        index = {m: i for i, m in enumerate(r.markers)}
+        pairs = [(index[x], index[y]) for x, y in r.bones if x in index and y in index]
+        return [[o] for o in camera_overlays(r)], (r.positions, list(r.markers), pairs, None)
+    tints = marker_colors(len(group))
+    per_camera: list[list[CameraOverlay]] = [[] for _ in group[0][1].camera_names]
+    positions: list[np.ndarray] = []
+    markers: list[str] = []
+    bones: list[tuple[int, int]] = []
+    colors: list[tuple[int, int, int]] = []
+    for k, (name, r) in enumerate(group):
+        for c, o in enumerate(camera_overlays(r)):
+            per_camera[c].append(dataclasses.replace(o, tint=tints[k], label=name, title=k == 0))
+        index = {m: len(markers) + i for i, m in enumerate(r.markers)}
+        own = [(index[x], index[y]) for x, y in r.bones if x in index and y in index]
+        bones += own
+        colors += [tints[k]] * len(own)
+        markers += [f"{name} {m}" for m in r.markers]
+        positions.append(np.asarray(r.positions, dtype=np.float64))
+    return per_camera, (np.concatenate(positions, axis=1), markers, bones, colors)
 
 
 def frame_offsets(result: Result) -> list[int]:
@@ -188,11 +216,15 @@ class Grid:
         Painter(canvas).text(((k % self.cols) * tw + 10, (k // self.cols) * th + th // 2), text, 0.5)
 
 
-def render_videos(result: Result, videos: Sequence[str | Path], out: str | Path, frames: str | None = None,
-                  combined: bool = False, up: np.ndarray | None = None, progress: Progress | None = None,
-                  scene_size: tuple[int, int] = SCENE_SIZE, cameras_at_once: int = CAMERAS_AT_ONCE) -> RenderedVideos:
+def render_videos(result: Result | Sequence[tuple[str, Result]], videos: Sequence[str | Path], out: str | Path,
+                  frames: str | None = None, combined: bool = False, up: np.ndarray | None = None,
+                  progress: Progress | None = None, scene_size: tuple[int, int] = SCENE_SIZE,
+                  cameras_at_once: int = CAMERAS_AT_ONCE) -> RenderedVideos:
     """Write the labelled videos of ``result`` over ``videos`` (one per camera, in the result's
     order) into the folder ``out`` (module docstring). ``frames`` is ``"A:B"`` (default: all).
+    ``result`` may be several individuals solved together, ``(name, result)`` pairs of the same
+    cameras and frames: each is drawn in a colour of its own (bones, detections, its name beside it),
+    and the 3D view holds them all.
 
     Two passes. First the cameras, ``cameras_at_once`` at a time (each a decoder and an encoder of
     full frames, some 300 MB at 2704x1520: this bounds the memory), each frame drawn and written to
@@ -200,22 +232,28 @@ def render_videos(result: Result, videos: Sequence[str | Path], out: str | Path,
     Then the 3D view and the grid, frame by frame on the reference clock, from the tiles' videos.
     ``progress(done, total)`` counts camera-frames and 3D frames."""
     t0 = time.perf_counter()
-    infos = check_videos(result, videos)
+    individuals = [("", result)] if isinstance(result, Result) else list(result)
+    first = individuals[0][1]
+    infos = check_videos(first, videos)
+    for name, r in individuals[1:]:
+        if r.camera_names != first.camera_names or r.positions.shape[0] != first.positions.shape[0]:
+            raise InputError(f"individual {name!r} was solved on other cameras or frames than "
+                             f"{individuals[0][0]!r}")
     a, b = parse_frames(frames, infos[0].frames)
     count = b - a
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    overlays = camera_overlays(result)
-    offsets = frame_offsets(result)
+    overlays, scene_parts = group_overlays(individuals)
+    offsets = frame_offsets(first)
     fps = infos[0].fps
     C = len(infos)
-    index = {m: i for i, m in enumerate(result.markers)}
-    bones = [(index[x], index[y]) for x, y in result.bones if x in index and y in index]
-    title = f"{result.method} estimate, {result.skeleton} skeleton"
+    title = (f"{first.method} estimate, {first.skeleton} skeleton" if len(individuals) == 1 else
+             f"{first.method} estimate, {len(individuals)} individuals: {', '.join(n for n, _ in individuals)}")
 
     def scene_of(size):
-        return SceneView(result.positions, list(result.markers), bones, result.camera_centers,
-                         list(result.camera_names), result.fps, size=size, up=up, title=title)
+        positions, markers, bones, colors = scene_parts
+        return SceneView(positions, markers, bones, first.camera_centers, list(first.camera_names), first.fps,
+                         size=size, up=up, title=title, bone_colors=colors)
 
     grid = Grid(infos, C + 1) if combined else None
     paths = [out / name for name in output_names(infos)]
@@ -247,7 +285,8 @@ def render_videos(result: Result, videos: Sequence[str | Path], out: str | Path,
                         if frame is None:
                             raise InputError(f"ended after {readers[c].frames_read} of {count} frames (from frame "
                                              f"{a}): the file is shorter than its container says", infos[c].path)
-                        draw_camera_frame(frame, overlays[c], a + i, styles[c])
+                        for overlay in overlays[c]:
+                            draw_camera_frame(frame, overlay, a + i, styles[c])
                         writers[c].write(frame)
                         if grid:
                             tiles[c].write(grid.shrink(frame, c))
@@ -270,7 +309,7 @@ def render_videos(result: Result, videos: Sequence[str | Path], out: str | Path,
                         if tile is not None:
                             grid.place(canvas, c, tile)
                         else:
-                            grid.label(canvas, c, f"{result.camera_names[c]}: no frame {m}")
+                            grid.label(canvas, c, f"{first.camera_names[c]}: no frame {m}")
                     grid.place(canvas, C, YuvFrame.from_bgr(grid_scene.render(n)))
                     grid_writer.write(canvas)
                 tick()

@@ -102,11 +102,12 @@ class SceneView:
 
     def __init__(self, positions: np.ndarray, markers: list[str], bones: list[tuple[int, int]],
                  camera_centers: np.ndarray | None, camera_names: list[str], fps: float,
-                 size: tuple[int, int] = (1280, 720), up: np.ndarray | None = None, title: str = ""):
+                 size: tuple[int, int] = (1280, 720), up: np.ndarray | None = None, title: str = "",
+                 bone_colors: list[tuple[int, int, int]] | None = None):
         self.positions = np.asarray(positions, dtype=np.float64)
         self.markers, self.bones, self.fps, self.size, self.title = markers, bones, fps, size, title
         self.up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, float) / np.linalg.norm(up)
-        self.colors = [bone_color(markers[i], markers[j]) for i, j in bones]
+        self.colors = bone_colors or [bone_color(markers[i], markers[j]) for i, j in bones]
         w, h = size
         self.unit = max(w / 1280.0, 0.4)
         finite = self.positions[np.isfinite(self.positions).all(axis=-1)]
