@@ -18,6 +18,8 @@
   // Okabe-Ito colours (safe for colour-blind readers); sides also differ by line style.
   const COLOR = { left: "#0072B2", right: "#D55E00", mid: "#333333", flag: "#CC0000",
                   camera: "#009E73", path: "#999999", band: "rgba(0,114,178,0.22)" };
+  // several individuals' bones: the rest of the Okabe-Ito palette, then more
+  const INDIVIDUAL_COLORS = ["#E69F00", "#56B4E9", "#009E73", "#CC79A7", "#0072B2", "#D55E00", "#F0E442", "#000000"];
   const PLOT_CONFIG = { displaylogo: false, responsive: true };
   // Light (small error) to dark (large error), the light half of magma: numbers stay readable.
   const ERROR_SCALE = [[0, "#fcfdbf"], [0.25, "#feb078"], [0.5, "#f1605d"], [0.75, "#b73779"], [1, "#51127c"]];
@@ -341,8 +343,22 @@
     })();
     const sceneBox = P.camera_centers ? bbox(all.concat(P.camera_centers)) : runBox;
 
-    const bonesBySide = { left: [], right: [], mid: [] };
-    for (const [a, b] of boneIdx) bonesBySide[side(P.markers[b]) !== "mid" ? side(P.markers[b]) : side(P.markers[a])].push([a, b]);
+    // The bones' traces: by side (left, right dashed, midline), or with several individuals one each,
+    // in a colour of its own (P.individuals: name, markers [first, count]).
+    const boneGroups = [];
+    if (P.individuals && P.individuals.length) {
+      P.individuals.forEach((ind, k) => {
+        const [lo, count] = ind.markers;
+        boneGroups.push({ name: `bones, ${ind.name}`, line: { color: INDIVIDUAL_COLORS[k % INDIVIDUAL_COLORS.length], width: 6 },
+          list: boneIdx.filter(([a]) => a >= lo && a < lo + count) });
+      });
+    } else {
+      const bySide = { left: [], right: [], mid: [] };
+      for (const [a, b] of boneIdx) bySide[side(P.markers[b]) !== "mid" ? side(P.markers[b]) : side(P.markers[a])].push([a, b]);
+      boneGroups.push({ name: "bones, left side", line: { color: COLOR.left, width: 6 }, list: bySide.left },
+        { name: "bones, right side (dashed)", line: { color: COLOR.right, width: 6, dash: "dash" }, list: bySide.right },
+        { name: "bones, midline", line: { color: COLOR.mid, width: 6 }, list: bySide.mid });
+    }
 
     function boneXYZ(n, list) {
       const x = [], y = [], z = [];
@@ -397,15 +413,10 @@
       y: P.positions.map((f) => (f[track] ? f[track][1] : null)),
       z: P.positions.map((f) => (f[track] ? f[track][2] : null)),
       line: { color: COLOR.path, width: 2 }, hoverinfo: "skip" });
-    idx.left = traces.length;
-    traces.push({ type: "scatter3d", mode: "lines", name: "bones, left side", ...boneXYZ(0, bonesBySide.left),
-      line: { color: COLOR.left, width: 6 }, hoverinfo: "skip" });
-    idx.right = traces.length;
-    traces.push({ type: "scatter3d", mode: "lines", name: "bones, right side (dashed)", ...boneXYZ(0, bonesBySide.right),
-      line: { color: COLOR.right, width: 6, dash: "dash" }, hoverinfo: "skip" });
-    idx.mid = traces.length;
-    traces.push({ type: "scatter3d", mode: "lines", name: "bones, midline", ...boneXYZ(0, bonesBySide.mid),
-      line: { color: COLOR.mid, width: 6 }, hoverinfo: "skip" });
+    idx.bones = boneGroups.map((g) => {
+      traces.push({ type: "scatter3d", mode: "lines", name: g.name, ...boneXYZ(0, g.list), line: g.line, hoverinfo: "skip" });
+      return traces.length - 1;
+    });
     const mk0 = markerXYZ(0, false), fl0 = markerXYZ(0, true);
     idx.markers = traces.length;
     // Without bones the dots carry their names, or nobody could tell the nose from the tail.
@@ -452,14 +463,15 @@
     const ready = Plotly.newPlot(plot3d, traces, layout3d, PLOT_CONFIG);
 
     function draw(n) {
-      const L = boneXYZ(n, bonesBySide.left), R = boneXYZ(n, bonesBySide.right), D = boneXYZ(n, bonesBySide.mid);
+      const B = boneGroups.map((g) => boneXYZ(n, g.list));
       const mk = markerXYZ(n, false), fl = markerXYZ(n, true);
+      const none = B.map(() => null);
       const upd = {
-        x: [L.x, R.x, D.x, mk.x, fl.x], y: [L.y, R.y, D.y, mk.y, fl.y], z: [L.z, R.z, D.z, mk.z, fl.z],
-        text: [null, null, null, mk.text, fl.text], hovertext: [null, null, null, mk.hover, fl.hover],
+        x: [...B.map((b) => b.x), mk.x, fl.x], y: [...B.map((b) => b.y), mk.y, fl.y], z: [...B.map((b) => b.z), mk.z, fl.z],
+        text: [...none, mk.text, fl.text], hovertext: [...none, mk.hover, fl.hover],
       };
       const lay = state.view === "follow" ? sceneLayout(n) : {};
-      return Plotly.update(plot3d, upd, lay, [idx.left, idx.right, idx.mid, idx.markers, idx.flagged]);
+      return Plotly.update(plot3d, upd, lay, [...idx.bones, idx.markers, idx.flagged]);
     }
 
     /** Apply a change of state.view. */

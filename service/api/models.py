@@ -16,7 +16,14 @@ from graph.export import REGISTRY, available
 from graph.types import STAGES as SOLVER_STAGES
 from service.errors import strip_paths, without_paths
 from service.store import COMPILING, DONE, READING, RENDERING, STARTING, WRITING, ErrorKind, Job, JobStatus
-from service.store.jobfiles import DOWNLOADS, EXPORT_FILES, RESULT_FILES, download_name, individual_names
+from service.store.jobfiles import (
+    DOWNLOADS,
+    EXPORT_FILES,
+    GROUP_FORMATS,
+    RESULT_FILES,
+    download_name,
+    individual_names,
+)
 
 if TYPE_CHECKING:
     ResultFormat = str
@@ -130,8 +137,8 @@ class ResultSummary(BaseModel):
 class Links(BaseModel):
     self: str
     result: dict[str, str] | None = Field(None, description="download link per format, once succeeded (a job of "
-                                                            "several individuals: its report; each one's in "
-                                                            "individuals)")
+                                                            "several individuals: its report and its page's view "
+                                                            "of them all; each one's in individuals)")
     cancel: str | None = Field(None, description="DELETE this to cancel (active) or delete (finished) the job")
     videos: str | None = Field(None, description="the labelled videos, once succeeded, when the job had videos")
     individuals: dict[str, dict[str, str]] | None = Field(
@@ -297,7 +304,8 @@ def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:
         interruption=without_paths(job.interruption),
         worker=job.worker, result=result,
         links=Links(self=href,
-                    result={f: f"{href}/result?format={f}" for f in offered_formats() if not names or f == "report"}
+                    result={f: f"{href}/result?format={f}" for f in offered_formats()
+                            if not names or f in GROUP_FORMATS}
                     if job.status == "succeeded" else None,
                     cancel=href,
                     videos=f"{href}/videos" if job.status == "succeeded" and (job.inputs or {}).get("videos")

@@ -395,7 +395,8 @@ class JobService:
 
     def result_file(self, user: User, job_id: str, fmt: str, individual: str | None = None) -> Path:
         """The job's result file of download format ``fmt`` (:data:`service.store.jobfiles.DOWNLOADS`);
-        of a job that solved several individuals, ``individual``'s (its report: the job's, without one)."""
+        of a job that solved several individuals, ``individual``'s (its report and its view of them all,
+        :data:`~service.store.jobfiles.GROUP_FORMATS`: the job's, without one)."""
         job = self.visible(user, job_id)
         if job.status != "succeeded":
             why = f": {job.error}" if job.status == "failed" and job.error else ""
@@ -419,7 +420,7 @@ class JobService:
                                     "individual")
             return None
         if individual is None:
-            if fmt == "report":
+            if fmt in jobfiles.GROUP_FORMATS:
                 return None
             shown = ", ".join(names[:8]) + (", ..." if len(names) > 8 else "")
             raise Unprocessable(f"individual: job {job.id} solved {len(names)} individuals ({shown}); give "

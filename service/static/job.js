@@ -161,13 +161,16 @@
         el("h3", { text: name }), ...Object.keys(each[name]).map((f) => downloadButton(each[name][f], f, name)))));
   }
 
-  /** The result drawn: the job's, or with several individuals the one picked (the first at first). */
+  /** The result drawn: the job's, or with several individuals them all (at first) or the one picked. */
   function individualPicker(job, draw) {
     const each = job.links.individuals;
     if (!each) return null;
     const names = Object.keys(each);
+    const all = job.links.result && job.links.result.json;
     const select = el("select", { id: "individual-picker", "aria-label": "Individual to draw",
-      onchange: () => draw(each[select.value].json) }, ...names.map((n) => el("option", { value: n, text: n })));
+      onchange: () => draw(select.value === "" ? all : each[select.value].json) },
+    ...(all ? [el("option", { value: "", text: "every individual" })] : []),
+    ...names.map((n) => el("option", { value: n, text: n })));
     return el("p", { class: "picker" }, el("label", { for: "individual-picker", text: "Individual: " }), select);
   }
 
@@ -179,7 +182,7 @@
     resultBox.replaceChildren(el("p", { class: "muted", role: "status", text: "Loading the result for drawing…" }));
     try {
       const first = job.links.individuals ? Object.values(job.links.individuals)[0].json : null;
-      const href = chosen || first || (job.links.result && job.links.result.json) ||
+      const href = chosen || (job.links.result && job.links.result.json) || first ||
         `/v1/jobs/${encodeURIComponent(id)}/result?format=json`;
       const payload = await A.api(href);
       if (typeof window.Plotly === "undefined" || !window.AcinoResultView) throw new Error("the plotting scripts did not load");

@@ -78,6 +78,9 @@ INDIVIDUALS_DIR = "individuals"  # result: one folder per individual of a job wi
 _INDIVIDUAL_RESULT = re.compile(rf"^{INDIVIDUALS_DIR}/[0-9]{{2}}/({'|'.join(map(re.escape, RESULT_NAMES))})$")
 
 
+GROUP_FORMATS = ("json", "report")  # a job of several individuals' own files: them all drawn, who is who
+
+
 def individual_names(summary: dict | None) -> list[str] | None:
     """The individuals of a job that solved several (its report's ``identity``), in the order of their
     folders (:func:`individual_folder`); None for a job of one."""

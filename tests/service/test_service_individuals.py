@@ -105,6 +105,19 @@ def test_an_individuals_nwb_is_its_own_subject(client, done, tmp_path):
         assert "PoseEstimation" in nwb.processing["behavior"].data_interfaces
 
 
+def test_the_jobs_view_holds_them_all(client, done):
+    """The job's own result.json (what its page draws at first): every individual side by side."""
+    assert set(done["links"]["result"]) == {"json", "report"}
+    r = client.get(done["links"]["result"]["json"])
+    assert r.status_code == 200, r.text
+    payload = r.json()
+    names = [i["name"] for i in payload["individuals"]]
+    assert sorted(names) == sorted(NAMES)
+    assert [i["markers"] for i in payload["individuals"]] == [[0, 12], [12, 12]]
+    assert len(payload["markers"]) == 24 and payload["markers"][0].startswith(f"{names[0]} ")
+    assert len(payload["positions"]) == 300 and len(payload["positions"][0]) == 24
+
+
 def test_a_download_that_names_no_one_or_no_one_known(client, done):
     r = client.get(f"/v1/jobs/{done['id']}/result?format=csv")
     assert r.status_code == 422 and "give individual=NAME" in r.json()["detail"]

@@ -39,6 +39,14 @@ def test_the_job_page_of_two_animals(page, server, tmp_path):
         "xpath=following-sibling::dd[1]").inner_text()
     assert re.fullmatch(r"cam1 \d+, cam2 \d+, cam3 \d+, cam4 \d+", switches), switches
 
+    # at first every individual in one 3D view, each one's bones in a colour of its own
+    names = page.evaluate("() => Array.from(document.querySelectorAll('.js-plotly-plot')).flatMap("
+                          "(p) => (p.data || []).map((t) => t.name))")
+    assert "bones, dam" in names and "bones, cub" in names and "bones, left side" not in names, names
+    colors = page.evaluate("() => Array.from(document.querySelectorAll('.js-plotly-plot')).flatMap((p) => (p.data"
+                           " || []).filter((t) => (t.name || '').startsWith('bones, ')).map((t) => t.line.color))")
+    assert len(set(colors)) == 2, colors
+
     with page.expect_response(lambda resp: "individual=dam" in resp.url and "format=json" in resp.url) as got:
         page.get_by_label("Individual to draw").select_option("dam")
     assert got.value.status == 200
