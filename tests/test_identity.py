@@ -268,3 +268,27 @@ def test_each_individual_exports_to_nwb_as_movement_reads_a_group(pair):
         got = group.position.sel(individuals=ind, keypoints=table.markers)
         got = got.transpose("time", "keypoints", "space").values
         np.testing.assert_allclose(got, csv, rtol=1e-9, atol=1e-12)
+
+
+def test_plot_of_several_individuals(pair):
+    """`acinoset plot` of each individual's H5: each one's figures in a folder of its name, and one
+    offline playback of them all (its payload naming each one's markers)."""
+    import re
+
+    folder, _, files = pair
+    out = folder / "plotted"
+    out.mkdir()
+    p = run_cli("solve", *files, "--calibration", folder / "calibration.toml", "--fps", "60", "--skeleton", "points",
+                "--method", "tri", "--out", out / "run.csv", "--h5", out / "run.h5", cwd=folder)
+    assert p.returncode == 0, p.stderr
+    p = run_cli("plot", out / "run.dam.h5", out / "run.cub.h5", "--out", out / "figs", "--snapshots", "1", cwd=folder)
+    assert p.returncode == 0, p.stderr
+    assert any((out / "figs" / "dam").glob("*.png")) and any((out / "figs" / "cub").glob("*.png"))
+    page = (out / "figs" / "playback.html").read_text(encoding="utf-8")
+    payload = json.loads(re.search(r'<script type="application/json" id="payload">(.*?)</script>', page, re.S)[1])
+    assert [i["name"] for i in payload["individuals"]] == ["dam", "../../cub"]
+    assert [i["markers"] for i in payload["individuals"]] == [[0, 12], [12, 12]]
+    assert "dam, ../../cub" in page.split("<title>")[1].split("</title>")[0]
+    p = run_cli("plot", out / "run.dam.h5", out / "run.cub.h5", "--out", out / "x", "--frame", "1", "--camera", "1",
+                "--video", out / "run.csv", cwd=folder)
+    assert p.returncode == 2 and "give one RESULT.h5" in p.stderr and p.stderr.count("\n") == 1

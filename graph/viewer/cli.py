@@ -21,7 +21,9 @@ def register(subparsers) -> None:
         description="Write PNG figures (skeleton with cameras, reprojection error per marker and "
                     "camera, coordinates and pose parameters over time with uncertainty, flagged "
                     f"frames) and {HTML_NAME}, a self-contained 3D playback that opens offline.")
-    p.add_argument("result", type=Path, help="RESULT.h5 written by `acinoset solve --h5`")
+    p.add_argument("result", type=Path, nargs="+", metavar="RESULT.h5",
+                   help="RESULT.h5 written by `acinoset solve --h5`; several individuals solved together: each "
+                        "one's (RUN.<name>.h5): the figures of each in a folder of its name, one playback of all")
     p.add_argument("--out", type=Path, required=True, help="folder to write the pictures into")
     p.add_argument("--calibration", type=Path, default=None,
                    help="calibration file, to draw the cameras when the result file holds no camera positions")
@@ -36,22 +38,37 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not Path(args.result).is_file():
-        raise InputError("no such file", args.result)
+    for path in args.result:
+        if not Path(path).is_file():
+            raise InputError("no such file", path)
     if args.snapshots < 1:
         raise InputError("--snapshots must be at least 1")
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise InputError("--out must be a folder, and this is a file", args.out)
-    result = read_result(args.result)
-    if args.frame is not None or args.camera is not None or args.video is not None:
-        print(_pick_frame(result, args))
-        return 0
+    picking = args.frame is not None or args.camera is not None or args.video is not None
+    if picking and len(args.result) > 1:
+        raise InputError("the frame picker draws one result: give one RESULT.h5")
     calibration = None
     if args.calibration is not None:
         calibration = load_calibration(args.calibration)
-    written = write_figures(result, args.out, calibration, snapshots=args.snapshots)
-    if not args.no_html:
-        written.append(write_playback_html(result, Path(args.out) / HTML_NAME, calibration))
+    if len(args.result) == 1:
+        result = read_result(args.result[0])
+        if picking:
+            print(_pick_frame(result, args))
+            return 0
+        written = write_figures(result, args.out, calibration, snapshots=args.snapshots)
+        if not args.no_html:
+            written.append(write_playback_html(result, Path(args.out) / HTML_NAME, calibration))
+    else:
+        from graph.io.results import read_individual, safe_name
+
+        group = [(read_individual(path) or Path(path).stem, read_result(path)) for path in args.result]
+        written = []
+        for name, result in group:
+            written += write_figures(result, Path(args.out) / safe_name(name, "individual"), calibration,
+                                     snapshots=args.snapshots)
+        if not args.no_html:
+            written.append(write_playback_html(group, Path(args.out) / HTML_NAME, calibration))
     for p in written:
         print(p)
     return 0

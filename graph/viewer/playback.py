@@ -7,11 +7,12 @@ from __future__ import annotations
 import html
 import importlib.util
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 from graph.types import Result
 from graph.viewer import SCRIPTS, STYLES, viewer_dir
-from graph.viewer.payload import result_payload
+from graph.viewer.payload import group_payload, result_payload
 
 HTML_NAME = "playback.html"
 
@@ -33,10 +34,19 @@ def _script_text(text: str) -> str:
     return text.replace("</", "<\\/").replace("<!--", "<\\!--")
 
 
-def playback_html(result: Result, calibration=None, title: str | None = None) -> str:
-    """One self-contained HTML page: plotly.js, the result view and the payload inlined."""
+def playback_html(result: Result | Sequence[tuple[str, Result]], calibration=None, title: str | None = None) -> str:
+    """One self-contained HTML page: plotly.js, the result view and the payload inlined; of several
+    individuals solved together (``(name, result)`` pairs), them all in one view
+    (:func:`graph.viewer.payload.group_payload`)."""
     d = viewer_dir()
-    payload = json.dumps(result_payload(result, calibration), separators=(",", ":"), allow_nan=False)
+    if isinstance(result, Result):
+        data = result_payload(result, calibration)
+    else:
+        data = group_payload(result, calibration)
+        names = ", ".join(name for name, _ in result)
+        result = result[0][1]
+        title = title or f"acinoset: {result.method} / {result.skeleton}, {names}, {result.positions.shape[0]} frames"
+    payload = json.dumps(data, separators=(",", ":"), allow_nan=False)
     css = "\n".join((d / name).read_text(encoding="utf-8") for name in STYLES)
     view = "\n".join((d / name).read_text(encoding="utf-8") for name in SCRIPTS)
     plotly = plotly_js_path().read_text(encoding="utf-8")
@@ -67,7 +77,7 @@ AcinoResultView.render(document.getElementById("result"),
 """
 
 
-def write_playback_html(result: Result, path: str | Path, calibration=None) -> Path:
+def write_playback_html(result: Result | Sequence[tuple[str, Result]], path: str | Path, calibration=None) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(playback_html(result, calibration), encoding="utf-8")
