@@ -55,7 +55,6 @@ import argparse
 import dataclasses
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -72,7 +71,6 @@ from graph.metrics import position_error, uncertainty_calibration
 from graph.simulate import simulate_run, write_run
 
 ACINOSET = str(Path(sys.executable).with_name("acinoset"))
-TIME = "/usr/bin/time"  # GNU time
 SPEED = 1.0  # m/s: a walk, for the issue's slow circling animal
 METHODS = ("ekf", "fte")
 TARGET_RATIO = 1.5  # ekf's error within 1.5x of fte's
@@ -127,27 +125,6 @@ def score(positions: np.ndarray, std: np.ndarray | None, truth: np.ndarray, mark
             row["within_2sd"] = float("nan")
         out[name] = row
     return out
-
-
-def run_command(cmd: list[str], env: dict) -> dict:
-    """Run ``cmd`` under ``/usr/bin/time``: its exit status, wall seconds (around the whole), CPU seconds, peak RSS.
-
-    The peak is GNU time's ``%M`` for the command, a child of ``time``: the ``ru_maxrss`` that ``os.wait4``
-    gives for a child of this process counts this process's own resident memory too (a forked child's pages
-    before its ``exec``), hundreds of MiB here after solves of its own.
-    """
-    with tempfile.TemporaryDirectory() as tmp:
-        usage, err = Path(tmp) / "usage", Path(tmp) / "stderr"
-        with open(err, "wb") as f:
-            t0 = time.perf_counter()
-            proc = subprocess.run([TIME, "-f", "%M %U %S", "-o", str(usage), *cmd], stdin=subprocess.DEVNULL,
-                                  stdout=subprocess.DEVNULL, stderr=f, env=env)
-            wall = time.perf_counter() - t0
-        stderr = err.read_text(errors="replace")
-        fields = usage.read_text().split()[-3:]  # a killed command's file starts with a line of its own
-    peak_kib, user, system = int(fields[0]), float(fields[1]), float(fields[2])
-    return {"exit": proc.returncode, "wall_s": wall, "cpu_s": user + system, "peak_rss_mib": peak_kib / 1024.0,
-            "stderr_tail": stderr.strip()[-1500:], "load": os.getloadavg()[0]}
 
 
 def solve_command(d: Path, run, method: str) -> list[str]:
@@ -243,11 +220,11 @@ def main() -> int:
             small = simulate(cal, 60, 99)
             write_run(small, small_dir)
             for method in METHODS:  # untimed: the kernels loaded from numba's cache, the files cached
-                run_command(solve_command(small_dir, small, method), alone)
+                h.time_command(solve_command(small_dir, small, method), alone)
             d = Path(tmp) / "run"
             write_run(run, d)
             for method in METHODS:
-                c = run_command(solve_command(d, run, method), alone)
+                c = h.time_command(solve_command(d, run, method), alone)
                 if c["exit"] == 0:
                     report = json.loads((d / "report.json").read_text())
                     c.update(solve_s=report["seconds"]["total"], iterations=report["iterations"],

@@ -58,7 +58,6 @@ from graph.metrics import position_error
 from graph.simulate import simulate_run, write_run
 
 ACINOSET = str(Path(sys.executable).with_name("acinoset"))
-TIME = "/usr/bin/time"  # GNU time
 SPEED = 1.0  # m/s: a slow run
 TARGET_RATIO = 10.0  # 1,200 frames in at most 10x the time of 150
 BASE, LONG = 150, 1200
@@ -72,25 +71,11 @@ def simulate(cal, frames: int, seed: int):
 
 
 def run_command(cmd: list[str], env: dict) -> dict:
-    """Run ``cmd`` under ``/usr/bin/time``: its wall seconds (around the whole), CPU seconds and peak RSS (MiB).
-
-    The peak is GNU time's ``%M`` for the command, a child of ``time``: the ``ru_maxrss`` that ``os.wait4``
-    gives for a child of this process counts this process's own resident memory too (a forked child's pages
-    before its ``exec``), hundreds of MiB here after solves of its own.
-    """
-    with tempfile.TemporaryDirectory() as tmp:
-        usage, err = Path(tmp) / "usage", Path(tmp) / "stderr"
-        with open(err, "wb") as f:
-            t0 = time.perf_counter()
-            proc = subprocess.run([TIME, "-f", "%M %U %S", "-o", str(usage), *cmd], stdin=subprocess.DEVNULL,
-                                  stdout=subprocess.DEVNULL, stderr=f, env=env)
-            wall = time.perf_counter() - t0
-        stderr = err.read_text(errors="replace")
-        fields = usage.read_text().split()[-3:]  # a killed command's file starts with a line of its own
-    peak_kib, user, system = int(fields[0]), float(fields[1]), float(fields[2])
-    if proc.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd[:3])}...: exit {proc.returncode}: {stderr.strip()[-600:]}")
-    return {"wall_s": wall, "cpu_s": user + system, "peak_rss_mib": peak_kib / 1024.0, "load": os.getloadavg()[0]}
+    """:func:`harness.time_command`, stopping the bench at a command that fails."""
+    c = h.time_command(cmd, env)
+    if c["exit"] != 0:
+        raise SystemExit(f"{' '.join(cmd[:3])}...: exit {c['exit']}: {c['stderr_tail'][-600:]}")
+    return {k: c[k] for k in ("wall_s", "cpu_s", "peak_rss_mib", "load")}
 
 
 def solve_command(d: Path, run) -> list[str]:

@@ -213,6 +213,32 @@ def anipose_triangulate_optim(cgroup, pts: np.ndarray, constraints: list[list[in
         reproj_error_threshold=d["reproj_error_threshold"], n_deriv_smooth=d["n_deriv_smooth"]))
 
 
+# ------------------------------------------------------------------------------------ commands
+
+GNU_TIME = "/usr/bin/time"
+
+
+def time_command(cmd: list[str], env: dict) -> dict:
+    """Run ``cmd`` under ``/usr/bin/time``: its exit status, wall seconds (around the whole), CPU seconds, peak RSS.
+
+    The peak is GNU time's ``%M`` for the command, a child of ``time``: the ``ru_maxrss`` that ``os.wait4``
+    gives for a child of this process counts this process's own resident memory too (a forked child's pages
+    before its ``exec``), hundreds of MiB here after solves of its own.
+    """
+    with tempfile.TemporaryDirectory() as tmp:
+        usage, err = Path(tmp) / "usage", Path(tmp) / "stderr"
+        with open(err, "wb") as f:
+            t0 = time.perf_counter()
+            proc = subprocess.run([GNU_TIME, "-f", "%M %U %S", "-o", str(usage), *cmd], stdin=subprocess.DEVNULL,
+                                  stdout=subprocess.DEVNULL, stderr=f, env=env)
+            wall = time.perf_counter() - t0
+        stderr = err.read_text(errors="replace")
+        fields = usage.read_text().split()[-3:]  # a killed command's file starts with a line of its own
+    peak_kib, user, system = int(fields[0]), float(fields[1]), float(fields[2])
+    return {"exit": proc.returncode, "wall_s": wall, "cpu_s": user + system, "peak_rss_mib": peak_kib / 1024.0,
+            "stderr_tail": stderr.strip()[-1500:], "load": os.getloadavg()[0]}
+
+
 # ------------------------------------------------------------------------------------------ output
 
 
