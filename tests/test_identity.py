@@ -238,7 +238,19 @@ def test_openpose_folders_of_two_people(tmp_path):
     assert g.switches == 0 and max(e.median_mm for e in g.errors) < 8
 
 
-def test_each_individual_exports_to_nwb_as_movement_reads_a_group(pair):
+@pytest.fixture(scope="module")
+def solved_pair(pair):
+    """The pair solved once by tri with --h5: the folder holding run.<name>.csv and run.<name>.h5."""
+    folder, _, files = pair
+    out = folder / "solved"
+    out.mkdir()
+    p = run_cli("solve", *files, "--calibration", folder / "calibration.toml", "--fps", "60", "--skeleton", "points",
+                "--method", "tri", "--out", out / "run.csv", "--h5", out / "run.h5", cwd=folder)
+    assert p.returncode == 0, p.stderr
+    return out
+
+
+def test_each_individual_exports_to_nwb_as_movement_reads_a_group(pair, solved_pair):
     """Each individual's H5 names it; its NWB is one subject (NWB holds one a file), identified by the
     name, so movement's loader names the individual and merging the files gives the group."""
     pytest.importorskip("ndx_pose")
@@ -248,11 +260,7 @@ def test_each_individual_exports_to_nwb_as_movement_reads_a_group(pair):
     from graph.io.results import read_individual
 
     folder, run, files = pair
-    out = folder / "nwb"
-    out.mkdir()
-    p = run_cli("solve", *files, "--calibration", folder / "calibration.toml", "--fps", "60", "--skeleton", "points",
-                "--method", "tri", "--out", out / "run.csv", "--h5", out / "run.h5", cwd=folder)
-    assert p.returncode == 0, p.stderr
+    out = solved_pair
     assert read_individual(out / "run.dam.h5") == "dam" and read_individual(out / "run.cub.h5") == "../../cub"
     sets = []
     for name in ("dam", "cub"):
@@ -270,17 +278,13 @@ def test_each_individual_exports_to_nwb_as_movement_reads_a_group(pair):
         np.testing.assert_allclose(got, csv, rtol=1e-9, atol=1e-12)
 
 
-def test_plot_of_several_individuals(pair):
+def test_plot_of_several_individuals(pair, solved_pair):
     """`acinoset plot` of each individual's H5: each one's figures in a folder of its name, and one
     offline playback of them all (its payload naming each one's markers)."""
     import re
 
     folder, _, files = pair
-    out = folder / "plotted"
-    out.mkdir()
-    p = run_cli("solve", *files, "--calibration", folder / "calibration.toml", "--fps", "60", "--skeleton", "points",
-                "--method", "tri", "--out", out / "run.csv", "--h5", out / "run.h5", cwd=folder)
-    assert p.returncode == 0, p.stderr
+    out = solved_pair
     p = run_cli("plot", out / "run.dam.h5", out / "run.cub.h5", "--out", out / "figs", "--snapshots", "1", cwd=folder)
     assert p.returncode == 0, p.stderr
     assert any((out / "figs" / "dam").glob("*.png")) and any((out / "figs" / "cub").glob("*.png"))
