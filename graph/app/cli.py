@@ -444,8 +444,8 @@ def run_solve(args: argparse.Namespace) -> int:
         return 0
 
     tracks = cameras
-    check_same_frames([t.slot(0) for t in tracks])
-    fps, fps_from = frame_rate(args.fps, [t.slot(0) for t in tracks])
+    check_same_frames(tracks)
+    fps, fps_from = frame_rate(args.fps, tracks)
     options = solve_options(args, fps)
     solved = _solve_group(tracks, calibration, options)
     ids = solved.identities

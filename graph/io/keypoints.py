@@ -728,7 +728,7 @@ def select_markers(keypoints: Keypoints, marker_names: list[str]) -> Keypoints:
                      scorer=keypoints.scorer, source=keypoints.source, spread_px=spread, fps=keypoints.fps)
 
 
-def check_same_frames(keypoints: list[Keypoints]) -> int:
+def check_same_frames(keypoints: list[Keypoints] | list[Tracks]) -> int:
     """The common frame count; :class:`InputError` naming the first file whose count differs."""
     if not keypoints:
         raise InputError("no keypoint files given")
