@@ -7,7 +7,8 @@ Every solver, writer and the service import these; this module imports nothing o
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Literal, get_args
 
 import numpy as np
@@ -247,6 +248,26 @@ class Result:
             r = np.where(self.outlier, np.nan, self.residuals)
             cnt = np.isfinite(r).sum(0)
             return np.where(cnt > 0, np.nansum(r, 0) / np.maximum(cnt, 1), np.nan)
+
+
+def together(group: Sequence[tuple[str, Result]]) -> Result:
+    """Several individuals solved together as one :class:`Result` to draw: every one's markers side
+    by side (named ``<individual> <marker>``, bones likewise), their per-marker arrays joined along
+    the marker axis; no pose parameters (each individual has its own). The report is the first's."""
+    first = group[0][1]
+
+    def joined(name: str, axis: int):
+        parts = [getattr(r, name) for _, r in group]
+        return None if any(a is None for a in parts) else np.concatenate([np.asarray(a) for a in parts], axis=axis)
+
+    return replace(first, markers=[f"{n} {m}" for n, r in group for m in r.markers],
+                   bones=[(f"{n} {a}", f"{n} {b}") for n, r in group for a, b in r.bones],
+                   positions=joined("positions", 1), std=joined("std", 1), ncams=joined("ncams", 1),
+                   score=joined("score", 1), reprojections=joined("reprojections", 2),
+                   residuals=joined("residuals", 2), outlier=joined("outlier", 2),
+                   detections=joined("detections", 2), likelihood=joined("likelihood", 2),
+                   causal_positions=joined("causal_positions", 1), param_names=[], params=None, rates=None,
+                   params_std=None)
 
 
 def jsonable(x):

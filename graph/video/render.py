@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from graph.errors import InputError
-from graph.types import Result
+from graph.types import Result, together
 from graph.video.codec import FrameReader, FrameWriter, VideoInfo, YuvFrame, probe, read_frame
 from graph.video.draw import CameraOverlay, Painter, Style, draw_camera_frame, marker_colors
 from graph.video.scene import SceneView
@@ -98,20 +98,15 @@ def group_overlays(group: Sequence[tuple[str, Result]]):
         return [[o] for o in camera_overlays(r)], (r.positions, list(r.markers), pairs, None)
     tints = marker_colors(len(group))
     per_camera: list[list[CameraOverlay]] = [[] for _ in group[0][1].camera_names]
-    positions: list[np.ndarray] = []
-    markers: list[str] = []
-    bones: list[tuple[int, int]] = []
-    colors: list[tuple[int, int, int]] = []
     for k, (name, r) in enumerate(group):
         for c, o in enumerate(camera_overlays(r)):
             per_camera[c].append(dataclasses.replace(o, tint=tints[k], label=name, title=k == 0))
-        index = {m: len(markers) + i for i, m in enumerate(r.markers)}
-        own = [(index[x], index[y]) for x, y in r.bones if x in index and y in index]
-        bones += own
-        colors += [tints[k]] * len(own)
-        markers += [f"{name} {m}" for m in r.markers]
-        positions.append(np.asarray(r.positions, dtype=np.float64))
-    return per_camera, (np.concatenate(positions, axis=1), markers, bones, colors)
+    joined = together(group)
+    index = {m: i for i, m in enumerate(joined.markers)}
+    bones = [(index[x], index[y]) for x, y in joined.bones if x in index and y in index]
+    owner = np.repeat(np.arange(len(group)), [len(r.markers) for _, r in group])  # each joined marker's individual
+    colors = [tints[int(owner[i])] for i, _ in bones]
+    return per_camera, (np.asarray(joined.positions, dtype=np.float64), list(joined.markers), bones, colors)
 
 
 def frame_offsets(result: Result) -> list[int]:

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from graph.errors import InputError
-from graph.types import Result, jsonable
+from graph.types import Result, jsonable, together
 
 PAYLOAD_VERSION = 1
 
@@ -219,26 +219,6 @@ def result_payload(result: Result, calibration=None) -> dict:
         "report": jsonable(report),
         "options": jsonable(options),
     }
-
-
-def together(group: Sequence[tuple[str, Result]]) -> Result:
-    """Several individuals solved together as one :class:`Result` to draw: every one's markers side
-    by side (named ``<individual> <marker>``, bones likewise), their per-marker arrays joined along
-    the marker axis; no pose parameters (each individual has its own). The report is the first's."""
-    first = group[0][1]
-
-    def joined(name: str, axis: int):
-        parts = [getattr(r, name) for _, r in group]
-        return None if any(a is None for a in parts) else np.concatenate([np.asarray(a) for a in parts], axis=axis)
-
-    return replace(first, markers=[f"{n} {m}" for n, r in group for m in r.markers],
-                   bones=[(f"{n} {a}", f"{n} {b}") for n, r in group for a, b in r.bones],
-                   positions=joined("positions", 1), std=joined("std", 1), ncams=joined("ncams", 1),
-                   score=joined("score", 1), reprojections=joined("reprojections", 2),
-                   residuals=joined("residuals", 2), outlier=joined("outlier", 2),
-                   detections=joined("detections", 2), likelihood=joined("likelihood", 2),
-                   causal_positions=joined("causal_positions", 1), param_names=[], params=None, rates=None,
-                   params_std=None)
 
 
 def group_payload(group: Sequence[tuple[str, Result]], calibration=None) -> dict:
