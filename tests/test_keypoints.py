@@ -479,3 +479,16 @@ def test_check_same_frames_names_the_odd_file():
     assert check_same_frames([a, a]) == 10
     with pytest.raises(InputError, match=r"^cam2\.csv: has 9 frames but cam1\.csv has 10"):
         check_same_frames([a, b])
+
+
+def test_more_individuals_than_are_solved_at_once_is_one_line(tmp_path):
+    """read_tracks of a multi-animal file with 65 individuals (64 at most, as the SLEAP and OpenPose readers)."""
+    from graph.io.keypoints import read_tracks
+
+    inds = [f"a{i}" for i in range(65)]
+    rows = [["scorer"] + ["s"] * (3 * 65), ["individuals"] + [i for i in inds for _ in range(3)],
+            ["bodyparts"] + ["nose"] * (3 * 65), ["coords"] + ["x", "y", "likelihood"] * 65, ["0"] + ["1.0"] * (3 * 65)]
+    path = tmp_path / "many.csv"
+    path.write_text("\n".join(",".join(r) for r in rows) + "\n")
+    with pytest.raises(InputError, match=r"^many\.csv: 65 individuals; at most 64 are solved at once$"):
+        read_tracks(path)

@@ -52,7 +52,7 @@ from typing import NamedTuple
 import numpy as np
 
 from graph.errors import InputError, TooLargeInput, unreadable
-from graph.io.keypoint_types import EVERY, NO_LIMITS, Keypoints, ReadLimits, Tracks, as_tracks
+from graph.io.keypoint_types import EVERY, MAX_SLOTS, NO_LIMITS, Keypoints, ReadLimits, Tracks, as_tracks
 
 CSV_BLOCK_ROWS = 4096  # rows parsed at a time
 MAX_LABEL_BYTES = 4096  # one column label of an H5 file (a scorer's, a bodypart's name)
@@ -586,6 +586,8 @@ def _from_columns(columns: list[tuple], values: np.ndarray, path: Path,
         return _individual([(c[0], c[2], c[3]) for c in (columns[j] for j in keep)], values[:, keep], path, scorers[0])
 
     if individual == EVERY:
+        if len(animals) > MAX_SLOTS:
+            raise InputError(f"{len(animals)} individuals; at most {MAX_SLOTS} are solved at once", path)
         each = [pick(a) for a in animals]
         if any(k.bodyparts != each[0].bodyparts for k in each):
             raise InputError(f"the individuals have different bodyparts ({', '.join(animals[:4])})", path)
