@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from graph.anipose import load_project
-from graph.anipose.simulate import CONSTRAINTS, write_project
+from graph.anipose.simulate import CONSTRAINTS, simulated_trials, write_project
 from graph.errors import InputError
 from graph.io.results import read_anipose_csv, read_result
 
@@ -261,24 +261,32 @@ def test_a_project_kept_to_its_folder_and_walks_bounded(tmp_path, monkeypatch):
     assert load_project(root).root == tmp_path  # the command line goes where path says
 
 
-def test_a_millimetre_project_gets_millimetres(tmp_path):
-    """A project calibrated in millimetres (Anipose's default: the board's units) gets pose-3d in
-    millimetres, as ``anipose triangulate`` writes it: the CSV is the H5's metres x 1000, and
-    aniposelib, reading the same calibration file, projects the CSV's points onto the detections."""
+def millimetre_project(root: Path) -> Path:
+    """One session, one 30-frame trial, its calibrations in millimetres (translations x 1000), solved
+    by triangulation (``method = "tri"``), Anipose's own ``optim = false``."""
     from dataclasses import replace
 
-    from graph.anipose import run_project
     from graph.camera import Calibration
     from graph.io.calibration import load_calibration, write_anipose_toml
-    from graph.io.keypoints import read_keypoints
 
-    aniposelib = pytest.importorskip("aniposelib.cameras")
-    root = write_project(tmp_path / "p", sessions={"s": ["t"]}, frames=30, optim=False)
+    root = write_project(root, sessions={"s": ["t"]}, frames=30, optim=False)
     for toml in (root / "calibration" / "calibration.toml", root / "s" / "calibration" / "calibration.toml"):
         cal = load_calibration(toml)
         write_anipose_toml(toml, Calibration(cameras=[replace(c, t=c.t * 1000.0) for c in cal.cameras]))
     (root / "config.toml").write_text((root / "config.toml").read_text().replace("[acinoset]",
                                                                                  '[acinoset]\nmethod = "tri"'))
+    return root
+
+
+def test_a_millimetre_project_gets_millimetres(tmp_path):
+    """A project calibrated in millimetres (Anipose's default: the board's units) gets pose-3d in
+    millimetres, as ``anipose triangulate`` writes it: the CSV is the H5's metres x 1000, and
+    aniposelib, reading the same calibration file, projects the CSV's points onto the detections."""
+    from graph.anipose import run_project
+    from graph.io.keypoints import read_keypoints
+
+    aniposelib = pytest.importorskip("aniposelib.cameras")
+    root = millimetre_project(tmp_path / "p")
     (outcome,) = run_project(load_project(root))
     assert outcome.status == "solved", outcome.message
     csv, res = read_anipose_csv(outcome.trial.csv), read_result(outcome.trial.h5)
@@ -293,3 +301,38 @@ def test_a_millimetre_project_gets_millimetres(tmp_path):
     err = np.linalg.norm(uv - xy.reshape(len(kps), -1, 2), axis=-1)
     # the same units: a few px (the simulated noise and outliers); a CSV in metres projects thousands off
     assert np.nanmedian(err) < 10.0, f"{np.nanmedian(err):.1f} px"
+
+
+def test_millimetres_equal_anipose_own_output(tmp_path):
+    """The same millimetre project through Anipose 1.1's own ``anipose triangulate`` (the installed
+    command, on aniposelib's triangulation) and through ``acinoset anipose``: both pose-3d CSVs are in
+    millimetres, each one's least-squares scale onto the simulated truth in millimetres is 1 (a CSV in
+    metres would need 1000), and both are millimetres from it."""
+    import shutil
+
+    anipose = os.environ.get("ANIPOSE_COMMAND") or shutil.which("anipose")
+    if anipose is None:
+        pytest.skip("Anipose's command is not installed (ANIPOSE_COMMAND names it; .ci/run installs it)")
+    theirs_root = millimetre_project(tmp_path / "theirs")
+    ours_root = tmp_path / "ours"
+    shutil.copytree(theirs_root, ours_root)
+    run = subprocess.run([anipose, "triangulate"], cwd=theirs_root, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    done = acinoset("anipose", ours_root)
+    assert done.returncode == 0, done.stderr[-2000:]
+    theirs = read_anipose_csv(theirs_root / "s" / "pose-3d" / "t.csv")
+    ours = read_anipose_csv(ours_root / "s" / "pose-3d" / "t.csv")
+    assert ours.markers == theirs.markers
+    ((_, _, sim),) = simulated_trials({"s": ["t"]}, frames=30)
+    truth = sim.positions[:, [sim.markers.index(m) for m in ours.markers]] * 1000.0
+    errors = {}
+    for who, points in (("ours", ours.positions), ("Anipose", theirs.positions)):
+        seen = np.isfinite(points).all(-1)
+        assert seen.mean() > 0.9, who
+        p, t = points[seen], truth[seen]
+        scale = float(np.sum(p * t) / np.sum(p * p))
+        assert abs(scale - 1.0) < 0.01, (who, scale)
+        errors[who] = float(np.median(np.linalg.norm(p - t, axis=-1)))
+    # a run 6-7 m from the rig's origin, in millimetres (37 mm each, the simulated outliers and noise,
+    # when written): errors of centimetres, where a CSV in metres would be 6000 mm off; ours no worse
+    assert errors["ours"] < 100.0 and errors["ours"] <= 1.1 * errors["Anipose"], errors
