@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from group_files import write_dlc_multi
 
+from graph.errors import InputError
 from graph.io.calibration import write_anipose_toml
 from graph.io.keypoint_types import Tracks
-from graph.io.results import read_anipose_csv
+from graph.io.results import read_anipose_csv, read_individuals, read_result
 from graph.metrics import group_error
 from graph.simulate import ring_rig
 from graph.simulate_group import simulate_group
@@ -153,10 +154,23 @@ def test_solve_writes_each_individual_and_the_identities(pair):
                 "--out", out / "run.csv", "--report", out / "run.json", "--h5", out / "run.h5", cwd=folder)
     assert p.returncode == 0, p.stderr
     assert "Traceback" not in p.stderr
-    assert sorted(x.name for x in out.iterdir()) == ["run.cub.csv", "run.cub.h5", "run.dam.csv", "run.dam.h5",
-                                                      "run.json"]
+    assert sorted(x.name for x in out.iterdir()) == ["run.cub.csv", "run.dam.csv", "run.h5", "run.json"]
     assert "2 individuals (found: ../../cub, dam)" in p.stdout
     est = np.stack([read_anipose_csv(out / f"run.{n}.csv").positions for n in ("cub", "dam")])
+    # the H5 has an individuals axis: the names, then every array stacked along it
+    import h5py
+
+    assert read_individuals(out / "run.h5") == ["../../cub", "dam"]
+    with h5py.File(out / "run.h5", "r") as f:
+        assert f["positions"].shape == (2, 400, len(run.markers), 3)
+        assert f["reprojections"].shape[:2] == (2, 4)
+        np.testing.assert_allclose(f["positions"][()], est, rtol=0, atol=1e-9)  # the CSVs are in metres
+        assert json.loads(f.attrs["identity"])["individuals"] == ["../../cub", "dam"]
+    assert read_result(out / "run.h5", individual="dam").report.frames == 400
+    with pytest.raises(InputError, match=r"run\.h5: holds 2 individuals \(\.\./\.\./cub, dam\): name one"):
+        read_result(out / "run.h5")
+    with pytest.raises(InputError, match="holds no individual 'calf'"):
+        read_result(out / "run.h5", individual="calf")
     g = group_error(est, run.positions, run.markers)
     assert g.switches == 0 and max(e.mean_mm for e in g.errors) < 8
     report = json.loads((out / "run.json").read_text())
@@ -240,7 +254,7 @@ def test_openpose_folders_of_two_people(tmp_path):
 
 @pytest.fixture(scope="module")
 def solved_pair(pair):
-    """The pair solved once by tri with --h5: the folder holding run.<name>.csv and run.<name>.h5."""
+    """The pair solved once by tri with --h5: the folder holding run.<name>.csv and run.h5 (both)."""
     folder, _, files = pair
     out = folder / "solved"
     out.mkdir()
@@ -251,20 +265,21 @@ def solved_pair(pair):
 
 
 def test_each_individual_exports_to_nwb_as_movement_reads_a_group(pair, solved_pair):
-    """Each individual's H5 names it; its NWB is one subject (NWB holds one a file), identified by the
-    name, so movement's loader names the individual and merging the files gives the group."""
+    """Each individual of the H5 exports to its own NWB, one subject (NWB holds one a file) identified
+    by the name, so movement's loader names the individual and merging the files gives the group.
+    Without a name the export is refused in one line."""
     pytest.importorskip("ndx_pose")
     load_poses = pytest.importorskip("movement.io.load_poses")
     import xarray as xr
 
-    from graph.io.results import read_individual
-
     folder, run, files = pair
     out = solved_pair
-    assert read_individual(out / "run.dam.h5") == "dam" and read_individual(out / "run.cub.h5") == "../../cub"
+    e = run_cli("export", out / "run.h5", "--format", "nwb", "--out", out / "x.nwb", cwd=folder)
+    assert e.returncode != 0 and "holds 2 individuals" in e.stderr and e.stderr.count("\n") == 1, e.stderr
     sets = []
     for name in ("dam", "cub"):
-        e = run_cli("export", out / f"run.{name}.h5", "--format", "nwb", "--out", out / f"{name}.nwb", cwd=folder)
+        e = run_cli("export", out / "run.h5", "--individual", "dam" if name == "dam" else "../../cub",
+                    "--format", "nwb", "--out", out / f"{name}.nwb", cwd=folder)
         assert e.returncode == 0, e.stderr
         sets.append(load_poses.from_nwb_file(out / f"{name}.nwb"))
     group = xr.merge(sets, join="outer", compat="no_conflicts")
@@ -279,20 +294,20 @@ def test_each_individual_exports_to_nwb_as_movement_reads_a_group(pair, solved_p
 
 
 def test_plot_of_several_individuals(pair, solved_pair):
-    """`acinoset plot` of each individual's H5: each one's figures in a folder of its name, and one
-    offline playback of them all (its payload naming each one's markers)."""
+    """`acinoset plot` of the H5 of several individuals: each one's figures in a folder of its name,
+    and one offline playback of them all (its payload naming each one's markers)."""
     import re
 
     folder, _, files = pair
     out = solved_pair
-    p = run_cli("plot", out / "run.dam.h5", out / "run.cub.h5", "--out", out / "figs", "--snapshots", "1", cwd=folder)
+    p = run_cli("plot", out / "run.h5", "--out", out / "figs", "--snapshots", "1", cwd=folder)
     assert p.returncode == 0, p.stderr
     assert any((out / "figs" / "dam").glob("*.png")) and any((out / "figs" / "cub").glob("*.png"))
     page = (out / "figs" / "playback.html").read_text(encoding="utf-8")
     payload = json.loads(re.search(r'<script type="application/json" id="payload">(.*?)</script>', page, re.S)[1])
-    assert [i["name"] for i in payload["individuals"]] == ["dam", "../../cub"]
+    assert [i["name"] for i in payload["individuals"]] == ["../../cub", "dam"]
     assert [i["markers"] for i in payload["individuals"]] == [[0, 12], [12, 12]]
-    assert "dam, ../../cub" in page.split("<title>")[1].split("</title>")[0]
-    p = run_cli("plot", out / "run.dam.h5", out / "run.cub.h5", "--out", out / "x", "--frame", "1", "--camera", "1",
+    assert "../../cub, dam" in page.split("<title>")[1].split("</title>")[0]
+    p = run_cli("plot", out / "run.h5", "--out", out / "x", "--frame", "1", "--camera", "1",
                 "--video", out / "run.csv", cwd=folder)
     assert p.returncode == 2 and "give one RESULT.h5" in p.stderr and p.stderr.count("\n") == 1

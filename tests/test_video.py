@@ -302,7 +302,7 @@ def test_several_individuals_each_in_its_own_colour(tmp_path):
     from group_files import write_dlc_multi
 
     from graph.io.calibration import write_anipose_toml
-    from graph.io.results import read_result
+    from graph.io.results import read_results
     from graph.simulate import ring_rig
     from graph.simulate_group import simulate_group
     from graph.video.draw import marker_colors
@@ -328,24 +328,24 @@ def test_several_individuals_each_in_its_own_colour(tmp_path):
                 f.y[:], f.u[:], f.v[:] = 90, 128, 128
                 w.write(f)
         videos.append(p)
-    h5s = [tmp_path / "run.cub.h5", tmp_path / "run.dam.h5"]
-    done = subprocess.run([*cli, "video", *map(str, h5s), "--videos", *map(str, videos), "--out",
+    done = subprocess.run([*cli, "video", str(tmp_path / "run.h5"), "--videos", *map(str, videos), "--out",
                            str(tmp_path / "out")],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    tints = marker_colors(2)  # cub, dam: in the order given
+    group = read_results(tmp_path / "run.h5")  # the individuals axis: cub, dam
+    assert [name for name, _ in group] == ["cub", "dam"]
+    tints = marker_colors(2)  # in the file's order
     raw = subprocess.run([ffmpeg_exe(), "-v", "error", "-i", str(tmp_path / "out" / "c0_labeled.mp4"), "-f",
                           "rawvideo", "-pix_fmt", "bgr24", "-"], capture_output=True, check=True).stdout
     bgr = np.frombuffer(raw, np.uint8).reshape(-1, H, W, 3)
     assert len(bgr) == frames
     n = frames // 2
-    for k, h5 in enumerate(h5s):
-        res = read_result(h5)
+    for k, (name, res) in enumerate(group):
         uv = res.reprojections[0, n]  # (M, 2) camera 1's frame n
         i, j = res.markers.index("spine"), res.markers.index("hip")
         mid = 0.5 * (uv[i] + uv[j])
         x, y = int(round(mid[0])), int(round(mid[1]))
         patch = bgr[n, y - 1:y + 2, x - 1:x + 2].reshape(-1, 3).astype(int)
         close = np.abs(patch - np.array(tints[k])).max(axis=1) < 70
-        assert close.any(), (h5.name, patch.tolist(), tints[k])
+        assert close.any(), (name, patch.tolist(), tints[k])
     assert (tmp_path / "out" / "3d.mp4").stat().st_size > 0

@@ -206,7 +206,8 @@ def register(sub) -> None:
     p.add_argument("--units", choices=["m", "cm", "mm", "auto"], default="m",
                    help="the CSV's units (default m); auto: the calibration's own (--calibration-units), as "
                         "'anipose triangulate' writes a project calibrated in millimetres; the H5 is in metres")
-    p.add_argument("--h5", default=None, metavar="OUT.h5", help="also write everything as HDF5")
+    p.add_argument("--h5", default=None, metavar="OUT.h5",
+                   help="also write everything as HDF5 (several individuals: one file, an individuals axis)")
     p.add_argument("--report", default=None, metavar="REPORT.json", help="also write the solver report")
     p.add_argument("--reprojections", default=None, metavar="DIR",
                    help="also write the estimate reprojected into each camera as DeepLabCut CSVs")
@@ -461,6 +462,12 @@ def run_solve(args: argparse.Namespace) -> int:
         written = write_outputs(args, result, calibration, individual_path(Path(args.out), name), report=False,
                                 individual=name)
         print(f"{name}: " + _summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
+    if args.h5:
+        from graph.io.results import write_group_h5
+
+        write_group_h5(args.h5, list(zip(ids.names, solved.results)), calibration=calibration,
+                       identity=ids.to_dict())
+        print(f"{len(ids.names)} individuals (an individuals axis) -> {args.h5}")
     if args.report:
         Path(args.report).write_text(json.dumps(solved.report(), indent=2) + "\n", encoding="utf-8")
         print(f"report -> {args.report}")
@@ -521,17 +528,17 @@ def _with_progress(run):
 def write_outputs(args: argparse.Namespace, result, calibration, out: Path, report: bool = True,
                   individual: str | None = None, identity: dict | None = None) -> list:
     """The CSV at ``out`` and what ``--h5``, ``--report`` (when ``report``) and ``--reprojections`` ask
-    for; an ``individual``'s H5 and reprojections are named after it. The paths written."""
+    for; an ``individual``'s CSV and reprojections are named after it (the H5 of several is one file with
+    an individuals axis: :func:`graph.io.results.write_group_h5`). The paths written."""
     from graph.io import results
 
     per_unit = csv_metres_per_unit(args.units, calibration, result)
     unit = {1.0: "m", 0.01: "cm", 0.001: "mm"}[per_unit]
     written: list = [out if unit == "m" else f"{out} (in {unit})"]
     results.write_anipose_csv(out, result, metres_per_unit=per_unit)
-    if args.h5:
-        h5 = Path(args.h5) if individual is None else individual_path(Path(args.h5), individual)
-        results.write_h5(h5, result, calibration=calibration, individual=individual)
-        written.append(h5)
+    if args.h5 and individual is None:  # several individuals go in one file, after them all
+        results.write_h5(args.h5, result, calibration=calibration)
+        written.append(args.h5)
     if args.report and report:
         doc = result.report.to_dict()
         if identity is not None:

@@ -52,15 +52,17 @@ def available(format: str) -> bool:
 
 
 def export(source: str | Path | Result, format: str, out: str | Path, *,
-           calibration: str | Path | Calibration | None = None, **options) -> Path:
+           calibration: str | Path | Calibration | None = None, individual: str | None = None,
+           **options) -> Path:
     """Write the run ``source`` (a result H5 written by ``graph.io.results.write_h5``, or a :class:`Result`)
     to ``out`` in ``format`` (one of :data:`FORMATS`). ``calibration`` (a file or a
     :class:`Calibration`) overrides the one stored in the H5; the per-format ``options`` are the
-    keyword arguments of its ``write`` (:attr:`Format.options`). Returns ``out`` as a Path."""
+    keyword arguments of its ``write`` (:attr:`Format.options`); ``individual`` names the one to write
+    of a file of several (``graph.io.results.write_group_h5``). Returns ``out`` as a Path."""
     if format not in REGISTRY:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, not {format!r}")
     out = Path(out)
     if not out.parent.is_dir():
         raise InputError("the output folder does not exist", out)
-    REGISTRY[format].write(out, load_input(source, calibration), **options)
+    REGISTRY[format].write(out, load_input(source, calibration, individual), **options)
     return out

@@ -60,20 +60,21 @@ class Format:
         return {p.name: p.default for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
 
 
-def load_input(source: str | Path | Result, calibration: str | Path | Calibration | None = None) -> ExportInput:
-    """A result H5 (with the rig stored in it, if any) or a :class:`Result`, plus an explicit
-    calibration file or object, which wins over the stored one."""
+def load_input(source: str | Path | Result, calibration: str | Path | Calibration | None = None,
+               individual: str | None = None) -> ExportInput:
+    """A result H5 (with the rig stored in it, if any; of a file of several individuals, the one
+    named) or a :class:`Result`, plus an explicit calibration file or object, which wins over the
+    stored one."""
     from graph.io.calibration import in_metres, load_calibration
     from graph.io.results import read_calibration, read_individual, read_result
 
     stored = None
-    individual = None
     if isinstance(source, Result):
         result, name = source, ""
     else:
-        result, name = read_result(source), Path(source).name
+        result, name = read_result(source, individual=individual), Path(source).name
         stored = read_calibration(source)
-        individual = read_individual(source)
+        individual = individual or read_individual(source)
     if calibration is not None:
         cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
         stored, _ = in_metres(cal, result.options.calibration_units)

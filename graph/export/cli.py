@@ -38,6 +38,8 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="FILE")
     p.add_argument("--calibration", default=None, metavar="FILE",
                    help="the rig solved with, if the result file does not hold it (older files)")
+    p.add_argument("--individual", default=None, metavar="NAME",
+                   help="a result of several individuals (its individuals axis): the one to write")
     p.add_argument("--axes", default=None, metavar="opensim|x,z,-y",
                    help=f"{_and(_takers('axes'))}: output axes as signed world axes; 'opensim' turns a z-up "
                         "world y-up")
@@ -59,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--{option} applies to --format {_and(_takers(option))} only")
         options[option] = value
     try:
-        out = export(args.result, args.format, args.out, calibration=args.calibration, **options)
+        out = export(args.result, args.format, args.out, calibration=args.calibration, individual=args.individual,
+                     **options)
     except ValueError as e:
         if type(e) is not ValueError:
             raise

@@ -9,7 +9,8 @@
 * :func:`write_h5` / :func:`read_result`: everything in a :class:`graph.api.Result`, as plain
   HDF5 datasets (no pickles): arrays under their field names, names as UTF-8 string datasets,
   options and report as JSON attributes; optionally the calibration solved with, in metres
-  (:func:`read_calibration`), so exports can carry the rig.
+  (:func:`read_calibration`), so exports can carry the rig. :func:`write_group_h5`: several
+  individuals in one such file, every array on a leading individuals axis (:func:`read_results`).
 * :func:`write_reprojections_dlc`: the estimate drawn into each camera, one DeepLabCut CSV per
   camera (likelihood 1 where there is an estimate), to overlay on the videos with DLC's tools.
 """
@@ -165,31 +166,7 @@ def write_h5(path: str | Path, result: Result, calibration: Calibration | None =
     with h5py.File(path, "w") as f:
         if individual is not None:
             f.attrs["individual"] = individual
-        f.attrs["format"] = RESULT_FORMAT
-        f.attrs["format_version"] = RESULT_FORMAT_VERSION
-        f.attrs["version"] = __version__
-        f.attrs["method"] = result.method
-        f.attrs["skeleton"] = result.skeleton
-        f.attrs["fps"] = float(result.fps)
-        f.attrs["options"] = json.dumps(jsonable(result.options.to_dict()))
-        f.attrs["report"] = json.dumps(result.report.to_dict())
-        _strings(f, "markers", result.markers)
-        _strings(f, "camera_names", result.camera_names)
-        _strings(f, "param_names", result.param_names)
-        bones = np.array([[str(a), str(b)] for a, b in result.bones], dtype=object).reshape(-1, 2)
-        f.create_dataset("bones", data=bones, dtype=h5py.string_dtype("utf-8"))
-        for name in _ARRAYS + _OPTIONAL_ARRAYS:
-            value = getattr(result, name, None)
-            if value is None:
-                continue
-            a = np.asarray(value)
-            # gzip for the flags and counts only: measured on a 150-frame run, it took the float
-            # arrays (positions, residuals, detections ...) from 1.17 to 1.01 MB (shuffled) at 8x the
-            # write time (20 ms against 2.5 ms), and the flags from 18 to 2 kB for nothing
-            kw = {"compression": "gzip", "compression_opts": 4} if a.size > 4096 and a.dtype.kind in "biu" else {}
-            f.create_dataset(name, data=a.astype(np.uint8) if a.dtype == bool else a, **kw)
-            if a.dtype == bool:
-                f[name].attrs["dtype"] = "bool"
+        _write_results(f, [result])
         rep = result.report
         if rep.body_lengths:
             # the body the solve used, one row per length group (or bone): also in the report attribute
@@ -202,6 +179,63 @@ def write_h5(path: str | Path, result: Result, calibration: Calibration | None =
             f.create_dataset("time_offsets_std_frames", data=np.asarray(rep.time_offsets_std_frames, dtype=float))
         if calibration is not None:
             _write_calibration(f, in_metres(calibration, result.options.calibration_units)[0])
+
+
+def write_group_h5(path: str | Path, group: list[tuple[str, Result]], calibration: Calibration | None = None,
+                   identity: dict | None = None) -> None:
+    """Several individuals solved together (the same frames, markers and cameras) in one file with an
+    individuals axis: the dataset ``individuals`` names them, every array of :func:`write_h5` gains a
+    leading axis I (``positions`` (I, N, M, 3), ``reprojections`` (I, C, N, M, 2) ...; an optional
+    array only where every individual has it), the ``report`` attribute is the JSON list of their
+    reports (each with its body) and ``identity`` the identities' report. Read one with
+    ``read_result(path, individual=NAME)``, all with :func:`read_results`."""
+    import h5py
+
+    names = [name for name, _ in group]
+    if not names or len(set(names)) != len(names):
+        raise ValueError(f"a group needs distinct names, not {names}")
+    with h5py.File(path, "w") as f:
+        _strings(f, "individuals", names)
+        _write_results(f, [r for _, r in group])
+        if identity is not None:
+            f.attrs["identity"] = json.dumps(jsonable(identity))
+        if calibration is not None:
+            _write_calibration(f, in_metres(calibration, group[0][1].options.calibration_units)[0])
+
+
+def _write_results(f, results: list[Result]) -> None:
+    """The attributes, names and arrays of :func:`write_h5` for one result, or stacked on a leading
+    individuals axis for several (:func:`write_group_h5`): they share method, skeleton, fps,
+    options, markers, cameras and bones, the first one's written."""
+    import h5py
+
+    first, stacked = results[0], len(results) > 1 or "individuals" in f
+    f.attrs["format"] = RESULT_FORMAT
+    f.attrs["format_version"] = RESULT_FORMAT_VERSION
+    f.attrs["version"] = __version__
+    f.attrs["method"] = first.method
+    f.attrs["skeleton"] = first.skeleton
+    f.attrs["fps"] = float(first.fps)
+    f.attrs["options"] = json.dumps(jsonable(first.options.to_dict()))
+    reports = [r.report.to_dict() for r in results]
+    f.attrs["report"] = json.dumps(reports if stacked else reports[0])
+    _strings(f, "markers", first.markers)
+    _strings(f, "camera_names", first.camera_names)
+    _strings(f, "param_names", first.param_names)
+    bones = np.array([[str(a), str(b)] for a, b in first.bones], dtype=object).reshape(-1, 2)
+    f.create_dataset("bones", data=bones, dtype=h5py.string_dtype("utf-8"))
+    for name in _ARRAYS + _OPTIONAL_ARRAYS:
+        values = [getattr(r, name, None) for r in results]
+        if any(v is None for v in values):
+            continue
+        a = np.stack([np.asarray(v) for v in values]) if stacked else np.asarray(values[0])
+        # gzip for the flags and counts only: measured on a 150-frame run, it took the float
+        # arrays (positions, residuals, detections ...) from 1.17 to 1.01 MB (shuffled) at 8x the
+        # write time (20 ms against 2.5 ms), and the flags from 18 to 2 kB for nothing
+        kw = {"compression": "gzip", "compression_opts": 4} if a.size > 4096 and a.dtype.kind in "biu" else {}
+        f.create_dataset(name, data=a.astype(np.uint8) if a.dtype == bool else a, **kw)
+        if a.dtype == bool:
+            f[name].attrs["dtype"] = "bool"
 
 
 def _write_calibration(f, calibration: Calibration) -> None:
@@ -231,6 +265,40 @@ def read_individual(path: str | Path) -> str | None:
         return _attr(f, "individual")
 
 
+def read_individuals(path: str | Path) -> list[str]:
+    """The names along a group file's individuals axis (:func:`write_group_h5`); ``[]`` for a file
+    of one result."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return _read_strings(f, "individuals")
+
+
+def read_results(path: str | Path) -> list[tuple[str, Result]]:
+    """Every individual in a result file with its name: a group file's, or the one result of any
+    other (named after its ``individual`` attribute, else the file's stem)."""
+    _check_result_file(path)
+    names = read_individuals(path)
+    if names:
+        return [(name, read_result(path, individual=name)) for name in names]
+    return [(read_individual(path) or Path(path).stem, read_result(path))]
+
+
+def _check_result_file(path: str | Path) -> None:
+    import h5py
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError("no such file", path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise InputError("not an HDF5 file", path) from None
+    with f:
+        if _attr(f, "format") != RESULT_FORMAT:
+            raise InputError("not an acinoset result file (no format attribute 'acinoset.result')", path)
+
+
 def read_calibration(path: str | Path) -> Calibration | None:
     """The rig (metres) a result file was solved with, or None if the file does not hold it."""
     import h5py
@@ -246,25 +314,30 @@ def read_calibration(path: str | Path) -> Calibration | None:
         return Calibration(cameras=cams, source=_attr(g, "source") or "", metadata={"units": "m"})
 
 
-def read_result(path: str | Path) -> Result:
-    """Read a file written by :func:`write_h5` back into a :class:`Result`."""
+def read_result(path: str | Path, individual: str | None = None) -> Result:
+    """Read a file written by :func:`write_h5` back into a :class:`Result`; of a group file
+    (:func:`write_group_h5`), the ``individual`` named, which it must then be given."""
     import h5py
 
     path = Path(path)
-    if not path.exists():
-        raise InputError("no such file", path)
-    try:
-        f = h5py.File(path, "r")
-    except OSError:
-        raise InputError("not an HDF5 file", path) from None
-    with f:
-        if _attr(f, "format") != RESULT_FORMAT:
-            raise InputError("not an acinoset result file (no format attribute 'acinoset.result')", path)
+    _check_result_file(path)
+    with h5py.File(path, "r") as f:
+        names = _read_strings(f, "individuals")
+        at: Any = ()
+        if names:
+            if individual is None:
+                raise InputError(f"holds {len(names)} individuals ({', '.join(names)}): name one "
+                                 "(--individual NAME)", path)
+            if individual not in names:
+                raise InputError(f"holds no individual '{individual}' (it holds {', '.join(names)})", path)
+            at = names.index(individual)
+        elif individual is not None and _attr(f, "individual") not in (None, individual):
+            raise InputError(f"is the result of '{_attr(f, 'individual')}', not '{individual}'", path)
         try:
             arrays = {}
             for name in _ARRAYS + _OPTIONAL_ARRAYS:
                 if name in f:
-                    a = f[name][()]
+                    a = f[name][at]
                     arrays[name] = a.astype(bool) if _attr(f[name], "dtype") == "bool" else a
                 elif name in _ARRAYS:
                     raise InputError(f"result file lacks the dataset '{name}'", path)
@@ -278,7 +351,7 @@ def read_result(path: str | Path) -> Result:
                 "param_names": _read_strings(f, "param_names"),
                 "bones": bones,
                 "options": _options(json.loads(_attr(f, "options") or "")),
-                "report": _report(json.loads(_attr(f, "report") or "")),
+                "report": _report(_pick(json.loads(_attr(f, "report") or ""), at)),
             }
         except (KeyError, ValueError, TypeError) as e:
             if isinstance(e, InputError):
@@ -286,6 +359,11 @@ def read_result(path: str | Path) -> Result:
             raise InputError(f"damaged acinoset result file ({type(e).__name__}: {e})", path) from None
     known = {fld.name for fld in dataclasses.fields(Result)}
     return Result(**fields, **{k: v for k, v in arrays.items() if k in known})
+
+
+def _pick(value, at):
+    """A group file's attribute list at index ``at``; a single file's value as it is (``at`` is ())."""
+    return value if at == () else value[at]
 
 
 def _strings(f, name: str, values: list[str]) -> None:

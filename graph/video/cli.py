@@ -23,8 +23,8 @@ def register(sub) -> None:
                     "camera has no estimate are left as they are. The cameras' time offsets of the solve are "
                     "honoured when the grid matches their frames.")
     p.add_argument("result", type=Path, nargs="+", metavar="RESULT.h5",
-                   help="RESULT.h5 written by `acinoset solve --h5`; several individuals solved together: each "
-                        "one's (RUN.<name>.h5), drawn each in its own colour")
+                   help="RESULT.h5 written by `acinoset solve --h5`; several individuals solved together (its "
+                        "individuals axis, or one file each): drawn each in its own colour")
     p.add_argument("--videos", nargs="+", required=True, metavar="CAM.mp4",
                    help="one video per camera, in the result's camera order (the videos the keypoints came from)")
     p.add_argument("--out", type=Path, required=True, help="folder to write the videos into")
@@ -37,7 +37,7 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from graph.io.results import read_individual, read_result
+    from graph.io.results import read_results
     from graph.video import render_videos
 
     for path in args.result:
@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError("no such video file", v)
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise InputError("--out must be a folder, and this is a file", args.out)
-    results = [(read_individual(path) or Path(path).stem, read_result(path)) for path in args.result]
+    results = [named for path in args.result for named in read_results(path)]  # a group file: all in it
     bar = FrameProgress(sys.stderr) if sys.stderr.isatty() else None
     try:
         done = render_videos(results[0][1] if len(results) == 1 else results, args.videos, args.out,

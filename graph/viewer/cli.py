@@ -8,7 +8,7 @@ from pathlib import Path
 
 from graph.errors import InputError
 from graph.io.calibration import load_calibration
-from graph.io.results import read_result
+from graph.io.results import read_results, safe_name
 from graph.types import Result
 from graph.viewer.figures import write_figures
 from graph.viewer.playback import HTML_NAME, write_playback_html
@@ -22,8 +22,9 @@ def register(subparsers) -> None:
                     "camera, coordinates and pose parameters over time with uncertainty, flagged "
                     f"frames) and {HTML_NAME}, a self-contained 3D playback that opens offline.")
     p.add_argument("result", type=Path, nargs="+", metavar="RESULT.h5",
-                   help="RESULT.h5 written by `acinoset solve --h5`; several individuals solved together: each "
-                        "one's (RUN.<name>.h5): the figures of each in a folder of its name, one playback of all")
+                   help="RESULT.h5 written by `acinoset solve --h5`; several individuals solved together (its "
+                        "individuals axis, or one file each): the figures of each in a folder of its name, one "
+                        "playback of all")
     p.add_argument("--out", type=Path, required=True, help="folder to write the pictures into")
     p.add_argument("--calibration", type=Path, default=None,
                    help="calibration file, to draw the cameras when the result file holds no camera positions")
@@ -45,14 +46,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--snapshots must be at least 1")
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise InputError("--out must be a folder, and this is a file", args.out)
+
+    group = [named for path in args.result for named in read_results(path)]
     picking = args.frame is not None or args.camera is not None or args.video is not None
-    if picking and len(args.result) > 1:
-        raise InputError("the frame picker draws one result: give one RESULT.h5")
+    if picking and len(group) > 1:
+        raise InputError("the frame picker draws one result: give one RESULT.h5 of one individual")
     calibration = None
     if args.calibration is not None:
         calibration = load_calibration(args.calibration)
-    if len(args.result) == 1:
-        result = read_result(args.result[0])
+    if len(group) == 1:
+        result = group[0][1]
         if picking:
             print(_pick_frame(result, args))
             return 0
@@ -60,9 +63,6 @@ def run(args: argparse.Namespace) -> int:
         if not args.no_html:
             written.append(write_playback_html(result, Path(args.out) / HTML_NAME, calibration))
     else:
-        from graph.io.results import read_individual, safe_name
-
-        group = [(read_individual(path) or Path(path).stem, read_result(path)) for path in args.result]
         written = []
         for name, result in group:
             written += write_figures(result, Path(args.out) / safe_name(name, "individual"), calibration,

@@ -225,7 +225,8 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
 def solve_group_job(tracks: list, calibration, options, out_dir: Path, progress: "ThrottledProgress") -> dict:
     """Several individuals (:func:`graph.api.solve_group`): each one's result files in its folder
     (:func:`service.store.jobfiles.individual_folder`, in the order of the report's ``individuals``),
-    the job's page view of them all (``result.json``, :func:`graph.viewer.payload.group_payload`)
+    the job's page view of them all (``result.json``, :func:`graph.viewer.payload.group_payload`), the
+    H5 of them all on an individuals axis (``result.h5``, :func:`graph.io.results.write_group_h5`)
     and the job's report: the first individual's headline numbers, who is who (``identity``), each
     one's report (``individuals``) and every warning, each prefixed with its individual's name."""
     from graph.api import solve_group
@@ -240,10 +241,13 @@ def solve_group_job(tracks: list, calibration, options, out_dir: Path, progress:
     else:
         for k, result in enumerate(results):
             write_results(result, out_dir / jobfiles.individual_folder(k), calibration, individual=group.names[k])
+        from graph.io.results import write_group_h5
         from graph.viewer.payload import group_payload  # the job page's view of them all
 
+        named = list(zip(group.names, results))
         (out_dir / RESULT_FILES["json"][0]).write_text(
-            json.dumps(group_payload(list(zip(group.names, results))), separators=(",", ":"), allow_nan=False))
+            json.dumps(group_payload(named), separators=(",", ":"), allow_nan=False))
+        write_group_h5(out_dir / RESULT_FILES["h5"][0], named, calibration=calibration, identity=doc["identity"])
         report = {**doc["individuals"][group.names[0]], **doc}
         report["warnings"] = [f"{name}: {w}" for name, r in zip(group.names, results) for w in r.report.warnings]
     report["warnings"] = [*group.identities.notes, *report.get("warnings", [])]

@@ -78,7 +78,8 @@ INDIVIDUALS_DIR = "individuals"  # result: one folder per individual of a job wi
 _INDIVIDUAL_RESULT = re.compile(rf"^{INDIVIDUALS_DIR}/[0-9]{{2}}/({'|'.join(map(re.escape, RESULT_NAMES))})$")
 
 
-GROUP_FORMATS = ("json", "report")  # a job of several individuals' own files: them all drawn, who is who
+# a job of several individuals' own files: them all drawn, who is who, them all on an individuals axis
+GROUP_FORMATS = ("json", "report", "h5")
 
 
 def individual_names(summary: dict | None) -> list[str] | None:

@@ -107,7 +107,7 @@ def test_an_individuals_nwb_is_its_own_subject(client, done, tmp_path):
 
 def test_the_jobs_view_holds_them_all(client, done):
     """The job's own result.json (what its page draws at first): every individual side by side."""
-    assert set(done["links"]["result"]) == {"json", "report"}
+    assert set(done["links"]["result"]) == {"json", "report", "h5"}
     r = client.get(done["links"]["result"]["json"])
     assert r.status_code == 200, r.text
     payload = r.json()
@@ -116,6 +116,20 @@ def test_the_jobs_view_holds_them_all(client, done):
     assert [i["markers"] for i in payload["individuals"]] == [[0, 12], [12, 12]]
     assert len(payload["markers"]) == 24 and payload["markers"][0].startswith(f"{names[0]} ")
     assert len(payload["positions"]) == 300 and len(payload["positions"][0]) == 24
+
+
+def test_the_jobs_h5_has_an_individuals_axis(client, done, tmp_path):
+    """The job's own result.h5: every individual on one axis, each equal to its own H5."""
+    from graph.io.results import read_individuals, read_result
+
+    r = client.get(done["links"]["result"]["h5"])
+    assert r.status_code == 200, r.text
+    path = tmp_path / "all.h5"
+    path.write_bytes(r.content)
+    assert read_individuals(path) == done["result"]["identity"]["individuals"]
+    own = tmp_path / "dam.h5"
+    own.write_bytes(client.get(done["links"]["individuals"]["dam"]["h5"]).content)
+    np.testing.assert_array_equal(read_result(path, individual="dam").positions, read_result(own).positions)
 
 
 def test_a_download_that_names_no_one_or_no_one_known(client, done):
