@@ -212,9 +212,9 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
     dropped: list[list[dict]] = [[] for _ in range(n)]
     total_it, total_s = 0, 0.0
     for round_ in range(MAX_ROUNDS):
-        left = np.bincount(view_cam[keep], minlength=n)
-        if (left == 0).any():
-            i = int(np.flatnonzero(left == 0)[0])
+        views_left = np.bincount(view_cam[keep], minlength=n)
+        if (views_left == 0).any():
+            i = int(np.flatnonzero(views_left == 0)[0])
             raise InputError(f"{names[i]}: every board view of this camera was dropped as an outlier; its pose "
                              "is not determined")
         cur = obs.keep_views(keep)
