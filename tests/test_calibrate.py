@@ -494,7 +494,24 @@ def test_refine_improves_a_perturbed_rig_and_leaves_a_good_one(rig, tmp_path):
     assert p.returncode == 0, p.stderr
     rep = json.loads((tmp_path / "r.json").read_text())
     assert rep["accepted"] and rep["leave_one_out_px"]["new_mean"] < rep["leave_one_out_px"]["old_mean"]
+    # judged on the frames the adjustment did not use, the ones it did reported beside them
+    assert rep["leave_one_out_px"]["frames"] == "held out" and rep["leave_one_out_px"]["held_out_frames"] == 100
+    fitted = rep["leave_one_out_adjusted_on_px"]
+    assert len(fitted["old"]) == 6 and fitted["new_mean"] < fitted["old_mean"]
+    assert any("adjusted on all 200 frames" in n for n in rep["notes"])
     assert len(load_calibration(tmp_path / "new.toml")) == 6
+
+
+def test_refine_splits_the_run_into_interleaved_blocks():
+    """Ten blocks of consecutive frames, the first, third, ... adjusted on and the others held out;
+    a run too short to split is adjusted on and scored on every frame."""
+    from graph.calibrate.refine import MIN_SPLIT_FRAMES, split_blocks
+
+    fit, held = split_blocks(250)
+    assert fit.sum() == held.sum() == 125 and not (fit & held).any()
+    assert fit[:25].all() and held[25:50].all() and fit[50:75].all() and held[225:].all()
+    fit, held = split_blocks(MIN_SPLIT_FRAMES - 1)
+    assert fit.all() and held.all()
 
 
 @pytest.mark.slow  # over 12 s here
@@ -516,6 +533,7 @@ def test_refine_on_a_real_recording_in_millimetres(tmp_path):
     assert p.returncode == 0 and "Traceback" not in p.stderr, p.stderr
     rep = json.loads((tmp_path / "r.json").read_text())
     assert any("millimetres" in n for n in rep["notes"])
+    assert rep["leave_one_out_px"]["held_out_frames"] == 20  # 40 frames: 20 adjusted on, 20 scored
     moved = [c["position_change_mm"] for c in rep["cameras"]]
     assert moved[0] < 1e-9 and all(m < 100 for m in moved), moved  # the cameras are about 113 mm from the centre
     assert len(load_calibration(tmp_path / "new.toml")) == 3

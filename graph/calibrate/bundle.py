@@ -381,10 +381,12 @@ def _damped(H: np.ndarray, lam: float, floor_of: np.ndarray) -> np.ndarray:
     return H + lam * np.maximum(d, floor_of)[..., None] * np.eye(H.shape[-1])
 
 
-def _step(eq: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray] | None:
+def _step(eq: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray, float] | None:
     """The damped step ``(d_c (D,), d_b (B, nb))`` by the Schur complement: each board's block
     eliminated, ``(A - sum_j W_j H_j^-1 W_j^T) d_c = -g_c + sum_j W_j H_j^-1 g_j``, then
-    ``d_j = -H_j^-1 (g_j + W_j^T d_c)``; None where the damped system is not positive definite.
+    ``d_j = -H_j^-1 (g_j + W_j^T d_c)``, and the reduction of the cost the linear model predicts,
+    ``-g.d - d^T H d / 2 = (lambda d^T D d - g.d) / 2`` (D the damping's diagonal); None where the
+    damped system is not positive definite.
     Each key's damping has a floor of 1e-9 of its largest diagonal entry (a variable its
     down-weighted data barely see); a variable no data see stays where it is."""
     db = np.diagonal(eq.H_bb, axis1=1, axis2=2)
@@ -399,12 +401,16 @@ def _step(eq: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray] | No
     Hinv = np.linalg.inv(Hb)
     D = len(eq.g_c)
     dc = np.zeros(D)
+    damp = lam * np.maximum(db, floor_b)
+    damp[~seen_b] = 0.0
+    damp_c = np.zeros(D)
     if D:
         dcd = np.diagonal(eq.H_cc)
         floor_c = np.zeros(D)
         for a, z in [*eq.cam_slots.values(), *eq.lens_slots.values()]:
             floor_c[a:z] = 1e-9 * max(float(dcd[a:z].max()), 1e-12)
         A = _damped(eq.H_cc, lam, floor_c)
+        damp_c = lam * np.maximum(dcd, floor_c) * (dcd > 0)
         WH = np.matmul(eq.W, Hinv)  # (B, D, nb)
         WH2 = WH.transpose(1, 0, 2).reshape(D, -1)
         S = A - WH2 @ eq.W.transpose(1, 0, 2).reshape(D, -1).T
@@ -423,7 +429,9 @@ def _step(eq: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray] | No
     dbx[~seen_b] = 0.0
     if not (np.all(np.isfinite(dc)) and np.all(np.isfinite(dbx))):
         return None
-    return dc, dbx
+    gd = float(eq.g_c @ dc + np.sum(eq.g_b * dbx))
+    predicted = 0.5 * (float(dc @ (damp_c * dc)) + float(np.sum(damp * dbx * dbx)) - gd)
+    return dc, dbx, predicted
 
 
 def _apply_step(rig: Rig, eq: NormalEquations, dc: np.ndarray, dbx: np.ndarray, settings: Settings) -> Rig:
@@ -443,7 +451,7 @@ def solve(rig: Rig, obs: Observations, settings: Settings) -> Solution:
     Schur complement of the boards' (points') blocks in numpy (:func:`_step`); the final linear
     system kept as GTSAM factors for the marginals (:func:`covariances`)."""
     start = time.perf_counter()
-    lam = 1e-4
+    lam, grow = 1e-4, 2.0
     cost = total_cost(rig, obs, settings)
     it = 0
     for it in range(1, settings.max_iterations + 1):
@@ -454,17 +462,20 @@ def solve(rig: Rig, obs: Observations, settings: Settings) -> Solution:
             if step is None:  # not positive definite at this damping: damp more
                 lam *= 10.0
                 continue
-            trial = _apply_step(rig, eq, *step, settings)
+            dc, dbx, predicted = step
+            trial = _apply_step(rig, eq, dc, dbx, settings)
             new_cost = total_cost(trial, obs, settings)
             if new_cost < cost:
                 improved = True
                 break
-            lam *= 10.0
+            lam, grow = lam * grow, grow * 2.0
         if not improved:
             break
+        # Nielsen's update: damp less the better the linear model predicted the decrease
+        gain = (cost - new_cost) / max(predicted, 1e-300)
+        lam, grow = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-12), 2.0
         rel = (cost - new_cost) / max(cost, 1e-300)
         rig, cost = trial, new_cost
-        lam = max(lam / 10.0, 1e-12)
         if rel < settings.tolerance:
             break
     factors, _, e, w = linearize(rig, obs, settings)
