@@ -208,10 +208,13 @@ def frame_normal(q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
     return cost + _bone_rows(pos, dpos, bones, bone_len, bone_sigma, H, g)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _project_gradient(k, J, dep, g):
     """``g[dep] += J[:, dep]^T k`` for a marker's 3D gradient ``k`` (3,) and Jacobian ``J`` (3, P)
-    over its parameters ``dep`` (padded with -1)."""
+    over its parameters ``dep`` (padded with -1). Called, not inlined, like
+    :func:`_project_information`: inlined at their 15 call sites in :func:`window_normals`'s
+    parallel loop they took its compilation to 31 s; called, the first run's kernels compile in
+    73-75 s instead of 87-95 s (the warm-up, this 2-core machine), and solves take as long."""
     for d in range(dep.shape[0]):
         p = dep[d]
         if p < 0:
@@ -219,7 +222,7 @@ def _project_gradient(k, J, dep, g):
         g[p] += k[0] * J[0, p] + k[1] * J[1, p] + k[2] * J[2, p]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _project_information(K, Ja, Jb, dep_a, dep_b, same, H, t):
     """``H[dep_a, dep_b] += Ja[:, dep_a]^T K Jb[:, dep_b]`` for a marker's 3D information ``K``
     (3, 3) and Jacobians ``Ja``, ``Jb`` (3, P) over the parameters ``dep_a``, ``dep_b`` (padded with
