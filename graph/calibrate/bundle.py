@@ -243,8 +243,9 @@ def total_cost(rig: Rig, obs: Observations, settings: Settings) -> float:
 
 
 def linearize(rig: Rig, obs: Observations, settings: Settings):
-    """The whitened linear system at ``rig``: a list of GTSAM JacobianFactors (one per view, plus the
-    intrinsics' priors), the diagonal of ``J^T W J`` per key, the residuals and the weights."""
+    """The whitened linear system at ``rig`` as GTSAM sees it, for its marginals (:func:`covariances`):
+    a list of JacobianFactors (one per view, plus the fixed distance and the intrinsics' priors),
+    the residuals and the weights. The steps of :func:`solve` use :func:`normal_equations` instead."""
     e, Jc, Jb, Jk = residuals(rig, obs)
     w, _ = _robust(e, settings.huber_px)
     order, bounds = obs.grouping()
@@ -254,24 +255,9 @@ def linearize(rig: Rig, obs: Observations, settings: Settings):
     Jc = (Jc[order] * sw[..., None]).reshape(-1, 6)
     Jb = (Jb[order][:, :, 6 - nb:] * sw[..., None]).reshape(-1, nb)
     Jk = (Jk[order] * sw[..., None]).reshape(-1, MAX_INTRINSICS)
-    factors, diag = [], {}
+    factors = []
     cam_free = np.array([i not in settings.fixed_cams for i in range(len(rig.models))])
     k_free = np.array([i in settings.free_intrinsics for i in range(len(rig.models))])
-    nonempty = bounds[1:] > bounds[:-1]
-    starts = 2 * bounds[:-1][nonempty]
-
-    def per_key(J2, key_of_view, n_keys):  # sums of squares of each view's rows, then of each key's views
-        sums = np.add.reduceat(J2, starts, axis=0)
-        out = np.zeros((n_keys, J2.shape[1]))
-        np.add.at(out, key_of_view[nonempty], sums)
-        return out
-
-    sq_b = per_key(Jb * Jb, obs.board, len(rig.R_board))
-    sq_c = per_key(Jc * Jc, obs.cam, len(rig.models))
-    sq_k = per_key(Jk * Jk, obs.cam, len(rig.models))
-    diag.update({board_key(j): sq_b[j] for j in np.unique(obs.board)})
-    diag.update({cam_key(int(i)): sq_c[i] for i in np.flatnonzero(cam_free) if i in set(obs.cam.tolist())})
-    diag.update({intrinsics_key(int(i)): sq_k[i, :N_INTRINSICS[rig.models[i]]] for i in np.flatnonzero(k_free)})
     unit: dict[int, gtsam.noiseModel.Unit] = {}
     bkeys = [board_key(int(j)) for j in obs.board]
     ckeys = [cam_key(int(i)) for i in range(len(rig.models))]
@@ -297,22 +283,20 @@ def linearize(rig: Rig, obs: Observations, settings: Settings):
         r, J = _distance_term(rig, settings.fixed_distance)
         key = cam_key(settings.fixed_distance[1])
         factors.append(gtsam.JacobianFactor(key, J[None, :], np.array([-r]), gtsam.noiseModel.Unit.Create(1)))
-        diag[key] = diag.get(key, 0.0) + J * J
     for i, prior in settings.free_intrinsics.items():
         if prior is not None:
             theta0, L = prior
             key = intrinsics_key(i)
             factors.append(gtsam.JacobianFactor(key, L, L @ (theta0 - rig.intrinsics[i]),
                                                 gtsam.noiseModel.Unit.Create(len(theta0))))
-            diag[key] = diag.get(key, 0.0) + (L * L).sum(axis=0)
-    return factors, diag, e, w
+    return factors, e, w
 
 
 @dataclass
 class NormalEquations:
     """The Gauss-Newton system of one linearisation, split for the Schur complement: camera-side
     unknowns (each free camera's pose, then each refined camera's intrinsics: ``D`` in all, at
-    ``offsets``) against one block of ``nb`` per board (or point). ``H_cc`` (D, D), ``g_c`` (D,),
+    ``cam_slots`` and ``lens_slots``) against one block of ``nb`` per board (or point). ``H_cc`` (D, D), ``g_c`` (D,),
     ``W`` (B, D, nb), ``H_bb`` (B, nb, nb), ``g_b`` (B, nb): ``J^T W J`` and ``J^T W e`` of the
     whitened, robustly weighted residuals, the priors and the fixed distance included."""
 
@@ -395,7 +379,7 @@ def _step(eq: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray, floa
     Hb = _damped(eq.H_bb, lam, floor_b)
     Hb[~seen_b] = np.eye(Hb.shape[-1])
     try:
-        Lb = np.linalg.cholesky(Hb)
+        np.linalg.cholesky(Hb)  # positive definite, or damp more
     except np.linalg.LinAlgError:
         return None
     Hinv = np.linalg.inv(Hb)
@@ -410,12 +394,12 @@ def _step(eq: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray, floa
         for a, z in [*eq.cam_slots.values(), *eq.lens_slots.values()]:
             floor_c[a:z] = 1e-9 * max(float(dcd[a:z].max()), 1e-12)
         A = _damped(eq.H_cc, lam, floor_c)
-        damp_c = lam * np.maximum(dcd, floor_c) * (dcd > 0)
+        seen_c = dcd > 0
+        damp_c = lam * np.maximum(dcd, floor_c) * seen_c
         WH = np.matmul(eq.W, Hinv)  # (B, D, nb)
         WH2 = WH.transpose(1, 0, 2).reshape(D, -1)
         S = A - WH2 @ eq.W.transpose(1, 0, 2).reshape(D, -1).T
         rhs = -eq.g_c + WH2 @ eq.g_b.reshape(-1)
-        seen_c = dcd > 0
         S[~seen_c, :], S[:, ~seen_c] = 0.0, 0.0
         S[~seen_c, ~seen_c] = 1.0
         rhs[~seen_c] = 0.0
@@ -424,7 +408,6 @@ def _step(eq: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray, floa
         except np.linalg.LinAlgError:
             return None
         dc = np.linalg.solve(Lc.T, np.linalg.solve(Lc, rhs))
-    del Lb
     dbx = -np.matmul(Hinv, (eq.g_b + np.matmul(eq.W.transpose(0, 2, 1), dc))[:, :, None])[:, :, 0]
     dbx[~seen_b] = 0.0
     if not (np.all(np.isfinite(dc)) and np.all(np.isfinite(dbx))):
@@ -478,7 +461,7 @@ def solve(rig: Rig, obs: Observations, settings: Settings) -> Solution:
         rig, cost = trial, new_cost
         if rel < settings.tolerance:
             break
-    factors, _, e, w = linearize(rig, obs, settings)
+    factors, e, w = linearize(rig, obs, settings)
     g = gtsam.GaussianFactorGraph()
     for f in factors:
         g.push_back(f)
