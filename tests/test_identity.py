@@ -311,3 +311,20 @@ def test_plot_of_several_individuals(pair, solved_pair):
     p = run_cli("plot", out / "run.h5", "--out", out / "x", "--frame", "1", "--camera", "1",
                 "--video", out / "run.csv", cwd=folder)
     assert p.returncode == 2 and "give one RESULT.h5" in p.stderr and p.stderr.count("\n") == 1
+
+
+def test_a_file_naming_individuals_its_arrays_do_not_hold_is_refused(solved_pair, tmp_path):
+    """A result file whose ``individuals`` dataset names more individuals than its arrays hold (a
+    one-animal file with the dataset added) is refused in one line, not read frame by frame as if
+    each frame were an individual."""
+    import h5py
+
+    from graph.io.results import read_results, write_h5
+
+    one = read_result(solved_pair / "run.h5", individual="dam")
+    path = tmp_path / "forged.h5"
+    write_h5(path, one)
+    with h5py.File(path, "a") as f:
+        f.create_dataset("individuals", data=np.array(["dam", "cub"], dtype=object), dtype=h5py.string_dtype("utf-8"))
+    with pytest.raises(InputError, match=r"forged\.h5: damaged acinoset result file \(names 2 individuals"):
+        read_results(path)

@@ -331,6 +331,9 @@ def read_result(path: str | Path, individual: str | None = None) -> Result:
             if individual not in names:
                 raise InputError(f"holds no individual '{individual}' (it holds {', '.join(names)})", path)
             at = names.index(individual)
+            if "positions" in f and (f["positions"].ndim != 4 or f["positions"].shape[0] != len(names)):
+                raise InputError(f"damaged acinoset result file (names {len(names)} individuals, its positions "
+                                 f"have shape {f['positions'].shape})", path)
         elif individual is not None and _attr(f, "individual") not in (None, individual):
             raise InputError(f"is the result of '{_attr(f, 'individual')}', not '{individual}'", path)
         try:
@@ -353,7 +356,7 @@ def read_result(path: str | Path, individual: str | None = None) -> Result:
                 "options": _options(json.loads(_attr(f, "options") or "")),
                 "report": _report(_pick(json.loads(_attr(f, "report") or ""), at)),
             }
-        except (KeyError, ValueError, TypeError) as e:
+        except (KeyError, ValueError, TypeError, IndexError) as e:
             if isinstance(e, InputError):
                 raise
             raise InputError(f"damaged acinoset result file ({type(e).__name__}: {e})", path) from None
