@@ -18,10 +18,10 @@ from graph.camera import Calibration
 from graph.io.keypoint_types import Tracks
 from graph.io.keypoints import Keypoints
 from graph.solve import disagreement, problem
-from graph.solve.joint import solve_fte_joint
 from graph.solve.online import solve_ekf
 from graph.solve.problem import Problem
 from graph.solve.tri import solve_tri
+from graph.solve.windows import solve_fte_windowed
 from graph.types import METHODS, Method, Progress, ProgressCallback, Result, SolveOptions, SolveReport
 
 if TYPE_CHECKING:
@@ -35,8 +35,9 @@ class Solver(Protocol):
     def __call__(self, prob: Problem, progress: ProgressCallback | None = None) -> Result: ...
 
 
-# fte: graph.solve.fte.solve_fte, with the body and the clocks as unknowns where the options ask (graph.solve.joint)
-SOLVERS: dict[str, Solver] = {"tri": solve_tri, "ekf": solve_ekf, "fte": solve_fte_joint}
+# fte: graph.solve.fte.solve_fte, with the body and the clocks as unknowns where the options ask (graph.solve.joint),
+# a long run in windows (graph.solve.windows)
+SOLVERS: dict[str, Solver] = {"tri": solve_tri, "ekf": solve_ekf, "fte": solve_fte_windowed}
 assert tuple(SOLVERS) == METHODS, "graph.types.Method and SOLVERS must name the same methods"
 
 

@@ -57,6 +57,8 @@ class ProgressBar(ProgressLine):
             text += f" it {p.iteration}"
         if p.cost == p.cost:  # not NaN
             text += f" cost {p.cost:.3g}"
+        if p.detail:
+            text += f", {p.detail}"
         self.show(p.fraction, text)
 
 

@@ -38,6 +38,7 @@ MAX_ITERATIONS = 10000
 MAX_MOTION_SCALE = 1e6
 MAX_LAG_SECONDS = 60.0
 MAX_INDIVIDUALS = 64  # individuals solved from one recording (graph.io.keypoint_types.MAX_SLOTS)
+MIN_WINDOW_FRAMES = 100  # a window's core: the margins are 200 frames
 MAX_MIN_VIEWS = 100
 
 
@@ -95,6 +96,9 @@ class SolveOptions:
     # it (``ncams`` 0 or 1, a larger sd); positions seen by fewer than ``min_views`` cameras are left NaN
     # (2: only what two cameras triangulate). tri, without a motion model, needs two in any case
     min_views: int = 0
+    # fte: frames kept from each window of a long run, solved in windows of bounded memory
+    # (graph.solve.windows); 0: the whole run at once; None: windows of 4000 frames above 8000 frames
+    window_frames: int | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -147,6 +151,10 @@ class SolveOptions:
             raise ValueError("time_offsets must be finite numbers of frames, one per camera")
         if not (isinstance(self.min_views, int) and 0 <= self.min_views <= MAX_MIN_VIEWS):
             raise ValueError(f"min_views must be a whole number from 0 to {MAX_MIN_VIEWS}, not {self.min_views!r}")
+        if self.window_frames is not None and not (isinstance(self.window_frames, int) and not isinstance(
+                self.window_frames, bool) and (self.window_frames == 0 or MIN_WINDOW_FRAMES <= self.window_frames)):
+            raise ValueError(f"window_frames must be 0 (the whole run) or a whole number of frames of at least "
+                             f"{MIN_WINDOW_FRAMES}, not {self.window_frames!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -160,6 +168,7 @@ class Progress:
     fraction: float
     iteration: int = 0
     cost: float = float("nan")
+    detail: str = ""  # more for a person: which window of a long run, the time left
 
 
 ProgressCallback = Callable[[Progress], None]
@@ -201,6 +210,9 @@ class SolveReport:
     time_offsets_frames: list[float] | None = None
     time_offsets_std_frames: list[float] | None = None
     offsets_not_identified: list[str] = field(default_factory=list)  # cameras the motion did not time
+    # a long run solved in windows (graph.solve.windows): their count, core and margin frames, the
+    # stretch the shared unknowns were settled on and the values held; None: solved whole
+    windows: dict | None = None
     warnings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:

@@ -258,6 +258,9 @@ def add_solve_options(p) -> None:
                    help="leave a marker's position NaN in frames fewer than K cameras see confidently (default "
                         f"{defaults.min_views}: fte and ekf answer every frame, from the motion model where fewer "
                         "than two cameras see it, flagged by ncams and a larger sd; 2: only triangulated positions)")
+    p.add_argument("--window-frames", type=int, default=None, metavar="N",
+                   help="fte: solve a long run in windows keeping N frames each, in memory that does not grow with "
+                        "the run (default: windows of 4000 frames for runs over 8000; 0: the whole run at once)")
     p.add_argument("--measurement-std", default=str(defaults.measurement_std_px), metavar="PX|auto",
                    help=f"detection noise in pixels per coordinate (default {defaults.measurement_std_px:g}, the "
                         "paper's), or 'auto' to measure it from the data; the 3D uncertainties scale with it")
@@ -411,7 +414,7 @@ def solve_options(args: argparse.Namespace, fps: float | None = None):
                                motion_order=order,
                                likelihood_threshold=args.likelihood_threshold, individual=args.individual,
                                individuals=args.individuals,
-                               min_views=args.min_views,
+                               min_views=args.min_views, window_frames=args.window_frames,
                                calibration_units=args.calibration_units, bone_lengths=bones,
                                uncertainty=args.uncertainty)
     except ValueError as e:

@@ -39,6 +39,9 @@ class Problem:
     # (C, M) each camera's and marker's noise relative to sigma_px, from an ensemble's spread
     # (graph.solve.ensemble.relative_noise); None: all alike
     noise_scale: np.ndarray | None = None
+    # the frames [a, b) of a longer run this problem is a window of (graph.solve.windows): the checks
+    # of the whole run's inputs and answer are made on the whole, not on each window
+    window: tuple[int, int] | None = None
 
     def sigma_cm(self, sigma_px: float | None = None) -> np.ndarray:
         """The detection noise of each camera and marker (C, M), px: ``sigma_px`` (default the

@@ -36,17 +36,18 @@ def build_result(prob: Problem, method: str, *, positions, std, reprojections, s
         score = np.where(ncams > 0, (prob.likelihood * valid).sum(axis=1) / np.maximum(ncams, 1), 0.0)
     noise = measured_scatter(method, rel_px, ncams)
     notes = list(prob.warnings)
-    misfit = inputs_misfit(out, valid.transpose(1, 0, 2), prob.calibration.names)
-    # when the inputs do not fit, the scatter is the misfit's, and more noise would only hide it
-    mismatch = None
-    if not misfit:
-        held = held_out_check(prob, method, sigma_px, noise)
-        mismatch = noise_mismatch(method, prob.options.measurement_std_px, sigma_px, noise, held)
-    motion = implausible_motion(positions, prob.options.fps)
-    for note in (misfit, mismatch, motion):
-        if note:
-            notes.append(note)
-            warnings.warn(note, stacklevel=3)
+    if prob.window is None:  # a window's inputs and answer are checked with the whole run's
+        misfit = inputs_misfit(out, valid.transpose(1, 0, 2), prob.calibration.names)
+        # when the inputs do not fit, the scatter is the misfit's, and more noise would only hide it
+        mismatch = None
+        if not misfit:
+            held = held_out_check(prob, method, sigma_px, noise)
+            mismatch = noise_mismatch(method, prob.options.measurement_std_px, sigma_px, noise, held)
+        motion = implausible_motion(positions, prob.options.fps)
+        for note in (misfit, mismatch, motion):
+            if note:
+                notes.append(note)
+                warnings.warn(note, stacklevel=3)
     extra = dict(report or {})
     if prob.noise_scale is not None:
         extra["relative_noise"] = {name: float(np.median(prob.noise_scale[c]))
