@@ -39,6 +39,8 @@ MAX_MOTION_SCALE = 1e6
 MAX_LAG_SECONDS = 60.0
 MAX_INDIVIDUALS = 64  # individuals solved from one recording (graph.io.keypoint_types.MAX_SLOTS)
 MIN_WINDOW_FRAMES = 100  # a window's core: the margins are 200 frames
+WINDOW_FRAMES = 2000  # fte's windows keep this many frames each (window_frames None) ...
+WINDOWED_ABOVE = 4000  # ... in runs longer than this (graph.solve.windows; bench/RESULTS.md, section 21)
 MAX_MIN_VIEWS = 100
 
 
@@ -97,7 +99,7 @@ class SolveOptions:
     # (2: only what two cameras triangulate). tri, without a motion model, needs two in any case
     min_views: int = 0
     # fte: frames kept from each window of a long run, solved in windows of bounded memory
-    # (graph.solve.windows); 0: the whole run at once; None: windows of 4000 frames above 8000 frames
+    # (graph.solve.windows); 0: the whole run at once; None: WINDOW_FRAMES a window above WINDOWED_ABOVE
     window_frames: int | None = None
 
     def __post_init__(self) -> None:

@@ -243,7 +243,7 @@ def add_solve_options(p) -> None:
     """The options of a solve (``--method`` .. ``--time-offsets``), for ``solve`` and the commands
     that solve as it does; :func:`solve_options` reads them back."""
     from graph.camera import CALIBRATION_UNITS
-    from graph.types import METHODS, SolveOptions
+    from graph.types import METHODS, WINDOW_FRAMES, WINDOWED_ABOVE, SolveOptions
 
     defaults = SolveOptions()
     p.add_argument("--method", choices=METHODS, default=defaults.method)
@@ -260,7 +260,8 @@ def add_solve_options(p) -> None:
                         "than two cameras see it, flagged by ncams and a larger sd; 2: only triangulated positions)")
     p.add_argument("--window-frames", type=int, default=None, metavar="N",
                    help="fte: solve a long run in windows keeping N frames each, in memory that does not grow with "
-                        "the run (default: windows of 4000 frames for runs over 8000; 0: the whole run at once)")
+                        f"the run (default: windows of {WINDOW_FRAMES} frames for runs over {WINDOWED_ABOVE}; 0: the "
+                        "whole run at once)")
     p.add_argument("--measurement-std", default=str(defaults.measurement_std_px), metavar="PX|auto",
                    help=f"detection noise in pixels per coordinate (default {defaults.measurement_std_px:g}, the "
                         "paper's), or 'auto' to measure it from the data; the 3D uncertainties scale with it")

@@ -1,5 +1,5 @@
 """A long run solved in overlapping windows, in memory that does not grow with the run
-(``--method fte`` above :data:`AUTO_FRAMES` frames, or ``window_frames`` given).
+(``--method fte`` above :data:`graph.types.WINDOWED_ABOVE` frames, or ``window_frames`` given).
 
 The whole-trajectory cost of :mod:`graph.solve.fte` couples frames only through the motion
 prior's k-th differences (a band of k + 1 frames) and through what every frame shares: the
@@ -47,12 +47,10 @@ import numpy as np
 from graph.solve.joint import solve_fte_joint
 from graph.solve.problem import Problem
 from graph.solve.result import build_result
-from graph.types import Progress, ProgressCallback, Result, SolveOptions
+from graph.types import WINDOW_FRAMES, WINDOWED_ABOVE, Progress, ProgressCallback, Result, SolveOptions
 
-CORE_FRAMES = 4000  # frames kept from each window (``window_frames`` None)
 MARGIN_FRAMES = 200  # frames solved on each side of a core and thrown away
 SETTLE_FRAMES = 2000  # the stretch the shared unknowns are settled on
-AUTO_FRAMES = 2 * CORE_FRAMES  # runs longer than this are solved in windows by default
 
 
 def solve_fte_windowed(prob: Problem, progress: ProgressCallback | None = None) -> Result:
@@ -60,7 +58,7 @@ def solve_fte_windowed(prob: Problem, progress: ProgressCallback | None = None) 
     run is short or ``window_frames`` is 0, else in windows (module docstring)."""
     core = prob.options.window_frames
     if core is None:
-        core = CORE_FRAMES if prob.frames > AUTO_FRAMES else 0
+        core = WINDOW_FRAMES if prob.frames > WINDOWED_ABOVE else 0
     if core == 0 or prob.frames <= core:
         return solve_fte_joint(prob, progress)
     return solve_in_windows(prob, core, progress=progress)
@@ -144,7 +142,7 @@ def solve_in_windows(prob: Problem, core: int, margin: int = MARGIN_FRAMES, sett
         progress(Progress(stage="initialise", fraction=0.0, detail="settling what every window shares"))
     st = settled or settle(prob, settle_frames)
     starts = list(range(0, N, core))
-    parts: list[tuple[int, int, Result]] = []
+    cores = _Cores(N)
     iterations = st.result.report.iterations
     t_windows = time.perf_counter()
     for k, a in enumerate(starts):
@@ -153,14 +151,15 @@ def solve_in_windows(prob: Problem, core: int, margin: int = MARGIN_FRAMES, sett
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # a window's warnings are gathered into the run's (_grouped)
             r = solve_fte_joint(frames_of(prob, lo, hi, st.options, st.sigma_px))
-        parts.append((a - lo, b - lo, r))
+        cores.keep(a, r, a - lo, b - lo)
         iterations += r.report.iterations
+        del r  # one window's result at a time
         if progress:
             elapsed = time.perf_counter() - t_windows
             left = elapsed / (k + 1) * (len(starts) - k - 1)
             progress(Progress(stage="optimise", fraction=0.05 + 0.9 * (k + 1) / len(starts), iteration=iterations,
                               detail=f"window {k + 1} of {len(starts)}, {left:.0f} s left"))
-    result = _stitched(prob, st.options, st.sigma_px, parts, iterations, time.perf_counter() - t0)
+    result = cores.result(prob, st.options, st.sigma_px, iterations, time.perf_counter() - t0)
     report = result.report
     report.windows = {"count": len(starts), "core_frames": core, "margin_frames": margin,
                       "settled_on": [st.start, st.stop], "held": st.held}
@@ -173,30 +172,56 @@ def solve_in_windows(prob: Problem, core: int, margin: int = MARGIN_FRAMES, sett
     return result
 
 
-def _concat(parts: list[tuple[int, int, Result]], name: str, axis: int) -> np.ndarray | None:
-    arrays = [getattr(r, name) for _, _, r in parts]
-    if any(a is None for a in arrays):
-        return None
-    return np.concatenate([np.take(a, np.arange(i, j), axis=axis) for (i, j, _), a in zip(parts, arrays)], axis=axis)
+# the arrays of a Result kept from each window's core, with their frame axis
+FRAME_AXIS = {"positions": 0, "std": 0, "params": 0, "params_std": 0, "reprojections": 1, "residuals": 1, "outlier": 1}
 
 
-def _stitched(prob: Problem, options: SolveOptions, sigma_px: float, parts: list[tuple[int, int, Result]],
-              iterations: int, solve_s: float) -> Result:
-    """One :class:`Result` of the whole run from the windows' cores ``parts`` ((start, stop, result)
-    in each window's own frames)."""
-    whole = replace(prob, options=options, sigma_px=sigma_px)
-    residuals = _concat(parts, "residuals", 1)  # (C, N, M) px
-    outlier = _concat(parts, "outlier", 1)
-    assert residuals is not None and outlier is not None
-    scale = sigma_px * (whole.noise_scale[:, None, :] if whole.noise_scale is not None else 1.0)
-    s = (residuals / scale).transpose(1, 0, 2)
-    cost = float(sum(r.report.cost for _, _, r in parts))  # the windows' costs (margins counted twice)
-    return build_result(whole, "fte", positions=_concat(parts, "positions", 0), std=_concat(parts, "std", 0),
-                        reprojections=_concat(parts, "reprojections", 1), s=s, outlier=outlier.transpose(1, 0, 2),
-                        seconds={"init": 0.0, "solve": solve_s}, iterations=iterations, cost=cost, sigma_px=sigma_px,
-                        params=_concat(parts, "params", 0), params_std=_concat(parts, "params_std", 0),
-                        bounds_active=sum(r.report.bounds_active for _, _, r in parts),
-                        report={"warnings": _grouped([r.report.warnings for _, _, r in parts])})
+class _Cores:
+    """The windows' cores of a run of N frames, copied into arrays of the whole run as each window
+    finishes (so one window's :class:`Result` is held at a time), with their costs and warnings."""
+
+    def __init__(self, frames: int):
+        self.frames = frames
+        self.arrays: dict[str, np.ndarray | None] = {}
+        self.cost = 0.0
+        self.bounds_active = 0
+        self.warnings: list[list[str]] = []
+
+    def keep(self, at: int, r: Result, i: int, j: int) -> None:
+        """Keep frames ``[i, j)`` of the window's result ``r`` as the run's frames from ``at``."""
+        for name, axis in FRAME_AXIS.items():
+            a = getattr(r, name)
+            if at == 0:
+                shape = list(a.shape) if a is not None else None
+                if shape is not None:
+                    shape[axis] = self.frames
+                self.arrays[name] = np.empty(shape, dtype=a.dtype) if a is not None and shape else None
+            out = self.arrays[name]
+            if out is not None:
+                index = [slice(None)] * out.ndim
+                index[axis] = slice(at, at + j - i)
+                src = [slice(None)] * out.ndim
+                src[axis] = slice(i, j)
+                out[tuple(index)] = a[tuple(src)]
+        self.cost += r.report.cost  # the windows' costs (their margins counted twice)
+        self.bounds_active += r.report.bounds_active
+        self.warnings.append(r.report.warnings)
+
+    def result(self, prob: Problem, options: SolveOptions, sigma_px: float, iterations: int,
+               solve_s: float) -> Result:
+        """One :class:`Result` of the whole run, its report made over the whole
+        (:func:`graph.solve.result.build_result`)."""
+        whole = replace(prob, options=options, sigma_px=sigma_px)
+        A = self.arrays
+        residuals, outlier = A["residuals"], A["outlier"]  # (C, N, M)
+        assert residuals is not None and outlier is not None
+        scale = sigma_px * (whole.noise_scale[:, None, :] if whole.noise_scale is not None else 1.0)
+        s = (residuals / scale).transpose(1, 0, 2)
+        return build_result(whole, "fte", positions=A["positions"], std=A["std"], reprojections=A["reprojections"],
+                            s=s, outlier=outlier.transpose(1, 0, 2), seconds={"init": 0.0, "solve": solve_s},
+                            iterations=iterations, cost=self.cost, sigma_px=sigma_px, params=A["params"],
+                            params_std=A["params_std"], bounds_active=self.bounds_active,
+                            report={"warnings": _grouped(self.warnings)})
 
 
 def _grouped(said: list[list[str]]) -> list[str]:
