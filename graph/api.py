@@ -27,8 +27,8 @@ from graph.types import METHODS, Method, Progress, ProgressCallback, Result, Sol
 if TYPE_CHECKING:
     from graph.solve.identity import Identities
 
-__all__ = ["solve", "solve_group", "GroupResult", "SOLVERS", "Solver", "METHODS", "Method", "Progress",
-           "ProgressCallback", "Result", "SolveOptions", "SolveReport"]
+__all__ = ["solve", "prepare", "solve_prepared", "solve_group", "GroupResult", "SOLVERS", "Solver", "METHODS",
+           "Method", "Progress", "ProgressCallback", "Result", "SolveOptions", "SolveReport"]
 
 
 class Solver(Protocol):
@@ -48,12 +48,23 @@ def solve(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
     After the solve, a camera whose detections sit far from where the other cameras put them is
     named in the report's warnings (:mod:`graph.solve.disagreement`; checked only when the solve's
     own residuals hint at one). Raises :class:`graph.errors.InputError` when the inputs do not fit
-    together.
+    together. The same as :func:`solve_prepared` of :func:`prepare`.
     """
-    options = options or SolveOptions()
     t0 = time.perf_counter()
-    prob = problem.build(keypoints, calibration, options)
-    result = SOLVERS[options.method](prob, progress=progress)
+    return solve_prepared(prepare(keypoints, calibration, options), progress, t0)
+
+
+def prepare(keypoints: list[Keypoints], calibration: Calibration, options: SolveOptions | None = None) -> Problem:
+    """The inputs checked and stacked into one problem (:func:`graph.solve.problem.build`), for
+    :func:`solve_prepared`. The problem holds its own copy of the detections: a caller that drops
+    its keypoints before solving holds a long run's detections once, not twice."""
+    return problem.build(keypoints, calibration, options or SolveOptions())
+
+
+def solve_prepared(prob: Problem, progress: ProgressCallback | None = None, t0: float | None = None) -> Result:
+    """:func:`solve` of a problem from :func:`prepare` (begun at ``t0``, default now)."""
+    t0 = time.perf_counter() if t0 is None else t0
+    result = SOLVERS[prob.options.method](prob, progress=progress)
     if disagreement.worth_checking(result.residuals, result.outlier):
         _, said = disagreement.check(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
         if said:

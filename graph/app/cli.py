@@ -440,10 +440,13 @@ def run_solve(args: argparse.Namespace) -> int:
 
     cameras = read_inputs(args.keypoints, args.individual, args.individuals, args.openpose_model)
     if all(isinstance(c, Keypoints) for c in cameras):
-        keypoints = cameras
-        check_same_frames(keypoints)
-        fps, fps_from = frame_rate(args.fps, keypoints)
-        result = _solve_one(keypoints, calibration, solve_options(args, fps))
+        check_same_frames(cameras)
+        fps, fps_from = frame_rate(args.fps, cameras)
+        from graph import api
+
+        prob = api.prepare(cameras, calibration, solve_options(args, fps))
+        del cameras  # the problem holds the detections now: a long run's are not held twice
+        result = _with_progress(lambda bar: api.solve_prepared(prob, progress=bar))
         written = write_outputs(args, result, calibration, Path(args.out))
         print(_summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
         return 0
@@ -502,15 +505,9 @@ def safe_name(name: str) -> str:
     return file_name_part(name, "individual")
 
 
-def _solve_one(keypoints: list, calibration, options):
-    """One individual's solve, with the progress bar and the compile note on a terminal."""
-    from graph import api
-
-    return _with_progress(lambda bar: api.solve(keypoints, calibration, options, progress=bar))
-
-
 def _solve_group(tracks: list, calibration, options):
-    """Several individuals' solve (:func:`graph.api.solve_group`), as :func:`_solve_one`."""
+    """Several individuals' solve (:func:`graph.api.solve_group`), with the progress bar and the compile
+    note on a terminal."""
     from graph import api
 
     return _with_progress(lambda bar: api.solve_group(tracks, calibration, options, progress=bar))

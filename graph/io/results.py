@@ -63,6 +63,9 @@ class Points3D:
     center: np.ndarray  # (3,)
 
 
+CSV_BLOCK_ROWS = 4096
+
+
 def write_anipose_csv(path: str | Path, result: Result,
                       frame: tuple[np.ndarray, np.ndarray] | None = None, metres_per_unit: float = 1.0) -> None:
     """Anipose's ``pose-3d`` CSV (column order as ``anipose triangulate``), floats as ``repr``.
@@ -92,7 +95,9 @@ def write_anipose_csv(path: str | Path, result: Result,
     per_marker = np.where(np.isfinite(per_marker), per_marker, np.nan).reshape(n, 6 * m)
     with open(path, "w", newline="", encoding="utf-8") as f:
         csv.writer(f, lineterminator="\n").writerow(header)
-        f.writelines(f"{_cells(row)},{frame_const},{i}\n" for i, row in enumerate(per_marker.tolist()))
+        for a in range(0, n, CSV_BLOCK_ROWS):  # a block's rows as Python floats at a time, not the run's
+            f.writelines(f"{_cells(row)},{frame_const},{a + i}\n"
+                         for i, row in enumerate(per_marker[a:a + CSV_BLOCK_ROWS].tolist()))
 
 
 def read_anipose_csv(path: str | Path) -> Points3D:

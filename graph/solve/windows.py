@@ -215,8 +215,8 @@ class _Cores:
         A = self.arrays
         residuals, outlier = A["residuals"], A["outlier"]  # (C, N, M)
         assert residuals is not None and outlier is not None
-        scale = sigma_px * (whole.noise_scale[:, None, :] if whole.noise_scale is not None else 1.0)
-        s = (residuals / scale).transpose(1, 0, 2)
+        residuals /= sigma_px * (whole.noise_scale[:, None, :] if whole.noise_scale is not None else 1.0)
+        s = residuals.transpose(1, 0, 2)  # in place: the run's residuals in units of the noise
         return build_result(whole, "fte", positions=A["positions"], std=A["std"], reprojections=A["reprojections"],
                             s=s, outlier=outlier.transpose(1, 0, 2), seconds={"init": 0.0, "solve": solve_s},
                             iterations=iterations, cost=self.cost, sigma_px=sigma_px, params=A["params"],
