@@ -11,24 +11,26 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 from graph.camera import Calibration
 from graph.io.keypoint_types import Tracks
 from graph.io.keypoints import Keypoints
-from graph.solve import disagreement, problem
+from graph.io.staged import StagedRun
+from graph.solve import disagreement, problem, windows
 from graph.solve.online import solve_ekf
 from graph.solve.problem import Problem
 from graph.solve.tri import solve_tri
-from graph.solve.windows import solve_fte_windowed
-from graph.types import METHODS, Method, Progress, ProgressCallback, Result, SolveOptions, SolveReport
+from graph.solve.windows import Core, solve_fte_windowed
+from graph.types import METHODS, WINDOW_FRAMES, Method, Progress, ProgressCallback, Result, SolveOptions, SolveReport
 
 if TYPE_CHECKING:
     from graph.solve.identity import Identities
 
-__all__ = ["solve", "prepare", "solve_prepared", "solve_group", "GroupResult", "SOLVERS", "Solver", "METHODS",
-           "Method", "Progress", "ProgressCallback", "Result", "SolveOptions", "SolveReport"]
+__all__ = ["solve", "prepare", "solve_prepared", "solve_streamed", "solve_group", "GroupResult", "SOLVERS", "Solver",
+           "METHODS", "Method", "Progress", "ProgressCallback", "Result", "SolveOptions", "SolveReport"]
 
 
 class Solver(Protocol):
@@ -65,13 +67,37 @@ def solve_prepared(prob: Problem, progress: ProgressCallback | None = None, t0: 
     """:func:`solve` of a problem from :func:`prepare` (begun at ``t0``, default now)."""
     t0 = time.perf_counter() if t0 is None else t0
     result = SOLVERS[prob.options.method](prob, progress=progress)
+    _name_a_disagreeing_camera(prob, result, result.report)
+    result.report.seconds["total"] = time.perf_counter() - t0
+    return result
+
+
+def solve_streamed(run: StagedRun, calibration: Calibration, options: SolveOptions, write: Callable[[Core], None],
+                   progress: ProgressCallback | None = None) -> SolveReport:
+    """A long run staged on disk (:class:`graph.io.staged.StagedRun`) solved by ``fte`` in windows of
+    ``options.window_frames`` kept frames (default :data:`graph.types.WINDOW_FRAMES`), each window's
+    kept frames handed to ``write`` as it finishes (a :class:`graph.solve.windows.Core`: the run's
+    frame it starts at and its :class:`Result`); the run's report. Memory: one window's, whatever the
+    run's length (:func:`graph.solve.windows.solve_streamed`). The disagreeing-camera check of
+    :func:`solve` is made on the settled stretch."""
+    if options.method != "fte":
+        raise ValueError(f"a run is solved streamed by method 'fte', not {options.method!r}")
+    t0 = time.perf_counter()
+    core = options.window_frames or WINDOW_FRAMES
+    report, settled = windows.solve_streamed(windows.Staged(run, calibration, options), core, write, progress)
+    _name_a_disagreeing_camera(settled.problem, settled.result, report)
+    report.seconds["total"] = time.perf_counter() - t0
+    return report
+
+
+def _name_a_disagreeing_camera(prob: Problem, result: Result, report: SolveReport) -> None:
+    """A camera whose detections sit far from where the others put them named in ``report``'s warnings
+    (:mod:`graph.solve.disagreement`), checked only when ``result``'s residuals hint at one."""
     if disagreement.worth_checking(result.residuals, result.outlier):
         _, said = disagreement.check(prob.calibration, prob.meas, prob.valid, prob.sigma_px)
         if said:
-            result.report.warnings.append(said)
-            warnings.warn(said, stacklevel=2)
-    result.report.seconds["total"] = time.perf_counter() - t0
-    return result
+            report.warnings.append(said)
+            warnings.warn(said, stacklevel=3)
 
 
 @dataclass

@@ -136,6 +136,12 @@ class Skeleton:
         return len(self.param_names)
 
     @property
+    def angle_params(self) -> np.ndarray:
+        """Parameter indices of the rotation angles (a pose is the same with any of them 2 pi apart)."""
+        a = self.arrays
+        return np.unique(a.seg_param[(a.seg_axis >= 0) & (a.seg_param >= 0)]).astype(np.int64)
+
+    @property
     def root_params(self) -> np.ndarray:
         """Parameter indices of the first root point (the head for the cheetah)."""
         return self.arrays.pt_root[0]

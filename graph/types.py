@@ -255,6 +255,16 @@ class Result:
     detections: np.ndarray | None = None  # (C, N, M, 2) pixels, NaN where missing
     likelihood: np.ndarray | None = None  # (C, N, M), 0 where missing
 
+    def frames(self, a: int, b: int) -> Result:
+        """The frames ``[a, b)`` of this result (its per-frame arrays sliced on their frame axis,
+        :data:`FRAME_AXIS`; the report as it is)."""
+        sliced = {}
+        for name, axis in FRAME_AXIS.items():
+            v = getattr(self, name)
+            if v is not None:
+                sliced[name] = v[(slice(None),) * axis + (slice(a, b),)]
+        return replace(self, **sliced)
+
     @property
     def error(self) -> np.ndarray:
         """Mean reprojection error per frame and marker over the cameras that saw it (N, M)."""
@@ -262,6 +272,11 @@ class Result:
             r = np.where(self.outlier, np.nan, self.residuals)
             cnt = np.isfinite(r).sum(0)
             return np.where(cnt > 0, np.nansum(r, 0) / np.maximum(cnt, 1), np.nan)
+
+
+# the frame axis of each per-frame array of a Result (the rest, camera_centers, are not per frame)
+FRAME_AXIS = {"positions": 0, "std": 0, "reprojections": 1, "residuals": 1, "ncams": 0, "score": 0, "outlier": 1,
+              "params": 0, "rates": 0, "params_std": 0, "causal_positions": 0, "detections": 1, "likelihood": 1}
 
 
 def together(group: Sequence[tuple[str, Result]]) -> Result:

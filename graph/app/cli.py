@@ -24,6 +24,7 @@ import argparse
 import importlib
 import json
 import sys
+import tempfile
 import warnings
 from collections import namedtuple
 from pathlib import Path
@@ -438,6 +439,11 @@ def run_solve(args: argparse.Namespace) -> int:
                          "were given (one per camera, in the calibration's order)", args.calibration)
     from graph.io.keypoints import Keypoints
 
+    if _streamable(args, options):
+        with tempfile.TemporaryDirectory(prefix=".acinoset-staged-", dir=Path(args.out).parent) as scratch:
+            done = _solve_streamed(args, options, calibration, scratch)
+        if done:
+            return 0
     cameras = read_inputs(args.keypoints, args.individual, args.individuals, args.openpose_model)
     if all(isinstance(c, Keypoints) for c in cameras):
         check_same_frames(cameras)
@@ -479,6 +485,68 @@ def run_solve(args: argparse.Namespace) -> int:
         Path(args.report).write_text(json.dumps(solved.report(), indent=2) + "\n", encoding="utf-8")
         print(f"report -> {args.report}")
     return 0
+
+
+def _streamable(args: argparse.Namespace, options) -> bool:
+    """Whether a long run may be solved streamed (:func:`_solve_streamed`): ``fte`` in windows, one
+    individual, no ensemble, no reprojections asked for (they are written from the whole run)."""
+    return (options.method == "fte" and options.window_frames != 0 and args.individual is None
+            and args.individuals is None and not args.reprojections
+            and not any("+" in p and not Path(p).exists() for p in args.keypoints))
+
+
+def _solve_streamed(args: argparse.Namespace, options, calibration, scratch: str) -> bool:
+    """A run over :data:`graph.types.WINDOWED_ABOVE` frames (or ``--window-frames``) solved in windows
+    in memory that does not grow with it: each camera's file read in turn and staged in ``scratch``
+    (:mod:`graph.io.staged`), each window read from there, and its kept frames written to the CSV
+    (and the H5) as it finishes (:func:`graph.api.solve_streamed`). False when the run is not that
+    long or a file holds several individuals: solve it in memory."""
+    from graph import api
+    from graph.io import results
+    from graph.io.keypoints import read_tracks
+    from graph.io.staged import stage
+    from graph.types import WINDOWED_ABOVE
+
+    above = options.window_frames or WINDOWED_ABOVE
+    run = stage(args.keypoints, scratch, lambda p: read_tracks(p, openpose_model=args.openpose_model),
+                lambda frames: frames > above)
+    if run is None:
+        return False
+    fps, fps_from = frame_rate(args.fps, run.cameras)
+    options = solve_options(args, fps)
+    out = Path(args.out)
+    writers: dict = {}
+
+    def write(core) -> None:
+        r = core.result
+        if not writers:
+            per_unit = csv_metres_per_unit(args.units, calibration, r)
+            writers["unit"] = {1.0: "m", 0.01: "cm", 0.001: "mm"}[per_unit]
+            writers["csv"] = results.AniposeCsv(out, r.markers, metres_per_unit=per_unit)
+            if args.h5:
+                writers["h5"] = results.H5Stream(args.h5, run.frames)
+        writers["csv"].write(r)
+        if "h5" in writers:
+            writers["h5"].write(r)
+
+    try:
+        report = _with_progress(lambda bar: api.solve_streamed(run, calibration, options, write, progress=bar))
+    except BaseException:
+        if "h5" in writers:
+            writers["h5"].file.close()
+        raise
+    finally:
+        if "csv" in writers:
+            writers["csv"].close()
+    written: list = [out if writers["unit"] == "m" else f"{out} (in {writers['unit']})"]
+    if "h5" in writers:
+        writers["h5"].close(report, options, calibration)
+        written.append(args.h5)
+    if args.report:
+        Path(args.report).write_text(json.dumps(report.to_dict(), indent=2) + "\n", encoding="utf-8")
+        written.append(args.report)
+    print(_summary(report, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
+    return True
 
 
 def read_inputs(paths: list[str], individual: str | None, individuals: int | None,
@@ -565,8 +633,8 @@ def csv_metres_per_unit(units: str, calibration, result) -> float:
 
 
 def _summary(result, options, fps: float, fps_from: str) -> str:
-    """The one line a solve prints."""
-    rep = result.report
+    """The one line a solve prints, of a ``result`` or its report."""
+    rep = getattr(result, "report", result)
     rmse = "n/a" if rep.reprojection_rmse_px != rep.reprojection_rmse_px else f"{rep.reprojection_rmse_px:.2f} px"
     noise = f", detection noise {rep.sigma_px:.2f} px (measured)" if options.measurement_std_px == "auto" else ""
     if rep.motion_scales:

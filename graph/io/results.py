@@ -33,7 +33,7 @@ from graph.camera import DISTORTION_SLOTS, Calibration, Camera
 from graph.errors import InputError, unreadable
 from graph.io.calibration import in_metres
 from graph.io.keypoints import Keypoints, spreadsheet_safe, write_dlc_csv
-from graph.types import Result, SolveOptions, SolveReport, jsonable
+from graph.types import FRAME_AXIS, Result, SolveOptions, SolveReport, jsonable
 
 RESULT_FORMAT = "acinoset.result"
 RESULT_FORMAT_VERSION = 1
@@ -68,36 +68,63 @@ CSV_BLOCK_ROWS = 4096
 
 def write_anipose_csv(path: str | Path, result: Result,
                       frame: tuple[np.ndarray, np.ndarray] | None = None, metres_per_unit: float = 1.0) -> None:
-    """Anipose's ``pose-3d`` CSV (column order as ``anipose triangulate``), floats as ``repr``.
+    """Anipose's ``pose-3d`` CSV (column order as ``anipose triangulate``), floats as ``repr``
+    (:class:`AniposeCsv`, all of ``result`` at once)."""
+    with AniposeCsv(path, result.markers, frame, metres_per_unit) as out:
+        out.write(result)
+
+
+class AniposeCsv:
+    """Anipose's ``pose-3d`` CSV written a stretch of frames at a time (a long run's windows as they
+    finish; :func:`write_anipose_csv` for a whole result).
 
     Positions in units of ``metres_per_unit`` metres (1: metres; 0.001: millimetres, as ``anipose
     triangulate`` writes a project calibrated in millimetres): ``X / metres_per_unit``.
     ``frame = (M, center)``: the positions written as ``M X - center`` (``center`` in the same units),
     with ``M`` and ``center`` in their columns, as Anipose writes a run it turned into the frame of
     ``[triangulation] axes`` (:func:`graph.anipose.frame.anipose_frame`). Without it, the
-    calibration's frame (identity, 0)."""
-    if not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
-        raise ValueError(f"metres_per_unit must be a positive number, not {metres_per_unit!r}")
-    pos = np.asarray(result.positions, dtype=np.float64) / metres_per_unit
-    M, center = ((np.eye(3), np.zeros(3)) if frame is None
-                 else (np.asarray(frame[0], float), np.asarray(frame[1], float)))
-    if frame is not None:
-        pos = pos @ M.T - center
-    n, m = pos.shape[:2]
-    has = np.isfinite(pos).all(axis=-1)
-    error = np.where(has, result.error, np.nan)
-    ncams = np.where(has, np.asarray(result.ncams, dtype=np.float64), np.nan)
-    score = np.where(has, np.asarray(result.score, dtype=np.float64), np.nan)
-    header = [spreadsheet_safe(f"{name}_{f}") for name in result.markers for f in _MARKER_FIELDS]
-    header += [f"M_{i}{j}" for i in range(3) for j in range(3)] + [f"center_{i}" for i in range(3)] + ["fnum"]
-    frame_const = ",".join([_cell(v) for v in M.ravel().tolist()] + [_cell(v) for v in center.tolist()])
-    per_marker = np.concatenate([pos, error[..., None], ncams[..., None], score[..., None]], axis=-1)
-    per_marker = np.where(np.isfinite(per_marker), per_marker, np.nan).reshape(n, 6 * m)
-    with open(path, "w", newline="", encoding="utf-8") as f:
-        csv.writer(f, lineterminator="\n").writerow(header)
+    calibration's frame (identity, 0). ``fnum`` counts the rows written."""
+
+    def __init__(self, path: str | Path, markers: list[str], frame: tuple[np.ndarray, np.ndarray] | None = None,
+                 metres_per_unit: float = 1.0):
+        if not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
+            raise ValueError(f"metres_per_unit must be a positive number, not {metres_per_unit!r}")
+        self.metres_per_unit, self.frame, self.rows = metres_per_unit, frame, 0
+        self.M: np.ndarray = np.eye(3) if frame is None else np.asarray(frame[0], float)
+        self.center: np.ndarray = np.zeros(3) if frame is None else np.asarray(frame[1], float)
+        header = [spreadsheet_safe(f"{name}_{f}") for name in markers for f in _MARKER_FIELDS]
+        header += [f"M_{i}{j}" for i in range(3) for j in range(3)] + [f"center_{i}" for i in range(3)] + ["fnum"]
+        self.frame_const = ",".join([_cell(v) for v in self.M.ravel().tolist()] +
+                                    [_cell(v) for v in self.center.tolist()])
+        self.file = open(path, "w", newline="", encoding="utf-8")
+        csv.writer(self.file, lineterminator="\n").writerow(header)
+
+    def write(self, result: Result) -> None:
+        """The next rows: every frame of ``result``."""
+        pos = np.asarray(result.positions, dtype=np.float64) / self.metres_per_unit
+        if self.frame is not None:
+            pos = pos @ self.M.T - self.center
+        n, m = pos.shape[:2]
+        has = np.isfinite(pos).all(axis=-1)
+        error = np.where(has, result.error, np.nan)
+        ncams = np.where(has, np.asarray(result.ncams, dtype=np.float64), np.nan)
+        score = np.where(has, np.asarray(result.score, dtype=np.float64), np.nan)
+        per_marker = np.concatenate([pos, error[..., None], ncams[..., None], score[..., None]], axis=-1)
+        per_marker = np.where(np.isfinite(per_marker), per_marker, np.nan).reshape(n, 6 * m)
         for a in range(0, n, CSV_BLOCK_ROWS):  # a block's rows as Python floats at a time, not the run's
-            f.writelines(f"{_cells(row)},{frame_const},{a + i}\n"
-                         for i, row in enumerate(per_marker[a:a + CSV_BLOCK_ROWS].tolist()))
+            first = self.rows + a
+            self.file.writelines(f"{_cells(row)},{self.frame_const},{first + i}\n"
+                                 for i, row in enumerate(per_marker[a:a + CSV_BLOCK_ROWS].tolist()))
+        self.rows += n
+
+    def close(self) -> None:
+        self.file.close()
+
+    def __enter__(self) -> AniposeCsv:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def read_anipose_csv(path: str | Path) -> Points3D:
@@ -172,18 +199,72 @@ def write_h5(path: str | Path, result: Result, calibration: Calibration | None =
         if individual is not None:
             f.attrs["individual"] = individual
         _write_results(f, [result])
-        rep = result.report
-        if rep.body_lengths:
-            # the body the solve used, one row per length group (or bone): also in the report attribute
-            g = f.create_group("body_lengths")
-            _strings(g, "names", list(rep.body_lengths))
-            for col in ("length_m", "std_m", "model_m"):
-                g.create_dataset(col, data=np.array([float(v[col]) for v in rep.body_lengths.values()]))
-        if rep.time_offsets_frames is not None:
-            f.create_dataset("time_offsets_frames", data=np.asarray(rep.time_offsets_frames, dtype=float))
-            f.create_dataset("time_offsets_std_frames", data=np.asarray(rep.time_offsets_std_frames, dtype=float))
-        if calibration is not None:
-            _write_calibration(f, in_metres(calibration, result.options.calibration_units)[0])
+        _write_run(f, result.report, result.options, calibration)
+
+
+def _write_run(f, report: SolveReport, options: SolveOptions, calibration: Calibration | None) -> None:
+    """What one run's file holds besides its arrays: the body the solve used, the cameras' offsets
+    and the rig in metres."""
+    if report.body_lengths:
+        # the body the solve used, one row per length group (or bone): also in the report attribute
+        g = f.create_group("body_lengths")
+        _strings(g, "names", list(report.body_lengths))
+        for col in ("length_m", "std_m", "model_m"):
+            g.create_dataset(col, data=np.array([float(v[col]) for v in report.body_lengths.values()]))
+    if report.time_offsets_frames is not None:
+        f.create_dataset("time_offsets_frames", data=np.asarray(report.time_offsets_frames, dtype=float))
+        f.create_dataset("time_offsets_std_frames", data=np.asarray(report.time_offsets_std_frames, dtype=float))
+    if calibration is not None:
+        _write_calibration(f, in_metres(calibration, options.calibration_units)[0])
+
+
+class H5Stream:
+    """The file of :func:`write_h5` written a stretch of frames at a time, for a run of ``frames``
+    frames whose windows finish one after another: each per-frame array a dataset of the run's
+    length, chunked along its frame axis (:data:`graph.types.FRAME_AXIS`) and filled as the stretches
+    come; the report (and the body, clocks and rig) written by :meth:`close`, after the last."""
+
+    CHUNK_FRAMES = 1024
+
+    def __init__(self, path: str | Path, frames: int):
+        import h5py
+
+        self.frames, self.rows = frames, 0
+        self.file = h5py.File(path, "w")
+
+    def write(self, result: Result) -> None:
+        """The next frames: every frame of ``result``."""
+        f, n = self.file, result.positions.shape[0]
+        if self.rows == 0:
+            _write_header(f, result)
+            for name in _ARRAYS + _OPTIONAL_ARRAYS:
+                a = getattr(result, name, None)
+                if a is None:
+                    continue
+                a = np.asarray(a)
+                axis = FRAME_AXIS.get(name)
+                if axis is None:  # not per frame: once
+                    _write_array(f, name, a)
+                    continue
+                shape = a.shape[:axis] + (self.frames,) + a.shape[axis + 1:]
+                chunks = a.shape[:axis] + (max(1, min(self.frames, self.CHUNK_FRAMES)),) + a.shape[axis + 1:]
+                _write_array(f, name, a, shape=shape, chunks=chunks)
+        for name, axis in FRAME_AXIS.items():
+            a = getattr(result, name, None)
+            if a is not None and name in f:
+                a = np.asarray(a)
+                f[name][(slice(None),) * axis + (slice(self.rows, self.rows + n),)] = (
+                    a.astype(np.uint8) if a.dtype == bool else a)
+        self.rows += n
+
+    def close(self, report: SolveReport, options: SolveOptions, calibration: Calibration | None = None) -> None:
+        """The run's ``report``, body, clocks and rig, and the file closed."""
+        if self.rows != self.frames:
+            self.file.close()
+            raise ValueError(f"{self.rows} of {self.frames} frames were written")
+        self.file.attrs["report"] = json.dumps(report.to_dict())
+        _write_run(self.file, report, options, calibration)
+        self.file.close()
 
 
 def write_group_h5(path: str | Path, group: list[tuple[str, Result]], calibration: Calibration | None = None,
@@ -212,9 +293,21 @@ def _write_results(f, results: list[Result]) -> None:
     """The attributes, names and arrays of :func:`write_h5` for one result, or stacked on a leading
     individuals axis for several (:func:`write_group_h5`): they share method, skeleton, fps,
     options, markers, cameras and bones, the first one's written."""
+    stacked = len(results) > 1 or "individuals" in f
+    _write_header(f, results[0])
+    reports = [r.report.to_dict() for r in results]
+    f.attrs["report"] = json.dumps(reports if stacked else reports[0])
+    for name in _ARRAYS + _OPTIONAL_ARRAYS:
+        values = [getattr(r, name, None) for r in results]
+        if any(v is None for v in values):
+            continue
+        _write_array(f, name, np.stack([np.asarray(v) for v in values]) if stacked else np.asarray(values[0]))
+
+
+def _write_header(f, first: Result) -> None:
+    """The attributes and names of a result file (all but the report), from its ``first`` result."""
     import h5py
 
-    first, stacked = results[0], len(results) > 1 or "individuals" in f
     f.attrs["format"] = RESULT_FORMAT
     f.attrs["format_version"] = RESULT_FORMAT_VERSION
     f.attrs["version"] = __version__
@@ -222,25 +315,29 @@ def _write_results(f, results: list[Result]) -> None:
     f.attrs["skeleton"] = first.skeleton
     f.attrs["fps"] = float(first.fps)
     f.attrs["options"] = json.dumps(jsonable(first.options.to_dict()))
-    reports = [r.report.to_dict() for r in results]
-    f.attrs["report"] = json.dumps(reports if stacked else reports[0])
     _strings(f, "markers", first.markers)
     _strings(f, "camera_names", first.camera_names)
     _strings(f, "param_names", first.param_names)
     bones = np.array([[str(a), str(b)] for a, b in first.bones], dtype=object).reshape(-1, 2)
     f.create_dataset("bones", data=bones, dtype=h5py.string_dtype("utf-8"))
-    for name in _ARRAYS + _OPTIONAL_ARRAYS:
-        values = [getattr(r, name, None) for r in results]
-        if any(v is None for v in values):
-            continue
-        a = np.stack([np.asarray(v) for v in values]) if stacked else np.asarray(values[0])
-        # gzip for the flags and counts only: measured on a 150-frame run, it took the float
-        # arrays (positions, residuals, detections ...) from 1.17 to 1.01 MB (shuffled) at 8x the
-        # write time (20 ms against 2.5 ms), and the flags from 18 to 2 kB for nothing
-        kw = {"compression": "gzip", "compression_opts": 4} if a.size > 4096 and a.dtype.kind in "biu" else {}
-        f.create_dataset(name, data=a.astype(np.uint8) if a.dtype == bool else a, **kw)
-        if a.dtype == bool:
-            f[name].attrs["dtype"] = "bool"
+
+
+def _write_array(f, name: str, a: np.ndarray, shape: tuple | None = None, chunks: tuple | None = None) -> None:
+    """Dataset ``name`` holding ``a`` (bool as uint8, with the attribute ``dtype = "bool"``); with
+    ``shape`` (and ``chunks``), an empty one of that shape and ``a``'s type, filled later.
+
+    gzip for the flags and counts only: measured on a 150-frame run, it took the float arrays
+    (positions, residuals, detections ...) from 1.17 to 1.01 MB (shuffled) at 8x the write time (20
+    ms against 2.5 ms), and the flags from 18 to 2 kB for nothing."""
+    size = a.size if shape is None else int(np.prod(shape))
+    kw = {"compression": "gzip", "compression_opts": 4} if size > 4096 and a.dtype.kind in "biu" else {}
+    dtype = np.uint8 if a.dtype == bool else a.dtype
+    if shape is None:
+        f.create_dataset(name, data=a if a.dtype == dtype else a.astype(dtype), **kw)
+    else:
+        f.create_dataset(name, shape=shape, dtype=dtype, chunks=chunks, **kw)
+    if a.dtype == bool:
+        f[name].attrs["dtype"] = "bool"
 
 
 def _write_calibration(f, calibration: Calibration) -> None:

@@ -99,37 +99,17 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
     if note:
         notes.append(note)
         warnings.warn(note, stacklevel=2)
-    if options.skeleton == "points":
-        names: list[str] = []
-        for kp in keypoints:
-            names += [b for b in kp.bodyparts if b not in names]
-        skeleton = load_skeleton("points", bodyparts=names, bone_pairs=options.bone_lengths)
-    else:
-        skeleton = load_skeleton(options.skeleton)
+    skeleton = skeleton_of([kp.bodyparts for kp in keypoints], options)
     if options.motion_scale is None:  # the skeleton's and method's default, as the solvers will use it
         free_points = skeleton.kind == "points" and not skeleton.bones
         options = replace(options, motion_scale=default_motion_scale(options.method, free_points))
     if options.motion_order == "auto" and options.motion_scale != "auto":
         raise InputError("motion_order 'auto' compares the orders at their fitted scales: it needs motion_scale "
                          f"'auto', not {options.motion_scale!r}")
-    M = len(skeleton.markers)
-    meas = np.full((N, C, M, 2), np.nan)
-    lik = np.zeros((N, C, M))
-    spread = np.full((N, C, M), np.nan)
-    seen_any = np.zeros(M, dtype=bool)
-    for c, kp in enumerate(keypoints):
-        match = match_bodyparts(kp, skeleton.markers)
-        if match.unknown:
-            msg = (f"{kp.source or f'camera {c + 1}'}: bodyparts not in the {skeleton.name} skeleton are "
-                   f"ignored: {', '.join(match.unknown)}")
-            notes.append(msg)
-            warnings.warn(msg, stacklevel=2)
-        have = match.index >= 0
-        meas[:, c, have] = kp.xy[:, match.index[have]]
-        lik[:, c, have] = np.nan_to_num(kp.likelihood[:, match.index[have]], nan=0.0)
-        if kp.spread_px is not None:
-            spread[:, c, have] = kp.spread_px[:, match.index[have]]
-        seen_any |= have
+    meas, lik, spread, seen_any, unknown = _stack(keypoints, skeleton)
+    for msg in unknown:
+        notes.append(msg)
+        warnings.warn(msg, stacklevel=2)
     if not seen_any.any():
         raise no_marker_matched(keypoints[0].bodyparts, skeleton.name, list(skeleton.markers))
     missing = [m for j, m in enumerate(skeleton.markers) if not seen_any[j]]
@@ -138,7 +118,7 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
     valid = np.isfinite(meas).all(axis=-1) & (lik >= options.likelihood_threshold)
     if not valid.any():
         raise InputError(f"no detection reaches the likelihood threshold {options.likelihood_threshold}")
-    noise_scale = relative_noise(spread, valid)
+    noise_scale = relative_noise(spread, valid) if spread is not None else None
     if noise_scale is not None and options.method == "tri":
         noise_scale = None  # triangulation weighs every view alike
     if options.measurement_std_px == "auto":
@@ -147,6 +127,58 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
         sigma = float(options.measurement_std_px)
     return Problem(skeleton=skeleton, calibration=calibration, options=options, meas=meas, likelihood=lik,
                    valid=valid, sigma_px=sigma, warnings=notes, noise_scale=noise_scale)
+
+
+def skeleton_of(bodyparts: list[list[str]], options: SolveOptions) -> Skeleton:
+    """The skeleton ``options`` name; ``"points"``: one point per bodypart of the cameras'
+    ``bodyparts`` (in their order, each once)."""
+    if options.skeleton != "points":
+        return load_skeleton(options.skeleton)
+    names: list[str] = []
+    for parts in bodyparts:
+        names += [b for b in parts if b not in names]
+    return load_skeleton("points", bodyparts=names, bone_pairs=options.bone_lengths)
+
+
+def _stack(keypoints: list[Keypoints], skeleton: Skeleton):
+    """The cameras' detections against the ``skeleton``'s markers: ``meas`` (N, C, M, 2),
+    ``likelihood`` (N, C, M), an ensemble's ``spread`` (N, C, M; None when no camera has one), which
+    markers some camera has, and a note per camera with bodyparts not among the markers."""
+    markers = skeleton.markers
+    N, C, M = keypoints[0].frames, len(keypoints), len(markers)
+    meas = np.full((N, C, M, 2), np.nan)
+    lik = np.zeros((N, C, M))
+    spread = np.full((N, C, M), np.nan) if any(kp.spread_px is not None for kp in keypoints) else None
+    seen_any = np.zeros(M, dtype=bool)
+    unknown = []
+    for c, kp in enumerate(keypoints):
+        match = match_bodyparts(kp, markers)
+        if match.unknown:
+            unknown.append(f"{kp.source or f'camera {c + 1}'}: bodyparts not in the {skeleton.name} skeleton "
+                           f"are ignored: {', '.join(match.unknown)}")
+        have = match.index >= 0
+        meas[:, c, have] = kp.xy[:, match.index[have]]
+        lik[:, c, have] = np.nan_to_num(kp.likelihood[:, match.index[have]], nan=0.0)
+        if spread is not None and kp.spread_px is not None:
+            spread[:, c, have] = kp.spread_px[:, match.index[have]]
+        seen_any |= have
+    return meas, lik, spread, seen_any, unknown
+
+
+def confident(keypoints: list[Keypoints], skeleton: Skeleton, threshold: float) -> np.ndarray:
+    """The confident detections of ``skeleton``'s markers in each frame of ``keypoints`` (N,): what
+    :attr:`Problem.valid` counts."""
+    meas, lik, _, _, _ = _stack(keypoints, skeleton)
+    return (np.isfinite(meas).all(axis=-1) & (lik >= threshold)).sum(axis=(1, 2))
+
+
+def window_of(template: Problem, keypoints: list[Keypoints], window: tuple[int, int]) -> Problem:
+    """The frames ``window = [a, b)`` of a long run as a problem, from their ``keypoints`` (the run's
+    cameras, sliced): ``template`` (a problem :func:`build` made of another stretch of the same run)
+    gives the skeleton, calibration, options, noise and relative noise, checked there once."""
+    meas, lik, _, _, _ = _stack(keypoints, template.skeleton)
+    valid = np.isfinite(meas).all(axis=-1) & (lik >= template.options.likelihood_threshold)
+    return replace(template, meas=meas, likelihood=lik, valid=valid, warnings=[], window=window)
 
 
 def _folded(text: str) -> str:

@@ -19,10 +19,12 @@ from graph.types import Result, SolveReport
 
 def build_result(prob: Problem, method: str, *, positions, std, reprojections, s, outlier, seconds, iterations,
                  cost=float("nan"), sigma_px: float | None = None, params=None, params_std=None,
-                 causal_positions=None, per_frame_ms=None, bounds_active=0, report: dict | None = None) -> Result:
+                 causal_positions=None, per_frame_ms=None, bounds_active=0, report: dict | None = None,
+                 rates=None) -> Result:
     """``s`` and ``outlier`` are (N, C, M); ``reprojections`` (C, N, M, 2). ``sigma_px`` is the
     detection noise ``s`` is normalised by (default: the problem's); ``report`` more report fields
-    (the body's lengths, the cameras' offsets) and their ``warnings``."""
+    (the body's lengths, the cameras' offsets) and their ``warnings``. ``rates`` (N, P): the
+    parameters' rates, default their central differences."""
     sk = prob.skeleton
     valid = prob.valid
     sigma_px = prob.sigma_px if sigma_px is None else sigma_px
@@ -56,8 +58,7 @@ def build_result(prob: Problem, method: str, *, positions, std, reprojections, s
         notes.append(note)
         warnings.warn(note, stacklevel=3)
     um, uf = prob.unconstrained()
-    rates = None
-    if params is not None and params.shape[0] > 1:
+    if rates is None and params is not None and params.shape[0] > 1:
         rates = np.gradient(params, prob.dt, axis=0)
     summary = SolveReport(
         method=method, skeleton=sk.name, frames=prob.frames, cameras=prob.cameras, markers=len(sk.markers),

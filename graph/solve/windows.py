@@ -39,15 +39,28 @@ from __future__ import annotations
 import re
 import time
 import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import replace
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
+from graph.camera import Calibration
+from graph.io.staged import StagedRun
+from graph.solve import problem
 from graph.solve.joint import solve_fte_joint
 from graph.solve.problem import Problem
 from graph.solve.result import build_result
-from graph.types import WINDOW_FRAMES, WINDOWED_ABOVE, Progress, ProgressCallback, Result, SolveOptions
+from graph.types import (
+    FRAME_AXIS,
+    WINDOW_FRAMES,
+    WINDOWED_ABOVE,
+    Progress,
+    ProgressCallback,
+    Result,
+    SolveOptions,
+    SolveReport,
+)
 
 MARGIN_FRAMES = 200  # frames solved on each side of a core and thrown away
 SETTLE_FRAMES = 2000  # the stretch the shared unknowns are settled on
@@ -73,16 +86,97 @@ def frames_of(prob: Problem, a: int, b: int, options: SolveOptions | None = None
                    warnings=[], window=(a, b))
 
 
-def best_seen(valid: np.ndarray, length: int) -> int:
-    """The start of the ``length`` frames with the most confident detections in ``valid``
-    (N, C, M), among starts every quarter of ``length`` and the last one."""
-    N = valid.shape[0]
+class Frames(Protocol):
+    """Where a windowed solve takes a run's frames from: a :class:`Problem` in memory
+    (:class:`InMemory`), or a run staged on disk (:class:`Staged`)."""
+
+    @property
+    def frames(self) -> int: ...
+
+    @property
+    def options(self) -> SolveOptions: ...
+
+    def seen(self) -> np.ndarray:
+        """The confident detections in each frame (N,)."""
+        ...
+
+    def stretch(self, a: int, b: int, options: SolveOptions) -> Problem:
+        """Frames ``[a, b)`` solved with ``options`` as given: the stretch the shared unknowns are settled on."""
+        ...
+
+    def window(self, a: int, b: int, options: SolveOptions, sigma_px: float) -> Problem:
+        """Frames ``[a, b)`` with the held ``options`` and noise ``sigma_px``: one window."""
+        ...
+
+
+class InMemory:
+    """The frames of a :class:`Problem` built whole (:func:`frames_of`)."""
+
+    def __init__(self, prob: Problem):
+        self.prob = prob
+
+    @property
+    def frames(self) -> int:
+        return self.prob.frames
+
+    @property
+    def options(self) -> SolveOptions:
+        return self.prob.options
+
+    def seen(self) -> np.ndarray:
+        return self.prob.valid.sum(axis=(1, 2))
+
+    def stretch(self, a: int, b: int, options: SolveOptions) -> Problem:
+        return frames_of(self.prob, a, b, options)
+
+    def window(self, a: int, b: int, options: SolveOptions, sigma_px: float) -> Problem:
+        return frames_of(self.prob, a, b, options, sigma_px)
+
+
+class Staged:
+    """The frames of a run staged on disk (:class:`graph.io.staged.StagedRun`), read a window at a
+    time. The settled stretch is built and checked as a run of its own (:func:`graph.solve.problem.build`:
+    the noise measured on it, when ``"auto"``, and an ensemble's relative noise), and every window
+    takes its skeleton, rig and noise (:func:`graph.solve.problem.window_of`)."""
+
+    BLOCK = 8192  # frames read at a time to count the confident detections
+
+    def __init__(self, run: StagedRun, calibration: Calibration, options: SolveOptions):
+        self.run, self.calibration, self.options = run, calibration, options
+        self.skeleton = problem.skeleton_of([cam.bodyparts for cam in run.cameras], options)
+        self._template: Problem | None = None
+
+    @property
+    def frames(self) -> int:
+        return self.run.frames
+
+    def seen(self) -> np.ndarray:
+        t = self.options.likelihood_threshold
+        return np.concatenate([problem.confident(self.run.keypoints(a, a + self.BLOCK), self.skeleton, t)
+                               for a in range(0, self.frames, self.BLOCK)])
+
+    def stretch(self, a: int, b: int, options: SolveOptions) -> Problem:
+        prob = replace(problem.build(self.run.keypoints(a, b), self.calibration, options), window=(a, b))
+        self._template = prob
+        return prob
+
+    def window(self, a: int, b: int, options: SolveOptions, sigma_px: float) -> Problem:
+        if self._template is None:
+            raise RuntimeError("a staged run's windows come after its settled stretch (settle)")
+        template = replace(self._template, options=options, sigma_px=sigma_px)
+        return problem.window_of(template, self.run.keypoints(a, b), (a, b))
+
+
+def best_seen(seen: np.ndarray, length: int) -> int:
+    """The start of the ``length`` frames with the most confident detections, ``seen`` (N,) a frame,
+    among starts every quarter of ``length`` and the last one."""
+    N = seen.shape[0]
     if length >= N:
         return 0
-    counts = np.concatenate([[0], np.cumsum(valid.sum(axis=(1, 2)))])
+    counts = np.concatenate([[0], np.cumsum(seen)])
     starts = np.unique(np.r_[np.arange(0, N - length + 1, max(length // 4, 1)), N - length])
-    seen = counts[starts + length] - counts[starts]
-    return int(starts[int(np.argmax(seen))])
+    total = counts[starts + length] - counts[starts]
+    return int(starts[int(np.argmax(total))])
 
 
 def held_options(options: SolveOptions, settled: Result) -> tuple[SolveOptions, dict]:
@@ -108,7 +202,7 @@ def held_options(options: SolveOptions, settled: Result) -> tuple[SolveOptions, 
 class Settled(NamedTuple):
     """What every window holds (module docstring, step 1): the ``options`` to solve them with, the
     detection noise ``sigma_px``, the values held (``held``: the options changed) and the stretch
-    ``[start, stop)`` they were settled on, with its ``result``."""
+    ``[start, stop)`` they were settled on, with its ``problem`` and ``result``."""
 
     options: SolveOptions
     sigma_px: float
@@ -116,99 +210,154 @@ class Settled(NamedTuple):
     start: int
     stop: int
     result: Result
+    problem: Problem
 
 
-def settle(prob: Problem, frames: int) -> Settled:
-    """Solve the best-seen ``frames`` of ``prob`` with its options and hold what it measured or
-    estimated (:func:`held_options`)."""
-    o = replace(prob.options, window_frames=0)
-    s0 = best_seen(prob.valid, frames)
-    s1 = min(prob.frames, s0 + frames)
+def settle(source: Frames | Problem, frames: int) -> Settled:
+    """Solve the best-seen ``frames`` of ``source`` (a :class:`Problem`'s options, or the options of
+    the run it stages) with its options and hold what it measured or estimated (:func:`held_options`)."""
+    src = InMemory(source) if isinstance(source, Problem) else source
+    s0 = best_seen(src.seen(), frames)
+    s1 = min(src.frames, s0 + frames)
+    stretch = src.stretch(s0, s1, replace(src.options, window_frames=0))
+    o = stretch.options  # as the problem resolved them (the skeleton's default motion scale)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the settling stretch's own warnings: the whole run's are made after
-        result = solve_fte_joint(frames_of(prob, s0, s1, o))
+        result = solve_fte_joint(stretch)
     held, values = held_options(o, result)
-    return Settled(held, float(result.report.sigma_px), values, s0, s1, result)
+    return Settled(held, float(result.report.sigma_px), values, s0, s1, result, stretch)
+
+
+class Core(NamedTuple):
+    """One window's kept frames: the run's frames from ``at``, their :class:`Result` (its report the
+    window's) and confident detections ``valid`` (n, C, M)."""
+
+    at: int
+    result: Result
+    valid: np.ndarray
+
+
+class Windows:
+    """The windows of a run (module docstring), solved one at a time as they are iterated, each
+    giving its :class:`Core`; what they add up to (iterations, cost, bounds, warnings) is kept here."""
+
+    def __init__(self, source: Frames, core: int, margin: int = MARGIN_FRAMES, settle_frames: int = SETTLE_FRAMES,
+                 progress: ProgressCallback | None = None, settled: Settled | None = None):
+        self.source, self.core, self.margin, self.progress = source, core, margin, progress
+        if progress:
+            progress(Progress(stage="initialise", fraction=0.0, detail="settling what every window shares"))
+        self.settled = settled or settle(source, settle_frames)
+        self.starts = list(range(0, source.frames, core))
+        self.iterations = self.settled.result.report.iterations
+        self.cost = 0.0
+        self.bounds_active = 0
+        self.warnings: list[list[str]] = []
+
+    def __iter__(self) -> Iterator[Core]:
+        st, N, t0 = self.settled, self.source.frames, time.perf_counter()
+        angles, last = st.problem.skeleton.angle_params, None
+        for k, a in enumerate(self.starts):
+            b = min(N, a + self.core)
+            lo, hi = max(0, a - self.margin), min(N, b + self.margin)
+            prob = self.source.window(lo, hi, st.options, st.sigma_px)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # a window's warnings are gathered into the run's (grouped)
+                r = solve_fte_joint(prob)
+            if r.params is not None and angles.size:
+                if last is not None:  # the same turn as the core before: an angle may end a window 2 pi apart
+                    turns = np.round((last - r.params[a - lo - 1, angles]) / (2 * np.pi))
+                    r.params[:, angles] += 2 * np.pi * turns
+                last = r.params[b - lo - 1, angles].copy()
+            self.iterations += r.report.iterations
+            self.cost += r.report.cost  # the windows' costs (their margins counted twice)
+            self.bounds_active += r.report.bounds_active
+            self.warnings.append(r.report.warnings)
+            yield Core(a, r.frames(a - lo, b - lo), prob.valid[a - lo:b - lo])
+            del r, prob  # one window at a time
+            if self.progress:
+                left = (time.perf_counter() - t0) / (k + 1) * (len(self.starts) - k - 1)
+                self.progress(Progress(stage="optimise", fraction=0.05 + 0.9 * (k + 1) / len(self.starts),
+                                       iteration=self.iterations,
+                                       detail=f"window {k + 1} of {len(self.starts)}, {left:.0f} s left"))
+
+    def report(self, report: SolveReport) -> None:
+        """What the windows share written into the run's ``report``: ``windows`` and the settled values."""
+        st = self.settled
+        report.windows = {"count": len(self.starts), "core_frames": self.core, "margin_frames": self.margin,
+                          "settled_on": [st.start, st.stop], "held": st.held}
+        for name in ("motion_scales", "motion_orders", "body_lengths", "time_offsets_frames",
+                     "time_offsets_std_frames", "offsets_not_identified"):
+            setattr(report, name, getattr(st.result.report, name))
 
 
 def solve_in_windows(prob: Problem, core: int, margin: int = MARGIN_FRAMES, settle_frames: int = SETTLE_FRAMES,
                      progress: ProgressCallback | None = None, settled: Settled | None = None) -> Result:
     """``prob`` solved in windows of ``core`` kept frames and ``margin`` frames each side, with
     the shared unknowns settled on ``settle_frames`` frames (module docstring), or held as
-    ``settled`` gives them."""
+    ``settled`` gives them; the cores put end to end into one :class:`Result`."""
     t0 = time.perf_counter()
-    N = prob.frames
+    run = Windows(InMemory(prob), core, margin, settle_frames, progress, settled)
+    cores = _Cores(prob.frames)
+    for c in run:
+        cores.keep(c.at, c.result)
+    st = run.settled
+    result = cores.result(prob, st.options, st.sigma_px, run, time.perf_counter() - t0)
+    run.report(result.report)
+    result.report.motion_only_frames = _motion_only(result)
     if progress:
-        progress(Progress(stage="initialise", fraction=0.0, detail="settling what every window shares"))
-    st = settled or settle(prob, settle_frames)
-    starts = list(range(0, N, core))
-    cores = _Cores(N)
-    iterations = st.result.report.iterations
-    t_windows = time.perf_counter()
-    for k, a in enumerate(starts):
-        b = min(N, a + core)
-        lo, hi = max(0, a - margin), min(N, b + margin)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # a window's warnings are gathered into the run's (_grouped)
-            r = solve_fte_joint(frames_of(prob, lo, hi, st.options, st.sigma_px))
-        cores.keep(a, r, a - lo, b - lo)
-        iterations += r.report.iterations
-        del r  # one window's result at a time
-        if progress:
-            elapsed = time.perf_counter() - t_windows
-            left = elapsed / (k + 1) * (len(starts) - k - 1)
-            progress(Progress(stage="optimise", fraction=0.05 + 0.9 * (k + 1) / len(starts), iteration=iterations,
-                              detail=f"window {k + 1} of {len(starts)}, {left:.0f} s left"))
-    result = cores.result(prob, st.options, st.sigma_px, iterations, time.perf_counter() - t0)
-    report = result.report
-    report.windows = {"count": len(starts), "core_frames": core, "margin_frames": margin,
-                      "settled_on": [st.start, st.stop], "held": st.held}
-    for name in ("motion_scales", "motion_orders", "body_lengths", "time_offsets_frames", "time_offsets_std_frames",
-                 "offsets_not_identified"):
-        setattr(report, name, getattr(st.result.report, name))
-    report.motion_only_frames = _motion_only(result)
-    if progress:
-        progress(Progress(stage="done", fraction=1.0, iteration=iterations))
+        progress(Progress(stage="done", fraction=1.0, iteration=run.iterations))
     return result
 
 
-# the arrays of a Result kept from each window's core, with their frame axis
-FRAME_AXIS = {"positions": 0, "std": 0, "params": 0, "params_std": 0, "reprojections": 1, "residuals": 1, "outlier": 1}
+def solve_streamed(source: Frames, core: int, write: Callable[[Core], None],
+                   progress: ProgressCallback | None = None) -> tuple[SolveReport, Settled]:
+    """``source`` solved in windows of ``core`` kept frames (:class:`Windows`), each core handed to
+    ``write`` as it finishes and then dropped; the run's report made from their sums
+    (:class:`graph.solve.run_sums.RunSums`), and what the windows held. Memory: one window,
+    whatever the run's length."""
+    from graph.solve.run_sums import RunSums
+
+    t0 = time.perf_counter()
+    run = Windows(source, core, progress=progress)
+    st = run.settled
+    sums = RunSums(source.frames, st.problem.cameras, len(st.problem.markers), st.problem.noise_scale)
+    for c in run:
+        write(c)
+        sums.add(c.at, c.result, c.valid)
+    stretch = replace(st.problem, options=st.options)
+    report = sums.report(stretch, st.result, st.sigma_px, {"init": 0.0, "solve": time.perf_counter() - t0},
+                         run.iterations, run.cost, run.bounds_active, grouped(run.warnings))
+    run.report(report)
+    if progress:
+        progress(Progress(stage="done", fraction=1.0, iteration=run.iterations))
+    return report, st
+
+
+# the arrays of a Result kept from each window's core (the rest are made over the whole run)
+# (the rates each window's own: at a seam, the central difference of the window that keeps the frame)
+KEPT = ("positions", "std", "params", "rates", "params_std", "reprojections", "residuals", "outlier")
 
 
 class _Cores:
     """The windows' cores of a run of N frames, copied into arrays of the whole run as each window
-    finishes (so one window's :class:`Result` is held at a time), with their costs and warnings."""
+    finishes (so one window's :class:`Result` is held at a time)."""
 
     def __init__(self, frames: int):
         self.frames = frames
         self.arrays: dict[str, np.ndarray | None] = {}
-        self.cost = 0.0
-        self.bounds_active = 0
-        self.warnings: list[list[str]] = []
 
-    def keep(self, at: int, r: Result, i: int, j: int) -> None:
-        """Keep frames ``[i, j)`` of the window's result ``r`` as the run's frames from ``at``."""
-        for name, axis in FRAME_AXIS.items():
-            a = getattr(r, name)
-            if at == 0:
-                shape = list(a.shape) if a is not None else None
-                if shape is not None:
-                    shape[axis] = self.frames
-                self.arrays[name] = np.empty(shape, dtype=a.dtype) if a is not None and shape else None
+    def keep(self, at: int, r: Result) -> None:
+        """Keep the core ``r`` as the run's frames from ``at``."""
+        for name in KEPT:
+            a, axis = getattr(r, name), FRAME_AXIS[name]
+            if name not in self.arrays:
+                shape = None if a is None else a.shape[:axis] + (self.frames,) + a.shape[axis + 1:]
+                self.arrays[name] = None if shape is None else np.empty(shape, dtype=a.dtype)
             out = self.arrays[name]
             if out is not None:
-                index = [slice(None)] * out.ndim
-                index[axis] = slice(at, at + j - i)
-                src = [slice(None)] * out.ndim
-                src[axis] = slice(i, j)
-                out[tuple(index)] = a[tuple(src)]
-        self.cost += r.report.cost  # the windows' costs (their margins counted twice)
-        self.bounds_active += r.report.bounds_active
-        self.warnings.append(r.report.warnings)
+                out[(slice(None),) * axis + (slice(at, at + a.shape[axis]),)] = a
 
-    def result(self, prob: Problem, options: SolveOptions, sigma_px: float, iterations: int,
-               solve_s: float) -> Result:
+    def result(self, prob: Problem, options: SolveOptions, sigma_px: float, run: Windows, solve_s: float) -> Result:
         """One :class:`Result` of the whole run, its report made over the whole
         (:func:`graph.solve.result.build_result`)."""
         whole = replace(prob, options=options, sigma_px=sigma_px)
@@ -219,12 +368,12 @@ class _Cores:
         s = residuals.transpose(1, 0, 2)  # in place: the run's residuals in units of the noise
         return build_result(whole, "fte", positions=A["positions"], std=A["std"], reprojections=A["reprojections"],
                             s=s, outlier=outlier.transpose(1, 0, 2), seconds={"init": 0.0, "solve": solve_s},
-                            iterations=iterations, cost=self.cost, sigma_px=sigma_px, params=A["params"],
-                            params_std=A["params_std"], bounds_active=self.bounds_active,
-                            report={"warnings": _grouped(self.warnings)})
+                            iterations=run.iterations, cost=run.cost, sigma_px=sigma_px, params=A["params"],
+                            params_std=A["params_std"], rates=A["rates"], bounds_active=run.bounds_active,
+                            report={"warnings": grouped(run.warnings)})
 
 
-def _grouped(said: list[list[str]]) -> list[str]:
+def grouped(said: list[list[str]]) -> list[str]:
     """The windows' warnings, one of each kind (the same words, whatever numbers) with the number
     of windows that gave it: the first one's text, and ``(in n of K windows)``."""
     first: dict[str, str] = {}
@@ -238,5 +387,9 @@ def _grouped(said: list[list[str]]) -> list[str]:
 
 def _motion_only(result: Result) -> dict[str, int]:
     """Per marker, the frames answered from the motion model alone (fewer than two cameras saw it)."""
-    alone = (result.ncams < 2) & np.isfinite(result.positions).all(axis=-1)
-    return {m: int(k) for m, k in zip(result.markers, alone.sum(axis=0)) if k}
+    return {m: int(k) for m, k in zip(result.markers, motion_only(result)) if k}
+
+
+def motion_only(result: Result) -> np.ndarray:
+    """Per marker (M,), the frames of ``result`` answered from the motion model alone."""
+    return ((result.ncams < 2) & np.isfinite(result.positions).all(axis=-1)).sum(axis=0)

@@ -1,0 +1,106 @@
+"""A long recording's detections kept on disk while it is solved a window at a time.
+
+An hour at 120 fps is 432,000 frames: six cameras' detections of 20 markers are 1.2 GB as float64,
+more than the rest of a windowed solve holds (:mod:`graph.solve.windows`). So each camera's file
+is read once, in turn (:func:`graph.io.keypoints.read_tracks`: every format a solve takes), and its
+arrays written as raw native float64 files in a scratch folder of the caller's:
+
+* ``<c>.xy``: (N, M_c, 2) pixels, NaN where missing;
+* ``<c>.likelihood``: (N, M_c), 0 where missing;
+* ``<c>.spread``: (N, M_c), an ensemble's disagreement, where the camera has one.
+
+:meth:`StagedRun.keypoints` reads frames ``[a, b)`` of every camera back (``np.fromfile`` at the
+frames' offset: nothing stays mapped), so only a window's detections are in memory at a time. A
+camera file of several individuals is not staged (:meth:`StagedRun.add` says so): several animals
+are solved together (:func:`graph.api.solve_group`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from graph.errors import InputError
+from graph.io.keypoint_types import Keypoints, Tracks
+
+_F64 = np.dtype(np.float64)
+
+
+@dataclass(frozen=True)
+class StagedCamera:
+    """One camera's file as staged: what its :class:`Keypoints` held besides the arrays."""
+
+    index: int
+    bodyparts: list[str]
+    source: str
+    scorer: str
+    fps: float | None
+    spread: bool
+
+
+class StagedRun:
+    """The detections of a run's cameras in ``folder`` (module docstring); cameras are added in the
+    calibration's order, each with the first one's frame count."""
+
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder)
+        self.cameras: list[StagedCamera] = []
+        self.frames = 0
+
+    def add(self, kp: Keypoints) -> None:
+        """Write one camera's detections; :class:`InputError` when its frames are not the first's."""
+        if self.cameras and kp.frames != self.frames:
+            first = Path(self.cameras[0].source).name or "camera 1"
+            raise InputError(f"has {kp.frames} frames but {first} has {self.frames}; all cameras must have "
+                             "the same frames", kp.source or None)
+        c = len(self.cameras)
+        self._path(c, "xy").write_bytes(np.ascontiguousarray(kp.xy, dtype=_F64).tobytes())
+        self._path(c, "likelihood").write_bytes(np.ascontiguousarray(kp.likelihood, dtype=_F64).tobytes())
+        if kp.spread_px is not None:
+            self._path(c, "spread").write_bytes(np.ascontiguousarray(kp.spread_px, dtype=_F64).tobytes())
+        self.frames = kp.frames
+        self.cameras.append(StagedCamera(c, list(kp.bodyparts), kp.source, kp.scorer, kp.fps,
+                                         kp.spread_px is not None))
+
+    def keypoints(self, a: int, b: int) -> list[Keypoints]:
+        """Every camera's frames ``[a, b)`` (clipped to the run) as :class:`Keypoints`."""
+        a, b = max(0, a), min(self.frames, b)
+        n = max(0, b - a)
+        out = []
+        for cam in self.cameras:
+            M = len(cam.bodyparts)
+            xy = self._read(cam.index, "xy", a, n, M * 2).reshape(n, M, 2)
+            lik = self._read(cam.index, "likelihood", a, n, M).reshape(n, M)
+            spread = self._read(cam.index, "spread", a, n, M).reshape(n, M) if cam.spread else None
+            out.append(Keypoints(bodyparts=list(cam.bodyparts), xy=xy, likelihood=lik, scorer=cam.scorer,
+                                 source=cam.source, spread_px=spread, fps=cam.fps))
+        return out
+
+    @property
+    def fps(self) -> list[float | None]:
+        return [cam.fps for cam in self.cameras]
+
+    def _path(self, camera: int, name: str) -> Path:
+        return self.folder / f"{camera}.{name}"
+
+    def _read(self, camera: int, name: str, a: int, n: int, per_frame: int) -> np.ndarray:
+        return np.fromfile(self._path(camera, name), dtype=_F64, count=n * per_frame,
+                           offset=a * per_frame * _F64.itemsize)
+
+
+def stage(paths: list[str], folder: str | Path, read: Callable[[str], Tracks],
+          long_enough: Callable[[int], bool]) -> StagedRun | None:
+    """The cameras' files ``paths`` (each read by ``read``, one at a time) staged in ``folder`` when the
+    run is ``long_enough`` (judged on the first file's frame count) and every file holds one
+    individual; None otherwise (read the files as a solve in memory takes them)."""
+    run = StagedRun(folder)
+    for k, path in enumerate(paths):
+        tracks = read(path)
+        if tracks.slots != 1 or (k == 0 and not long_enough(tracks.frames)):
+            return None
+        run.add(tracks.slot(0))
+        del tracks
+    return run
