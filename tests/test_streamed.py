@@ -1,0 +1,109 @@
+"""A long run solved streamed (``acinoset solve`` over :data:`graph.types.WINDOWED_ABOVE` frames, or
+with ``--window-frames``): each camera's file staged on disk, a window read at a time, its frames
+written as it finishes. The answer is the one the run held whole in memory gets from the same windows,
+to the bit; the staged copy is gone afterwards."""
+
+import json
+import os
+import subprocess
+import sys
+import warnings
+
+import h5py
+import numpy as np
+import pytest
+
+from graph.api import solve
+from graph.io.calibration import load_calibration
+from graph.io.keypoints import read_keypoints
+from graph.io.results import read_result, write_anipose_csv
+from graph.io.staged import StagedRun
+from graph.simulate import simulate_run, write_run
+from graph.solve import problem, windows
+from graph.types import FRAME_AXIS, SolveOptions
+
+FRAMES = 3000
+CORE = 500
+
+
+@pytest.fixture(scope="module")
+def long_run(rig, tmp_path_factory):
+    """A cheetah walking its figure of eight for 25 s at 120 fps (seed 7 turns a full circle across
+    the seam at frame 500), written as a user brings it."""
+    run = simulate_run(rig, frames=FRAMES, fps=120, seed=7, speed=1.0)
+    d = tmp_path_factory.mktemp("long")
+    write_run(run, d)
+    return run, d
+
+
+def _cams(rig, d) -> list[str]:
+    return [str(d / f"{n}.csv") for n in rig.names]
+
+
+@pytest.fixture(scope="module")
+def in_memory(rig, long_run):
+    """The same files read whole and solved in the same windows by :func:`graph.api.solve`."""
+    _, d = long_run
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return solve([read_keypoints(p) for p in _cams(rig, d)], load_calibration(d / "calibration.toml"),
+                     SolveOptions(fps=120, window_frames=CORE))
+
+
+def test_the_command_streams_the_same_answer_as_the_run_in_memory(rig, long_run, in_memory, tmp_path):
+    _, d = long_run
+    out = tmp_path / "run.csv"
+    cmd = [sys.executable, "-m", "graph.app.cli", "solve", *_cams(rig, d), "--calibration", str(d / "calibration.toml"),
+           "--fps", "120", "--window-frames", str(CORE), "--out", str(out), "--h5", str(tmp_path / "run.h5"),
+           "--report", str(tmp_path / "report.json")]
+    done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "ACINOSET_RESIDENT": "0"})
+    assert done.returncode == 0, done.stderr
+    assert f"{FRAMES} frames" in done.stdout
+
+    write_anipose_csv(tmp_path / "memory.csv", in_memory)
+    assert out.read_bytes() == (tmp_path / "memory.csv").read_bytes()
+
+    streamed = read_result(tmp_path / "run.h5")
+    for name in FRAME_AXIS:
+        a, b = getattr(in_memory, name), getattr(streamed, name)
+        assert (a is None) == (b is None), name
+        if a is not None:
+            assert a.shape == b.shape and np.array_equal(a, b, equal_nan=True), name
+    with h5py.File(tmp_path / "run.h5") as f:
+        assert f["positions"].chunks[0] <= 1024  # written a stretch of frames at a time
+
+    report = json.loads((tmp_path / "report.json").read_text())
+    whole = in_memory.report.to_dict()
+    assert set(report) == set(whole)
+    for key in whole:  # the RMSE's squares summed a window at a time: to the last digit or so
+        if isinstance(whole[key], float):
+            assert report[key] == pytest.approx(whole[key], rel=1e-12), key
+        elif key != "seconds":
+            assert report[key] == whole[key], key
+    assert report["windows"]["count"] == FRAMES // CORE
+    assert not list(tmp_path.glob(".acinoset-staged-*")), "the staged copy was left behind"
+
+
+def test_angles_stay_on_one_turn_across_the_seams(in_memory):
+    """Each window starts its yaw from the heading, within (-pi, pi]: without carrying the previous
+    core's turn, the stitched angles jumped by 2 pi at a seam (and their rates by 2 pi fps)."""
+    angles = problem.skeleton_of([], SolveOptions()).angle_params
+    step = np.abs(np.diff(in_memory.params[:, angles], axis=0))
+    assert step.max() < 1.0, f"a step of {step.max():.2f} rad at frame {np.unravel_index(step.argmax(), step.shape)[0]}"
+    assert np.abs(in_memory.rates[:, angles]).max() < 120.0
+
+
+def test_a_staged_run_reads_back_the_frames_asked_for(rig, long_run, tmp_path):
+    run, _ = long_run
+    staged = StagedRun(tmp_path)
+    for kp in run.keypoints:
+        staged.add(kp)
+    got = staged.keypoints(1234, 1300)
+    for kp, k in zip(got, run.keypoints):
+        assert np.array_equal(kp.xy, k.xy[1234:1300], equal_nan=True)
+        assert np.array_equal(kp.likelihood, k.likelihood[1234:1300])
+        assert kp.bodyparts == k.bodyparts
+    assert staged.keypoints(FRAMES - 10, FRAMES + 50)[0].frames == 10
+    source = windows.Staged(staged, rig, SolveOptions(fps=120))
+    whole = problem.build(run.keypoints, rig, SolveOptions(fps=120))
+    assert np.array_equal(source.seen(), whole.valid.sum(axis=(1, 2)))
