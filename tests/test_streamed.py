@@ -5,9 +5,12 @@ to the bit; the staged copy is gone afterwards."""
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 import warnings
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -107,3 +110,77 @@ def test_a_staged_run_reads_back_the_frames_asked_for(rig, long_run, tmp_path):
     source = windows.Staged(staged, rig, SolveOptions(fps=120))
     whole = problem.build(run.keypoints, rig, SolveOptions(fps=120))
     assert np.array_equal(source.seen(), whole.valid.sum(axis=(1, 2)))
+
+
+def _solve(rig, d, out, *extra, wait=True):
+    cmd = [sys.executable, "-m", "graph.app.cli", "solve", *_cams(rig, d), "--calibration", str(d / "calibration.toml"),
+           "--fps", "120", "--window-frames", str(CORE), "--out", str(out), "--h5", str(out.with_suffix(".h5")),
+           "--report", str(out.with_suffix(".json")), *extra]
+    env = {**os.environ, "ACINOSET_RESIDENT": "0"}
+    if wait:
+        return subprocess.run(cmd, capture_output=True, text=True, env=env)
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+
+
+def _windows_done(state: Path) -> int:
+    try:
+        return json.loads(state.read_text())["windows"]["done"]
+    except (OSError, ValueError):
+        return 0
+
+
+def test_a_killed_run_goes_on_from_its_last_window(rig, long_run, tmp_path):
+    """Killed (SIGKILL) after its first windows, ``--resume`` goes on from the last one finished and
+    writes what the run that was never stopped writes: the CSV byte for byte, the H5's arrays and the
+    report; the partial folder is gone after."""
+    _, d = long_run
+    whole = _solve(rig, d, tmp_path / "whole.csv")
+    assert whole.returncode == 0, whole.stderr
+
+    out = tmp_path / "run.csv"
+    state = tmp_path / "run.csv.partial" / "state.json"
+    proc = _solve(rig, d, out, wait=False)
+    deadline = time.monotonic() + 120
+    while _windows_done(state) < 1 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    done = _windows_done(state)
+    assert 1 <= done < FRAMES // CORE, f"killed after {done} windows"
+    assert out.stat().st_size < (tmp_path / "whole.csv").stat().st_size
+
+    again = _solve(rig, d, out, "--resume")
+    assert again.returncode == 0, again.stderr
+    assert out.read_bytes() == (tmp_path / "whole.csv").read_bytes()
+    a, b = read_result(tmp_path / "whole.h5"), read_result(out.with_suffix(".h5"))
+    for name in FRAME_AXIS:
+        if getattr(a, name) is not None:
+            assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), name
+    ra, rb = (json.loads(p.with_suffix(".json").read_text()) for p in (tmp_path / "whole.csv", out))
+    assert {k: v for k, v in ra.items() if k != "seconds"} == {k: v for k, v in rb.items() if k != "seconds"}
+    assert not state.parent.exists()
+
+
+def test_resume_without_a_stopped_run_or_with_other_options_is_one_line(rig, long_run, tmp_path):
+    _, d = long_run
+    out = tmp_path / "run.csv"
+    nothing = _solve(rig, d, out, "--resume")
+    assert nothing.returncode == 2 and "no stopped run to go on from" in nothing.stderr
+    assert "Traceback" not in nothing.stderr and len(nothing.stderr.strip().splitlines()) == 1
+
+    (tmp_path / "run.csv.partial" / "staged").mkdir(parents=True)
+    proc = _solve(rig, d, out, wait=False)
+    state = tmp_path / "run.csv.partial" / "state.json"
+    deadline = time.monotonic() + 120
+    while _windows_done(state) < 1 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    other = _solve(rig, d, out, "--resume", "--likelihood-threshold", "0.6")
+    assert other.returncode == 2 and "not the ones of the run that stopped" in other.stderr
+    assert "Traceback" not in other.stderr
+
+    short = subprocess.run([sys.executable, "-m", "graph.app.cli", "solve", *_cams(rig, d), "--calibration",
+                            str(d / "calibration.toml"), "--fps", "120", "--method", "tri", "--out",
+                            str(tmp_path / "tri.csv"), "--resume"], capture_output=True, text=True)
+    assert short.returncode == 2 and "--resume goes on with a long run" in short.stderr

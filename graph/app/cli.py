@@ -23,18 +23,19 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
+import shutil
 import sys
-import tempfile
 import warnings
 from collections import namedtuple
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 from graph import __version__
 from graph.errors import InputError
 
 if TYPE_CHECKING:
-    from graph.types import Body
+    from graph.types import Body, SolveReport
 
 PROG = "acinoset"
 
@@ -212,6 +213,9 @@ def register(sub) -> None:
     p.add_argument("--report", default=None, metavar="REPORT.json", help="also write the solver report")
     p.add_argument("--reprojections", default=None, metavar="DIR",
                    help="also write the estimate reprojected into each camera as DeepLabCut CSVs")
+    p.add_argument("--resume", action="store_true",
+                   help="go on with a long run that stopped (killed, out of time) from its last finished window, "
+                        "with the same files and options: a run solved in windows keeps OUT.csv.partial/ until done")
     p.set_defaults(func=run_solve)
 
 
@@ -439,11 +443,11 @@ def run_solve(args: argparse.Namespace) -> int:
                          "were given (one per camera, in the calibration's order)", args.calibration)
     from graph.io.keypoints import Keypoints
 
-    if _streamable(args, options):
-        with tempfile.TemporaryDirectory(prefix=".acinoset-staged-", dir=Path(args.out).parent) as scratch:
-            done = _solve_streamed(args, options, calibration, scratch)
-        if done:
-            return 0
+    if _streamable(args, options) and _solve_streamed(args, options, calibration):
+        return 0
+    if args.resume:
+        raise UsageError("--resume goes on with a long run solved in windows (fte, one individual, no ensemble, no "
+                         "--reprojections), and this one is not")
     cameras = read_inputs(args.keypoints, args.individual, args.individuals, args.openpose_model)
     if all(isinstance(c, Keypoints) for c in cameras):
         check_same_frames(cameras)
@@ -495,42 +499,100 @@ def _streamable(args: argparse.Namespace, options) -> bool:
             and not any("+" in p and not Path(p).exists() for p in args.keypoints))
 
 
-def _solve_streamed(args: argparse.Namespace, options, calibration, scratch: str) -> bool:
+def _solve_streamed(args: argparse.Namespace, options, calibration) -> bool:
     """A run over :data:`graph.types.WINDOWED_ABOVE` frames (or ``--window-frames``) solved in windows
-    in memory that does not grow with it: each camera's file read in turn and staged in ``scratch``
-    (:mod:`graph.io.staged`), each window read from there, and its kept frames written to the CSV
-    (and the H5) as it finishes (:func:`graph.api.solve_streamed`). False when the run is not that
-    long or a file holds several individuals: solve it in memory."""
-    from graph import api
-    from graph.io import results
+    in memory that does not grow with it: each camera's file read in turn and staged in
+    ``OUT.csv.partial/`` (:mod:`graph.io.staged`), each window read from there, and its kept frames
+    written to the CSV (and the H5) as it finishes (:func:`graph.api.solve_streamed`), with where
+    the run stands (``state.json``), so that ``--resume`` goes on from the last window finished.
+    The folder is removed when the run is done. False when the run is not that long or a file holds
+    several individuals: solve it in memory."""
     from graph.io.keypoints import read_tracks
-    from graph.io.staged import stage
+    from graph.io.staged import StagedRun, stage
     from graph.types import WINDOWED_ABOVE
 
-    above = options.window_frames or WINDOWED_ABOVE
-    run = stage(args.keypoints, scratch, lambda p: read_tracks(p, openpose_model=args.openpose_model),
-                lambda frames: frames > above)
-    if run is None:
-        return False
+    out = Path(args.out)
+    work = out.with_name(out.name + ".partial")
+    state = None
+    if args.resume:
+        state = _stopped_run(work)
+        run = StagedRun.open(work / "staged")
+    else:
+        if work.exists():
+            shutil.rmtree(work)  # a stopped run's, started again
+        (work / "staged").mkdir(parents=True)
+        above = options.window_frames or WINDOWED_ABOVE
+        got = stage(args.keypoints, work / "staged", lambda p: read_tracks(p, openpose_model=args.openpose_model),
+                    lambda frames: frames > above)
+        if got is None:
+            shutil.rmtree(work)
+            return False
+        run = got
+        run.save()
     fps, fps_from = frame_rate(args.fps, run.cameras)
     options = solve_options(args, fps)
-    out = Path(args.out)
+    inputs = _fingerprint(args, options, run.frames)
+    if state is not None and state["inputs"] != inputs:
+        raise InputError("the keypoint files, the calibration or the options are not the ones of the run that stopped "
+                         "(run again without --resume)", work)
+    try:
+        report = _stream(args, options, calibration, run, work, inputs, state)
+    except BaseException:
+        if (work / "state.json").exists():
+            done = json.loads((work / "state.json").read_text(encoding="utf-8"))["windows"]["done"]
+            print(f"{PROG}: stopped after {done} windows: acinoset solve ... --resume goes on from there",
+                  file=sys.stderr)
+        raise
+    shutil.rmtree(work)
+    written: list = [out if report.unit == "m" else f"{out} (in {report.unit})"]
+    if args.h5:
+        written.append(args.h5)
+    if args.report:
+        Path(args.report).write_text(json.dumps(report.report.to_dict(), indent=2) + "\n", encoding="utf-8")
+        written.append(args.report)
+    print(_summary(report.report, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
+    return True
+
+
+class _Streamed(NamedTuple):
+    report: "SolveReport"
+    unit: str
+
+
+def _stream(args: argparse.Namespace, options, calibration, run, work: Path, inputs: dict,
+            state: dict | None) -> _Streamed:
+    """:func:`graph.api.solve_streamed` of the staged ``run``, its windows written to the CSV and H5 as
+    they finish and the run's state saved in ``work`` after each (``state``: a stopped run's, to go on from)."""
+    from graph import api
+    from graph.io import results
+
     writers: dict = {}
+    per_unit = 1.0
 
     def write(core) -> None:
+        nonlocal per_unit
         r = core.result
         if not writers:
             per_unit = csv_metres_per_unit(args.units, calibration, r)
-            writers["unit"] = {1.0: "m", 0.01: "cm", 0.001: "mm"}[per_unit]
-            writers["csv"] = results.AniposeCsv(out, r.markers, metres_per_unit=per_unit)
+            writers["csv"] = results.AniposeCsv(args.out, r.markers, metres_per_unit=per_unit,
+                                                resume=None if state is None else tuple(state["csv"]))
             if args.h5:
-                writers["h5"] = results.H5Stream(args.h5, run.frames)
+                writers["h5"] = results.H5Stream(args.h5, run.frames, resume=None if state is None else state["h5"])
         writers["csv"].write(r)
         if "h5" in writers:
             writers["h5"].write(r)
 
+    def saved(solve_state: dict) -> None:
+        doc = {"inputs": inputs, "csv": writers["csv"].position(),
+               "h5": writers["h5"].flush() if "h5" in writers else None, **solve_state}
+        part = work / "state.json.part"
+        part.write_text(json.dumps(doc), encoding="utf-8")
+        os.replace(part, work / "state.json")
+
     try:
-        report = _with_progress(lambda bar: api.solve_streamed(run, calibration, options, write, progress=bar))
+        report = _with_progress(lambda bar: api.solve_streamed(
+            run, calibration, options, write, progress=bar, resume=state, saved=saved,
+            sample_file=work / "noise_sample.f64"))
     except BaseException:
         if "h5" in writers:
             writers["h5"].file.close()
@@ -538,15 +600,35 @@ def _solve_streamed(args: argparse.Namespace, options, calibration, scratch: str
     finally:
         if "csv" in writers:
             writers["csv"].close()
-    written: list = [out if writers["unit"] == "m" else f"{out} (in {writers['unit']})"]
     if "h5" in writers:
         writers["h5"].close(report, options, calibration)
-        written.append(args.h5)
-    if args.report:
-        Path(args.report).write_text(json.dumps(report.to_dict(), indent=2) + "\n", encoding="utf-8")
-        written.append(args.report)
-    print(_summary(report, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
-    return True
+    return _Streamed(report, {1.0: "m", 0.01: "cm", 0.001: "mm"}[per_unit])
+
+
+def _stopped_run(work: Path) -> dict:
+    """The state a stopped run saved in ``work`` (one line when there is none to go on from)."""
+    try:
+        state = json.loads((work / "state.json").read_text(encoding="utf-8"))
+        if not isinstance(state, dict) or not {"inputs", "csv", "windows", "sums"} <= set(state):
+            raise ValueError("not a run's state")
+    except (OSError, ValueError) as e:
+        raise InputError(f"no stopped run to go on from here ({type(e).__name__}: the run finished, was never "
+                         "solved in windows, or stopped before its first window)", work) from None
+    return state
+
+
+def _fingerprint(args: argparse.Namespace, options, frames: int) -> dict:
+    """What a stopped run must share with the one going on from it: the files (path, size, time
+    modified), the options and the outputs asked for."""
+    from graph.types import jsonable
+
+    def stat(path: str) -> list:
+        info = Path(path).stat()
+        return [str(Path(path).resolve()), info.st_size, info.st_mtime_ns]
+
+    return {"keypoints": [stat(p) for p in args.keypoints], "calibration": stat(args.calibration),
+            "options": jsonable(options.to_dict()), "frames": frames, "units": args.units,
+            "h5": None if args.h5 is None else str(Path(args.h5).resolve())}
 
 
 def read_inputs(paths: list[str], individual: str | None, individuals: int | None,

@@ -21,6 +21,7 @@ import csv
 import dataclasses
 import json
 import math
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -86,7 +87,7 @@ class AniposeCsv:
     calibration's frame (identity, 0). ``fnum`` counts the rows written."""
 
     def __init__(self, path: str | Path, markers: list[str], frame: tuple[np.ndarray, np.ndarray] | None = None,
-                 metres_per_unit: float = 1.0):
+                 metres_per_unit: float = 1.0, resume: tuple[int, int] | None = None):
         if not (np.isfinite(metres_per_unit) and metres_per_unit > 0):
             raise ValueError(f"metres_per_unit must be a positive number, not {metres_per_unit!r}")
         self.metres_per_unit, self.frame, self.rows = metres_per_unit, frame, 0
@@ -96,6 +97,12 @@ class AniposeCsv:
         header += [f"M_{i}{j}" for i in range(3) for j in range(3)] + [f"center_{i}" for i in range(3)] + ["fnum"]
         self.frame_const = ",".join([_cell(v) for v in self.M.ravel().tolist()] +
                                     [_cell(v) for v in self.center.tolist()])
+        if resume is not None:  # a file written up to (bytes, rows), by :meth:`position`: on from there
+            with open(path, "r+b") as f:
+                f.truncate(resume[0])
+            self.file = open(path, "a", newline="", encoding="utf-8")
+            self.rows = resume[1]
+            return
         self.file = open(path, "w", newline="", encoding="utf-8")
         csv.writer(self.file, lineterminator="\n").writerow(header)
 
@@ -116,6 +123,12 @@ class AniposeCsv:
             self.file.writelines(f"{_cells(row)},{self.frame_const},{first + i}\n"
                                  for i, row in enumerate(per_marker[a:a + CSV_BLOCK_ROWS].tolist()))
         self.rows += n
+
+    def position(self) -> tuple[int, int]:
+        """The bytes and rows written so far, on disk (``resume`` goes on from them)."""
+        self.file.flush()
+        os.fsync(self.file.fileno())
+        return os.fstat(self.file.fileno()).st_size, self.rows
 
     def close(self) -> None:
         self.file.close()
@@ -226,11 +239,20 @@ class H5Stream:
 
     CHUNK_FRAMES = 1024
 
-    def __init__(self, path: str | Path, frames: int):
+    def __init__(self, path: str | Path, frames: int, resume: int | None = None):
         import h5py
 
         self.frames, self.rows = frames, 0
-        self.file = h5py.File(path, "w")
+        if resume:  # a file of which ``resume`` frames were written (:meth:`flush`): on from there
+            self.file = h5py.File(path, "r+")
+            self.rows = resume
+        else:
+            self.file = h5py.File(path, "w")
+
+    def flush(self) -> int:
+        """The frames written so far, on disk."""
+        self.file.flush()
+        return self.rows
 
     def write(self, result: Result) -> None:
         """The next frames: every frame of ``result``."""

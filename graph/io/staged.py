@@ -17,8 +17,9 @@ are solved together (:func:`graph.api.solve_group`).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +83,32 @@ class StagedRun:
     @property
     def fps(self) -> list[float | None]:
         return [cam.fps for cam in self.cameras]
+
+    def save(self) -> None:
+        """The cameras' index (``cameras.json``) written beside their arrays, for :meth:`open`."""
+        index = {"frames": self.frames, "cameras": [asdict(cam) for cam in self.cameras]}
+        (self.folder / "cameras.json").write_text(json.dumps(index), encoding="utf-8")
+
+    @classmethod
+    def open(cls, folder: str | Path) -> StagedRun:
+        """A run staged and saved (:meth:`save`) earlier, in ``folder``; :class:`InputError` when it is
+        not there whole (each camera's arrays the size its index says)."""
+        run = cls(folder)
+        try:
+            index = json.loads((run.folder / "cameras.json").read_text(encoding="utf-8"))
+            run.frames = int(index["frames"])
+            run.cameras = [StagedCamera(int(c["index"]), [str(b) for b in c["bodyparts"]], str(c["source"]),
+                                        str(c["scorer"]), None if c["fps"] is None else float(c["fps"]),
+                                        bool(c["spread"])) for c in index["cameras"]]
+            for cam in run.cameras:
+                M = len(cam.bodyparts)
+                sizes = {"xy": 2 * M, "likelihood": M, **({"spread": M} if cam.spread else {})}
+                for name, per_frame in sizes.items():
+                    if run._path(cam.index, name).stat().st_size != run.frames * per_frame * _F64.itemsize:
+                        raise ValueError(f"camera {cam.index + 1}'s {name} is not whole")
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise InputError(f"no staged run to go on from ({e})", folder) from None
+        return run
 
     def _path(self, camera: int, name: str) -> Path:
         return self.folder / f"{camera}.{name}"

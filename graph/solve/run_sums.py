@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -31,9 +32,12 @@ SAMPLE_FRAMES = 20_000  # frames whose residuals measure the noise: at most ~20 
 
 
 class RunSums:
-    """The sums of a run of ``frames`` frames (module docstring), added a core at a time."""
+    """The sums of a run of ``frames`` frames (module docstring), added a core at a time. The noise's
+    sample of residuals is kept in memory, or appended to ``sample_file`` (a run that may be resumed:
+    :meth:`state`, :meth:`restore`, ``resuming``)."""
 
-    def __init__(self, frames: int, cameras: int, markers: int, noise_scale: np.ndarray | None = None):
+    def __init__(self, frames: int, cameras: int, markers: int, noise_scale: np.ndarray | None = None,
+                 sample_file: str | Path | None = None, resuming: bool = False):
         self.frames = frames
         self.stride = max(1, math.ceil(frames / SAMPLE_FRAMES))
         self.noise_scale = noise_scale
@@ -45,6 +49,9 @@ class RunSums:
         self.unseen_frames: list[int] = []
         self.alone = np.zeros(markers, dtype=np.int64)
         self.sample: list[np.ndarray] = []
+        self.sample_file = None if sample_file is None else Path(sample_file)
+        if self.sample_file is not None and not resuming:  # resuming: cut back to its length by restore
+            self.sample_file.write_bytes(b"")
 
     def add(self, at: int, r: Result, valid: np.ndarray) -> None:
         """The kept frames ``r`` of a window, the run's frames from ``at``, with their confident
@@ -60,8 +67,39 @@ class RunSums:
         self.unseen_frames += [at + int(n) for n in np.flatnonzero(~two.any(axis=1))]
         self.alone += ((r.ncams < 2) & np.isfinite(r.positions).all(axis=-1)).sum(axis=0)
         keep = (at + np.arange(res.shape[1])) % self.stride == 0
-        rel = res[:, keep]
-        self.sample.append(rel if self.noise_scale is None else rel / self.noise_scale[:, None, :])
+        rel = res[:, keep] if self.noise_scale is None else res[:, keep] / self.noise_scale[:, None, :]
+        rel = np.ascontiguousarray(rel.transpose(1, 0, 2), dtype=np.float64)  # (frames, C, M): frame by frame
+        if self.sample_file is None:
+            self.sample.append(rel)
+        else:
+            with open(self.sample_file, "ab") as f:
+                f.write(rel.tobytes())
+
+    def state(self) -> dict:
+        """The sums as JSON values (the sample: its file's length), for :meth:`restore`."""
+        return {"squares": self.squares, "used": self.used, "valid": self.valid.tolist(),
+                "rejected": self.rejected.tolist(), "seen_twice": self.seen_twice.tolist(),
+                "unseen_frames": self.unseen_frames, "alone": self.alone.tolist(),
+                "sample_bytes": self.sample_file.stat().st_size if self.sample_file is not None else None}
+
+    def restore(self, state: dict) -> None:
+        """The sums as :meth:`state` gave them (the sample file cut back to its length then)."""
+        self.squares, self.used = float(state["squares"]), int(state["used"])
+        for name in ("valid", "rejected", "alone", "seen_twice"):
+            old = getattr(self, name)
+            new = np.asarray(state[name], dtype=old.dtype)
+            if new.shape != old.shape:
+                raise ValueError(f"the saved sums' {name} has shape {new.shape}, not {old.shape}")
+            setattr(self, name, new)
+        self.unseen_frames = [int(n) for n in state["unseen_frames"]]
+        if self.sample_file is not None:
+            with open(self.sample_file, "r+b") as f:
+                f.truncate(int(state["sample_bytes"]))
+
+    def _noise_sample(self) -> np.ndarray:
+        if self.sample_file is not None:
+            return np.fromfile(self.sample_file, dtype=np.float64)
+        return np.concatenate(self.sample) if self.sample else np.zeros(0)
 
     def report(self, stretch: Problem, settled: Result, sigma_px: float, seconds: dict, iterations: int, cost: float,
                bounds_active: int, notes: list[str]) -> SolveReport:
@@ -70,7 +108,7 @@ class RunSums:
         opts, names = stretch.options, stretch.calibration.names
         said = list(stretch.warnings)
         misfit = inputs_misfit(self.rejected[:, None, None], self.valid[:, None, None], names)
-        noise = scatter_px(np.concatenate(self.sample, axis=1)) if self.sample else float("nan")
+        noise = scatter_px(self._noise_sample())
         self.sample = []
         checks = [misfit, None if misfit else noise_mismatch("fte", opts.measurement_std_px, sigma_px, noise),
                   implausible_motion(settled.positions, opts.fps)]

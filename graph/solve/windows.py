@@ -41,6 +41,7 @@ import time
 import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import replace
+from pathlib import Path
 from typing import NamedTuple, Protocol
 
 import numpy as np
@@ -60,6 +61,7 @@ from graph.types import (
     Result,
     SolveOptions,
     SolveReport,
+    jsonable,
 )
 
 MARGIN_FRAMES = 200  # frames solved on each side of a core and thrown away
@@ -248,15 +250,34 @@ class Windows:
             progress(Progress(stage="initialise", fraction=0.0, detail="settling what every window shares"))
         self.settled = settled or settle(source, settle_frames)
         self.starts = list(range(0, source.frames, core))
+        self.done = 0  # windows finished
+        self.last: list[float] | None = None  # the last kept frame's angles
         self.iterations = self.settled.result.report.iterations
         self.cost = 0.0
         self.bounds_active = 0
         self.warnings: list[list[str]] = []
 
+    def state(self) -> dict:
+        """Where the windows stand, as JSON values: the windows finished, the last kept frame's angles
+        and what they added up to (:meth:`restore` goes on from there)."""
+        return {"done": self.done, "last": self.last, "iterations": self.iterations, "cost": self.cost,
+                "bounds_active": self.bounds_active, "warnings": self.warnings, "held": jsonable(self.settled.held)}
+
+    def restore(self, state: dict) -> None:
+        """Go on from :meth:`state` of the same run: ValueError when the values the windows hold are not
+        the ones held then."""
+        if jsonable(self.settled.held) != state["held"]:
+            raise ValueError("the values settled for every window came out other than when the run stopped")
+        self.done, self.iterations = int(state["done"]), int(state["iterations"])
+        self.last = None if state["last"] is None else [float(v) for v in state["last"]]
+        self.cost, self.bounds_active = float(state["cost"]), int(state["bounds_active"])
+        self.warnings = [[str(w) for w in ws] for ws in state["warnings"]]
+
     def __iter__(self) -> Iterator[Core]:
         st, N, t0 = self.settled, self.source.frames, time.perf_counter()
-        angles, last = st.problem.skeleton.angle_params, None
-        for k, a in enumerate(self.starts):
+        angles, first = st.problem.skeleton.angle_params, self.done
+        for k in range(first, len(self.starts)):
+            a = self.starts[k]
             b = min(N, a + self.core)
             lo, hi = max(0, a - self.margin), min(N, b + self.margin)
             prob = self.source.window(lo, hi, st.options, st.sigma_px)
@@ -264,18 +285,21 @@ class Windows:
                 warnings.simplefilter("ignore")  # a window's warnings are gathered into the run's (grouped)
                 r = solve_fte_joint(prob)
             if r.params is not None and angles.size:
-                if last is not None:  # the same turn as the core before: an angle may end a window 2 pi apart
-                    turns = np.round((last - r.params[a - lo - 1, angles]) / (2 * np.pi))
+                if self.last is not None:  # the same turn as the core before: an angle may end a window 2 pi apart
+                    turns = np.round((np.asarray(self.last) - r.params[a - lo - 1, angles]) / (2 * np.pi))
                     r.params[:, angles] += 2 * np.pi * turns
-                last = r.params[b - lo - 1, angles].copy()
+                self.last = r.params[b - lo - 1, angles].tolist()
             self.iterations += r.report.iterations
             self.cost += r.report.cost  # the windows' costs (their margins counted twice)
             self.bounds_active += r.report.bounds_active
             self.warnings.append(r.report.warnings)
-            yield Core(a, r.frames(a - lo, b - lo), prob.valid[a - lo:b - lo])
+            core = Core(a, r.frames(a - lo, b - lo), prob.valid[a - lo:b - lo])
             del r, prob  # one window at a time
+            self.done = k + 1
+            yield core
+            del core
             if self.progress:
-                left = (time.perf_counter() - t0) / (k + 1) * (len(self.starts) - k - 1)
+                left = (time.perf_counter() - t0) / (k + 1 - first) * (len(self.starts) - k - 1)
                 self.progress(Progress(stage="optimise", fraction=0.05 + 0.9 * (k + 1) / len(self.starts),
                                        iteration=self.iterations,
                                        detail=f"window {k + 1} of {len(self.starts)}, {left:.0f} s left"))
@@ -310,20 +334,32 @@ def solve_in_windows(prob: Problem, core: int, margin: int = MARGIN_FRAMES, sett
 
 
 def solve_streamed(source: Frames, core: int, write: Callable[[Core], None],
-                   progress: ProgressCallback | None = None) -> tuple[SolveReport, Settled]:
+                   progress: ProgressCallback | None = None, resume: dict | None = None,
+                   saved: Callable[[dict], None] | None = None, sample_file: str | Path | None = None,
+                   ) -> tuple[SolveReport, Settled]:
     """``source`` solved in windows of ``core`` kept frames (:class:`Windows`), each core handed to
     ``write`` as it finishes and then dropped; the run's report made from their sums
-    (:class:`graph.solve.run_sums.RunSums`), and what the windows held. Memory: one window,
-    whatever the run's length."""
+    (:class:`graph.solve.run_sums.RunSums`, its noise sample in ``sample_file`` when given), and what
+    the windows held. Memory: one window, whatever the run's length.
+
+    After each window ``saved`` (when given) gets the run's state as JSON values, and ``resume``
+    (such a state) goes on from the window after it: the shared values are settled again (the same
+    inputs settle to the same values, checked) and the windows done are not solved again."""
     from graph.solve.run_sums import RunSums
 
     t0 = time.perf_counter()
     run = Windows(source, core, progress=progress)
     st = run.settled
-    sums = RunSums(source.frames, st.problem.cameras, len(st.problem.markers), st.problem.noise_scale)
+    sums = RunSums(source.frames, st.problem.cameras, len(st.problem.markers), st.problem.noise_scale, sample_file,
+                   resuming=resume is not None)
+    if resume is not None:
+        run.restore(resume["windows"])
+        sums.restore(resume["sums"])
     for c in run:
         write(c)
         sums.add(c.at, c.result, c.valid)
+        if saved is not None:
+            saved({"windows": run.state(), "sums": sums.state()})
     stretch = replace(st.problem, options=st.options)
     report = sums.report(stretch, st.result, st.sigma_px, {"init": 0.0, "solve": time.perf_counter() - t0},
                          run.iterations, run.cost, run.bounds_active, grouped(run.warnings))
