@@ -184,3 +184,16 @@ def test_resume_without_a_stopped_run_or_with_other_options_is_one_line(rig, lon
                             str(d / "calibration.toml"), "--fps", "120", "--method", "tri", "--out",
                             str(tmp_path / "tri.csv"), "--resume"], capture_output=True, text=True)
     assert short.returncode == 2 and "--resume goes on with a long run" in short.stderr
+
+
+def test_windows_in_two_worker_processes_give_the_same_answer(rig, long_run, in_memory, tmp_path):
+    """``--jobs 2``: the windows solved side by side in worker processes, written in order: the same
+    CSV, byte for byte, as the windows solved one after another in memory."""
+    _, d = long_run
+    out = tmp_path / "run.csv"
+    done = _solve(rig, d, out, "--jobs", "2")
+    assert done.returncode == 0, done.stderr
+    write_anipose_csv(tmp_path / "memory.csv", in_memory)
+    assert out.read_bytes() == (tmp_path / "memory.csv").read_bytes()
+    b = read_result(out.with_suffix(".h5"))
+    assert np.array_equal(in_memory.params, b.params) and np.array_equal(in_memory.std, b.std, equal_nan=True)

@@ -22,6 +22,7 @@ from typing import Callable, Literal
 
 from graph.anipose.project import Project, Trial
 from graph.errors import InputError
+from graph.solve.workers import share_cores
 from graph.types import SolveOptions
 
 Status = Literal["solved", "skipped", "failed"]
@@ -91,7 +92,7 @@ def run_project(project: Project, jobs: int = 1, force: bool = False,
         threads = max(1, (os.cpu_count() or 1) // workers)
         with multiprocessing.Manager() as manager:
             queue = manager.Queue()
-            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_share_cores,
+            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=share_cores,
                                      initargs=(threads,)) as pool:
                 futures = {pool.submit(_solve_in_worker, *args[i], queue): i for i in todo}
                 pending = set(futures)
@@ -107,16 +108,6 @@ def run_project(project: Project, jobs: int = 1, force: bool = False,
                         outcomes[i] = _finish(project.trials[i], outcome, report)
                 _drain(queue, report)
     return [outcomes[i] for i in range(len(project.trials))]
-
-
-def _share_cores(threads: int) -> None:
-    """A worker's share of the cores: the compiled kernels' threads (numba's parallel loops, which
-    write one output per index, so the results do not depend on the count), so that N workers do
-    not each start a thread per core."""
-    import numba
-
-    # numba.config sets its values from the environment through globals(), unseen by a type checker
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
 
 
 def _finish(trial: Trial, outcome: TrialOutcome, report) -> TrialOutcome:

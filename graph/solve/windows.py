@@ -36,9 +36,11 @@ solve's 180 KB).
 
 from __future__ import annotations
 
+import itertools
 import re
 import time
 import warnings
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -244,8 +246,8 @@ class Windows:
     giving its :class:`Core`; what they add up to (iterations, cost, bounds, warnings) is kept here."""
 
     def __init__(self, source: Frames, core: int, margin: int = MARGIN_FRAMES, settle_frames: int = SETTLE_FRAMES,
-                 progress: ProgressCallback | None = None, settled: Settled | None = None):
-        self.source, self.core, self.margin, self.progress = source, core, margin, progress
+                 progress: ProgressCallback | None = None, settled: Settled | None = None, jobs: int = 1):
+        self.source, self.core, self.margin, self.progress, self.jobs = source, core, margin, progress, jobs
         if progress:
             progress(Progress(stage="initialise", fraction=0.0, detail="settling what every window shares"))
         self.settled = settled or settle(source, settle_frames)
@@ -276,14 +278,10 @@ class Windows:
     def __iter__(self) -> Iterator[Core]:
         st, N, t0 = self.settled, self.source.frames, time.perf_counter()
         angles, first = st.problem.skeleton.angle_params, self.done
-        for k in range(first, len(self.starts)):
+        for k, (r, valid) in zip(range(first, len(self.starts)), self._solved(first)):
             a = self.starts[k]
             b = min(N, a + self.core)
-            lo, hi = max(0, a - self.margin), min(N, b + self.margin)
-            prob = self.source.window(lo, hi, st.options, st.sigma_px)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # a window's warnings are gathered into the run's (grouped)
-                r = solve_fte_joint(prob)
+            lo = max(0, a - self.margin)
             if r.params is not None and angles.size:
                 if self.last is not None:  # the same turn as the core before: an angle may end a window 2 pi apart
                     turns = np.round((np.asarray(self.last) - r.params[a - lo - 1, angles]) / (2 * np.pi))
@@ -293,8 +291,8 @@ class Windows:
             self.cost += r.report.cost  # the windows' costs (their margins counted twice)
             self.bounds_active += r.report.bounds_active
             self.warnings.append(r.report.warnings)
-            core = Core(a, r.frames(a - lo, b - lo), prob.valid[a - lo:b - lo])
-            del r, prob  # one window at a time
+            core = Core(a, r.frames(a - lo, b - lo), valid[a - lo:b - lo])
+            del r, valid  # one window at a time
             self.done = k + 1
             yield core
             del core
@@ -304,6 +302,29 @@ class Windows:
                                        iteration=self.iterations,
                                        detail=f"window {k + 1} of {len(self.starts)}, {left:.0f} s left"))
 
+    def _solved(self, first: int) -> Iterator[tuple[Result, np.ndarray]]:
+        """Each window from the ``first`` solved (:func:`solve_window`), in order: here, or ``jobs`` at a
+        time in worker processes (:func:`graph.solve.workers.window_pool`), at most ``jobs + 1`` in
+        flight. A window's answer does not depend on where it was solved."""
+        st, N = self.settled, self.source.frames
+        spans = [(max(0, a - self.margin), min(N, a + self.core + self.margin)) for a in self.starts[first:]]
+        if self.jobs <= 1 or len(spans) <= 1:
+            for lo, hi in spans:
+                yield solve_window(self.source, lo, hi, st.options, st.sigma_px)
+            return
+        from graph.solve.workers import window_pool
+
+        with window_pool(self.source, self.jobs) as pool:
+            flight: deque = deque()
+            todo = iter(spans)
+            for lo, hi in itertools.islice(todo, self.jobs + 1):
+                flight.append(pool.submit(solve_window, None, lo, hi, st.options, st.sigma_px))
+            while flight:
+                done = flight.popleft().result()
+                for lo, hi in itertools.islice(todo, 1):
+                    flight.append(pool.submit(solve_window, None, lo, hi, st.options, st.sigma_px))
+                yield done
+
     def report(self, report: SolveReport) -> None:
         """What the windows share written into the run's ``report``: ``windows`` and the settled values."""
         st = self.settled
@@ -312,6 +333,20 @@ class Windows:
         for name in ("motion_scales", "motion_orders", "body_lengths", "time_offsets_frames",
                      "time_offsets_std_frames", "offsets_not_identified"):
             setattr(report, name, getattr(st.result.report, name))
+
+
+def solve_window(source: Frames | None, lo: int, hi: int, options: SolveOptions,
+                 sigma_px: float) -> tuple[Result, np.ndarray]:
+    """Frames ``[lo, hi)`` of ``source`` (None: a worker process's, :mod:`graph.solve.workers`) solved
+    with the held ``options`` and noise: the window's :class:`Result` and confident detections (n, C, M)."""
+    if source is None:
+        from graph.solve.workers import worker_source
+
+        source = worker_source()
+    prob = source.window(lo, hi, options, sigma_px)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a window's warnings are gathered into the run's (grouped)
+        return solve_fte_joint(prob), prob.valid
 
 
 def solve_in_windows(prob: Problem, core: int, margin: int = MARGIN_FRAMES, settle_frames: int = SETTLE_FRAMES,
@@ -336,7 +371,7 @@ def solve_in_windows(prob: Problem, core: int, margin: int = MARGIN_FRAMES, sett
 def solve_streamed(source: Frames, core: int, write: Callable[[Core], None],
                    progress: ProgressCallback | None = None, resume: dict | None = None,
                    saved: Callable[[dict], None] | None = None, sample_file: str | Path | None = None,
-                   ) -> tuple[SolveReport, Settled]:
+                   jobs: int = 1) -> tuple[SolveReport, Settled]:
     """``source`` solved in windows of ``core`` kept frames (:class:`Windows`), each core handed to
     ``write`` as it finishes and then dropped; the run's report made from their sums
     (:class:`graph.solve.run_sums.RunSums`, its noise sample in ``sample_file`` when given), and what
@@ -344,11 +379,12 @@ def solve_streamed(source: Frames, core: int, write: Callable[[Core], None],
 
     After each window ``saved`` (when given) gets the run's state as JSON values, and ``resume``
     (such a state) goes on from the window after it: the shared values are settled again (the same
-    inputs settle to the same values, checked) and the windows done are not solved again."""
+    inputs settle to the same values, checked) and the windows done are not solved again. ``jobs``:
+    windows solved at a time, in worker processes (the same answer; a staged ``source`` only)."""
     from graph.solve.run_sums import RunSums
 
     t0 = time.perf_counter()
-    run = Windows(source, core, progress=progress)
+    run = Windows(source, core, progress=progress, jobs=jobs)
     st = run.settled
     sums = RunSums(source.frames, st.problem.cameras, len(st.problem.markers), st.problem.noise_scale, sample_file,
                    resuming=resume is not None)
