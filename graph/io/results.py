@@ -438,9 +438,10 @@ def read_calibration(path: str | Path) -> Calibration | None:
         return Calibration(cameras=cams, source=_attr(g, "source") or "", metadata={"units": "m"})
 
 
-def read_result(path: str | Path, individual: str | None = None) -> Result:
+def read_result(path: str | Path, individual: str | None = None, step: int = 1) -> Result:
     """Read a file written by :func:`write_h5` back into a :class:`Result`; of a group file
-    (:func:`write_group_h5`), the ``individual`` named, which it must then be given."""
+    (:func:`write_group_h5`), the ``individual`` named, which it must then be given. ``step`` > 1:
+    every ``step``-th frame only (a long run's overview; the rates and sds as they were)."""
     import h5py
 
     path = Path(path)
@@ -464,7 +465,11 @@ def read_result(path: str | Path, individual: str | None = None) -> Result:
             arrays = {}
             for name in _ARRAYS + _OPTIONAL_ARRAYS:
                 if name in f:
-                    a = f[name][at]
+                    axis = FRAME_AXIS.get(name)
+                    index: tuple = () if at == () else (at,)
+                    if step > 1 and axis is not None:
+                        index += (slice(None),) * axis + (slice(None, None, step),)
+                    a = f[name][index]
                     arrays[name] = a.astype(bool) if _attr(f[name], "dtype") == "bool" else a
                 elif name in _ARRAYS:
                     raise InputError(f"result file lacks the dataset '{name}'", path)

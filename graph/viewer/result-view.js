@@ -90,6 +90,11 @@
     P.param_units = P.param_units || P.param_names.map((p) => (/^[xyz]_/.test(p) ? "m" : "rad"));
   }
 
+  /** The run's frame number of the view's frame n, "of" the run's last. */
+  function frameName(ctx, n) {
+    return `${n * ctx.step} of ${(ctx.report.frames || ctx.N) - 1}`;
+  }
+
   /** What every panel reads: sizes, lookups, the flags per frame and the shared playback state. */
   function context(P) {
     const N = P.frames, M = P.markers.length, C = P.cameras.length;
@@ -109,6 +114,8 @@
     return {
       P, N, M, C, markerIndex, boneIdx, report, outByFrame, track,
       fps: P.fps || 1,
+      // a long run's view holds every step-th frame (frame_step); "frame" below is the run's frame number
+      step: P.frame_step || 1,
       frames: Array.from({ length: N }, (_, i) => i),
       unconstrainedFrames: new Set(report.unconstrained_frames || []),
       unconstrainedMarkers: new Set(report.unconstrained_markers || []),
@@ -143,7 +150,7 @@
       if (f.rejected.length) bits.push(`rejected in ${f.rejected.join(", ")}`);
       if (bits.length) notes.push(`${P.markers[m]}: ${bits.join("; ")}`);
     });
-    let text = `Frame ${n} of ${N - 1} (${(n / fps).toFixed(3)} s). ${have} of ${M} markers estimated.`;
+    let text = `Frame ${frameName(ctx, n)} (${(n / fps).toFixed(3)} s). ${have} of ${M} markers estimated.`;
     if (P.frame_error && P.frame_error[n] !== null) text += ` Reprojection error ${fmt(P.frame_error[n], 1)} px.`;
     if (blind) text += " No marker was seen by two cameras in this frame.";
     return { text, notes };
@@ -206,7 +213,9 @@
     const dl = el("dl", { class: "facts" });
     const fact = (k, v) => dl.append(el("dt", { text: k }), el("dd", { text: v }));
     fact("Method", `${P.method} (${P.skeleton} skeleton)`);
-    fact("Frames", `${N} at ${fps} fps (${(N / fps).toFixed(2)} s)`);
+    const all = report.frames || N, rate = fps * ctx.step;
+    fact("Frames", `${all} at ${rate} fps (${(all / rate).toFixed(2)} s)` +
+      (ctx.step > 1 ? `; every ${ctx.step}th frame shown (${N})` : ""));
     fact("Markers", String(M));
     fact("Cameras", P.cameras.join(", "));
     fact("Reprojection RMSE", `${fmt(report.reprojection_rmse_px, 2)} px`);
@@ -318,7 +327,7 @@
       notes.replaceChildren(...s.notes.slice(0, 30).map((t) => el("li", { text: t })));
       if (s.notes.length > 30) notes.append(el("li", { text: `and ${s.notes.length - 30} more` }));
       showTime(n);
-      slider.setAttribute("aria-valuetext", `Frame ${n} of ${N - 1}, ${(n / ctx.fps).toFixed(3)} seconds`);
+      slider.setAttribute("aria-valuetext", `Frame ${frameName(ctx, n)}, ${(n / ctx.fps).toFixed(3)} seconds`);
     }
 
     function showTime(n) { timeLabel.textContent = `${(n / ctx.fps).toFixed(3)} s`; }

@@ -110,24 +110,37 @@ def load_inputs(input_dir: Path):
     """The job's detections (one per camera: :class:`~graph.io.keypoints.Keypoints`, or
     :class:`~graph.io.keypoint_types.Tracks` when they hold several individuals,
     :func:`graph.io.keypoints.read_recording`), calibration and solve options, read with the core's readers."""
+    from graph.io.keypoint_types import Keypoints, Tracks
+    from graph.io.keypoints import read_recording
+
+    m = read_manifest(input_dir)
+    opts = job_options(input_dir)
+    cameras = read_recording([inside(input_dir, rel) for rel in m["keypoints"]], opts.individual, opts.individuals)
+    for k, rel in zip(list[Keypoints | Tracks](cameras), m["keypoints"]):
+        k.source = Path(rel).name  # what the results say they came from: the upload's name, no server path
+    return cameras, job_calibration(input_dir), opts
+
+
+def job_options(input_dir: Path):
+    """The job's :class:`~graph.types.SolveOptions` (its skeleton file's path inside the job)."""
     from pydantic import TypeAdapter
 
     from graph.api import SolveOptions
-    from graph.io.calibration import load_calibration
-    from graph.io.keypoint_types import Keypoints, Tracks
-    from graph.io.keypoints import read_recording
 
     m = read_manifest(input_dir)
     options = dict(m["options"])
     if m.get("skeleton"):
         options["skeleton"] = str(inside(input_dir, m["skeleton"]))
-    opts = TypeAdapter(SolveOptions).validate_python(options)
-    cameras = read_recording([inside(input_dir, rel) for rel in m["keypoints"]], opts.individual, opts.individuals)
-    for k, rel in zip(list[Keypoints | Tracks](cameras), m["keypoints"]):
-        k.source = Path(rel).name  # what the results say they came from: the upload's name, no server path
+    return TypeAdapter(SolveOptions).validate_python(options)
+
+
+def job_calibration(input_dir: Path):
+    """The job's calibration, named by the upload's name (no server path)."""
+    from graph.io.calibration import load_calibration
+
+    m = read_manifest(input_dir)
     calibration = load_calibration(inside(input_dir, m["calibration"]))
-    calibration = dataclasses.replace(calibration, source=Path(m["calibration"]).name)
-    return cameras, calibration, opts
+    return dataclasses.replace(calibration, source=Path(m["calibration"]).name)
 
 
 def without_server_paths(result):
@@ -200,6 +213,10 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
         return run_calibration(input_dir, out_dir, progress)
 
     progress.report(READING, 0.0)
+    if not input_videos(input_dir):
+        report = solve_streamed_job(input_dir, out_dir, progress)
+        if report is not None:
+            return report
     cameras, calibration, options = load_inputs(input_dir)
     from graph.io.keypoint_types import Tracks
 
@@ -220,6 +237,70 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
                                   strip_paths(f"the labelled videos could not be rendered: {e}")]
             (out_dir / RESULT_FILES["report"][0]).write_text(json.dumps(report, indent=2))
     return report
+
+
+PAGE_FRAMES = 20_000  # the job page's view of a long run: every k-th frame, at most this many
+
+
+def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> dict | None:
+    """A long run of one individual solved as ``acinoset solve`` solves it, streamed
+    (:func:`graph.api.solve_streamed`: the inputs staged on disk a camera at a time, the CSV and H5
+    written as the windows finish), in memory that does not grow with the run; the page's view
+    (``result.json``) made of every k-th frame of the H5, at most :data:`PAGE_FRAMES` (``frame_step``
+    says k). None when the job is not such a run (solve it in memory)."""
+    from graph.api import solve_streamed
+    from graph.io.keypoints import read_tracks
+    from graph.io.results import AniposeCsv, H5Stream, read_result
+    from graph.io.staged import stage
+    from graph.types import WINDOWED_ABOVE
+    from graph.viewer.payload import result_payload
+
+    options = job_options(input_dir)
+    m = read_manifest(input_dir)
+    if options.method != "fte" or options.window_frames == 0 or options.individual or options.individuals:
+        return None
+    above = options.window_frames or WINDOWED_ABOVE
+    with tempfile.TemporaryDirectory(prefix="acinoset-staged-") as scratch:
+        run = stage([str(inside(input_dir, rel)) for rel in m["keypoints"]], scratch, read_tracks,
+                    lambda frames: frames > above)
+        if run is None:
+            return None
+        run.cameras = [dataclasses.replace(cam, source=Path(rel).name) for cam, rel in zip(run.cameras, m["keypoints"])]
+        calibration = job_calibration(input_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}
+        h5 = H5Stream(out_dir / name["h5"], run.frames)
+        csv: list[AniposeCsv] = []
+
+        def write(core) -> None:
+            r = core.result
+            if "/" in r.options.skeleton:  # the skeleton by its file's name, as without_server_paths
+                named = dataclasses.replace(r.options, skeleton=Path(r.options.skeleton).name)
+                r = dataclasses.replace(r, options=named)
+            if not csv:
+                csv.append(AniposeCsv(out_dir / name["csv"], r.markers))
+            csv[0].write(r)
+            h5.write(r)
+
+        try:
+            report = solve_streamed(run, calibration, options, write, progress=progress)
+        except BaseException:
+            h5.file.close()
+            raise
+        finally:
+            for f in csv:
+                f.close()
+    report.warnings = [strip_paths(w) for w in report.warnings]
+    h5.close(report, options, calibration)
+    progress.report(WRITING, 1.0, report.iterations, report.cost)
+    step = max(1, -(-run.frames // PAGE_FRAMES))
+    view = read_result(out_dir / name["h5"], step=step)
+    payload = result_payload(dataclasses.replace(view, fps=view.fps / step))
+    payload["frame_step"] = step
+    (out_dir / name["json"]).write_text(json.dumps(payload, separators=(",", ":"), allow_nan=False))
+    doc = report.to_dict()
+    (out_dir / name["report"]).write_text(json.dumps(doc, indent=2))
+    return doc
 
 
 def solve_group_job(tracks: list, calibration, options, out_dir: Path, progress: "ThrottledProgress") -> dict:
