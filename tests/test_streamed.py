@@ -197,3 +197,14 @@ def test_windows_in_two_worker_processes_give_the_same_answer(rig, long_run, in_
     assert out.read_bytes() == (tmp_path / "memory.csv").read_bytes()
     b = read_result(out.with_suffix(".h5"))
     assert np.array_equal(in_memory.params, b.params) and np.array_equal(in_memory.std, b.std, equal_nan=True)
+
+
+def test_a_folder_of_the_users_in_the_way_is_left_alone(rig, long_run, tmp_path):
+    """``OUT.csv.partial`` that a run did not leave (here: a user's notes in it) is not removed: one line."""
+    _, d = long_run
+    mine = tmp_path / "run.csv.partial"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    done = _solve(rig, d, tmp_path / "run.csv")
+    assert done.returncode == 2 and "is in the way" in done.stderr and "Traceback" not in done.stderr
+    assert (mine / "notes.txt").read_text() == "mine"

@@ -502,6 +502,10 @@ def _streamable(args: argparse.Namespace, options) -> bool:
             and not any("+" in p and not Path(p).exists() for p in args.keypoints))
 
 
+# what a run solved streamed keeps in OUT.csv.partial/ until it is done
+PARTIAL_ENTRIES = {"staged", "state.json", "state.json.part", "noise_sample.f64"}
+
+
 def _solve_streamed(args: argparse.Namespace, options, calibration) -> bool:
     """A run over :data:`graph.types.WINDOWED_ABOVE` frames (or ``--window-frames``) solved in windows
     in memory that does not grow with it: each camera's file read in turn and staged in
@@ -521,8 +525,11 @@ def _solve_streamed(args: argparse.Namespace, options, calibration) -> bool:
         state = _stopped_run(work)
         run = StagedRun.open(work / "staged")
     else:
-        if work.exists():
-            shutil.rmtree(work)  # a stopped run's, started again
+        if work.exists():  # a stopped run's, started again: removed if it holds only what a run leaves
+            if not work.is_dir() or not {p.name for p in work.iterdir()} <= PARTIAL_ENTRIES:
+                raise InputError("is in the way of the run's working folder (it is not one a stopped run left: "
+                                 "move it, or give another --out)", work)
+            shutil.rmtree(work)
         (work / "staged").mkdir(parents=True)
         above = options.window_frames or WINDOWED_ABOVE
         got = stage(args.keypoints, work / "staged", lambda p: read_tracks(p, openpose_model=args.openpose_model),
@@ -541,10 +548,12 @@ def _solve_streamed(args: argparse.Namespace, options, calibration) -> bool:
     try:
         report = _stream(args, options, calibration, run, work, inputs, state)
     except BaseException:
-        if (work / "state.json").exists():
+        try:
             done = json.loads((work / "state.json").read_text(encoding="utf-8"))["windows"]["done"]
             print(f"{PROG}: stopped after {done} windows: acinoset solve ... --resume goes on from there",
                   file=sys.stderr)
+        except (OSError, ValueError, KeyError, TypeError):
+            pass  # stopped before its first window: nothing to go on from
         raise
     shutil.rmtree(work)
     written: list = [out if report.unit == "m" else f"{out} (in {report.unit})"]
