@@ -9,10 +9,10 @@ The runs: the simulator's cheetah walking slowly (``simulate_run(rig, frames=N, 
 default detections (5 px noise, 10 % outliers of sigma 100 px, 30 % of the outliers with a high
 likelihood and the rest with a low one); 1, 10 and 60 minutes: 7,200, 72,000 and 432,000 frames
 (``--minutes``; default 1 and 10, ``--quick`` the same; the 60 minutes are opt-in: about 10 minutes
-of solving and 5.5 GB of disk). Each run is written as a user brings it (:func:`graph.simulate.write_run`:
+of solving and 6.7 GB of disk). Each run is written as a user brings it (:func:`graph.simulate.write_run`:
 ``cam1.csv`` ... ``cam6.csv`` DeepLabCut CSVs, ``calibration.toml``, ``truth.npz``) into a scratch
 folder (``--work``, default a new folder under the system's temporary directory), one run at a time,
-deleted once measured unless ``--keep``. The free disk is checked first against about 12.5 KB a frame
+deleted once measured unless ``--keep``. The free disk is checked first against about 15.5 KB a frame
 (inputs, truth and the written CSV) and the bench says how much it needs.
 
 Solved, after one untimed warm-up command on a 150-frame run (numba's kernels loaded or compiled
@@ -90,7 +90,9 @@ ACINOSET = str(Path(sys.executable).with_name("acinoset"))
 FPS = 120.0
 SPEED = 1.0  # m/s: a slow walk
 WARM_FRAMES = 150
-BYTES_PER_FRAME = 12_500  # on disk: six DeepLabCut CSVs, truth.csv/.npz, run.csv (measured 10.2 KB + ~2 KB)
+# on disk: six DeepLabCut CSVs, truth.csv/.npz, run.csv (measured 10.2 KB + ~2 KB), and while it runs the
+# command's staged inputs in run.csv.partial/ (6 cameras x 20 markers x 3 float64: 2.9 KB)
+BYTES_PER_FRAME = 15_500
 TARGETS = {10: {"wall_s": 100.0, "peak_rss_mib": 1024.0}, 60: {"wall_s": 600.0, "peak_rss_mib": 2048.0}}
 ACCURACY_TOLERANCE = 1.05  # "equal to the one-minute solve's": mean and median within 5 %
 SEAM_NEAR = 20  # frames either side of a window seam
@@ -293,7 +295,7 @@ def run_aniposelib(d: Path, block: int, budget: float, env: dict) -> tuple[dict,
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--minutes", default=None, help="run lengths in minutes at 120 fps, comma-separated "
-                                                    "(default 1,10; 60 is opt-in: ~10 min and ~5.5 GB of disk)")
+                                                    "(default 1,10; 60 is opt-in: ~10 min and ~6.7 GB of disk)")
     ap.add_argument("--quick", action="store_true", help="1 and 10 minutes only")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--work", default=None, help="scratch folder (default: a new one under the temporary directory)")

@@ -13,12 +13,9 @@ from __future__ import annotations
 import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
-from typing import TYPE_CHECKING
+from typing import Any
 
-if TYPE_CHECKING:
-    from graph.solve.windows import Frames
-
-_SOURCE: Frames | None = None  # a worker's run, set at its start
+_SOURCE: Any = None  # a worker's run (a graph.solve.windows.Frames), set at its start
 
 
 def share_cores(threads: int) -> None:
@@ -30,7 +27,7 @@ def share_cores(threads: int) -> None:
     numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
 
 
-def window_pool(source: Frames, jobs: int) -> ProcessPoolExecutor:
+def window_pool(source: Any, jobs: int) -> ProcessPoolExecutor:
     """``jobs`` worker processes holding ``source``, each with its share of the cores."""
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(["graph.solve.windows"])
@@ -38,13 +35,13 @@ def window_pool(source: Frames, jobs: int) -> ProcessPoolExecutor:
     return ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_start, initargs=(source, threads))
 
 
-def _start(source: Frames, threads: int) -> None:
+def _start(source: Any, threads: int) -> None:
     global _SOURCE
     share_cores(threads)
     _SOURCE = source
 
 
-def worker_source() -> Frames:
+def worker_source() -> Any:
     """The run this worker process was given."""
     if _SOURCE is None:
         raise RuntimeError("not a window worker (graph.solve.workers.window_pool)")
