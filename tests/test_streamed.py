@@ -208,3 +208,21 @@ def test_a_folder_of_the_users_in_the_way_is_left_alone(rig, long_run, tmp_path)
     done = _solve(rig, d, tmp_path / "run.csv")
     assert done.returncode == 2 and "is in the way" in done.stderr and "Traceback" not in done.stderr
     assert (mine / "notes.txt").read_text() == "mine"
+
+
+def test_a_camera_file_is_staged_a_block_of_rows_at_a_time(rig, long_run, tmp_path, monkeypatch):
+    """A DeepLabCut CSV staged as it is read, a block of rows at a time (here 256): the staged frames are
+    the file's as one read gives them, and a file of several individuals is not staged."""
+    from graph.io import keypoints
+    from graph.io.staged import stage
+
+    _, d = long_run
+    monkeypatch.setattr(keypoints, "CSV_BLOCK_ROWS", 256)
+    blocks = list(keypoints.read_blocks(_cams(rig, d)[0]))
+    assert len(blocks) == -(-FRAMES // 256) and all(b.slots == 1 for b in blocks)
+    staged = stage(_cams(rig, d), tmp_path / "staged", keypoints.read_blocks, lambda n: n > 1000)
+    assert staged is not None and staged.frames == FRAMES
+    for got, path in zip(staged.keypoints(0, FRAMES), _cams(rig, d)):
+        whole = read_keypoints(path)
+        assert np.array_equal(got.xy, whole.xy, equal_nan=True) and np.array_equal(got.likelihood, whole.likelihood)
+    assert stage(_cams(rig, d), tmp_path / "short", keypoints.read_blocks, lambda n: n > FRAMES) is None

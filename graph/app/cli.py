@@ -514,7 +514,7 @@ def _solve_streamed(args: argparse.Namespace, options, calibration) -> bool:
     the run stands (``state.json``), so that ``--resume`` goes on from the last window finished.
     The folder is removed when the run is done. False when the run is not that long or a file holds
     several individuals: solve it in memory."""
-    from graph.io.keypoints import read_tracks
+    from graph.io.keypoints import read_blocks
     from graph.io.staged import StagedRun, stage
     from graph.types import WINDOWED_ABOVE
 
@@ -532,7 +532,7 @@ def _solve_streamed(args: argparse.Namespace, options, calibration) -> bool:
             shutil.rmtree(work)
         (work / "staged").mkdir(parents=True)
         above = options.window_frames or WINDOWED_ABOVE
-        got = stage(args.keypoints, work / "staged", lambda p: read_tracks(p, openpose_model=args.openpose_model),
+        got = stage(args.keypoints, work / "staged", lambda p: read_blocks(p, openpose_model=args.openpose_model),
                     lambda frames: frames > above)
         if got is None:
             shutil.rmtree(work)

@@ -46,6 +46,7 @@ from __future__ import annotations
 import csv
 import pickletools
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple
 
@@ -111,14 +112,7 @@ def _read(path: Path, individual: str | None, limits: ReadLimits, openpose_model
             if individual == EVERY:
                 return openpose.read_openpose_people(path, limits, openpose_model)
             return openpose.read_openpose(path, limits, openpose_model)
-    try:
-        with open(path, "rb") as f:
-            head = f.read(8)
-    except OSError as e:
-        raise unreadable(e, path, "a keypoint file") from None
-    if not head:
-        raise InputError("file is empty", path)
-    if head.startswith(_HDF5_MAGIC):
+    if _head(path).startswith(_HDF5_MAGIC):
         return _read_h5(path, individual, limits)
     return _read_csv(path, individual, limits)
 
@@ -156,6 +150,57 @@ def _text_lines(f, path: Path, max_chars: int | None):
 
 
 def _parse_csv(f, path: Path, individual: str | None, limits: ReadLimits) -> Keypoints | Tracks:
+    columns, blocks = _csv_blocks(f, path, limits)
+    parts = list(blocks)
+    if not parts:
+        raise InputError("no data rows after the header", path)
+    values = parts[0] if len(parts) == 1 else np.concatenate(parts)
+    del parts
+    return _from_columns(columns, values, path, individual)
+
+
+def read_blocks(path: str | Path, limits: ReadLimits = NO_LIMITS,
+                openpose_model: str | None = None) -> Iterator[Tracks]:
+    """Every individual of one camera's file (:func:`read_tracks`) a stretch of frames at a time: a
+    DeepLabCut CSV :data:`CSV_BLOCK_ROWS` rows at a time (its header checked once, the same errors
+    as a whole read, the individuals' warning once), any other format whole, as one stretch."""
+    path = Path(path)
+    if path.is_dir() or _head(path).startswith(_HDF5_MAGIC):
+        yield read_tracks(path, limits, openpose_model)
+        return
+    try:
+        f = open(path, encoding="utf-8-sig", newline="")
+    except OSError as e:
+        raise unreadable(e, path, "a keypoint file") from None
+    try:
+        with f:
+            columns, blocks = _csv_blocks(f, path, limits)
+            empty = True
+            for values in blocks:
+                empty = False
+                out = _from_columns(columns, values, path, EVERY)
+                assert isinstance(out, Tracks)
+                yield out
+            if empty:
+                raise InputError("no data rows after the header", path)
+    except UnicodeDecodeError:
+        raise InputError("not a DeepLabCut CSV or H5 file (binary, not UTF-8 text)", path) from None
+
+
+def _head(path: Path) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError as e:
+        raise unreadable(e, path, "a keypoint file") from None
+    if not head:
+        raise InputError("file is empty", path)
+    return head
+
+
+def _csv_blocks(f, path: Path, limits: ReadLimits) -> tuple[list[tuple], Iterator[np.ndarray]]:
+    """A DeepLabCut CSV's columns (its header read and checked), and its data a block of
+    :data:`CSV_BLOCK_ROWS` rows at a time as they are read (the row count checked as it grows)."""
     # a generous bound on a line's length where columns are bounded: 64 characters a cell
     max_chars = None if limits.max_columns is None else 64 * (limits.max_columns + 8) + 4096
     lines = _text_lines(f, path, max_chars)
@@ -191,7 +236,10 @@ def _parse_csv(f, path: Path, individual: str | None, limits: ReadLimits) -> Key
         raise InputError("not a DeepLabCut CSV: no data columns", path)
     limits.check_columns(width - n_index, path)
     columns = [tuple(h[j].strip() for h in header) for j in range(n_index, width)]
-    blocks: list[np.ndarray] = []
+    return columns, _csv_data(lines, path, limits, n_index, width)
+
+
+def _csv_data(lines, path: Path, limits: ReadLimits, n_index: int, width: int) -> Iterator[np.ndarray]:
     block: list[tuple[int, str | list[str]]] = []  # a row's data cells: as text, or split when quoted
     frames = 0
     blank_from: int | None = None  # first of a run of blank lines: fine at the end only
@@ -214,15 +262,10 @@ def _parse_csv(f, path: Path, individual: str | None, limits: ReadLimits) -> Key
         frames += 1
         limits.check_frames(frames, path, counting=True)
         if len(block) == CSV_BLOCK_ROWS:
-            blocks.append(_csv_numbers(block, n_index, path))
+            yield _csv_numbers(block, n_index, path)
             block = []
     if block:
-        blocks.append(_csv_numbers(block, n_index, path))
-    if not blocks:
-        raise InputError("no data rows after the header", path)
-    values = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
-    del blocks
-    return _from_columns(columns, values, path, individual)
+        yield _csv_numbers(block, n_index, path)
 
 
 def _csv_numbers(block: list[tuple[int, str | list[str]]], n_index: int, path: Path) -> np.ndarray:

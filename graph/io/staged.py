@@ -18,7 +18,7 @@ are solved together (:func:`graph.api.solve_group`).
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -53,18 +53,36 @@ class StagedRun:
 
     def add(self, kp: Keypoints) -> None:
         """Write one camera's detections; :class:`InputError` when its frames are not the first's."""
-        if self.cameras and kp.frames != self.frames:
-            first = Path(self.cameras[0].source).name or "camera 1"
-            raise InputError(f"has {kp.frames} frames but {first} has {self.frames}; all cameras must have "
-                             "the same frames", kp.source or None)
-        c = len(self.cameras)
-        self._path(c, "xy").write_bytes(np.ascontiguousarray(kp.xy, dtype=_F64).tobytes())
-        self._path(c, "likelihood").write_bytes(np.ascontiguousarray(kp.likelihood, dtype=_F64).tobytes())
-        if kp.spread_px is not None:
-            self._path(c, "spread").write_bytes(np.ascontiguousarray(kp.spread_px, dtype=_F64).tobytes())
-        self.frames = kp.frames
-        self.cameras.append(StagedCamera(c, list(kp.bodyparts), kp.source, kp.scorer, kp.fps,
-                                         kp.spread_px is not None))
+        self.add_blocks([kp])
+
+    def add_blocks(self, blocks: Iterable[Keypoints]) -> None:
+        """Write one camera's detections a stretch of frames at a time, in order (a reader's blocks:
+        :func:`graph.io.keypoints.read_blocks`); :class:`InputError` when its frames are not the first's
+        or a stretch's bodyparts are not the first stretch's."""
+        c, frames, first = len(self.cameras), 0, None
+        for kp in blocks:
+            if first is None:
+                first = kp
+                for name in ("xy", "likelihood", "spread"):
+                    self._path(c, name).unlink(missing_ok=True)
+            elif kp.bodyparts != first.bodyparts or (kp.spread_px is None) != (first.spread_px is None):
+                raise InputError("its bodyparts change partway through the file", kp.source or None)
+            arrays = {"xy": kp.xy, "likelihood": kp.likelihood}
+            if kp.spread_px is not None:
+                arrays["spread"] = kp.spread_px
+            for name, a in arrays.items():
+                with open(self._path(c, name), "ab") as f:
+                    f.write(np.ascontiguousarray(a, dtype=_F64).tobytes())
+            frames += kp.frames
+        if first is None:
+            raise InputError("no frames")
+        if self.cameras and frames != self.frames:
+            name = Path(self.cameras[0].source).name or "camera 1"
+            raise InputError(f"has {frames} frames but {name} has {self.frames}; all cameras must have the same "
+                             "frames", first.source or None)
+        self.frames = frames
+        self.cameras.append(StagedCamera(c, list(first.bodyparts), first.source, first.scorer, first.fps,
+                                         first.spread_px is not None))
 
     def keypoints(self, a: int, b: int) -> list[Keypoints]:
         """Every camera's frames ``[a, b)`` (clipped to the run) as :class:`Keypoints`."""
@@ -118,16 +136,30 @@ class StagedRun:
                            offset=a * per_frame * _F64.itemsize)
 
 
-def stage(paths: list[str], folder: str | Path, read: Callable[[str], Tracks],
+def stage(paths: list[str], folder: str | Path, read: Callable[[str], Iterable[Tracks]],
           long_enough: Callable[[int], bool]) -> StagedRun | None:
-    """The cameras' files ``paths`` (each read by ``read``, one at a time) staged in ``folder`` when the
-    run is ``long_enough`` (judged on the first file's frame count) and every file holds one
-    individual; None otherwise (read the files as a solve in memory takes them)."""
+    """The cameras' files ``paths``, each read by ``read`` a stretch of frames at a time (one file,
+    one stretch, at a time: :func:`graph.io.keypoints.read_blocks`), staged in ``folder`` when the run
+    is ``long_enough`` (judged on the first file's frame count) and every file holds one individual;
+    None otherwise (read the files as a solve in memory takes them)."""
+    Path(folder).mkdir(parents=True, exist_ok=True)
     run = StagedRun(folder)
-    for k, path in enumerate(paths):
-        tracks = read(path)
-        if tracks.slots != 1 or (k == 0 and not long_enough(tracks.frames)):
+    for path in paths:
+        try:
+            run.add_blocks(_one_individual(read(path)))
+        except _SeveralIndividuals:
             return None
-        run.add(tracks.slot(0))
-        del tracks
+        if len(run.cameras) == 1 and not long_enough(run.frames):
+            return None
     return run
+
+
+class _SeveralIndividuals(Exception):
+    pass
+
+
+def _one_individual(blocks: Iterable[Tracks]) -> Iterator[Keypoints]:
+    for tracks in blocks:
+        if tracks.slots != 1:
+            raise _SeveralIndividuals
+        yield tracks.slot(0)

@@ -249,7 +249,7 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     (``result.json``) made of every k-th frame of the H5, at most :data:`PAGE_FRAMES` (``frame_step``
     says k). None when the job is not such a run (solve it in memory)."""
     from graph.api import solve_streamed
-    from graph.io.keypoints import read_tracks
+    from graph.io.keypoints import read_blocks
     from graph.io.results import AniposeCsv, H5Stream, read_result
     from graph.io.staged import stage
     from graph.types import WINDOWED_ABOVE
@@ -261,7 +261,7 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
         return None
     above = options.window_frames or WINDOWED_ABOVE
     with tempfile.TemporaryDirectory(prefix="acinoset-staged-") as scratch:
-        run = stage([str(inside(input_dir, rel)) for rel in m["keypoints"]], scratch, read_tracks,
+        run = stage([str(inside(input_dir, rel)) for rel in m["keypoints"]], scratch, read_blocks,
                     lambda frames: frames > above)
         if run is None:
             return None
