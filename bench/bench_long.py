@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/bench_long.py [--minutes 1,10] [--quick] [--work DIR] [--keep] [--seed 0]
                                          [--aniposelib-minutes 1,10] [--aniposelib-seconds 400]
-                                         [--block-frames 7200] [--no-aniposelib] [--out long]
+                                         [--block-frames 7200] [--no-aniposelib] [--jobs N] [--out long]
 
 The runs: the simulator's cheetah walking slowly (``simulate_run(rig, frames=N, seed=0, speed=1.0)``:
 1 m/s along its figure of eight) on the AcinoSet 2019 six-camera rig at 120 fps, with the simulator's
@@ -63,6 +63,11 @@ imports, reading the CSVs, the warm-up and ``triangulate`` (all frames).
 Targets (the issue), printed beside the numbers: 60 minutes in at most 10 minutes of wall time and
 2 GB of peak resident memory; 10 minutes in at most 100 s and 1 GB (GB read as GiB: 2,048 and 1,024 MiB).
 
+``--jobs N``: each run also solved with ``--jobs N`` (windows in N worker processes) and, for a
+like-for-like figure, once more in one process, both under a sampler that sums the resident memory
+of the command's whole process tree every 0.1 s (GNU time counts the command's own process only);
+whether the two CSVs are the same bytes.
+
 Prints progress lines to stderr, Markdown tables to stdout, and writes bench/results/long.json (``--out``).
 """
 
@@ -120,6 +125,46 @@ def command(cmd: list[str], env: dict) -> dict:
     if c["exit"] != 0:
         c["stderr_tail"] = tail
     return c
+
+
+def _tree(pid: int) -> list[int]:
+    """``pid`` and every process below it (/proc's children lists)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                todo += [int(c) for c in (task / "children").read_text().split()]
+            except OSError:
+                pass
+    return out
+
+
+def _rss_kib(pid: int) -> int:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+def tree_command(cmd: list[str], env: dict, every: float = 0.1) -> dict:
+    """The command's wall seconds and the peak of its whole process tree's resident memory (the sum of
+    VmRSS over it and its workers, sampled every ``every`` s; GNU time sees only the command's own)."""
+    import subprocess
+
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    peak = 0
+    while proc.poll() is None:
+        peak = max(peak, sum(_rss_kib(p) for p in _tree(proc.pid)))
+        time.sleep(every)
+    err = proc.stderr.read() if proc.stderr else ""
+    return {"exit": proc.returncode, "wall_s": time.perf_counter() - t0, "tree_peak_rss_mib": peak / 1024,
+            "stderr_last": last_line(err)}
 
 
 def solve_command(d: Path, out: str = "run", extra: tuple[str, ...] = ()) -> list[str]:
@@ -305,6 +350,8 @@ def main() -> int:
     ap.add_argument("--aniposelib-seconds", type=float, default=400.0,
                     help="aniposelib's optimiser: blocks while the next is expected to end within this")
     ap.add_argument("--block-frames", type=int, default=7200, help="aniposelib's optimiser: frames a call")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="also solve each run with --jobs N (its process tree's peak memory sampled)")
     ap.add_argument("--out", default="long", help="bench/results/OUT.json")
     ap.add_argument("--aniposelib-only", default=None, metavar="DIR", help=argparse.SUPPRESS)
     ap.add_argument("--result", default=None, help=argparse.SUPPRESS)
@@ -379,6 +426,14 @@ def main() -> int:
             log(f"{m:g} min: exit {c['exit']}, {c['wall_s']:.1f} s (cpu {c['cpu_s']:.1f} s), peak "
                 f"{c['peak_rss_mib']:.0f} MiB, windows {(c.get('windows') or {}).get('count', '-')}, "
                 f"iterations {c.get('iterations', '-')}; {c['stderr_last']}")
+            if args.jobs > 1 and c["exit"] == 0:  # the windows in worker processes, beside
+                tree = tree_command(solve_command(d, "jobs", ("--jobs", str(args.jobs))), alone)
+                alone_tree = tree_command(solve_command(d, "alone"), alone)
+                tree["same_csv"] = (d / "jobs.csv").read_bytes() == (d / "run.csv").read_bytes()
+                entry["jobs"] = {"jobs": args.jobs, "with_jobs": tree, "one_process": alone_tree}
+                log(f"{m:g} min --jobs {args.jobs}: {tree['wall_s']:.1f} s, tree peak {tree['tree_peak_rss_mib']:.0f} "
+                    f"MiB (one process, sampled alike: {alone_tree['wall_s']:.1f} s, "
+                    f"{alone_tree['tree_peak_rss_mib']:.0f} MiB); the same CSV: {tree['same_csv']}")
             markers, truth = load_truth(d / "truth.npz")
             est = None
             if c["exit"] == 0:
