@@ -226,3 +226,27 @@ def test_a_camera_file_is_staged_a_block_of_rows_at_a_time(rig, long_run, tmp_pa
         whole = read_keypoints(path)
         assert np.array_equal(got.xy, whole.xy, equal_nan=True) and np.array_equal(got.likelihood, whole.likelihood)
     assert stage(_cams(rig, d), tmp_path / "short", keypoints.read_blocks, lambda n: n > FRAMES) is None
+
+
+PEAK = ("import resource, subprocess, sys; done = subprocess.run(sys.argv[1:]); "
+        "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(done.returncode)")
+
+
+@pytest.mark.slow
+def test_the_memory_does_not_grow_with_the_run(rig, tmp_path):
+    """The command's peak resident memory on 20,000 frames is within 60 MB of its peak on 5,000 (windows
+    of 1,000): the run held whole would add some 12 KB a frame (180 MB), solved at once 170 KB."""
+    peaks = {}
+    for frames in (5000, 20000):
+        d = tmp_path / str(frames)
+        write_run(simulate_run(rig, frames=frames, fps=120, seed=1, speed=1.0), d)
+        cmd = [sys.executable, "-c", PEAK, sys.executable, "-m", "graph.app.cli", "solve", *_cams(rig, d),
+               "--calibration", str(d / "calibration.toml"), "--fps", "120", "--window-frames", "1000",
+               "--out", str(d / "run.csv")]
+        done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "ACINOSET_RESIDENT": "0"})
+        assert done.returncode == 0, done.stderr
+        peaks[frames] = int(done.stdout.strip().splitlines()[-1]) / 1024  # MiB
+        for p in d.glob("cam*.csv"):
+            p.unlink()
+    print(f"peak MiB by frames: {peaks}")
+    assert peaks[20000] - peaks[5000] < 60, peaks

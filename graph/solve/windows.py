@@ -29,9 +29,11 @@ the body's lengths and the cameras' clocks. So:
    with the settled values, the windows' seconds and iterations summed, and ``windows``:
    ``{count, core_frames, margin_frames, settled_on, held}``.
 
-Memory: one window's normal equations, marginals and kernels' scratch at a time, plus the
-run's inputs and outputs (about 7 KB a frame for six cameras and 20 markers, against the whole
-solve's 180 KB).
+Memory: one window's normal equations, marginals and kernels' scratch at a time. Held in memory
+(:func:`solve_in_windows`), the run's inputs and outputs come on top (about 12 KB a frame for six
+cameras and 20 markers, against the whole solve's 170 KB); streamed (:func:`solve_streamed` of a run
+staged on disk, :class:`Staged`: ``acinoset solve`` and the service's long jobs), nothing grows with
+the run: 597, 631 and 637 MiB for 1, 10 and 60 minutes at 120 fps (bench/RESULTS.md, section 21).
 """
 
 from __future__ import annotations
