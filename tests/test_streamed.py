@@ -180,6 +180,13 @@ def test_resume_without_a_stopped_run_or_with_other_options_is_one_line(rig, lon
     assert other.returncode == 2 and "not the ones of the run that stopped" in other.stderr
     assert "Traceback" not in other.stderr
 
+    doc = json.loads(state.read_text())
+    doc["sums"]["valid"] = [1]  # damaged: one camera's count for six
+    state.write_text(json.dumps(doc))
+    damaged = _solve(rig, d, out, "--resume")
+    assert damaged.returncode == 2 and "cannot go on from the stopped run" in damaged.stderr
+    assert "Traceback" not in damaged.stderr
+
     short = subprocess.run([sys.executable, "-m", "graph.app.cli", "solve", *_cams(rig, d), "--calibration",
                             str(d / "calibration.toml"), "--fps", "120", "--method", "tri", "--out",
                             str(tmp_path / "tri.csv"), "--resume"], capture_output=True, text=True)

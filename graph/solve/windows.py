@@ -51,6 +51,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 
 from graph.camera import Calibration
+from graph.errors import InputError
 from graph.io.staged import StagedRun
 from graph.solve import problem
 from graph.solve.joint import solve_fte_joint
@@ -391,8 +392,11 @@ def solve_streamed(source: Frames, core: int, write: Callable[[Core], None],
     sums = RunSums(source.frames, st.problem.cameras, len(st.problem.markers), st.problem.noise_scale, sample_file,
                    resuming=resume is not None)
     if resume is not None:
-        run.restore(resume["windows"])
-        sums.restore(resume["sums"])
+        try:
+            run.restore(resume["windows"])
+            sums.restore(resume["sums"])
+        except (KeyError, TypeError, ValueError, OSError) as e:
+            raise InputError(f"cannot go on from the stopped run ({e}): run again from the start") from None
     for c in run:
         write(c)
         sums.add(c.at, c.result, c.valid)
