@@ -215,7 +215,7 @@
     fact("Method", `${P.method} (${P.skeleton} skeleton)`);
     const all = report.frames || N, rate = fps * ctx.step;
     fact("Frames", `${all} at ${rate} fps (${(all / rate).toFixed(2)} s)` +
-      (ctx.step > 1 ? `; every ${ctx.step}th frame shown (${N})` : ""));
+      (ctx.step > 1 ? `; one frame in ${ctx.step} shown (${N})` : ""));
     fact("Markers", String(M));
     fact("Cameras", P.cameras.join(", "));
     fact("Reprojection RMSE", `${fmt(report.reprojection_rmse_px, 2)} px`);
