@@ -42,3 +42,8 @@ class TooLargeInput(InputError):
     def __init__(self, message: str, path: str | Path | None = None, limit: str = ""):
         super().__init__(message, path)
         self.limit = limit
+
+
+class WorkerLost(RuntimeError):
+    """A worker process that solved part of a run died (killed, out of memory): one line saying so and
+    what to do; the run's finished part stands (``acinoset solve --resume``)."""

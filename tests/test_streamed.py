@@ -112,14 +112,15 @@ def test_a_staged_run_reads_back_the_frames_asked_for(rig, long_run, tmp_path):
     assert np.array_equal(source.seen(), whole.valid.sum(axis=(1, 2)))
 
 
-def _solve(rig, d, out, *extra, wait=True):
+def _solve(rig, d, out, *extra, wait=True, stderr=False):
     cmd = [sys.executable, "-m", "graph.app.cli", "solve", *_cams(rig, d), "--calibration", str(d / "calibration.toml"),
            "--fps", "120", "--window-frames", str(CORE), "--out", str(out), "--h5", str(out.with_suffix(".h5")),
            "--report", str(out.with_suffix(".json")), *extra]
     env = {**os.environ, "ACINOSET_RESIDENT": "0"}
     if wait:
         return subprocess.run(cmd, capture_output=True, text=True, env=env)
-    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE if stderr else subprocess.DEVNULL,
+                            env=env, text=True)
 
 
 def _windows_done(state: Path) -> int:
@@ -257,3 +258,46 @@ def test_the_memory_does_not_grow_with_the_run(rig, tmp_path):
             p.unlink()
     print(f"peak MiB by frames: {peaks}")
     assert peaks[20000] - peaks[5000] < 60, peaks
+
+
+def _workers(pid: int) -> list[int]:
+    """The window workers below the command ``pid``: the children of its fork server."""
+    def children(p: int) -> list[int]:
+        out = []
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                out += [int(c) for c in (task / "children").read_text().split()]
+            except OSError:
+                pass
+        return out
+
+    found = []
+    for child in children(pid):
+        try:
+            if "forkserver" in Path(f"/proc/{child}/cmdline").read_text():
+                found += children(child)
+        except OSError:
+            pass
+    return found
+
+
+def test_a_worker_that_dies_is_one_line_and_the_run_goes_on(rig, long_run, in_memory, tmp_path):
+    """``--jobs 2``, a window worker killed (as the kernel's OOM killer would): one line, no traceback;
+    ``--resume`` finishes the run with the answer of one never stopped."""
+    _, d = long_run
+    out = tmp_path / "run.csv"
+    state = tmp_path / "run.csv.partial" / "state.json"
+    proc = _solve(rig, d, out, "--jobs", "2", wait=False, stderr=True)
+    deadline = time.monotonic() + 120
+    while (_windows_done(state) < 1 or not _workers(proc.pid)) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    victims = _workers(proc.pid)
+    assert victims, "no window worker found"
+    os.kill(victims[0], signal.SIGKILL)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2, err
+    assert "worker process solving window" in err and "Traceback" not in err, err
+    again = _solve(rig, d, out, "--resume")
+    assert again.returncode == 0, again.stderr
+    write_anipose_csv(tmp_path / "memory.csv", in_memory)
+    assert out.read_bytes() == (tmp_path / "memory.csv").read_bytes()

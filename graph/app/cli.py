@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 from graph import __version__
-from graph.errors import InputError
+from graph.errors import InputError, WorkerLost
 
 if TYPE_CHECKING:
     from graph.types import Body, SolveReport
@@ -154,7 +154,7 @@ def _run(argv: list[str], commands: tuple[Command, ...]) -> int:
             return int(func(args) or 0)
     except UsageError as e:
         return _fail(str(e))
-    except InputError as e:
+    except (InputError, WorkerLost) as e:
         return _fail(str(e))
     except OSError as e:  # an output path that cannot be written, a disk that is full, ...
         where = f"{Path(e.filename).name}: " if e.filename else ""

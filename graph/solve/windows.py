@@ -44,6 +44,7 @@ import time
 import warnings
 from collections import deque
 from collections.abc import Callable, Iterator
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple, Protocol
@@ -51,7 +52,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 
 from graph.camera import Calibration
-from graph.errors import InputError
+from graph.errors import InputError, WorkerLost
 from graph.io.staged import StagedRun
 from graph.solve import problem
 from graph.solve.joint import solve_fte_joint
@@ -320,13 +321,17 @@ class Windows:
         with window_pool(self.source, self.jobs) as pool:
             flight: deque = deque()
             todo = iter(spans)
-            for lo, hi in itertools.islice(todo, self.jobs + 1):
-                flight.append(pool.submit(solve_window, None, lo, hi, st.options, st.sigma_px))
-            while flight:
-                done = flight.popleft().result()
-                for lo, hi in itertools.islice(todo, 1):
+            try:
+                for lo, hi in itertools.islice(todo, self.jobs + 1):
                     flight.append(pool.submit(solve_window, None, lo, hi, st.options, st.sigma_px))
-                yield done
+                while flight:
+                    done = flight.popleft().result()
+                    for lo, hi in itertools.islice(todo, 1):
+                        flight.append(pool.submit(solve_window, None, lo, hi, st.options, st.sigma_px))
+                    yield done
+            except BrokenProcessPool:
+                raise WorkerLost(f"a worker process solving window {self.done + 1} of {len(self.starts)} died "
+                                 "(killed, or out of memory): fewer jobs use less memory") from None
 
     def report(self, report: SolveReport) -> None:
         """What the windows share written into the run's ``report``: ``windows`` and the settled values."""
