@@ -1,0 +1,192 @@
+"""A long recording through the job service (issue 29): the 10-minute run of ``bench_long.py`` uploaded to
+a real embedded server and solved there, beside the same run from a shell.
+
+    .venv/bin/python bench/bench_long_service.py [--minutes 10] [--workers 1] [--seed 0] [--work DIR] [--out NAME]
+
+The run: ``bench_long.make_run`` (the simulator's cheetah walking at 1 m/s on the AcinoSet 2019 rig,
+120 fps, six DeepLabCut CSVs). The server: ``python -m service serve --backend embedded --workers N``
+on a loopback port, its limits raised for the run as a lab would raise them (``ACINOSET_MAX_FRAMES``,
+``ACINOSET_MAX_UPLOAD_BYTES``: the defaults take 50,000 frames a file and 512 MiB an upload). After one
+small untimed job (the solver's warm-up), measured:
+
+* the upload: ``POST /v1/jobs`` of the six CSVs and the calibration until its 202 (the server reads
+  every file with the library's readers before it answers);
+* the job: from the 202 until it succeeded (polled every 0.2 s), and the job's own ``run_seconds``;
+* the server's memory: the resident memory of its whole process tree (the server, its solve and
+  upload-reading processes), summed every 0.2 s, its peak while the job ran and over all;
+* the downloaded CSV scored against the truth (``graph.metrics.position_error``).
+
+Then the same run from a shell (``acinoset solve``, GNU time), as ``bench_long.py`` measures it.
+Prints a Markdown table and writes bench/results/OUT.json (default ``long_service``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import bench_long as bl
+import harness as h
+import httpx
+
+PY = sys.executable
+ROOT = Path(__file__).resolve().parents[1]
+MIB = 1024 * 1024
+
+
+def start_server(data: Path, workers: int, frames: int, log: Path) -> tuple[subprocess.Popen, str, str]:
+    from service.store import Store
+
+    store = Store(data / "acinoset.db")
+    _, token = store.add_user("bench")
+    store.close()
+    port = _free_port()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "ACINOSET_MAX_FRAMES": str(frames + 1),
+           "ACINOSET_MAX_UPLOAD_BYTES": str(4096 * MIB)}
+    proc = subprocess.Popen([PY, "-m", "service", "serve", "--port", str(port), "--data-dir", str(data), "--backend",
+                             "embedded", "--workers", str(workers), "--log-level", "warning"], cwd=ROOT,
+                            stdout=open(log, "ab"), stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                            start_new_session=True, env=env)
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.time() + 120
+    while True:
+        try:
+            if httpx.get(base + "/healthz").status_code == 200:
+                return proc, base, token
+        except httpx.HTTPError:
+            pass
+        if time.time() > deadline or proc.poll() is not None:
+            raise RuntimeError(log.read_text()[-2000:])
+        time.sleep(0.2)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class TreeSampler(threading.Thread):
+    """The summed resident memory of ``pid``'s process tree, every ``every`` s, until stopped."""
+
+    def __init__(self, pid: int, every: float = 0.2):
+        super().__init__(daemon=True)
+        self.pid, self.every, self.samples = pid, every, []
+        self.halt = threading.Event()
+
+    def run(self) -> None:
+        while not self.halt.is_set():
+            self.samples.append((time.perf_counter(), sum(bl._rss_kib(p) for p in bl._tree(self.pid)) / 1024))
+            time.sleep(self.every)
+
+    def peak(self, t0: float = float("-inf"), t1: float = float("inf")) -> float:
+        return max((m for t, m in self.samples if t0 <= t <= t1), default=float("nan"))
+
+
+def submit(c: httpx.Client, d: Path, options: dict) -> tuple[float, httpx.Response]:
+    files = [("keypoints", (p.name, p.read_bytes(), "text/csv")) for p in sorted(d.glob("cam*.csv"))]
+    files.append(("calibration", ("calibration.toml", (d / "calibration.toml").read_bytes(), "application/toml")))
+    t0 = time.perf_counter()
+    r = c.post("/v1/jobs", files=files, data={"options": json.dumps(options)})
+    return time.perf_counter() - t0, r
+
+
+def wait(c: httpx.Client, job_id: str, timeout: float = 3600) -> dict:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        job = c.get(f"/v1/jobs/{job_id}").json()
+        if job["status"] in ("succeeded", "failed", "cancelled"):
+            return job
+        time.sleep(0.2)
+    raise TimeoutError(job_id)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--work", default=None)
+    ap.add_argument("--out", default="long_service")
+    args = ap.parse_args()
+    frames = int(round(args.minutes * 60 * bl.FPS))
+    info = h.machine()
+    work = Path(args.work or tempfile.mkdtemp(prefix="bench_long_service_"))
+    work.mkdir(parents=True, exist_ok=True)
+    run_dir, warm_dir, data = work / "run", work / "warm", work / "data"
+    data.mkdir(exist_ok=True)
+    cal = h.rig()
+    bl.make_run(cal, bl.WARM_FRAMES, 99, warm_dir)
+    bl.log(f"{args.minutes:g} min: simulating and writing {frames:,} frames")
+    bl.make_run(cal, frames, args.seed, run_dir)
+    out: dict = {"machine": info, "args": vars(args), "frames": frames}
+    proc, base, token = start_server(data, args.workers, frames, work / "server.log")
+    sampler = TreeSampler(proc.pid)
+    sampler.start()
+    try:
+        with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=600) as c:
+            _, r = submit(c, warm_dir, {"fps": bl.FPS})
+            assert r.status_code == 202, r.text
+            warm = wait(c, r.json()["id"])
+            bl.log(f"warm-up job: {warm['status']}")
+            time.sleep(3.0)  # the server idle, sampled
+            t0 = time.perf_counter()
+            up_s, r = submit(c, run_dir, {"fps": bl.FPS})
+            assert r.status_code == 202, r.text
+            t_up = time.perf_counter()
+            job = wait(c, r.json()["id"])
+            t1 = time.perf_counter()
+            bl.log(f"job {job['status']}: upload {up_s:.1f} s, then {t1 - t_up:.1f} s")
+            out["service"] = {"status": job["status"], "error": job.get("error"), "upload_s": up_s,
+                              "job_s": t1 - t_up, "total_s": t1 - t0,
+                              "run_seconds": (job.get("timings") or {}).get("run_seconds"),
+                              "tree_peak_mib_job": sampler.peak(t_up, t1), "tree_peak_mib_all": sampler.peak(),
+                              "tree_mib_idle": sampler.peak(t0 - 2.0, t0),
+                              "windows": ((job.get("result") or {}).get("report") or {}).get("windows")}
+            if job["status"] == "succeeded":
+                csv = work / "service.csv"
+                csv.write_bytes(c.get(job["links"]["result"]["csv"]).content)
+                markers, truth = bl.load_truth(run_dir / "truth.npz")
+                out["service"]["error"] = bl.score(bl.read_positions(csv, markers), truth, markers)
+    finally:
+        sampler.halt.set()
+        proc.terminate()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    bl.log("the same run from a shell")
+    c = bl.command(bl.solve_command(run_dir), {**os.environ, "ACINOSET_RESIDENT": "0"})
+    out["shell"] = c
+    if c["exit"] == 0:
+        markers, truth = bl.load_truth(run_dir / "truth.npz")
+        out["shell"]["error"] = bl.score(bl.read_positions(run_dir / "run.csv", markers), truth, markers)
+        out["same_csv"] = (run_dir / "run.csv").read_bytes() == (work / "service.csv").read_bytes()
+    s = out.get("service", {})
+    rows = [["service (embedded, 1 worker)", s.get("status"), s.get("upload_s"), s.get("job_s"), s.get("run_seconds"),
+             s.get("tree_mib_idle"), s.get("tree_peak_mib_job"), s.get("tree_peak_mib_all"),
+             (s.get("error") or {}).get("mean_mm")],
+            ["acinoset solve from a shell", c["exit"], "-", c["wall_s"], "-", "-", c["peak_rss_mib"], "-",
+             (c.get("error") or {}).get("mean_mm")]]
+    print(h.markdown_table(["how", "status", "upload s", "job / command s", "job's run_seconds", "idle MiB",
+                            "peak MiB while solving", "peak MiB overall", "error mean mm"], rows))
+    print("\n(the service's memory: its whole process tree summed, the pages its processes share counted in each)")
+    print(f"\nthe service's CSV and the command's: {'the same bytes' if out.get('same_csv') else 'different'}")
+    print(f"wrote {h.save(args.out, out)}")
+    if args.work is None:
+        shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
