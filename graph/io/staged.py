@@ -2,8 +2,9 @@
 
 An hour at 120 fps is 432,000 frames: six cameras' detections of 20 markers are 1.2 GB as float64,
 more than the rest of a windowed solve holds (:mod:`graph.solve.windows`). So each camera's file
-is read once, in turn (:func:`graph.io.keypoints.read_tracks`: every format a solve takes), and its
-arrays written as raw native float64 files in a scratch folder of the caller's:
+is read once, in turn, a stretch of frames at a time as the reader gives them
+(:func:`graph.io.keypoints.read_blocks`: a DeepLabCut CSV 4,096 rows at a time, any other format
+whole), and its arrays appended to raw native float64 files in a scratch folder of the caller's:
 
 * ``<c>.xy``: (N, M_c, 2) pixels, NaN where missing;
 * ``<c>.likelihood``: (N, M_c), 0 where missing;
@@ -11,8 +12,9 @@ arrays written as raw native float64 files in a scratch folder of the caller's:
 
 :meth:`StagedRun.keypoints` reads frames ``[a, b)`` of every camera back (``np.fromfile`` at the
 frames' offset: nothing stays mapped), so only a window's detections are in memory at a time. A
-camera file of several individuals is not staged (:meth:`StagedRun.add` says so): several animals
-are solved together (:func:`graph.api.solve_group`).
+run whose files hold several individuals is not staged (:func:`stage` says so): several animals are
+solved together (:func:`graph.api.solve_group`). :meth:`StagedRun.save` and :meth:`StagedRun.open`
+keep the cameras' index beside the arrays, for a run that goes on after it was stopped.
 """
 
 from __future__ import annotations
