@@ -47,6 +47,7 @@ import csv
 import pickletools
 import warnings
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import NamedTuple
 
@@ -121,13 +122,20 @@ def _read_csv(path: Path, individual: str | None, limits: ReadLimits) -> Keypoin
     """Stream the file: the header rows first (their width checked against ``limits`` before they
     are split), then the data a block of :data:`CSV_BLOCK_ROWS` rows at a time, the row count
     checked as it grows."""
+    with _csv_text(path) as f:
+        return _parse_csv(f, path, individual, limits)
+
+
+@contextmanager
+def _csv_text(path: Path):
+    """The file open as UTF-8 text; one-line errors for a file that cannot be opened or is not text."""
     try:
         f = open(path, encoding="utf-8-sig", newline="")
     except OSError as e:
         raise unreadable(e, path, "a keypoint file") from None
     try:
         with f:
-            return _parse_csv(f, path, individual, limits)
+            yield f
     except UnicodeDecodeError:
         raise InputError("not a DeepLabCut CSV or H5 file (binary, not UTF-8 text)", path) from None
 
@@ -163,28 +171,21 @@ def read_blocks(path: str | Path, limits: ReadLimits = NO_LIMITS,
                 openpose_model: str | None = None) -> Iterator[Tracks]:
     """Every individual of one camera's file (:func:`read_tracks`) a stretch of frames at a time: a
     DeepLabCut CSV :data:`CSV_BLOCK_ROWS` rows at a time (its header checked once, the same errors
-    as a whole read, the individuals' warning once), any other format whole, as one stretch."""
+    as a whole read), any other format whole, as one stretch."""
     path = Path(path)
     if path.is_dir() or _head(path).startswith(_HDF5_MAGIC):
         yield read_tracks(path, limits, openpose_model)
         return
-    try:
-        f = open(path, encoding="utf-8-sig", newline="")
-    except OSError as e:
-        raise unreadable(e, path, "a keypoint file") from None
-    try:
-        with f:
-            columns, blocks = _csv_blocks(f, path, limits)
-            empty = True
-            for values in blocks:
-                empty = False
-                out = _from_columns(columns, values, path, EVERY)
-                assert isinstance(out, Tracks)
-                yield out
-            if empty:
-                raise InputError("no data rows after the header", path)
-    except UnicodeDecodeError:
-        raise InputError("not a DeepLabCut CSV or H5 file (binary, not UTF-8 text)", path) from None
+    with _csv_text(path) as f:
+        columns, blocks = _csv_blocks(f, path, limits)
+        empty = True
+        for values in blocks:
+            empty = False
+            out = _from_columns(columns, values, path, EVERY)
+            assert isinstance(out, Tracks)
+            yield out
+        if empty:
+            raise InputError("no data rows after the header", path)
 
 
 def _head(path: Path) -> bytes:
