@@ -186,7 +186,11 @@ def test_resume_without_a_stopped_run_or_with_other_options_is_one_line(rig, lon
     state.write_text(json.dumps(doc))
     damaged = _solve(rig, d, out, "--resume")
     assert damaged.returncode == 2 and "cannot go on from the stopped run" in damaged.stderr
-    assert "Traceback" not in damaged.stderr
+    assert "Traceback" not in damaged.stderr and len(damaged.stderr.strip().splitlines()) == 1
+    doc["csv"] = "x"  # a field of the wrong kind
+    state.write_text(json.dumps(doc))
+    wrong = _solve(rig, d, out, "--resume")
+    assert wrong.returncode == 2 and "no stopped run to go on from" in wrong.stderr and "Traceback" not in wrong.stderr
 
     short = subprocess.run([sys.executable, "-m", "graph.app.cli", "solve", *_cams(rig, d), "--calibration",
                             str(d / "calibration.toml"), "--fps", "120", "--method", "tri", "--out",
@@ -301,3 +305,18 @@ def test_a_worker_that_dies_is_one_line_and_the_run_goes_on(rig, long_run, in_me
     assert again.returncode == 0, again.stderr
     write_anipose_csv(tmp_path / "memory.csv", in_memory)
     assert out.read_bytes() == (tmp_path / "memory.csv").read_bytes()
+
+
+def test_a_run_that_fails_before_its_first_window_leaves_no_folder(rig, long_run, tmp_path):
+    """A camera file shorter than the others, found while staging: one line, and no OUT.csv.partial left
+    (nothing to go on from)."""
+    _, d = long_run
+    cams = _cams(rig, d)
+    short = tmp_path / Path(cams[1]).name
+    short.write_text("".join(Path(cams[1]).read_text().splitlines(keepends=True)[:-100]))
+    cmd = [sys.executable, "-m", "graph.app.cli", "solve", cams[0], str(short), *cams[2:], "--calibration",
+           str(d / "calibration.toml"), "--fps", "120", "--window-frames", str(CORE), "--out", str(tmp_path / "r.csv")]
+    done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "ACINOSET_RESIDENT": "0"})
+    assert done.returncode == 2 and "all cameras must have the same frames" in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "r.csv.partial").exists()

@@ -523,37 +523,41 @@ def _solve_streamed(args: argparse.Namespace, options, calibration) -> bool:
     state = None
     if args.resume:
         state = _stopped_run(work)
-        run = StagedRun.open(work / "staged")
-    else:
-        if work.exists():  # a stopped run's, started again: removed if it holds only what a run leaves
-            if not work.is_dir() or not {p.name for p in work.iterdir()} <= PARTIAL_ENTRIES:
-                raise InputError("is in the way of the run's working folder (it is not one a stopped run left: "
-                                 "move it, or give another --out)", work)
-            shutil.rmtree(work)
-        (work / "staged").mkdir(parents=True)
-        above = options.window_frames or WINDOWED_ABOVE
-        got = stage(args.keypoints, work / "staged", lambda p: read_blocks(p, openpose_model=args.openpose_model),
-                    lambda frames: frames > above)
-        if got is None:
-            shutil.rmtree(work)
-            return False
-        run = got
-        run.save()
-    fps, fps_from = frame_rate(args.fps, run.cameras)
-    options = solve_options(args, fps)
-    inputs = _fingerprint(args, options, run.frames)
-    if state is not None and state["inputs"] != inputs:
-        raise InputError("the keypoint files, the calibration or the options are not the ones of the run that stopped "
-                         "(run again without --resume)", work)
+    elif work.exists():  # a stopped run's, started again: removed if it holds only what a run leaves
+        if not work.is_dir() or not {p.name for p in work.iterdir()} <= PARTIAL_ENTRIES:
+            raise InputError("is in the way of the run's working folder (it is not one a stopped run left: "
+                             "move it, or give another --out)", work)
+        shutil.rmtree(work)
     try:
+        if state is not None:
+            run = StagedRun.open(work / "staged")
+        else:
+            (work / "staged").mkdir(parents=True)
+            above = options.window_frames or WINDOWED_ABOVE
+            got = stage(args.keypoints, work / "staged",
+                        lambda p: read_blocks(p, openpose_model=args.openpose_model), lambda frames: frames > above)
+            if got is None:
+                shutil.rmtree(work)
+                return False
+            run = got
+            run.save()
+        fps, fps_from = frame_rate(args.fps, run.cameras)
+        options = solve_options(args, fps)
+        inputs = _fingerprint(args, options, run.frames)
+        if state is not None and state["inputs"] != inputs:
+            raise InputError("the keypoint files, the calibration or the options are not the ones of the run that "
+                             "stopped (run again without --resume)", work)
         report = _stream(args, options, calibration, run, work, inputs, state)
-    except BaseException:
-        try:
-            done = json.loads((work / "state.json").read_text(encoding="utf-8"))["windows"]["done"]
-            print(f"{PROG}: stopped after {done} windows: acinoset solve ... --resume goes on from there",
-                  file=sys.stderr)
-        except (OSError, ValueError, KeyError, TypeError):
-            pass  # stopped before its first window: nothing to go on from
+    except BaseException as e:
+        if not (work / "state.json").exists():
+            shutil.rmtree(work, ignore_errors=True)  # stopped before its first window: nothing to go on from
+        elif not isinstance(e, (InputError, UsageError)):  # stopped (Ctrl-C, a worker lost, a full disk)
+            try:
+                done = _stopped_run(work)["windows"]["done"]
+                print(f"{PROG}: stopped after {done} windows: acinoset solve ... --resume goes on from there",
+                      file=sys.stderr)
+            except InputError:
+                pass
         raise
     shutil.rmtree(work)
     written: list = [out if report.unit == "m" else f"{out} (in {report.unit})"]
@@ -577,26 +581,21 @@ def _stream(args: argparse.Namespace, options, calibration, run, work: Path, inp
     they finish and the run's state saved in ``work`` after each (``state``: a stopped run's, to go on from)."""
     from graph import api
     from graph.io import results
+    from graph.solve.problem import skeleton_of
 
-    writers: dict = {}
-    per_unit = 1.0
+    markers = skeleton_of([cam.bodyparts for cam in run.cameras], options).markers
+    per_unit = csv_metres_per_unit(args.units, calibration, options.calibration_units)
+    csv = results.AniposeCsv(args.out, markers, metres_per_unit=per_unit,
+                             resume=None if state is None else tuple(state["csv"]))
+    h5 = results.H5Stream(args.h5, run.frames, resume=None if state is None else state["h5"]) if args.h5 else None
 
     def write(core) -> None:
-        nonlocal per_unit
-        r = core.result
-        if not writers:
-            per_unit = csv_metres_per_unit(args.units, calibration, r)
-            writers["csv"] = results.AniposeCsv(args.out, r.markers, metres_per_unit=per_unit,
-                                                resume=None if state is None else tuple(state["csv"]))
-            if args.h5:
-                writers["h5"] = results.H5Stream(args.h5, run.frames, resume=None if state is None else state["h5"])
-        writers["csv"].write(r)
-        if "h5" in writers:
-            writers["h5"].write(r)
+        csv.write(core.result)
+        if h5 is not None:
+            h5.write(core.result)
 
     def saved(solve_state: dict) -> None:
-        doc = {"inputs": inputs, "csv": writers["csv"].position(),
-               "h5": writers["h5"].flush() if "h5" in writers else None, **solve_state}
+        doc = {"inputs": inputs, "csv": csv.position(), "h5": h5.flush() if h5 is not None else None, **solve_state}
         part = work / "state.json.part"
         part.write_text(json.dumps(doc), encoding="utf-8")
         os.replace(part, work / "state.json")
@@ -606,14 +605,13 @@ def _stream(args: argparse.Namespace, options, calibration, run, work: Path, inp
             run, calibration, options, write, progress=bar, resume=state, saved=saved,
             sample_file=work / "noise_sample.f64", jobs=args.jobs))
     except BaseException:
-        if "h5" in writers:
-            writers["h5"].file.close()
+        if h5 is not None:
+            h5.file.close()
         raise
     finally:
-        if "csv" in writers:
-            writers["csv"].close()
-    if "h5" in writers:
-        writers["h5"].close(report, options, calibration)
+        csv.close()
+    if h5 is not None:
+        h5.close(report, options, calibration)
     return _Streamed(report, {1.0: "m", 0.01: "cm", 0.001: "mm"}[per_unit])
 
 
@@ -621,8 +619,13 @@ def _stopped_run(work: Path) -> dict:
     """The state a stopped run saved in ``work`` (one line when there is none to go on from)."""
     try:
         state = json.loads((work / "state.json").read_text(encoding="utf-8"))
-        if not isinstance(state, dict) or not {"inputs", "csv", "windows", "sums"} <= set(state):
+        if not isinstance(state, dict) or not {"inputs", "csv", "h5", "windows", "sums"} <= set(state):
             raise ValueError("not a run's state")
+        csv, h5, windows = state["csv"], state["h5"], state["windows"]
+        if not (isinstance(csv, list) and len(csv) == 2 and all(type(v) is int and v >= 0 for v in csv)
+                and (h5 is None or (type(h5) is int and h5 >= 0)) and isinstance(windows, dict)
+                and type(windows.get("done")) is int and isinstance(state["sums"], dict)):
+            raise ValueError("a damaged state")
     except (OSError, ValueError) as e:
         raise InputError(f"no stopped run to go on from here ({type(e).__name__}: the run finished, was never "
                          "solved in windows, or stopped before its first window)", work) from None
@@ -695,7 +698,7 @@ def write_outputs(args: argparse.Namespace, result, calibration, out: Path, repo
     an individuals axis: :func:`graph.io.results.write_group_h5`). The paths written."""
     from graph.io import results
 
-    per_unit = csv_metres_per_unit(args.units, calibration, result)
+    per_unit = csv_metres_per_unit(args.units, calibration, result.options.calibration_units)
     unit = {1.0: "m", 0.01: "cm", 0.001: "mm"}[per_unit]
     written: list = [out if unit == "m" else f"{out} (in {unit})"]
     results.write_anipose_csv(out, result, metres_per_unit=per_unit)
@@ -716,13 +719,14 @@ def write_outputs(args: argparse.Namespace, result, calibration, out: Path, repo
     return written
 
 
-def csv_metres_per_unit(units: str, calibration, result) -> float:
-    """``--units`` as metres per CSV unit: the calibration's own units for ``auto`` (as the solve took them)."""
+def csv_metres_per_unit(units: str, calibration, calibration_units: str) -> float:
+    """``--units`` as metres per CSV unit: the calibration's own units for ``auto`` (as the solve took
+    them, given ``calibration_units``)."""
     from graph.camera import CALIBRATION_UNITS
     from graph.io.calibration import resolve_units
 
     if units == "auto":
-        units = resolve_units(calibration, result.options.calibration_units)[0]
+        units = resolve_units(calibration, calibration_units)[0]
     return CALIBRATION_UNITS[units]
 
 

@@ -1,5 +1,6 @@
-"""A long run's report made from its windows' kept frames as they finish, in memory that does not
-grow with the run (a run solved streamed: :func:`graph.solve.windows.solve_streamed`).
+"""A long run's report made from its windows' kept frames as they finish, without holding the run's
+arrays (a run solved streamed: :func:`graph.solve.windows.solve_streamed`; only the list of frames no
+two cameras saw grows with it).
 
 :func:`graph.solve.result.build_result` makes the report of a run held whole. Streamed, the same
 figures come from sums over the cores (each :class:`graph.solve.windows.Core`):

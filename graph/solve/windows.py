@@ -32,8 +32,9 @@ the body's lengths and the cameras' clocks. So:
 Memory: one window's normal equations, marginals and kernels' scratch at a time. Held in memory
 (:func:`solve_in_windows`), the run's inputs and outputs come on top (about 12 KB a frame for six
 cameras and 20 markers, against the whole solve's 170 KB); streamed (:func:`solve_streamed` of a run
-staged on disk, :class:`Staged`: ``acinoset solve`` and the service's long jobs), nothing grows with
-the run: 597, 631 and 637 MiB for 1, 10 and 60 minutes at 120 fps (bench/RESULTS.md, section 21).
+staged on disk, :class:`Staged`: ``acinoset solve`` and the service's long jobs), no array of the
+run's is held: 597, 631 and 637 MiB for 1, 10 and 60 minutes at 120 fps (bench/RESULTS.md, section 21;
+what still grows is small: the frames no camera pair saw, a few warnings a window).
 """
 
 from __future__ import annotations
@@ -251,6 +252,8 @@ class Windows:
 
     def __init__(self, source: Frames, core: int, margin: int = MARGIN_FRAMES, settle_frames: int = SETTLE_FRAMES,
                  progress: ProgressCallback | None = None, settled: Settled | None = None, jobs: int = 1):
+        if margin < 1:
+            raise ValueError(f"a window needs at least one frame of margin, not {margin}")
         self.source, self.core, self.margin, self.progress, self.jobs = source, core, margin, progress, jobs
         if progress:
             progress(Progress(stage="initialise", fraction=0.0, detail="settling what every window shares"))

@@ -213,7 +213,7 @@
     const dl = el("dl", { class: "facts" });
     const fact = (k, v) => dl.append(el("dt", { text: k }), el("dd", { text: v }));
     fact("Method", `${P.method} (${P.skeleton} skeleton)`);
-    const all = report.frames || N, rate = fps * ctx.step;
+    const all = report.frames || N, rate = Number((fps * ctx.step).toPrecision(12));
     fact("Frames", `${all} at ${rate} fps (${(all / rate).toFixed(2)} s)` +
       (ctx.step > 1 ? `; one frame in ${ctx.step} shown (${N})` : ""));
     fact("Markers", String(M));

@@ -260,7 +260,10 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     if options.method != "fte" or options.window_frames == 0 or options.individual or options.individuals:
         return None
     above = options.window_frames or WINDOWED_ABOVE
-    with tempfile.TemporaryDirectory(prefix="acinoset-staged-") as scratch:
+    # staged inside the job's result folder: a run killed (cancelled, timed out) leaves nothing behind
+    # that the job's own clean-up does not remove
+    scratch = out_dir / "staged"
+    try:
         run = stage([str(inside(input_dir, rel)) for rel in m["keypoints"]], scratch, read_blocks,
                     lambda frames: frames > above)
         if run is None:
@@ -290,6 +293,8 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
         finally:
             for f in csv:
                 f.close()
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
     report.warnings = [strip_paths(w) for w in report.warnings]
     h5.close(report, options, calibration)
     progress.report(WRITING, 1.0, report.iterations, report.cost)
@@ -297,6 +302,8 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     view = read_result(out_dir / name["h5"], step=step)
     payload = result_payload(dataclasses.replace(view, fps=view.fps / step))
     payload["frame_step"] = step
+    # the view's frames: the run's frames n * step (the report's frame numbers are the run's)
+    payload["report"]["unconstrained_frames"] = [n // step for n in report.unconstrained_frames if n % step == 0]
     (out_dir / name["json"]).write_text(json.dumps(payload, separators=(",", ":"), allow_nan=False))
     doc = report.to_dict()
     (out_dir / name["report"]).write_text(json.dumps(doc, indent=2))
