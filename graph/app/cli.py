@@ -238,7 +238,7 @@ def read_cameras(paths: list[str], individual: str | None = None, openpose_model
 
     out = []
     for arg in paths:
-        if "+" in arg and not Path(arg).exists():
+        if _is_ensemble(arg):
             from graph.solve.ensemble import combine
 
             out.append(combine([read(p) for p in arg.split("+") if p]))
@@ -461,7 +461,7 @@ def run_solve(args: argparse.Namespace) -> int:
         del cameras  # the problem holds the detections now: a long run's are not held twice
         result = _with_progress(lambda bar: api.solve_prepared(prob, progress=bar))
         written = write_outputs(args, result, calibration, Path(args.out))
-        print(_summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
+        print(_summary(result.report, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
         return 0
 
     tracks = cameras
@@ -473,7 +473,7 @@ def run_solve(args: argparse.Namespace) -> int:
     if len(ids.names) == 1:
         result = solved.results[0]
         written = write_outputs(args, result, calibration, Path(args.out), identity=ids.to_dict())
-        print(_summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
+        print(_summary(result.report, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
         return 0
     switches = ", ".join(f"{cam} {n}" for cam, n in zip(ids.cameras, ids.switches))
     print(f"{len(ids.names)} individuals ({'found' if ids.found else 'given'}: {', '.join(ids.names)}); 2D identity "
@@ -481,7 +481,8 @@ def run_solve(args: argparse.Namespace) -> int:
     for name, result in zip(ids.names, solved.results):
         written = write_outputs(args, result, calibration, individual_path(Path(args.out), name), report=False,
                                 individual=name)
-        print(f"{name}: " + _summary(result, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
+        summary = _summary(result.report, options, fps, fps_from)
+        print(f"{name}: {summary} -> {', '.join(map(str, written))}")
     if args.h5:
         from graph.io.results import write_group_h5
 
@@ -489,7 +490,7 @@ def run_solve(args: argparse.Namespace) -> int:
                        identity=ids.to_dict())
         print(f"{len(ids.names)} individuals (an individuals axis) -> {args.h5}")
     if args.report:
-        Path(args.report).write_text(json.dumps(solved.report(), indent=2) + "\n", encoding="utf-8")
+        _write_report(args.report, solved.report())
         print(f"report -> {args.report}")
     return 0
 
@@ -499,7 +500,7 @@ def _streamable(args: argparse.Namespace, options) -> bool:
     individual, no ensemble, no reprojections asked for (they are written from the whole run)."""
     return (options.method == "fte" and options.window_frames != 0 and args.individual is None
             and args.individuals is None and not args.reprojections
-            and not any("+" in p and not Path(p).exists() for p in args.keypoints))
+            and not any(map(_is_ensemble, args.keypoints)))
 
 
 # what a run solved streamed keeps in OUT.csv.partial/ until it is done
@@ -560,11 +561,11 @@ def _solve_streamed(args: argparse.Namespace, options, calibration) -> bool:
                 pass
         raise
     shutil.rmtree(work)
-    written: list = [out if report.unit == "m" else f"{out} (in {report.unit})"]
+    written: list = [_csv_label(out, report.unit)]
     if args.h5:
         written.append(args.h5)
     if args.report:
-        Path(args.report).write_text(json.dumps(report.report.to_dict(), indent=2) + "\n", encoding="utf-8")
+        _write_report(args.report, report.report.to_dict())
         written.append(args.report)
     print(_summary(report.report, options, fps, fps_from) + f" -> {', '.join(map(str, written))}")
     return True
@@ -580,12 +581,13 @@ def _stream(args: argparse.Namespace, options, calibration, run, work: Path, inp
     """:func:`graph.api.solve_streamed` of the staged ``run``, its windows written to the CSV and H5 as
     they finish and the run's state saved in ``work`` after each (``state``: a stopped run's, to go on from)."""
     from graph import api
+    from graph.camera import CALIBRATION_UNITS
     from graph.io import results
     from graph.solve.problem import skeleton_of
 
     markers = skeleton_of([cam.bodyparts for cam in run.cameras], options).markers
-    per_unit = csv_metres_per_unit(args.units, calibration, options.calibration_units)
-    csv = results.AniposeCsv(args.out, markers, metres_per_unit=per_unit,
+    unit = csv_unit(args.units, calibration, options.calibration_units)
+    csv = results.AniposeCsv(args.out, markers, metres_per_unit=CALIBRATION_UNITS[unit],
                              resume=None if state is None else tuple(state["csv"]))
     h5 = results.H5Stream(args.h5, run.frames, resume=None if state is None else state["h5"]) if args.h5 else None
 
@@ -612,7 +614,7 @@ def _stream(args: argparse.Namespace, options, calibration, run, work: Path, inp
         csv.close()
     if h5 is not None:
         h5.close(report, options, calibration)
-    return _Streamed(report, {1.0: "m", 0.01: "cm", 0.001: "mm"}[per_unit])
+    return _Streamed(report, unit)
 
 
 def _stopped_run(work: Path) -> dict:
@@ -646,12 +648,18 @@ def _fingerprint(args: argparse.Namespace, options, frames: int) -> dict:
             "h5": None if args.h5 is None else str(Path(args.h5).resolve())}
 
 
+def _is_ensemble(arg: str) -> bool:
+    """Whether a camera argument is an ensemble's files joined by ``+`` (:func:`read_cameras`), not a
+    file whose own name has one."""
+    return "+" in arg and not Path(arg).exists()
+
+
 def read_inputs(paths: list[str], individual: str | None, individuals: int | None,
                 openpose_model: str | None) -> list:
     """Each camera's detections as a solve takes them: :class:`~graph.io.keypoints.Keypoints` for one
     individual (named, an ensemble's ``+``, or one slot in every file and no count given), else
     :class:`~graph.io.keypoint_types.Tracks` (:func:`graph.io.keypoints.read_recording`)."""
-    if individual is not None or any("+" in p and not Path(p).exists() for p in paths):
+    if individual is not None or any(map(_is_ensemble, paths)):
         return read_cameras(paths, individual, openpose_model)
     from graph.io.keypoints import read_recording
 
@@ -696,12 +704,12 @@ def write_outputs(args: argparse.Namespace, result, calibration, out: Path, repo
     """The CSV at ``out`` and what ``--h5``, ``--report`` (when ``report``) and ``--reprojections`` ask
     for; an ``individual``'s CSV and reprojections are named after it (the H5 of several is one file with
     an individuals axis: :func:`graph.io.results.write_group_h5`). The paths written."""
+    from graph.camera import CALIBRATION_UNITS
     from graph.io import results
 
-    per_unit = csv_metres_per_unit(args.units, calibration, result.options.calibration_units)
-    unit = {1.0: "m", 0.01: "cm", 0.001: "mm"}[per_unit]
-    written: list = [out if unit == "m" else f"{out} (in {unit})"]
-    results.write_anipose_csv(out, result, metres_per_unit=per_unit)
+    unit = csv_unit(args.units, calibration, result.options.calibration_units)
+    written: list = [_csv_label(out, unit)]
+    results.write_anipose_csv(out, result, metres_per_unit=CALIBRATION_UNITS[unit])
     if args.h5 and individual is None:  # several individuals go in one file, after them all
         results.write_h5(args.h5, result, calibration=calibration)
         written.append(args.h5)
@@ -709,7 +717,7 @@ def write_outputs(args: argparse.Namespace, result, calibration, out: Path, repo
         doc = result.report.to_dict()
         if identity is not None:
             doc["identity"] = identity
-        Path(args.report).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+        _write_report(args.report, doc)
         written.append(args.report)
     if args.reprojections:
         stems = [f"{Path(p.split('+')[0] if not Path(p).exists() else p).stem}_reprojected" for p in args.keypoints]
@@ -719,20 +727,27 @@ def write_outputs(args: argparse.Namespace, result, calibration, out: Path, repo
     return written
 
 
-def csv_metres_per_unit(units: str, calibration, calibration_units: str) -> float:
-    """``--units`` as metres per CSV unit: the calibration's own units for ``auto`` (as the solve took
+def csv_unit(units: str, calibration, calibration_units: str) -> str:
+    """``--units`` as the CSV's unit (``m``, ``cm`` or ``mm``: metres per unit in
+    :data:`graph.camera.CALIBRATION_UNITS`): the calibration's own for ``auto`` (as the solve took
     them, given ``calibration_units``)."""
-    from graph.camera import CALIBRATION_UNITS
     from graph.io.calibration import resolve_units
 
-    if units == "auto":
-        units = resolve_units(calibration, calibration_units)[0]
-    return CALIBRATION_UNITS[units]
+    return resolve_units(calibration, calibration_units)[0] if units == "auto" else units
 
 
-def _summary(result, options, fps: float, fps_from: str) -> str:
-    """The one line a solve prints, of a ``result`` or its report."""
-    rep = getattr(result, "report", result)
+def _csv_label(out: Path, unit: str) -> str | Path:
+    """The CSV as the summary line names it: with its unit when not metres."""
+    return out if unit == "m" else f"{out} (in {unit})"
+
+
+def _write_report(path: str, doc) -> None:
+    """``--report``: the report as indented JSON."""
+    Path(path).write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+
+
+def _summary(rep, options, fps: float, fps_from: str) -> str:
+    """The one line a solve prints, of its report ``rep``."""
     rmse = "n/a" if rep.reprojection_rmse_px != rep.reprojection_rmse_px else f"{rep.reprojection_rmse_px:.2f} px"
     noise = f", detection noise {rep.sigma_px:.2f} px (measured)" if options.measurement_std_px == "auto" else ""
     if rep.motion_scales:
