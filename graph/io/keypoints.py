@@ -160,8 +160,6 @@ def _text_lines(f, path: Path, max_chars: int | None):
 def _parse_csv(f, path: Path, individual: str | None, limits: ReadLimits) -> Keypoints | Tracks:
     columns, blocks = _csv_blocks(f, path, limits)
     parts = list(blocks)
-    if not parts:
-        raise InputError("no data rows after the header", path)
     values = parts[0] if len(parts) == 1 else np.concatenate(parts)
     del parts
     return _from_columns(columns, values, path, individual)
@@ -178,14 +176,10 @@ def read_blocks(path: str | Path, limits: ReadLimits = NO_LIMITS,
         return
     with _csv_text(path) as f:
         columns, blocks = _csv_blocks(f, path, limits)
-        empty = True
         for values in blocks:
-            empty = False
             out = _from_columns(columns, values, path, EVERY)
             assert isinstance(out, Tracks)
             yield out
-        if empty:
-            raise InputError("no data rows after the header", path)
 
 
 def _head(path: Path) -> bytes:
@@ -201,7 +195,8 @@ def _head(path: Path) -> bytes:
 
 def _csv_blocks(f, path: Path, limits: ReadLimits) -> tuple[list[tuple], Iterator[np.ndarray]]:
     """A DeepLabCut CSV's columns (its header read and checked), and its data a block of
-    :data:`CSV_BLOCK_ROWS` rows at a time as they are read (the row count checked as it grows)."""
+    :data:`CSV_BLOCK_ROWS` rows at a time as they are read (the row count checked as it grows; no
+    row at all is an :class:`InputError` once the data are read)."""
     # a generous bound on a line's length where columns are bounded: 64 characters a cell
     max_chars = None if limits.max_columns is None else 64 * (limits.max_columns + 8) + 4096
     lines = _text_lines(f, path, max_chars)
@@ -267,6 +262,8 @@ def _csv_data(lines, path: Path, limits: ReadLimits, n_index: int, width: int) -
             block = []
     if block:
         yield _csv_numbers(block, n_index, path)
+    if frames == 0:
+        raise InputError("no data rows after the header", path)
 
 
 def _csv_numbers(block: list[tuple[int, str | list[str]]], n_index: int, path: Path) -> np.ndarray:
