@@ -146,11 +146,15 @@ def job_calibration(input_dir: Path):
 def without_server_paths(result):
     """The result as its files are written for the user: the skeleton option by its file's name, and
     no server path in a warning (the report, the H5 and every export say only the uploads' names)."""
-    skeleton = result.options.skeleton
-    if "/" in skeleton:
-        result = dataclasses.replace(result, options=dataclasses.replace(result.options, skeleton=Path(skeleton).name))
+    result = dataclasses.replace(result, options=users_options(result.options))
     result.report.warnings = [strip_paths(w) for w in result.report.warnings]
     return result
+
+
+def users_options(options):
+    """``options`` as the user's files name them: the skeleton by its file's name, not its server path."""
+    skeleton = options.skeleton
+    return dataclasses.replace(options, skeleton=Path(skeleton).name) if "/" in skeleton else options
 
 
 # -- outputs -----------------------------------------------------------------------------------
@@ -276,10 +280,7 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
         csv: list[AniposeCsv] = []
 
         def write(core) -> None:
-            r = core.result
-            if "/" in r.options.skeleton:  # the skeleton by its file's name, as without_server_paths
-                named = dataclasses.replace(r.options, skeleton=Path(r.options.skeleton).name)
-                r = dataclasses.replace(r, options=named)
+            r = dataclasses.replace(core.result, options=users_options(core.result.options))
             if not csv:
                 csv.append(AniposeCsv(out_dir / name["csv"], r.markers))
             csv[0].write(r)
