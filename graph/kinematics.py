@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from graph.compiled import loop_kernel
+
 
 @njit(cache=True)
 def _rot(axis, a):
@@ -212,7 +214,7 @@ def fk_jacobian_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_ro
     return pos, dpos
 
 
-@njit(cache=True, parallel=True)
+@loop_kernel
 def fk_body_jacobian_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
                            pt_group, G):
     """:func:`fk_body_jacobian` for poses (N, P): positions (N, M, 3), ``d p / d q`` (N, M, 3, P)

@@ -50,6 +50,8 @@ def run_demo(out: str | Path, frames: int = 200, fps: float = 120.0, noise: floa
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    log("compiling the solver's kernels (once: later runs load them from the cache) ...")
+    log(f"kernels ready in {warm_up():.1f} s; the seconds below are the solves alone")
     rig_path = default_rig_path()
     calibration = load_calibration(rig_path)
     run = simulate_run(calibration, frames=frames, fps=fps, noise=noise, outliers=outliers,
@@ -58,9 +60,6 @@ def run_demo(out: str | Path, frames: int = 200, fps: float = 120.0, noise: floa
     log(f"simulated {run.frames} frames at {fps:g} fps on the AcinoSet 2019 rig ({len(calibration)} cameras, "
         f"{len(run.markers)} markers): noise {noise:g} px, {int(run.outlier.sum())} outliers "
         f"(sigma {outlier_std:g} px), seed {seed}")
-
-    log("compiling the solver's kernels (once: later runs load them from the cache) ...")
-    log(f"kernels ready in {warm_up():.1f} s; the seconds below are the solves alone")
 
     evaluations, results = [], []
     for method in DEMO_METHODS:

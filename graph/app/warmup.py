@@ -1,15 +1,17 @@
 """Compile the solver's kernels before the first timed or served solve.
 
-numba compiles the compiled kernels (:mod:`graph.solve.kernels`) the first time a process uses them
-(about a minute on a 2-core machine for every method together) and caches them on disk
-(``cache=True``): a later process loads them in well under a second. :func:`warm_up` pays that cost
-on a tiny simulated run, so that a demo's timings and a server's first job measure the solve alone.
+numba compiles the compiled kernels (:mod:`graph.solve.kernels`, :mod:`graph.solve.marginals`,
+:mod:`graph.kinematics`) the first time a process uses them (about half a minute on a 2-core machine
+for every method together: :mod:`graph.compiled`) and caches them on disk (``cache=True``): a later
+process loads them in well under a second. :func:`warm_up` pays that cost on a tiny simulated run,
+so that a demo's timings and a server's first job measure the solve alone.
 
-From a cold cache the work is split over two processes: a child (``python -m graph.app.warmup
-ekf/cheetah``) compiles what ``ekf`` needs while this process compiles the other methods, then waits
-for it and runs ``ekf`` itself from the cache the child wrote (numba writes each cache file whole,
-by a rename). Measured on this 2-core machine from an empty cache: 46 s against 73-75 s in one
-process, and every kernel cached after it (a warm-up then takes 0.5 s). A warm cache (the kernels'
+From a cold cache the work is split over two processes that compile different kernels: a child
+(``python -m graph.app.warmup marginals``) compiles the chain's marginals (a third of the whole, and
+used only at the end of a solve: :func:`compile_marginals`) while this process runs every method,
+which reaches the marginals after the child has cached them (numba writes each cache file whole, by
+a rename, and a process loads a kernel from the cache when it first calls it). Then this process
+waits for the child and runs every method once more, from the cache. A warm cache (the kernels'
 index files are there) skips the child: its start alone would cost a second.
 """
 
@@ -22,6 +24,8 @@ import time
 from pathlib import Path
 from typing import Any, cast
 
+import numpy as np
+
 from graph.api import solve
 from graph.io.calibration import default_rig_path, load_calibration
 from graph.simulate import simulate_run
@@ -29,9 +33,9 @@ from graph.types import Method, SolveOptions
 
 log = logging.getLogger("acinoset")
 
-WARM_UP_RUNS: tuple[tuple[Method, str], ...] = (("tri", "points"), ("fte", "points"), ("fte", "cheetah"),
+WARM_UP_RUNS: tuple[tuple[Method, str], ...] = (("tri", "points"), ("fte", "cheetah"), ("fte", "points"),
                                                 ("ekf", "cheetah"))
-CHILD_RUNS: tuple[tuple[Method, str], ...] = (("ekf", "cheetah"),)  # compiled by the child from a cold cache
+CHILD = "marginals"  # what the child compiles from a cold cache (compile_marginals)
 CHILD_TIMEOUT_S = 900.0  # a child that takes longer is left to finish alone; this process compiles for itself
 
 
@@ -56,10 +60,26 @@ def _runs(specs, run) -> None:
             log.debug("warm-up %s/%s: %s", method, skeleton, e)
 
 
+def compile_marginals() -> None:
+    """Call every kernel of :mod:`graph.solve.marginals` on a tiny chain (six frames of two
+    parameters, one shared unknown), with the argument types the solvers pass them: float64 arrays,
+    C-contiguous, so that a solve then loads them from the cache."""
+    from graph.solve import marginals
+
+    n, d, g = 6, 2, 1
+    info = np.tile(np.eye(d), (n, 1, 1))
+    w2 = np.ones(d)
+    marginals.chain_marginals(info, w2, marginals.D3)
+    band = marginals.chain_band(info, w2, marginals.D3)
+    coupling = np.full((n, d, g), 0.1)
+    marginals.banded_marginals(band, coupling, np.eye(g))
+    marginals.information_taken(band, coupling)
+    marginals.solve_band([band.copy()], [coupling], [np.ones((n, d))], np.eye(g), np.ones(g))
+
+
 def _start_child() -> subprocess.Popen | None:
-    args = [f"{m}/{s}" for m, s in CHILD_RUNS]
     try:
-        return subprocess.Popen([sys.executable, "-m", "graph.app.warmup", *args], stdin=subprocess.DEVNULL,
+        return subprocess.Popen([sys.executable, "-m", "graph.app.warmup", CHILD], stdin=subprocess.DEVNULL,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError as e:
         log.debug("warm-up child: %s", e)
@@ -73,23 +93,31 @@ def warm_up() -> float:
     t0 = time.perf_counter()
     child = None if kernels_cached() else _start_child()
     run = simulate_run(load_calibration(default_rig_path()), frames=12, seed=0)
-    _runs([r for r in WARM_UP_RUNS if child is None or r not in CHILD_RUNS], run)
+    _runs(WARM_UP_RUNS, run)
     if child is not None:
         try:
             child.wait(timeout=CHILD_TIMEOUT_S)
         except subprocess.TimeoutExpired:
             log.debug("warm-up child still compiling after %.0f s", CHILD_TIMEOUT_S)
-        _runs([r for r in WARM_UP_RUNS if r in CHILD_RUNS], run)
+        _runs(WARM_UP_RUNS, run)  # from the cache: whatever this process did not compile itself
     return time.perf_counter() - t0
 
 
 def main(argv: list[str]) -> int:
-    """The child: the runs named ``method/skeleton`` on the warm-up's simulated run."""
+    """The child: ``marginals`` (:func:`compile_marginals`), or the runs named ``method/skeleton`` on
+    the warm-up's simulated run."""
     specs: list[tuple[Method, str]] = []
     for a in argv:
+        if a == CHILD:
+            try:
+                compile_marginals()
+            except Exception as e:  # noqa: BLE001 - a warm-up never fails
+                log.debug("warm-up %s: %s", a, e)
+            continue
         method, _, skeleton = a.partition("/")
         specs.append((cast(Method, method), skeleton))
-    _runs(specs, simulate_run(load_calibration(default_rig_path()), frames=12, seed=0))
+    if specs:
+        _runs(specs, simulate_run(load_calibration(default_rig_path()), frames=12, seed=0))
     return 0
 
 

@@ -47,6 +47,7 @@ import gtsam
 import numpy as np
 
 from graph import kinematics
+from graph.compiled import for_items
 from graph.errors import InputError
 from graph.solve import kernels
 from graph.solve.initial import initial_poses
@@ -429,9 +430,10 @@ class TrajectoryProblem(TrajectoryCost[np.ndarray, Normals]):
 
     def normals(self, Q: np.ndarray, stretch: float = 1.0) -> Normals:
         """The robust measurement cost of every frame at ``Q``, with the loss's knots stretched by ``stretch``."""
-        return Normals(*kernels.all_normals(Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_cm,
-                                            self.prob.options.robust, RA * stretch, RB * stretch, RC * stretch,
-                                            *self.sk_args, self.bones, self.bone_len, self.bone_sigma))
+        kernel = for_items(kernels.all_normals, len(Q))
+        return Normals(*kernel(Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_cm,
+                               self.prob.options.robust, RA * stretch, RB * stretch, RC * stretch,
+                               *self.sk_args, self.bones, self.bone_len, self.bone_sigma))
 
     def step(self, Q: np.ndarray, normals: Normals, lam: float) -> np.ndarray:
         """The damped Gauss-Newton step from ``Q``, clipped to the joint bounds."""

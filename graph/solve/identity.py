@@ -56,7 +56,6 @@ import re
 import warnings
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
 from graph.camera import Calibration, undistort_points
@@ -135,13 +134,7 @@ def assign(tracks: list[Tracks], calibration: Calibration, individuals: int | No
     if n_ind < 1:
         raise InputError(f"--individuals must be at least 1, not {n_ind}")
     matcher = _Matcher(tracks, calibration, likelihood_threshold)
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)  # a frame's few points: threads only wait on each other (3000 frames with one core
-    # busy elsewhere: 14-37 s with two threads, 6 s with one)
-    try:
-        owner = matcher.run(n_ind)
-    finally:
-        numba.set_num_threads(threads)
+    owner = matcher.run(n_ind)  # the serial triangulation kernel: a frame's few points (graph.compiled)
     names = _names(tracks, owner, n_ind)
     order = sorted(range(n_ind), key=lambda i: _natural(names[i]))  # animal1, animal2, ..., animal10
     rank = np.argsort(order)

@@ -40,6 +40,7 @@ import gtsam
 import numpy as np
 
 from graph import kinematics
+from graph.compiled import for_items
 from graph.errors import InputError
 from graph.skeleton import KernelArgs
 from graph.solve import kernels
@@ -165,15 +166,22 @@ class JointTrajectoryProblem(TrajectoryCost[JointState, JointNormals]):
         args = self.sk_args
         return args[:6] + (self.base_offset * factor[:, None],) + args[7:]  # pt_offset scaled
 
+    def _markers(self, Q: np.ndarray, scales: np.ndarray):
+        """The markers' positions (N, M, 3) and their Jacobians in the poses (N, M, 3, P) and the
+        length groups (N, M, 3, G) of the body scaled by ``scales``, at poses ``Q``."""
+        args = self._kernel_skeleton(scales)
+        return for_items(kinematics.fk_body_jacobian_batch, len(Q))(Q, *args[:8], self.pt_col, self.G)
+
     def normals(self, X: JointState, stretch=1.0) -> JointNormals:
         scales, bone_len, tau = self.unknowns.split(X.W)
         shift, frac = shift_and_fraction(tau)
         bl = self.bone_len.copy()
         bl[self.bone_col >= 0] = bone_len
-        Ha, Hb, Hab, ga, gb, HaW, HbW, HWW, gW, uv, s, w, cost = kernels.window_normals(
+        pos, dpos, dlen = self._markers(X.Q, scales)
+        Ha, Hb, Hab, ga, gb, HaW, HbW, HWW, gW, uv, s, w, cost = for_items(kernels.window_normals, len(X.Q))(
             X.Q, self.meas, self.valid, self.intr, self.Rc, self.tc, self.sigma_cm, self.prob.options.robust,
-            RA * stretch, RB * stretch, RC * stretch, shift, frac, self.tau_col, self.pt_col, self.G, self.marker_wdep,
-            *self._kernel_skeleton(scales), self.bones, bl, self.bone_sigma, self.bone_col)
+            RA * stretch, RB * stretch, RC * stretch, shift, frac, self.tau_col, pos, dpos, dlen, self.marker_wdep,
+            self.sk_args[8], self.bones, bl, self.bone_sigma, self.bone_col)
         H, g, HW = Ha.copy(), ga.copy(), HaW.copy()
         H[1:] += Hb[:-1]
         g[1:] += gb[:-1]
@@ -294,9 +302,7 @@ class JointTrajectoryProblem(TrajectoryCost[JointState, JointNormals]):
         """Markers of the estimated body and, with ``uncertainty``, their sd (module docstring); the
         report's ``body_lengths`` and ``time_offsets_frames`` with their sds from the marginals of W."""
         scales, bone_len, tau = self.unknowns.split(X.W)
-        args = self._kernel_skeleton(scales)
-        G = self.G
-        pos, dpos, dlen = kinematics.fk_body_jacobian_batch(X.Q, *args[:8], self.pt_col, G)
+        pos, dpos, dlen = self._markers(X.Q, scales)
         if not uncertainty:
             return Estimate(pos, np.full(pos.shape, np.nan), None, self._report(X, None))
         Sigma, cross, SW = self.joint_marginals(normals)

@@ -22,7 +22,8 @@ import numpy as np
 from numba import njit, prange
 
 from graph.camera import FISHEYE, PINHOLE, camera_model
-from graph.kinematics import fk_body_jacobian_batch, fk_jacobian
+from graph.compiled import loop_kernel
+from graph.kinematics import fk_jacobian
 
 # the camera models' codes in packed intrinsics (compile-time constants of the kernels)
 FISHEYE_CODE = float(camera_model(FISHEYE).code)
@@ -279,11 +280,11 @@ def _bone_rows(pos, dpos, bones, bone_len, bone_sigma, H, g):
     return cost
 
 
-@njit(cache=True, parallel=True)
+@loop_kernel
 def all_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc,
                 seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point, marker_dep,
                 bones, bone_len, bone_sigma):
-    """:func:`frame_normal` for every frame (in parallel): H (N, P, P), g (N, P), reprojections
+    """:func:`frame_normal` for every frame (a loop kernel: :mod:`graph.compiled`): H (N, P, P), g (N, P), reprojections
     uv (N, C, M, 2), normalised residuals s and weights w (N, C, M), cost (N,).
     ``meas`` (N, C, M, 2), ``valid`` (N, C, M)."""
     N, P = Q.shape
@@ -475,7 +476,7 @@ def _cauchy_cost(X, z, ok, intr, Rc, tc, sigma, uv, J):
     return cost
 
 
-@njit(cache=True, parallel=True)
+@loop_kernel
 def triangulate_points(norm, z, ok, intr, Rc, tc, Pm, sigma, iterations):
     """Robust triangulation of K points seen by C cameras (see :mod:`graph.solve.triangulate`).
 
@@ -541,10 +542,9 @@ def triangulate_points(norm, z, ok, intr, Rc, tc, Pm, sigma, iterations):
     return X, Hout
 
 
-@njit(cache=True, parallel=True)
-def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shift, frac, tau_col, pt_group, G,
-                   marker_wdep, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root, pt_offset, marker_point,
-                   marker_dep, bones, bone_len, bone_sigma, bone_col):
+@loop_kernel
+def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shift, frac, tau_col, pos_all, dpos_all,
+                   dlen_all, marker_wdep, marker_dep, bones, bone_len, bone_sigma, bone_col):
     """The robust reprojection cost's normal equations with unknowns shared by all frames: the
     body's length scales and the cameras' time offsets (``G`` of them, the vector ``W``).
 
@@ -578,6 +578,10 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
     own, is ``v_c = K_c (p_{n+1} - p_n)``: ``(1-f_c) J_n^T v_c``, ``f_c J_{n+1}^T v_c`` and
     ``(p_{n+1} - p_n)^T v_c``.
 
+    ``pos_all, dpos_all, dlen_all`` are the markers' positions and Jacobians at ``Q``
+    (:func:`graph.kinematics.fk_body_jacobian_batch`: each a loop kernel of :mod:`graph.compiled`,
+    chosen by the caller).
+
     Returns, per window n: ``Ha, Hb, Hab`` (N, P, P): frame n's, frame n+1's and their cross
     information; ``ga, gb`` (N, P); ``HaW, HbW`` (N, P, G); ``HWW`` (N, G, G), ``gW`` (N, G); and per
     camera frame (the detections' own indexing) ``uv`` (N, C, M, 2), ``s`` and ``w`` (N, C, M); the
@@ -588,8 +592,7 @@ def window_normals(Q, meas, valid, intr, Rc, tc, sigma, robust, ra, rb, rc, shif
     M = meas.shape[2]
     D = marker_dep.shape[1]
     DW = marker_wdep.shape[1]
-    pos_all, dpos_all, dlen_all = fk_body_jacobian_batch(Q, seg_parent, seg_axis, seg_param, pt_base, pt_seg, pt_root,
-                                                         pt_offset, marker_point, pt_group, G)
+    G = dlen_all.shape[3]
     Ha = np.zeros((N, P, P))
     Hb = np.zeros((N, P, P))
     Hab = np.zeros((N, P, P))

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from graph.camera import Calibration, undistort_points
+from graph.compiled import for_items
 from graph.solve import kernels
 
 
@@ -39,7 +40,7 @@ def robust_points(calibration: Calibration, meas: np.ndarray, valid: np.ndarray,
     ok = ok & np.isfinite(norm).all(-1) & np.isfinite(z).all(-1)
     Pm = np.stack([np.hstack([cam.R, cam.t[:, None]]) for cam in calibration.cameras])  # (C, 3, 4)
     intr, Rc, tc = calibration.packed()
-    X, H = kernels.triangulate_points(np.nan_to_num(norm), np.nan_to_num(z), ok, intr, Rc, tc, Pm,
+    X, H = for_items(kernels.triangulate_points, N)(np.nan_to_num(norm), np.nan_to_num(z), ok, intr, Rc, tc, Pm,
                                       float(sigma_px), iterations)
     return X.reshape(N, M, 3), H, ok
 

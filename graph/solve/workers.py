@@ -21,10 +21,9 @@ _SOURCE: Any = None  # a worker's run (a graph.solve.windows.Frames), set at its
 def share_cores(threads: int) -> None:
     """A worker's share of the cores: the compiled kernels' threads, so that N workers do not each
     start a thread per core."""
-    import numba
+    from graph.compiled import use_threads
 
-    # numba.config sets its values from the environment through globals(), unseen by a type checker
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
+    use_threads(threads)
 
 
 def window_pool(source: Any, jobs: int) -> ProcessPoolExecutor:
