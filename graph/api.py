@@ -76,21 +76,22 @@ def solve_prepared(prob: Problem, progress: ProgressCallback | None = None, t0: 
 def solve_streamed(run: StagedRun, calibration: Calibration, options: SolveOptions, write: Callable[[Core], None],
                    progress: ProgressCallback | None = None, resume: dict | None = None,
                    saved: Callable[[dict], None] | None = None, sample_file: str | Path | None = None,
-                   jobs: int = 1) -> SolveReport:
+                   jobs: int = 1, solver: "windows.WindowSolver | None" = None) -> SolveReport:
     """A long run staged on disk (:class:`graph.io.staged.StagedRun`) solved by ``fte`` in windows of
     ``options.window_frames`` kept frames (default :data:`graph.types.WINDOW_FRAMES`), each window's
     kept frames handed to ``write`` as it finishes (a :class:`graph.solve.windows.Core`: the run's
     frame it starts at and its :class:`Result`); the run's report. Memory: one window's, whatever the
     run's length (:func:`graph.solve.windows.solve_streamed`, which also says what ``resume``,
     ``saved`` and ``sample_file`` do: a run that goes on after it was stopped; ``jobs``: windows solved
-    side by side in worker processes, the same answer). The disagreeing-camera
+    side by side in worker processes, the same answer; ``solver``: the windows solved by it, as the
+    job service's workers do). The disagreeing-camera
     check of :func:`solve` is made on the settled stretch."""
     if options.method != "fte":
         raise ValueError(f"a run is solved streamed by method 'fte', not {options.method!r}")
     t0 = time.perf_counter()
     core = options.window_frames or WINDOW_FRAMES
     report, settled = windows.solve_streamed(windows.Staged(run, calibration, options), core, write, progress,
-                                             resume, saved, sample_file, jobs)
+                                             resume, saved, sample_file, jobs, solver)
     _name_a_disagreeing_camera(settled.problem, settled.result, report)
     report.seconds["total"] = time.perf_counter() - t0
     return report

@@ -237,6 +237,12 @@ def settle(source: Frames | Problem, frames: int) -> Settled:
     return Settled(held, float(result.report.sigma_px), values, s0, s1, result, stretch)
 
 
+# solves a run's windows elsewhere too (:class:`Windows`' ``solver``): given the run, the windows' frames
+# ``[lo, hi)`` and what they hold (:class:`Settled`), each window's Result and confident detections
+# (n, C, M) (:func:`solve_window`'s), in the spans' order
+WindowSolver = Callable[["Frames", list[tuple[int, int]], Settled], Iterator[tuple[Result, np.ndarray]]]
+
+
 class Core(NamedTuple):
     """One window's kept frames: the run's frames from ``at``, their :class:`Result` (its report the
     window's) and confident detections ``valid`` (n, C, M)."""
@@ -251,10 +257,12 @@ class Windows:
     giving its :class:`Core`; what they add up to (iterations, cost, bounds, warnings) is kept here."""
 
     def __init__(self, source: Frames, core: int, margin: int = MARGIN_FRAMES, settle_frames: int = SETTLE_FRAMES,
-                 progress: ProgressCallback | None = None, settled: Settled | None = None, jobs: int = 1):
+                 progress: ProgressCallback | None = None, settled: Settled | None = None, jobs: int = 1,
+                 solver: WindowSolver | None = None):
         if margin < 1:
             raise ValueError(f"a window needs at least one frame of margin, not {margin}")
         self.source, self.core, self.margin, self.progress, self.jobs = source, core, margin, progress, jobs
+        self.solver = solver
         if progress:
             progress(Progress(stage="initialise", fraction=0.0, detail="settling what every window shares"))
         self.settled = settled or settle(source, settle_frames)
@@ -310,11 +318,15 @@ class Windows:
                                        detail=f"window {k + 1} of {len(self.starts)}, {left:.0f} s left"))
 
     def _solved(self, first: int) -> Iterator[tuple[Result, np.ndarray]]:
-        """Each window from the ``first`` solved (:func:`solve_window`), in order: here, or ``jobs`` at a
-        time in worker processes (:func:`graph.solve.workers.window_pool`), at most ``jobs + 1`` in
-        flight. A window's answer does not depend on where it was solved."""
+        """Each window from the ``first`` solved (:func:`solve_window`), in order: by the ``solver``
+        given (the job service's workers), here, or ``jobs`` at a time in worker processes
+        (:func:`graph.solve.workers.window_pool`), at most ``jobs + 1`` in flight. A window's answer
+        does not depend on where it was solved."""
         st, N = self.settled, self.source.frames
         spans = [(max(0, a - self.margin), min(N, a + self.core + self.margin)) for a in self.starts[first:]]
+        if self.solver is not None:
+            yield from self.solver(self.source, spans, st)
+            return
         if self.jobs <= 1 or len(spans) <= 1:
             for lo, hi in spans:
                 yield solve_window(self.source, lo, hi, st.options, st.sigma_px)
@@ -382,7 +394,7 @@ def solve_in_windows(prob: Problem, core: int, margin: int = MARGIN_FRAMES, sett
 def solve_streamed(source: Frames, core: int, write: Callable[[Core], None],
                    progress: ProgressCallback | None = None, resume: dict | None = None,
                    saved: Callable[[dict], None] | None = None, sample_file: str | Path | None = None,
-                   jobs: int = 1) -> tuple[SolveReport, Settled]:
+                   jobs: int = 1, solver: WindowSolver | None = None) -> tuple[SolveReport, Settled]:
     """``source`` solved in windows of ``core`` kept frames (:class:`Windows`), each core handed to
     ``write`` as it finishes and then dropped; the run's report made from their sums
     (:class:`graph.solve.run_sums.RunSums`, its noise sample in ``sample_file`` when given), and what
@@ -391,11 +403,12 @@ def solve_streamed(source: Frames, core: int, write: Callable[[Core], None],
     After each window ``saved`` (when given) gets the run's state as JSON values, and ``resume``
     (such a state) goes on from the window after it: the shared values are settled again (the same
     inputs settle to the same values, checked) and the windows done are not solved again. ``jobs``:
-    windows solved at a time, in worker processes (the same answer; a staged ``source`` only)."""
+    windows solved at a time, in worker processes (the same answer; a staged ``source`` only);
+    ``solver``: the windows solved by it instead (:data:`WindowSolver`)."""
     from graph.solve.run_sums import RunSums
 
     t0 = time.perf_counter()
-    run = Windows(source, core, progress=progress, jobs=jobs)
+    run = Windows(source, core, progress=progress, jobs=jobs, solver=solver)
     st = run.settled
     sums = RunSums(source.frames, st.problem.cameras, len(st.problem.markers), st.problem.noise_scale, sample_file,
                    resuming=resume is not None)

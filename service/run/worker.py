@@ -206,9 +206,10 @@ class ThrottledProgress:
             raise JobCancelled()
 
 
-def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> dict:
+def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress, solver=None) -> dict:
     """Read the inputs, solve, write the results; return the solve report. A calibration job
-    (its manifest's ``kind``) is run by :func:`service.run.calibration_run.run_calibration` instead."""
+    (its manifest's ``kind``) is run by :func:`service.run.calibration_run.run_calibration` instead.
+    ``solver``: a long run's windows shared with other workers (:func:`solve_streamed_job`)."""
     from graph.api import solve
 
     if read_manifest(input_dir).get("kind") == jobfiles.CALIBRATION_KIND:
@@ -218,7 +219,7 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
 
     progress.report(READING, 0.0)
     if not input_videos(input_dir):
-        report = solve_streamed_job(input_dir, out_dir, progress)
+        report = solve_streamed_job(input_dir, out_dir, progress, solver)
         if report is not None:
             return report
     cameras, calibration, options = load_inputs(input_dir)
@@ -246,21 +247,33 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> di
 PAGE_FRAMES = 20_000  # the job page's view of a long run: every k-th frame, at most this many
 
 
-def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress) -> dict | None:
+def stage_job(input_dir: Path, scratch: Path, long_enough: Callable[[int], bool]):
+    """The job's keypoint files staged in ``scratch`` (:func:`graph.io.staged.stage`), each camera
+    named by its upload's name; None when ``long_enough`` says the run is not."""
+    from graph.io.keypoints import read_blocks
+    from graph.io.staged import stage
+
+    m = read_manifest(input_dir)
+    run = stage([str(inside(input_dir, rel)) for rel in m["keypoints"]], scratch, read_blocks, long_enough)
+    if run is not None:
+        run.cameras = [dataclasses.replace(cam, source=Path(rel).name) for cam, rel in zip(run.cameras, m["keypoints"])]
+    return run
+
+
+def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress, solver=None) -> dict | None:
     """A long run of one individual solved as ``acinoset solve`` solves it, streamed
     (:func:`graph.api.solve_streamed`: the inputs staged on disk a camera at a time, the CSV and H5
     written as the windows finish), in memory that does not grow with the run; the page's view
     (``result.json``) made of every k-th frame of the H5, at most :data:`PAGE_FRAMES` (``frame_step``
-    says k). None when the job is not such a run (solve it in memory)."""
+    says k). ``solver``: the windows shared with other workers too
+    (:class:`service.run.shared_windows.SharedWindows`). None when the job is not such a run (solve
+    it in memory)."""
     from graph.api import solve_streamed
-    from graph.io.keypoints import read_blocks
     from graph.io.results import AniposeCsv, H5Stream, read_result
-    from graph.io.staged import stage
     from graph.types import WINDOWED_ABOVE
     from graph.viewer.payload import result_payload
 
     options = job_options(input_dir)
-    m = read_manifest(input_dir)
     if options.method != "fte" or options.window_frames == 0 or options.individual or options.individuals:
         return None
     above = options.window_frames or WINDOWED_ABOVE
@@ -268,11 +281,9 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     # that the job's own clean-up does not remove
     scratch = out_dir / "staged"
     try:
-        run = stage([str(inside(input_dir, rel)) for rel in m["keypoints"]], scratch, read_blocks,
-                    lambda frames: frames > above)
+        run = stage_job(input_dir, scratch, lambda frames: frames > above)
         if run is None:
             return None
-        run.cameras = [dataclasses.replace(cam, source=Path(rel).name) for cam, rel in zip(run.cameras, m["keypoints"])]
         calibration = job_calibration(input_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}
@@ -287,7 +298,9 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
             h5.write(r)
 
         try:
-            report = solve_streamed(run, calibration, options, write, progress=progress)
+            report = solve_streamed(run, calibration, options, write, progress=progress, solver=solver)
+            if getattr(solver, "solved", None) and report.windows is not None:
+                report.windows["solved_by"] = dict(solver.solved)  # the workers that solved windows, how many each
         except BaseException:
             h5.file.close()
             raise
@@ -481,13 +494,17 @@ def _log_traceback(job_dir: Path) -> None:
 
 # -- rq: a work horse anywhere -----------------------------------------------------------------
 
-def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -> dict:
+def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, helper_of: str | None = None) -> dict:
     """The RQ job function. Reads the input archive from Redis (:func:`input_key`), stores the result
     archive there (:func:`result_key`) and returns ``{"status": "succeeded", "report", "seconds",
-    "worker"}`` or ``{"status": "failed", "error"}``; raises only if the process itself is in trouble."""
+    "worker"}`` or ``{"status": "failed", "error"}``; raises only if the process itself is in trouble.
+    A long run's windows are shared with the workers that are idle (:mod:`service.run.shared_windows`);
+    ``helper_of``, the RQ token of such a job: this one helps it (``{"status": "helped", "windows"}``)."""
     from rq import get_current_job
 
     rq_job = get_current_job()
+    if helper_of is not None:
+        return _help(rq_job, job_id, helper_of, niceness)
     die_with_parent()  # a worker that dies takes its work horse along: the job is retried, not orphaned
     _yield_cpu(niceness)
     worker = os.environ.get("RQ_WORKER_ID") or f"{socket.gethostname()}:{os.getpid()}"
@@ -510,9 +527,64 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0) -
         input_dir, out_dir = Path(tmp) / INPUT, Path(tmp) / RESULT
         unpack_files(archive, input_dir)
         try:
-            report = solve_job(input_dir, out_dir, ThrottledProgress(sink, progress_interval))
+            report = solve_job(input_dir, out_dir, ThrottledProgress(sink, progress_interval),
+                               _shared_windows(rq_job, job_id, progress_interval, niceness))
         except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
             traceback.print_exc()
             return {"status": "failed", "error": one_line(e), "error_kind": error_kind(e), "worker": worker}
         put_archive(rq_job.connection, result_key(token), pack_files(out_dir, jobfiles.written_outputs(out_dir)))
         return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker}
+
+
+def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int):
+    """The windows of this RQ job's run shared with the workers of its queue that are idle: a helper
+    is this function's RQ job again, given ``helper_of`` (the one function the workers run)."""
+    from rq import Queue, Worker
+    from rq.serializers import JSONSerializer
+
+    from service.run.shared_windows import SharedWindows
+
+    queue = Queue(rq_job.origin, connection=rq_job.connection, serializer=JSONSerializer)
+    token = rq_job.id
+    function = f"{run_rq_job.__module__}.{run_rq_job.__name__}"
+
+    def idle() -> int:
+        return sum(1 for w in Worker.all(queue=queue) if w.get_state() == "idle")
+
+    def enqueue(n: int) -> list[str]:
+        ids = [f"{token}-helper-{time.time_ns()}-{i}" for i in range(n)]
+        for jid in ids:
+            queue.enqueue_call(function, args=(job_id, progress_interval, niceness), kwargs={"helper_of": token},
+                               job_id=jid, timeout=rq_job.timeout, result_ttl=0, failure_ttl=600,
+                               description=f"acinoset job {job_id}: a helper with its windows")
+        return ids
+
+    return SharedWindows(rq_job.connection, token, _worker_name(rq_job), enqueue, idle, int(rq_job.timeout or 3600))
+
+
+def _worker_name(rq_job) -> str:
+    """The RQ worker running ``rq_job`` (unique among the queue's workers)."""
+    return str(rq_job.worker_name or os.environ.get("RQ_WORKER_ID") or f"{socket.gethostname()}:{os.getpid()}")
+
+
+def _help(rq_job, job_id: str, token: str, niceness: int) -> dict:
+    """This RQ job helps the job whose token is ``token`` with its windows
+    (:func:`service.run.shared_windows.help_with_windows`), from the job's input files in Redis."""
+    from service.run.shared_windows import help_with_windows
+
+    die_with_parent()
+    _yield_cpu(niceness)
+    worker = os.environ.get("RQ_WORKER_ID") or f"{socket.gethostname()}:{os.getpid()}"
+    archive = get_archive(rq_job.connection, input_key(token)) if rq_job is not None else None
+    if archive is None:
+        return {"status": "helped", "windows": 0, "worker": worker}
+    with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-helper-") as tmp:
+        input_dir = Path(tmp) / INPUT
+        unpack_files(archive, input_dir)
+        del archive
+        try:
+            n = help_with_windows(rq_job.connection, token, _worker_name(rq_job), input_dir, Path(tmp) / "staged")
+        except Exception:  # noqa: BLE001 - the parent solves what a helper did not
+            traceback.print_exc()
+            return {"status": "failed", "error": "the helper stopped", "worker": worker}
+    return {"status": "helped", "windows": n, "worker": worker}

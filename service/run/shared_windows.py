@@ -1,0 +1,255 @@
+"""One long job over several RQ workers: its windows shared with the workers that are idle.
+
+A long run is solved in windows (:mod:`graph.solve.windows`): what every frame shares is settled
+once, then each window is solved on its own with those values held, and the windows' kept frames
+are written in order. On the RQ backend the job's work horse (the *parent*) settles the run, writes
+the *plan* into Redis and enqueues one *helper* RQ job for each worker that is idle (the same queue
+and job function: a helper is :func:`service.run.worker.run_rq_job` given ``helper_of``). A helper
+reads the job's input files from Redis as the parent did, stages them, and solves windows until
+none is left; the parent solves windows too while it waits, and takes the windows in order.
+
+Redis keys, each under ``acinoset:windows:<token>`` and expiring with the job's timeout:
+
+* ``:plan``: JSON ``{"options", "sigma_px", "settled_on", "spans"}`` (the held options, the noise,
+  the settled stretch, each window's frames ``[lo, hi)``);
+* ``:claims``: a hash, window -> who solves it (the parent's or a helper's worker), set once (``HSETNX``);
+* ``:alive:<helper>``: a helper's heartbeat, refreshed every :data:`BEAT_S` seconds; a window whose
+  helper's heartbeat has expired (:data:`BEAT_TTL_S`) is solved by the parent instead;
+* ``:next``: the window the parent takes next; a helper claims windows at most :data:`LOOKAHEAD`
+  after it, so that at most that many results wait in Redis;
+* ``:done:<k>``: window k's result, a zip of its ``result.h5`` (:func:`graph.io.results.write_h5`)
+  and ``valid.npy`` (the confident detections) in chunks (:func:`service.store.jobfiles.put_archive`);
+* ``:stop``: set when the parent ends; a helper stops at its next window.
+
+The answer does not depend on who solved which window: a window's result is a function of the run's
+frames and the plan (the same inputs staged the same way), and its arrays travel as float64 in HDF5.
+Nothing from Redis is unpickled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+BEAT_S = 2.0  # a helper's heartbeat period
+BEAT_TTL_S = 30.0  # a heartbeat older than this: the helper is gone (a long kernel call may delay a beat)
+LOOKAHEAD = 2  # windows a helper may solve past the one the parent takes next
+POLL_S = 0.05
+
+
+class Keys:
+    """The Redis keys of one job's shared windows (module docstring)."""
+
+    def __init__(self, token: str):
+        self.base = f"acinoset:windows:{token}"
+        self.plan, self.claims, self.next, self.stop = (f"{self.base}:{k}" for k in ("plan", "claims", "next", "stop"))
+
+    def alive(self, who: str) -> str:
+        return f"{self.base}:alive:{who}"
+
+    def done(self, k: int) -> str:
+        return f"{self.base}:done:{k}"
+
+
+def _pack(result, valid: np.ndarray) -> bytes:
+    from graph.io.results import write_h5
+    from service.store.jobfiles import pack_files
+
+    with tempfile.TemporaryDirectory(prefix="acinoset-window-") as tmp:
+        write_h5(Path(tmp) / "result.h5", result)
+        np.save(Path(tmp) / "valid.npy", valid, allow_pickle=False)
+        return pack_files(Path(tmp), ["result.h5", "valid.npy"])
+
+
+def _unpack(archive: bytes):
+    from graph.io.results import read_result
+    from service.store.jobfiles import unpack_files
+
+    with tempfile.TemporaryDirectory(prefix="acinoset-window-") as tmp:
+        unpack_files(archive, Path(tmp), ("result.h5", "valid.npy"))
+        return read_result(Path(tmp) / "result.h5"), np.load(Path(tmp) / "valid.npy", allow_pickle=False)
+
+
+def _options_json(options) -> dict:
+    from graph.types import jsonable
+
+    return jsonable(dataclasses.asdict(options))
+
+
+def _options_from(d: dict, skeleton: str):
+    """The plan's held options, with this process's own path of the job's skeleton file."""
+    from pydantic import TypeAdapter
+
+    from graph.types import SolveOptions
+
+    return TypeAdapter(SolveOptions).validate_python({**d, "skeleton": skeleton})
+
+
+class SharedWindows:
+    """The parent's side: a :data:`graph.solve.windows.WindowSolver` that shares the windows with
+    helpers (module docstring). ``me`` names the parent's worker; ``enqueue(n)`` starts ``n``
+    helpers and returns their RQ jobs' ids; ``idle()`` counts the workers free to help; ``ttl``
+    bounds how long any key outlives the job. ``solved``: each worker's windows, once done."""
+
+    def __init__(self, redis, token: str, me: str, enqueue, idle, ttl: int):
+        self.redis, self.keys, self.me = redis, Keys(token), me
+        self.enqueue, self.idle, self.ttl = enqueue, idle, int(ttl)
+        self.helpers: list[str] = []
+        self.solved: dict[str, int] = {}
+
+    def __call__(self, source, spans: list[tuple[int, int]], settled) -> Iterator[tuple[Any, Any]]:
+        from graph.solve.windows import solve_window
+
+        r, k_ = self.redis, self.keys
+        n = len(spans)
+        options, sigma_px = settled.options, settled.sigma_px
+        r.delete(k_.claims, k_.stop, k_.next)
+        r.set(k_.plan, json.dumps({"options": _options_json(options), "sigma_px": float(sigma_px),
+                                   "settled_on": [settled.start, settled.stop],
+                                   "spans": [list(s) for s in spans]}), ex=self.ttl)
+        r.set(k_.next, 0, ex=self.ttl)
+        r.hset(k_.claims, "-1", self.me)  # the hash exists, so that its expiry holds
+        r.expire(k_.claims, self.ttl)
+        helpers = min(max(0, self.idle()), n - 1)
+        if helpers:
+            self.helpers = list(self.enqueue(helpers))
+        ahead: dict[int, tuple[Any, Any]] = {}
+
+        def mine(k: int) -> tuple[Any, Any]:
+            self.solved[self.me] = self.solved.get(self.me, 0) + 1
+            lo, hi = spans[k]
+            return solve_window(source, lo, hi, options, sigma_px)
+
+        try:
+            for k in range(n):
+                r.set(k_.next, k, ex=self.ttl)
+                yield self._take(k, n, ahead, mine)
+        finally:
+            r.set(k_.stop, 1, ex=self.ttl)
+            self._end(n)
+
+    def _take(self, k: int, n: int, ahead: dict, mine) -> tuple[Any, Any]:
+        """Window k: solved ahead here, done by a helper, claimed now and solved here, or (its helper
+        gone) taken over; while its helper works, a later window is solved here meanwhile."""
+        from service.store.jobfiles import get_archive
+
+        r, k_ = self.redis, self.keys
+        while True:
+            if k in ahead:
+                return ahead.pop(k)
+            archive = get_archive(r, k_.done(k))
+            if archive is not None:
+                r.delete(k_.done(k))
+                owner = r.hget(k_.claims, str(k))
+                who = owner.decode() if isinstance(owner, bytes) else str(owner)
+                self.solved[who] = self.solved.get(who, 0) + 1
+                return _unpack(archive)
+            if r.hsetnx(k_.claims, str(k), self.me):
+                return mine(k)
+            owner = r.hget(k_.claims, str(k))
+            who = owner.decode() if isinstance(owner, bytes) else str(owner)
+            if who == self.me or not r.exists(k_.alive(who)):
+                if r.exists(k_.done(k)):  # finished as its heartbeat ran out
+                    continue
+                r.hset(k_.claims, str(k), self.me)  # its helper is gone: solved here
+                return mine(k)
+            j = next((j for j in range(k + 1, min(n, k + 1 + LOOKAHEAD)) if j not in ahead
+                      and not r.hexists(k_.claims, str(j))), None)
+            if j is not None and r.hsetnx(k_.claims, str(j), self.me):
+                ahead[j] = mine(j)
+                continue
+            time.sleep(POLL_S)
+
+    def _end(self, n: int) -> None:
+        """The helpers not started are dropped; the keys go (a helper still solving finds ``stop``
+        and its result expires with the job's timeout)."""
+        from rq.job import Job as RQJob
+        from rq.serializers import JSONSerializer
+
+        from service.store.jobfiles import PARTIAL
+
+        for jid in self.helpers:
+            try:
+                rj = RQJob.fetch(jid, connection=self.redis, serializer=JSONSerializer)
+                if rj.get_status() in ("queued", "deferred", "scheduled"):
+                    rj.delete()
+            except Exception:  # noqa: BLE001 - gone already
+                pass
+        k_ = self.keys
+        self.redis.delete(k_.plan, k_.claims, k_.next, *(k_.done(k) for k in range(n)),
+                          *(k_.done(k) + PARTIAL for k in range(n)))
+
+
+def _running(redis, token: str) -> bool:
+    """Whether the parent's RQ job is still running (a parent killed says no ``stop`` of its own)."""
+    from rq.exceptions import NoSuchJobError
+    from rq.job import Job as RQJob
+    from rq.serializers import JSONSerializer
+
+    try:
+        return RQJob.fetch(token, connection=redis, serializer=JSONSerializer).get_status() == "started"
+    except NoSuchJobError:
+        return False
+
+
+def help_with_windows(redis, token: str, me: str, input_dir: Path, staged: Path) -> int:
+    """A helper's side: solve the windows of the job whose RQ token is ``token`` until none is left
+    to claim or the parent says stop; its input files unpacked in ``input_dir``, staged in ``staged``.
+    Returns the windows it solved."""
+    from graph.solve.windows import Staged, solve_window
+    from service.run.worker import job_calibration, job_options, stage_job
+    from service.store.jobfiles import put_archive
+
+    k_ = Keys(token)
+    raw = redis.get(k_.plan)
+    if raw is None or redis.exists(k_.stop):
+        return 0
+    plan = json.loads(raw)
+    ttl = max(60, int(redis.ttl(k_.plan)))
+    stopped = threading.Event()
+
+    def beat() -> None:
+        while not stopped.is_set():
+            redis.set(k_.alive(me), 1, ex=int(BEAT_TTL_S))
+            stopped.wait(BEAT_S)
+
+    beating = threading.Thread(target=beat, name="window-helper-heartbeat", daemon=True)
+    beating.start()
+    try:
+        options = job_options(input_dir)
+        held = _options_from(plan["options"], options.skeleton)
+        spans = [(int(lo), int(hi)) for lo, hi in plan["spans"]]
+        run = stage_job(input_dir, staged, lambda frames: True)
+        if run is None:
+            return 0
+        source = Staged(run, job_calibration(input_dir), options)
+        s0, s1 = plan["settled_on"]
+        source.stretch(int(s0), int(s1), dataclasses.replace(options, window_frames=0))  # the windows' template
+        solved = 0
+        while not redis.exists(k_.stop):
+            nxt = int(redis.get(k_.next) or 0)
+            k = next((j for j in range(nxt, min(len(spans), nxt + 1 + LOOKAHEAD))
+                      if redis.hsetnx(k_.claims, str(j), me)), None)
+            if k is None:
+                if redis.hlen(k_.claims) > len(spans) or not _running(redis, token):
+                    break  # every window claimed (and the parent's marker), or the parent gone
+                time.sleep(POLL_S)
+                continue
+            lo, hi = spans[k]
+            result, valid = solve_window(source, lo, hi, held, float(plan["sigma_px"]))
+            put_archive(redis, k_.done(k), _pack(result, valid))
+            redis.expire(k_.done(k), ttl)
+            solved += 1
+        return solved
+    finally:
+        stopped.set()
+        beating.join(timeout=BEAT_S + 1)
+        redis.delete(k_.alive(me))

@@ -1,0 +1,113 @@
+"""One long job over several RQ workers (real redis-server, server and workers): the job's windows are
+shared with the worker that is idle, and the answer is the one the library gives, byte for byte, whoever
+solved which window; a helper killed mid-run costs time, not the answer."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+import warnings
+
+import pytest
+from servers import Redis, Server, add_user, children, have_redis, make_run, submit, wait_finished, worker
+
+from graph.api import solve
+from graph.io.calibration import load_calibration
+from graph.io.keypoints import read_keypoints
+from graph.io.results import write_anipose_csv
+from graph.types import SolveOptions
+
+pytestmark = pytest.mark.skipif(not have_redis(), reason="needs Debian's redis-server (.ci/run installs it)")
+
+FRAMES = 6000
+CORE = 500
+ENV = {"ACINOSET_LEASE_SECONDS": "6", "ACINOSET_HEARTBEAT_SECONDS": "1"}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    return make_run(tmp_path_factory.mktemp("shared_run"), frames=FRAMES, cameras=4, seed=5)
+
+
+@pytest.fixture(scope="module")
+def library_csv(run, tmp_path_factory):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        whole = solve([read_keypoints(p) for p in run.cams], load_calibration(run.calibration),
+                      SolveOptions(fps=run.fps, window_frames=CORE))
+    path = tmp_path_factory.mktemp("shared_library") / "library.csv"
+    write_anipose_csv(path, whole)
+    return path.read_bytes()
+
+
+class Rig:
+    """redis-server, a server on the RQ backend and two workers."""
+
+    def __init__(self, base):
+        self.redis = Redis(base / "redis", base / "redis.log").start()
+        token = add_user(base / "data", "alice")
+        self.server = Server(base / "data", base / "server.log", backend="rq", redis_url=self.redis.url,
+                             env=ENV).start()
+        self.workers = {n: worker(self.redis.url, base / f"{n}.log", n, ENV).start() for n in ("w1", "w2")}
+        self.token = token
+
+    def stop(self):
+        for w in self.workers.values():
+            for pid in children(w.pid) if w.alive() else []:
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+            w.stop(10)
+        self.server.stop()
+        self.redis.stop(10)
+
+
+@pytest.fixture
+def rig(tmp_path):
+    r = Rig(tmp_path)
+    yield r
+    r.stop()
+
+
+def _job(rig, run):
+    with rig.server.client(rig.token) as c:
+        r = submit(c, run, {"method": "fte", "window_frames": CORE})
+        assert r.status_code == 202, r.text
+        return r.json()["id"]
+
+
+def test_a_long_job_is_shared_by_two_workers_with_the_librarys_answer(rig, run, library_csv):
+    job = _job(rig, run)
+    with rig.server.client(rig.token) as c:
+        done = wait_finished(c, job, timeout=600)
+        assert done["status"] == "succeeded", done
+        report = c.get(done["links"]["result"]["report"]).json()
+        csv = c.get(done["links"]["result"]["csv"]).content
+    solved_by = report["windows"]["solved_by"]
+    assert sum(solved_by.values()) == report["windows"]["count"] == FRAMES // CORE
+    assert sorted(solved_by) == ["w1", "w2"], solved_by  # each worker solved windows
+    assert csv == library_csv
+
+
+@pytest.mark.slow  # a helper killed: its window waits for its heartbeat to run out (30 s)
+def test_a_helper_killed_mid_run_costs_time_not_the_answer(rig, run, library_csv):
+    job = _job(rig, run)
+    # the helper: the worker whose work horse started second
+    deadline = time.time() + 120
+    helper = None
+    while time.time() < deadline and helper is None:
+        busy = {n: children(w.pid) for n, w in rig.workers.items()}
+        if all(busy.values()):
+            time.sleep(3.0)  # the helper has staged the run and is solving windows
+            helper = max(busy, key=lambda n: busy[n][0])
+        time.sleep(0.05)
+    assert helper is not None, "the second worker never started a helper"
+    for pid in children(rig.workers[helper].pid):
+        os.kill(pid, signal.SIGKILL)
+    with rig.server.client(rig.token) as c:
+        done = wait_finished(c, job, timeout=600)
+        assert done["status"] == "succeeded", done
+        csv = c.get(done["links"]["result"]["csv"]).content
+    assert csv == library_csv
