@@ -432,18 +432,22 @@ def plot_body_and_clocks(result: Result, path: Path) -> Path | None:
     return path
 
 
-def write_figures(result: Result, out_dir: str | Path, calibration=None, snapshots: int = 5) -> list[Path]:
-    """Write every PNG figure into ``out_dir``; returns the paths written."""
+# every figure of a result, by its file's stem (a result without angles has no parameters figure, one
+# without a body or clocks estimated no body_and_clocks)
+FIGURES = ("skeleton", "reprojection_error", "coordinates", "parameters", "flags", "body_and_clocks")
+
+
+def write_figures(result: Result, out_dir: str | Path, calibration=None, snapshots: int = 5,
+                  only: tuple[str, ...] = FIGURES) -> list[Path]:
+    """Write every PNG figure (of :data:`FIGURES`, or those named in ``only``) into ``out_dir``;
+    returns the paths written."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    written = [plot_skeleton(result, out / "skeleton.png", calibration, snapshots),
-               plot_reprojection_error(result, out / "reprojection_error.png"),
-               plot_coordinates(result, out / "coordinates.png")]
-    p = plot_parameters(result, out / "parameters.png")
-    if p is not None:
-        written.append(p)
-    written.append(plot_flags(result, out / "flags.png"))
-    p = plot_body_and_clocks(result, out / "body_and_clocks.png")
-    if p is not None:
-        written.append(p)
-    return written
+    draw = {"skeleton": lambda p: plot_skeleton(result, p, calibration, snapshots),
+            "reprojection_error": lambda p: plot_reprojection_error(result, p),
+            "coordinates": lambda p: plot_coordinates(result, p),
+            "parameters": lambda p: plot_parameters(result, p),
+            "flags": lambda p: plot_flags(result, p),
+            "body_and_clocks": lambda p: plot_body_and_clocks(result, p)}
+    written = [draw[name](out / f"{name}.png") for name in FIGURES if name in only]
+    return [p for p in written if p is not None]
