@@ -2,6 +2,14 @@
 a real embedded server and solved there, beside the same run from a shell.
 
     .venv/bin/python bench/bench_long_service.py [--minutes 10] [--workers 1] [--seed 0] [--work DIR] [--out NAME]
+    .venv/bin/python bench/bench_long_service.py --rq-workers 1,2 [--minutes 10]
+
+With ``--rq-workers``, the same job on the RQ backend instead, once per count of workers given: a
+``redis-server`` of its own, the server with ``--backend rq`` and that many ``acinoset worker`` processes
+(``python -m service worker``), all on this machine. A long job's windows are shared with the workers
+that are idle (``service.run.shared_windows``): the ratio of the job's time with 2 workers to its time
+with 1 is the issue's "through the service with 2 workers, <= 0.6x the time of 1". The memory sampled
+is then the server's tree and every worker's tree, summed.
 
 The run: ``bench_long.make_run`` (the simulator's cheetah walking at 1 m/s on the AcinoSet 2019 rig,
 120 fps, six DeepLabCut CSVs). The server: ``python -m service serve --backend embedded --workers N``
@@ -42,19 +50,53 @@ ROOT = Path(__file__).resolve().parents[1]
 MIB = 1024 * 1024
 
 
-def start_server(data: Path, workers: int, frames: int, log: Path) -> tuple[subprocess.Popen, str, str]:
+def _env(frames: int) -> dict:
+    return {**os.environ, "PYTHONUNBUFFERED": "1", "ACINOSET_MAX_FRAMES": str(frames + 1),
+            "ACINOSET_MAX_UPLOAD_BYTES": str(4096 * MIB)}
+
+
+def _spawn(args: list[str], log: Path, env: dict) -> subprocess.Popen:
+    return subprocess.Popen(args, cwd=ROOT, stdout=open(log, "ab"), stderr=subprocess.STDOUT,
+                            stdin=subprocess.DEVNULL, start_new_session=True, env=env)
+
+
+def start_redis(work: Path) -> tuple[subprocess.Popen, str]:
+    port = _free_port()
+    (work / "redis").mkdir(parents=True, exist_ok=True)
+    proc = _spawn(["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--dir", str(work / "redis"),
+                   "--save", "", "--appendonly", "no"], work / "redis.log", dict(os.environ))
+    deadline = time.time() + 20
+    import socket
+
+    while time.time() < deadline:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=1) as sock:
+                sock.sendall(b"PING\r\n")
+                if sock.recv(16).startswith(b"+PONG"):
+                    return proc, f"redis://127.0.0.1:{port}/0"
+        except OSError:
+            time.sleep(0.05)
+    raise RuntimeError((work / "redis.log").read_text()[-2000:])
+
+
+def start_workers(redis_url: str, n: int, frames: int, work: Path) -> list[subprocess.Popen]:
+    return [_spawn([PY, "-m", "service", "worker", "--redis-url", redis_url, "--name", f"w{i + 1}",
+                    "--log-level", "warning"], work / f"w{i + 1}.log", _env(frames)) for i in range(n)]
+
+
+def start_server(data: Path, workers: int, frames: int, log: Path,
+                 redis_url: str | None = None) -> tuple[subprocess.Popen, str, str]:
+    """The server: embedded with ``workers`` solve processes, or on the RQ backend of ``redis_url``."""
     from service.store import Store
 
     store = Store(data / "acinoset.db")
     _, token = store.add_user("bench")
     store.close()
     port = _free_port()
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "ACINOSET_MAX_FRAMES": str(frames + 1),
-           "ACINOSET_MAX_UPLOAD_BYTES": str(4096 * MIB)}
-    proc = subprocess.Popen([PY, "-m", "service", "serve", "--port", str(port), "--data-dir", str(data), "--backend",
-                             "embedded", "--workers", str(workers), "--log-level", "warning"], cwd=ROOT,
-                            stdout=open(log, "ab"), stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                            start_new_session=True, env=env)
+    backend = ["--backend", "rq", "--redis-url", redis_url] if redis_url else ["--backend", "embedded", "--workers",
+                                                                             str(workers)]
+    proc = _spawn([PY, "-m", "service", "serve", "--port", str(port), "--data-dir", str(data), *backend,
+                   "--log-level", "warning"], log, _env(frames))
     base = f"http://127.0.0.1:{port}"
     deadline = time.time() + 120
     while True:
@@ -77,16 +119,17 @@ def _free_port() -> int:
 
 
 class TreeSampler(threading.Thread):
-    """The summed resident memory of ``pid``'s process tree, every ``every`` s, until stopped."""
+    """The summed resident memory of the process trees of ``pids``, every ``every`` s, until stopped."""
 
-    def __init__(self, pid: int, every: float = 0.2):
+    def __init__(self, *pids: int, every: float = 0.2):
         super().__init__(daemon=True)
-        self.pid, self.every, self.samples = pid, every, []
+        self.pids, self.every, self.samples = pids, every, []
         self.halt = threading.Event()
 
     def run(self) -> None:
         while not self.halt.is_set():
-            self.samples.append((time.perf_counter(), sum(bl._rss_kib(p) for p in bl._tree(self.pid)) / 1024))
+            self.samples.append((time.perf_counter(),
+                                 sum(bl._rss_kib(p) for pid in self.pids for p in bl._tree(pid)) / 1024))
             time.sleep(self.every)
 
     def peak(self, t0: float = float("-inf"), t1: float = float("inf")) -> float:
@@ -118,7 +161,11 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--work", default=None)
     ap.add_argument("--out", default="long_service")
+    ap.add_argument("--rq-workers", default=None,
+                    help="the RQ backend instead, once per count of workers given (comma-separated, e.g. 1,2)")
     args = ap.parse_args()
+    if args.rq_workers:
+        return main_rq(args)
     frames = int(round(args.minutes * 60 * bl.FPS))
     info = h.machine()
     work = Path(args.work or tempfile.mkdtemp(prefix="bench_long_service_"))
@@ -182,6 +229,87 @@ def main() -> int:
                             "peak MiB while solving", "peak MiB overall", "error mean mm"], rows))
     print("\n(the service's memory: its whole process tree summed, the pages its processes share counted in each)")
     print(f"\nthe service's CSV and the command's: {'the same bytes' if out.get('same_csv') else 'different'}")
+    print(f"wrote {h.save(args.out, out)}")
+    if args.work is None:
+        shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+def timed_job(base: str, token: str, warm_dir: Path, run_dir: Path, sampler: TreeSampler, work: Path) -> dict:
+    """One untimed warm-up job, then the run's job: its upload, its time, memory, windows and error."""
+    with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=600) as c:
+        _, r = submit(c, warm_dir, {"fps": bl.FPS})
+        assert r.status_code == 202, r.text
+        warm = wait(c, r.json()["id"])
+        bl.log(f"warm-up job: {warm['status']}")
+        time.sleep(3.0)  # idle, sampled
+        t0 = time.perf_counter()
+        up_s, r = submit(c, run_dir, {"fps": bl.FPS})
+        assert r.status_code == 202, r.text
+        t_up = time.perf_counter()
+        job = wait(c, r.json()["id"])
+        t1 = time.perf_counter()
+        bl.log(f"job {job['status']}: upload {up_s:.1f} s, then {t1 - t_up:.1f} s")
+        out = {"status": job["status"], "error": job.get("error"), "upload_s": up_s, "job_s": t1 - t_up,
+               "run_seconds": (job.get("timings") or {}).get("run_seconds"),
+               "tree_peak_mib_job": sampler.peak(t_up, t1), "tree_mib_idle": sampler.peak(t0 - 2.0, t0)}
+        if job["status"] == "succeeded":
+            report = c.get(job["links"]["result"]["report"]).json()
+            out["windows"] = report.get("windows")
+            csv = work / "service.csv"
+            csv.write_bytes(c.get(job["links"]["result"]["csv"]).content)
+            markers, truth = bl.load_truth(run_dir / "truth.npz")
+            out["error"] = bl.score(bl.read_positions(csv, markers), truth, markers)
+            out["csv_bytes"] = csv.read_bytes()
+    return out
+
+
+def main_rq(args) -> int:
+    """The job on the RQ backend with each count of workers in ``--rq-workers`` (module docstring)."""
+    counts = [int(n) for n in args.rq_workers.split(",")]
+    frames = int(round(args.minutes * 60 * bl.FPS))
+    info = h.machine()
+    work = Path(args.work or tempfile.mkdtemp(prefix="bench_long_service_rq_"))
+    run_dir, warm_dir = work / "run", work / "warm"
+    cal = h.rig()
+    bl.make_run(cal, bl.WARM_FRAMES, 99, warm_dir)
+    bl.log(f"{args.minutes:g} min: simulating and writing {frames:,} frames")
+    bl.make_run(cal, frames, args.seed, run_dir)
+    out: dict = {"machine": info, "args": vars(args), "frames": frames, "rq": {}}
+    csvs = {}
+    for n in counts:
+        here = work / f"rq{n}"
+        (here / "data").mkdir(parents=True, exist_ok=True)
+        redis, url = start_redis(here)
+        server, base, token = start_server(here / "data", 0, frames, here / "server.log", redis_url=url)
+        workers = start_workers(url, n, frames, here)
+        sampler = TreeSampler(server.pid, *(w.pid for w in workers))
+        sampler.start()
+        try:
+            bl.log(f"RQ backend, {n} worker(s)")
+            r = timed_job(base, token, warm_dir, run_dir, sampler, here)
+        finally:
+            sampler.halt.set()
+            for p in [server, *workers, redis]:
+                p.terminate()
+            for p in [server, *workers, redis]:
+                try:
+                    p.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+        csvs[n] = r.pop("csv_bytes", None)
+        out["rq"][n] = r
+    rows = []
+    for n, r in out["rq"].items():
+        w = r.get("windows") or {}
+        rows.append([n, r["status"], r["upload_s"], r["job_s"], r["job_s"] / out["rq"][counts[0]]["job_s"],
+                     r["tree_mib_idle"], r["tree_peak_mib_job"], (r.get("error") or {}).get("mean_mm"),
+                     json.dumps(w.get("solved_by"))])
+    print(h.markdown_table(["RQ workers", "status", "upload s", "job s", f"vs {counts[0]}", "idle MiB",
+                            "peak MiB while solving", "error mean mm", "windows solved by"], rows))
+    same = len({c for c in csvs.values() if c is not None}) == 1 and all(c is not None for c in csvs.values())
+    out["same_csv"] = same
+    print(f"\nthe CSVs of every count of workers: {'the same bytes' if same else 'different'}")
     print(f"wrote {h.save(args.out, out)}")
     if args.work is None:
         shutil.rmtree(work, ignore_errors=True)

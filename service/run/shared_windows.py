@@ -103,6 +103,7 @@ class SharedWindows:
         self.redis, self.keys, self.me = redis, Keys(token), me
         self.enqueue, self.idle, self.ttl = enqueue, idle, int(ttl)
         self.helpers: list[str] = []
+        self.invited = False
         self.solved: dict[str, int] = {}
 
     def __call__(self, source, spans: list[tuple[int, int]], settled) -> Iterator[tuple[Any, Any]]:
@@ -111,16 +112,14 @@ class SharedWindows:
         r, k_ = self.redis, self.keys
         n = len(spans)
         options, sigma_px = settled.options, settled.sigma_px
-        r.delete(k_.claims, k_.stop, k_.next)
-        r.set(k_.plan, json.dumps({"options": _options_json(options), "sigma_px": float(sigma_px),
-                                   "settled_on": [settled.start, settled.stop],
-                                   "spans": [list(s) for s in spans]}), ex=self.ttl)
+        r.delete(k_.claims, k_.next)
         r.set(k_.next, 0, ex=self.ttl)
         r.hset(k_.claims, "-1", self.me)  # the hash exists, so that its expiry holds
         r.expire(k_.claims, self.ttl)
-        helpers = min(max(0, self.idle()), n - 1)
-        if helpers:
-            self.helpers = list(self.enqueue(helpers))
+        r.set(k_.plan, json.dumps({"options": _options_json(options), "sigma_px": float(sigma_px),
+                                   "settled_on": [settled.start, settled.stop],
+                                   "spans": [list(s) for s in spans]}), ex=self.ttl)
+        self.invite(n)
         ahead: dict[int, tuple[Any, Any]] = {}
 
         def mine(k: int) -> tuple[Any, Any]:
@@ -135,6 +134,23 @@ class SharedWindows:
         finally:
             r.set(k_.stop, 1, ex=self.ttl)
             self._end(n)
+
+    def invite(self, windows: int) -> None:
+        """Enqueue a helper for each idle worker, at most ``windows - 1``, once. Called as soon as the
+        run is known to be long (before it is settled), so that the helpers stage the run meanwhile
+        and wait for the plan; called again when the windows start, it does nothing."""
+        if self.invited:
+            return
+        self.invited = True
+        self.redis.delete(self.keys.stop)
+        helpers = min(max(0, self.idle()), windows - 1)
+        if helpers > 0:
+            self.helpers = list(self.enqueue(helpers))
+
+    def close(self) -> None:
+        """The run ended before its windows (or without them): the helpers invited stop."""
+        self.redis.set(self.keys.stop, 1, ex=self.ttl)
+        self._end(0)
 
     def _take(self, k: int, n: int, ahead: dict, mine) -> tuple[Any, Any]:
         """Window k: solved ahead here, done by a helper, claimed now and solved here, or (its helper
@@ -200,6 +216,18 @@ def _running(redis, token: str) -> bool:
         return False
 
 
+def _plan(redis, token: str) -> dict | None:
+    """The plan, once the parent has written it; None if the parent stops or ends first."""
+    k_ = Keys(token)
+    while True:
+        raw = redis.get(k_.plan)
+        if raw is not None:
+            return json.loads(raw)
+        if redis.exists(k_.stop) or not _running(redis, token):
+            return None
+        time.sleep(0.2)
+
+
 def help_with_windows(redis, token: str, me: str, input_dir: Path, staged: Path) -> int:
     """A helper's side: solve the windows of the job whose RQ token is ``token`` until none is left
     to claim or the parent says stop; its input files unpacked in ``input_dir``, staged in ``staged``.
@@ -209,11 +237,8 @@ def help_with_windows(redis, token: str, me: str, input_dir: Path, staged: Path)
     from service.store.jobfiles import put_archive
 
     k_ = Keys(token)
-    raw = redis.get(k_.plan)
-    if raw is None or redis.exists(k_.stop):
+    if redis.exists(k_.stop):
         return 0
-    plan = json.loads(raw)
-    ttl = max(60, int(redis.ttl(k_.plan)))
     stopped = threading.Event()
 
     def beat() -> None:
@@ -225,11 +250,15 @@ def help_with_windows(redis, token: str, me: str, input_dir: Path, staged: Path)
     beating.start()
     try:
         options = job_options(input_dir)
-        held = _options_from(plan["options"], options.skeleton)
-        spans = [(int(lo), int(hi)) for lo, hi in plan["spans"]]
-        run = stage_job(input_dir, staged, lambda frames: True)
+        run = stage_job(input_dir, staged, lambda frames: True)  # while the parent settles the run
         if run is None:
             return 0
+        plan = _plan(redis, token)
+        if plan is None:
+            return 0
+        ttl = max(60, int(redis.ttl(k_.plan)))
+        held = _options_from(plan["options"], options.skeleton)
+        spans = [(int(lo), int(hi)) for lo, hi in plan["spans"]]
         source = Staged(run, job_calibration(input_dir), options)
         s0, s1 = plan["settled_on"]
         source.stretch(int(s0), int(s1), dataclasses.replace(options, window_frames=0))  # the windows' template

@@ -30,7 +30,7 @@ import tempfile
 import time
 import traceback
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -55,6 +55,9 @@ from service.store.jobfiles import (
     unpack_files,
     video_result_name,
 )
+
+if TYPE_CHECKING:
+    from service.run.shared_windows import SharedWindows
 
 SOLVER_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
@@ -206,7 +209,8 @@ class ThrottledProgress:
             raise JobCancelled()
 
 
-def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress, solver=None) -> dict:
+def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress,
+              solver: "SharedWindows | None" = None) -> dict:
     """Read the inputs, solve, write the results; return the solve report. A calibration job
     (its manifest's ``kind``) is run by :func:`service.run.calibration_run.run_calibration` instead.
     ``solver``: a long run's windows shared with other workers (:func:`solve_streamed_job`)."""
@@ -260,7 +264,8 @@ def stage_job(input_dir: Path, scratch: Path, long_enough: Callable[[int], bool]
     return run
 
 
-def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress, solver=None) -> dict | None:
+def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress,
+                       solver: "SharedWindows | None" = None) -> dict | None:
     """A long run of one individual solved as ``acinoset solve`` solves it, streamed
     (:func:`graph.api.solve_streamed`: the inputs staged on disk a camera at a time, the CSV and H5
     written as the windows finish), in memory that does not grow with the run; the page's view
@@ -270,7 +275,7 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     it in memory)."""
     from graph.api import solve_streamed
     from graph.io.results import AniposeCsv, H5Stream, read_result
-    from graph.types import WINDOWED_ABOVE
+    from graph.types import WINDOW_FRAMES, WINDOWED_ABOVE
     from graph.viewer.payload import result_payload
 
     options = job_options(input_dir)
@@ -284,6 +289,8 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
         run = stage_job(input_dir, scratch, lambda frames: frames > above)
         if run is None:
             return None
+        if solver is not None:  # the helpers stage the run while this process settles it
+            solver.invite(-(-run.frames // (options.window_frames or WINDOW_FRAMES)))
         calibration = job_calibration(input_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}
@@ -299,10 +306,12 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
 
         try:
             report = solve_streamed(run, calibration, options, write, progress=progress, solver=solver)
-            if getattr(solver, "solved", None) and report.windows is not None:
+            if solver is not None and solver.solved and report.windows is not None:
                 report.windows["solved_by"] = dict(solver.solved)  # the workers that solved windows, how many each
         except BaseException:
             h5.file.close()
+            if solver is not None:
+                solver.close()  # the helpers invited stop
             raise
         finally:
             for f in csv:
