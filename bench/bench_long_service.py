@@ -144,10 +144,19 @@ def submit(c: httpx.Client, d: Path, options: dict) -> tuple[float, httpx.Respon
     return time.perf_counter() - t0, r
 
 
-def wait(c: httpx.Client, job_id: str, timeout: float = 3600) -> dict:
+def wait(c: httpx.Client, job_id: str, timeout: float = 3600, stages: list | None = None) -> dict:
+    """The job once it ended; ``stages`` (when given) gets ``[seconds, status, stage, fraction]``
+    each time the job's status or stage changes (polled every 0.2 s)."""
+    t0 = time.perf_counter()
     deadline = time.time() + timeout
+    last = None
     while time.time() < deadline:
         job = c.get(f"/v1/jobs/{job_id}").json()
+        p = job.get("progress") or {}
+        now = (job["status"], p.get("stage"))
+        if stages is not None and now != last:
+            stages.append([round(time.perf_counter() - t0, 1), *now, p.get("fraction")])
+            last = now
         if job["status"] in ("succeeded", "failed", "cancelled"):
             return job
         time.sleep(0.2)
@@ -247,10 +256,13 @@ def timed_job(base: str, token: str, warm_dir: Path, run_dir: Path, sampler: Tre
         up_s, r = submit(c, run_dir, {"fps": bl.FPS})
         assert r.status_code == 202, r.text
         t_up = time.perf_counter()
-        job = wait(c, r.json()["id"])
+        stages: list = []
+        job = wait(c, r.json()["id"], stages=stages)
         t1 = time.perf_counter()
-        bl.log(f"job {job['status']}: upload {up_s:.1f} s, then {t1 - t_up:.1f} s")
+        bl.log(f"job {job['status']}: upload {up_s:.1f} s, then {t1 - t_up:.1f} s; stages (s, status, stage, "
+               f"fraction): {stages}")
         out = {"status": job["status"], "error": job.get("error"), "upload_s": up_s, "job_s": t1 - t_up,
+               "stages": stages,
                "run_seconds": (job.get("timings") or {}).get("run_seconds"),
                "tree_peak_mib_job": sampler.peak(t_up, t1), "tree_mib_idle": sampler.peak(t0 - 2.0, t0)}
         if job["status"] == "succeeded":

@@ -316,6 +316,7 @@ class JobService:
                     raise Unprocessable("options: fps is required: the cameras' frame rate, frames per second (the "
                                         "keypoint files record none, DeepLabCut's never do, and no video gave one)")
                 options["fps"] = recorded
+            manifest["frames"] = inputs.get("frames")  # as read here: a worker's hint before it stages the files
             jobfiles.write_manifest(input_dir, manifest)
         return job_id, inputs
 

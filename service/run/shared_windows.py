@@ -41,7 +41,7 @@ import numpy as np
 
 BEAT_S = 2.0  # a helper's heartbeat period
 BEAT_TTL_S = 30.0  # a heartbeat older than this: the helper is gone (a long kernel call may delay a beat)
-LOOKAHEAD = 2  # windows a helper may solve past the one the parent takes next
+LOOKAHEAD = 6  # windows a helper may solve past the one the parent takes next (results waiting in Redis)
 POLL_S = 0.05
 
 
@@ -148,9 +148,11 @@ class SharedWindows:
             self.helpers = list(self.enqueue(helpers))
 
     def close(self) -> None:
-        """The run ended before its windows (or without them): the helpers invited stop."""
-        self.redis.set(self.keys.stop, 1, ex=self.ttl)
-        self._end(0)
+        """The run ended (solved, failed, or found short): the helpers invited stop, those not started
+        are dropped."""
+        if self.invited:
+            self.redis.set(self.keys.stop, 1, ex=self.ttl)
+            self._end(0)
 
     def _take(self, k: int, n: int, ahead: dict, mine) -> tuple[Any, Any]:
         """Window k: solved ahead here, done by a helper, claimed now and solved here, or (its helper

@@ -285,12 +285,16 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     # staged inside the job's result folder: a run killed (cancelled, timed out) leaves nothing behind
     # that the job's own clean-up does not remove
     scratch = out_dir / "staged"
+    windows = lambda frames: -(-frames // (options.window_frames or WINDOW_FRAMES))  # noqa: E731
+    hint = read_manifest(input_dir).get("frames")
+    if solver is not None and isinstance(hint, int) and hint > above:
+        solver.invite(windows(hint))  # the helpers stage the run while this process stages and settles it
     try:
         run = stage_job(input_dir, scratch, lambda frames: frames > above)
         if run is None:
             return None
-        if solver is not None:  # the helpers stage the run while this process settles it
-            solver.invite(-(-run.frames // (options.window_frames or WINDOW_FRAMES)))
+        if solver is not None:  # no hint: invited now (once)
+            solver.invite(windows(run.frames))
         calibration = job_calibration(input_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}
@@ -310,13 +314,13 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
                 report.windows["solved_by"] = dict(solver.solved)  # the workers that solved windows, how many each
         except BaseException:
             h5.file.close()
-            if solver is not None:
-                solver.close()  # the helpers invited stop
             raise
         finally:
             for f in csv:
                 f.close()
     finally:
+        if solver is not None:
+            solver.close()  # the helpers invited stop (the windows' own end stops them too)
         shutil.rmtree(scratch, ignore_errors=True)
     report.warnings = [strip_paths(w) for w in report.warnings]
     h5.close(report, options, calibration)
