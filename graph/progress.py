@@ -92,7 +92,7 @@ def compile_notice(say: Callable[[str], None]):
         def on_start(self, ev):
             if not started:
                 started.append(True)
-                say("compiling the solver's kernels for this machine (once after an install, a minute or two; "
+                say("compiling the solver's kernels for this machine (once after an install, about half a minute; "
                     "later runs load them from the cache)")
             if compiling[1] == 0:
                 compiling[0] -= time.perf_counter()

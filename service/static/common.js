@@ -145,7 +145,7 @@
   /** Why a queued job waits. */
   function queuedText(job) {
     return job.progress && job.progress.stage === "compiling"
-      ? "Waiting: the server is compiling its solver (once after an install or upgrade, a minute or two)."
+      ? "Waiting: the server is compiling its solver (once after an install or upgrade, about half a minute)."
       : "Waiting for a free worker.";
   }
 
