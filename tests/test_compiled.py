@@ -34,9 +34,9 @@ def test_the_twin_has_a_cache_file_of_its_own(two_threads):
 
 
 def test_the_twin_triangulates_as_the_serial_kernel_does(monkeypatch):
-    """The same points, bit for bit, whichever kernel a run of 600 frames takes."""
+    """The same points, bit for bit, whichever kernel a run of 2,000 frames takes."""
     cal = load_calibration(default_rig_path())
-    run = simulate_run(cal, frames=600, seed=3)
+    run = simulate_run(cal, frames=compiled.PARALLEL_ITEMS, seed=3)
     meas = np.stack([k.xy for k in run.keypoints], axis=1)
     valid = np.stack([k.likelihood > 0.5 for k in run.keypoints], axis=1)
     monkeypatch.setattr(compiled, "_threads", 1)
