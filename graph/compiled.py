@@ -8,7 +8,8 @@ the four loop kernels parallel, 42 s serial (at numba's default level, below); s
 as fast serially (fte 0.155 s against 0.171 s); of 7,200 frames 1.33x slower serially (fte 7.3 s
 against 5.5 s, tri 1.2 s against 0.6 s).
 
-The kernels are compiled at LLVM's optimisation level 1 (``NUMBA_OPT``, unless set): measured on
+The kernels are compiled at LLVM's optimisation level 1 (``NUMBA_OPT``, unless set; :mod:`graph`
+sets it before numba is imported; no fast-math, so LLVM may not reorder floating point): measured on
 the same machine, every method's kernels compile in 33.5 s at level 1 against 46.0 s at numba's
 default 3, the solves' results are bit for bit the same (tri, ekf and fte, positions and sds, 200
 and 1,000 frames) and as fast (fte of 2,000 frames 1.15 s against 1.20 s, of 7,200 frames 5.9 s
@@ -23,18 +24,11 @@ fewer frames, the demo and the job service (one thread per solve) never compile 
 
 from __future__ import annotations
 
-import os
 import types
 from typing import Any
 
-# LLVM's optimisation level for every kernel compiled in this process, unless the user set one. Level 1
-# gives the same numbers bit for bit (no fast-math: LLVM may not reorder floating point) and as fast
-# a solve as numba's default 3, at three quarters of the compile time; numba reads it when it
-# compiles, so setting it before the first kernel is compiled is enough
-os.environ.setdefault("NUMBA_OPT", "1")
-
-import numba  # noqa: E402
-from numba import njit  # noqa: E402
+import numba
+from numba import njit
 
 # frames from which a loop kernel runs in parallel. fte of 20 markers on 2 cores, serial against
 # parallel: 100 frames 0.08 / 0.13 s, 200 0.19 / 0.17 s, 400 0.34 / 0.28 s, 1,000 0.82 / 0.64 s,

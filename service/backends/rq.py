@@ -263,13 +263,23 @@ class RQBackend(Backend):
         return RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0]
 
     def _delete(self, token: str) -> None:
-        """The RQ job and its files in Redis."""
-        from service.store.jobfiles import PARTIAL, input_key, result_key
+        """The RQ job and its files in Redis, and what a long job shared with helpers: their queued
+        RQ jobs and the windows' keys (a work horse killed, by a cancel, cleans up nothing itself)."""
+        from rq.job import Job as RQJob
+
+        from service.store.jobfiles import PARTIAL, helper_id, input_key, result_key, windows_key
 
         rj = self._full(token)
         if rj is not None:
             rj.delete()
         self.redis.delete(input_key(token), result_key(token), input_key(token) + PARTIAL, result_key(token) + PARTIAL)
+        helpers = [jid for jid in self.queue.get_job_ids() if jid.startswith(helper_id(token, -1))]
+        for helper in RQJob.fetch_many(helpers, connection=self.redis, serializer=self.serializer):
+            if helper is not None:
+                helper.delete()
+        windows = list(self.redis.scan_iter(match=windows_key(token) + ":*", count=500))
+        if windows:
+            self.redis.delete(*windows)
 
     def _collect(self) -> None:
         from redis.exceptions import RedisError

@@ -12,18 +12,23 @@ Redis keys, each under ``acinoset:windows:<token>`` and expiring with the job's 
 
 * ``:plan``: JSON ``{"options", "sigma_px", "settled_on", "spans"}`` (the held options, the noise,
   the settled stretch, each window's frames ``[lo, hi)``);
-* ``:claims``: a hash, window -> who solves it (the parent's or a helper's worker), set once (``HSETNX``);
+* ``:claims``: a hash, window -> who solves it (the parent's worker, or a helper's RQ job and worker,
+  ``<job>@<worker>``), set once (``HSETNX``);
 * ``:alive:<helper>``: a helper's heartbeat, refreshed every :data:`BEAT_S` seconds; a window whose
   helper's heartbeat has expired (:data:`BEAT_TTL_S`) is solved by the parent instead;
 * ``:next``: the window the parent takes next; a helper claims windows at most :data:`LOOKAHEAD`
-  after it, so that at most that many results wait in Redis;
+  after it, so that at most ``LOOKAHEAD + 1`` results wait in Redis, and the parent holds at most
+  ``LOOKAHEAD`` windows it solved ahead (a window's Result: about 11 MB at 2,400 frames of six
+  cameras and 20 markers);
 * ``:done:<k>``: window k's result, a zip of its ``result.h5`` (:func:`graph.io.results.write_h5`)
   and ``valid.npy`` (the confident detections) in chunks (:func:`service.store.jobfiles.put_archive`);
 * ``:stop``: set when the parent ends; a helper stops at its next window.
 
-The answer does not depend on who solved which window: a window's result is a function of the run's
-frames and the plan (the same inputs staged the same way), and its arrays travel as float64 in HDF5.
-Nothing from Redis is unpickled.
+The answer does not depend on who solved which window when the workers run the same build on the
+same kind of CPU (tested on one machine): a window's result is a function of the run's frames and the
+plan (the same inputs staged the same way), and its arrays travel as float64 in HDF5. Workers of
+other builds or CPUs may round differently, window by window. A helper leaves when other jobs wait in
+the queue (a long job does not hold idle workers from them). Nothing from Redis is unpickled.
 """
 
 from __future__ import annotations
@@ -49,7 +54,9 @@ class Keys:
     """The Redis keys of one job's shared windows (module docstring)."""
 
     def __init__(self, token: str):
-        self.base = f"acinoset:windows:{token}"
+        from service.store.jobfiles import windows_key
+
+        self.base = windows_key(token)
         self.plan, self.claims, self.next, self.stop = (f"{self.base}:{k}" for k in ("plan", "claims", "next", "stop"))
 
     def alive(self, who: str) -> str:
@@ -112,7 +119,7 @@ class SharedWindows:
         r, k_ = self.redis, self.keys
         n = len(spans)
         options, sigma_px = settled.options, settled.sigma_px
-        r.delete(k_.claims, k_.next)
+        r.delete(k_.claims, k_.next, *(k_.done(k) for k in range(n)))  # a retried job's results are not reused
         r.set(k_.next, 0, ex=self.ttl)
         r.hset(k_.claims, "-1", self.me)  # the hash exists, so that its expiry holds
         r.expire(k_.claims, self.ttl)
@@ -151,8 +158,13 @@ class SharedWindows:
         """The run ended (solved, failed, or found short): the helpers invited stop, those not started
         are dropped."""
         if self.invited:
-            self.redis.set(self.keys.stop, 1, ex=self.ttl)
-            self._end(0)
+            from redis.exceptions import RedisError
+
+            try:
+                self.redis.set(self.keys.stop, 1, ex=self.ttl)
+                self._end(0)
+            except RedisError:  # Redis gone: the keys expire with the job's timeout, the helpers with the parent
+                pass
 
     def _take(self, k: int, n: int, ahead: dict, mine) -> tuple[Any, Any]:
         """Window k: solved ahead here, done by a helper, claimed now and solved here, or (its helper
@@ -167,8 +179,8 @@ class SharedWindows:
             if archive is not None:
                 r.delete(k_.done(k))
                 owner = r.hget(k_.claims, str(k))
-                who = owner.decode() if isinstance(owner, bytes) else str(owner)
-                self.solved[who] = self.solved.get(who, 0) + 1
+                worker = (owner.decode() if isinstance(owner, bytes) else str(owner)).rpartition("@")[2]
+                self.solved[worker] = self.solved.get(worker, 0) + 1
                 return _unpack(archive)
             if r.hsetnx(k_.claims, str(k), self.me):
                 return mine(k)
@@ -208,13 +220,13 @@ class SharedWindows:
 
 def _running(redis, token: str) -> bool:
     """Whether the parent's RQ job is still running (a parent killed says no ``stop`` of its own)."""
-    from rq.exceptions import NoSuchJobError
+    from rq.exceptions import InvalidJobOperation, NoSuchJobError
     from rq.job import Job as RQJob
     from rq.serializers import JSONSerializer
 
     try:
-        return RQJob.fetch(token, connection=redis, serializer=JSONSerializer).get_status() == "started"
-    except NoSuchJobError:
+        return RQJob.fetch(token, connection=redis, serializer=JSONSerializer).get_status(refresh=False) == "started"
+    except (NoSuchJobError, InvalidJobOperation):
         return False
 
 
@@ -230,17 +242,25 @@ def _plan(redis, token: str) -> dict | None:
         time.sleep(0.2)
 
 
-def help_with_windows(redis, token: str, me: str, input_dir: Path, staged: Path) -> int:
+def help_with_windows(redis, token: str, me: str, run, calibration, options, others_waiting) -> int:
     """A helper's side: solve the windows of the job whose RQ token is ``token`` until none is left
-    to claim or the parent says stop; its input files unpacked in ``input_dir``, staged in ``staged``.
+    to claim, the parent stops, or ``others_waiting()`` says other jobs wait for a worker; ``me``
+    names it in the claims (``<its RQ job>@<its worker>``), ``run`` is the job's run as this process
+    staged it (:class:`graph.io.staged.StagedRun`), ``calibration`` and ``options`` the job's.
     Returns the windows it solved."""
     from graph.solve.windows import Staged, solve_window
-    from service.run.worker import job_calibration, job_options, stage_job
     from service.store.jobfiles import put_archive
 
     k_ = Keys(token)
-    if redis.exists(k_.stop):
+    plan = _plan(redis, token)
+    if plan is None:
         return 0
+    ttl = max(60, int(redis.ttl(k_.plan)))
+    held = _options_from(plan["options"], options.skeleton)
+    spans = [(int(lo), int(hi)) for lo, hi in plan["spans"]]
+    source = Staged(run, calibration, options)
+    s0, s1 = plan["settled_on"]
+    source.stretch(int(s0), int(s1), dataclasses.replace(options, window_frames=0))  # the windows' template
     stopped = threading.Event()
 
     def beat() -> None:
@@ -248,36 +268,26 @@ def help_with_windows(redis, token: str, me: str, input_dir: Path, staged: Path)
             redis.set(k_.alive(me), 1, ex=int(BEAT_TTL_S))
             stopped.wait(BEAT_S)
 
+    redis.set(k_.alive(me), 1, ex=int(BEAT_TTL_S))  # alive before its first claim
     beating = threading.Thread(target=beat, name="window-helper-heartbeat", daemon=True)
     beating.start()
     try:
-        options = job_options(input_dir)
-        run = stage_job(input_dir, staged, lambda frames: True)  # while the parent settles the run
-        if run is None:
-            return 0
-        plan = _plan(redis, token)
-        if plan is None:
-            return 0
-        ttl = max(60, int(redis.ttl(k_.plan)))
-        held = _options_from(plan["options"], options.skeleton)
-        spans = [(int(lo), int(hi)) for lo, hi in plan["spans"]]
-        source = Staged(run, job_calibration(input_dir), options)
-        s0, s1 = plan["settled_on"]
-        source.stretch(int(s0), int(s1), dataclasses.replace(options, window_frames=0))  # the windows' template
         solved = 0
-        while not redis.exists(k_.stop):
+        while not redis.exists(k_.stop) and _running(redis, token):  # a parent killed sets no stop
+            if others_waiting() or not redis.exists(k_.plan):  # the parent ended: its claims are gone
+                break
             nxt = int(redis.get(k_.next) or 0)
             k = next((j for j in range(nxt, min(len(spans), nxt + 1 + LOOKAHEAD))
                       if redis.hsetnx(k_.claims, str(j), me)), None)
+            redis.expire(k_.claims, ttl)  # should the parent have deleted it meanwhile
             if k is None:
-                if redis.hlen(k_.claims) > len(spans) or not _running(redis, token):
-                    break  # every window claimed (and the parent's marker), or the parent gone
+                if redis.hlen(k_.claims) > len(spans):
+                    break  # every window claimed (and the parent's marker)
                 time.sleep(POLL_S)
                 continue
             lo, hi = spans[k]
             result, valid = solve_window(source, lo, hi, held, float(plan["sigma_px"]))
-            put_archive(redis, k_.done(k), _pack(result, valid))
-            redis.expire(k_.done(k), ttl)
+            put_archive(redis, k_.done(k), _pack(result, valid), ttl=ttl)
             solved += 1
         return solved
     finally:

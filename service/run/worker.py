@@ -77,11 +77,12 @@ def prepare_solver_environment() -> None:
         numba.config.THREADING_LAYER = os.environ["NUMBA_THREADING_LAYER"]
 
 
-# imported by every process that forks solves (missing ones are skipped)
-SOLVER_MODULES = ("gtsam", "numba", "graph.types", "graph.api", "graph.io.calibration", "graph.io.keypoints",
-                  "graph.skeleton", "graph.solve.problem", "graph.solve.kernels", "graph.solve.triangulate",
-                  "graph.solve.tri", "graph.solve.fte", "graph.solve.sync", "graph.solve.joint", "graph.solve.online",
-                  "graph.io.results", "graph.viewer.payload")
+# imported by every process that forks solves (missing ones are skipped); the package first: it sets numba's
+# optimisation level before numba is imported
+SOLVER_MODULES = ("graph", "gtsam", "numba", "graph.types", "graph.api", "graph.io.calibration",
+                  "graph.io.keypoints", "graph.skeleton", "graph.solve.problem", "graph.solve.kernels",
+                  "graph.solve.triangulate", "graph.solve.tri", "graph.solve.fte", "graph.solve.sync",
+                  "graph.solve.joint", "graph.solve.online", "graph.io.results", "graph.viewer.payload")
 
 
 def preload_modules(warm: bool) -> list[str]:
@@ -565,7 +566,7 @@ def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int
         return sum(1 for w in Worker.all(queue=queue) if w.get_state() == "idle")
 
     def enqueue(n: int) -> list[str]:
-        ids = [f"{token}-helper-{time.time_ns()}-{i}" for i in range(n)]
+        ids = [jobfiles.helper_id(token, time.time_ns() + i) for i in range(n)]
         for jid in ids:
             queue.enqueue_call(function, args=(job_id, progress_interval, niceness), kwargs={"helper_of": token},
                                job_id=jid, timeout=rq_job.timeout, result_ttl=0, failure_ttl=600,
@@ -578,6 +579,16 @@ def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int
 def _worker_name(rq_job) -> str:
     """The RQ worker running ``rq_job`` (unique among the queue's workers)."""
     return str(rq_job.worker_name or os.environ.get("RQ_WORKER_ID") or f"{socket.gethostname()}:{os.getpid()}")
+
+
+def _others_waiting(rq_job, token: str):
+    """Whether jobs other than this job's helpers wait in this RQ job's queue (a test to call)."""
+    from rq import Queue
+    from rq.serializers import JSONSerializer
+
+    queue = Queue(rq_job.origin, connection=rq_job.connection, serializer=JSONSerializer)
+    mine = jobfiles.helper_id(token, -1)
+    return lambda: any(not jid.startswith(mine) for jid in queue.get_job_ids())
 
 
 def _help(rq_job, job_id: str, token: str, niceness: int) -> dict:
@@ -595,8 +606,12 @@ def _help(rq_job, job_id: str, token: str, niceness: int) -> dict:
         input_dir = Path(tmp) / INPUT
         unpack_files(archive, input_dir)
         del archive
-        try:
-            n = help_with_windows(rq_job.connection, token, _worker_name(rq_job), input_dir, Path(tmp) / "staged")
+        try:  # staged while the parent stages and settles the run
+            run = stage_job(input_dir, Path(tmp) / "staged", lambda frames: True)
+            n = 0 if run is None else help_with_windows(rq_job.connection, token,
+                                                        f"{rq_job.id}@{_worker_name(rq_job)}", run,
+                                                        job_calibration(input_dir), job_options(input_dir),
+                                                        _others_waiting(rq_job, token))
         except Exception:  # noqa: BLE001 - the parent solves what a helper did not
             traceback.print_exc()
             return {"status": "failed", "error": "the helper stopped", "worker": worker}

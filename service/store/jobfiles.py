@@ -248,17 +248,30 @@ def result_key(token: str) -> str:
     return f"acinoset:result:{token}"
 
 
+def windows_key(token: str) -> str:
+    """The prefix of the Redis keys of the windows the RQ job ``token`` shares with helpers
+    (:mod:`service.run.shared_windows`)."""
+    return f"acinoset:windows:{token}"
+
+
+def helper_id(token: str, n: int) -> str:
+    """The id of the ``n``-th RQ job helping the RQ job ``token`` with its windows; every one starts
+    with :func:`helper_id` of the token and ``""``."""
+    return f"{token}-helper-{n}" if n >= 0 else f"{token}-helper-"
+
+
 ARCHIVE_CHUNK_BYTES = 1_000_000  # one Redis value: under the smallest proto-max-bulk-len Redis takes (1 MB)
 PARTIAL = ":partial"  # an archive being written lies under its key plus this, then is renamed
 
 
-def put_archive(redis, key: str, archive: bytes) -> None:
+def put_archive(redis, key: str, archive: bytes, ttl: int | None = None) -> None:
     """Store ``archive`` under ``key`` as a Redis list of chunks of :data:`ARCHIVE_CHUNK_BYTES`.
 
     One Redis value holds at most ``proto-max-bulk-len`` bytes (512 MB by default, 1 MB at the
     least), and a job's footage or labelled videos can be larger: whole, such an archive could not be
     stored at all. The chunks go under ``key`` + :data:`PARTIAL` and the list is renamed to ``key``
-    at the end, so that a reader finds the whole archive or none."""
+    at the end, so that a reader finds the whole archive or none. ``ttl``: both expire after that many
+    seconds (the partial one too, should the writer die)."""
     partial = key + PARTIAL
     view = memoryview(archive)
     step = ARCHIVE_CHUNK_BYTES
@@ -267,7 +280,9 @@ def put_archive(redis, key: str, archive: bytes) -> None:
         pipe.delete(partial)
         for i in range(0, len(chunks), 16):  # a few MB a command
             pipe.rpush(partial, *chunks[i:i + 16])
-        pipe.rename(partial, key)
+            if ttl is not None:
+                pipe.expire(partial, ttl)
+        pipe.rename(partial, key)  # the key keeps the partial one's expiry
         pipe.execute()
 
 
