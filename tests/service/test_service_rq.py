@@ -11,13 +11,15 @@ import time
 import numpy as np
 import pytest
 from servers import (
+    ENV,
+    Pool,
     Redis,
     Server,
     acinoset,
     add_user,
-    children,
     have_redis,
     make_run,
+    rq_server,
     submit_ok,
     wait_dead,
     wait_finished,
@@ -30,64 +32,6 @@ pytestmark = pytest.mark.skipif(not have_redis(), reason="needs Debian's redis-s
 
 LONG = {"method": "fte", "skeleton": "cheetah"}
 FAST = {"method": "tri", "skeleton": "points", "fps": 120.0}
-# fast failure detection for the tests: workers heartbeat every second, a run is lost after 6 s
-ENV = {"ACINOSET_LEASE_SECONDS": "6", "ACINOSET_HEARTBEAT_SECONDS": "1"}
-
-
-# the smallest largest value Redis takes (512 MB by default): any archive over 1 MB travels in chunks
-SMALL_VALUES = ("--proto-max-bulk-len", "1mb")
-
-
-class Pool:
-    def __init__(self, base, redis_port=None):
-        self.base = base
-        self.redis = Redis(base / "redis", base / "redis.log", port=redis_port, config=SMALL_VALUES)
-        self.workers = {}
-
-    def start_redis(self):
-        self.redis.start()
-
-    def redis_back(self):
-        """A new redis-server on the killed one's port and folder (its append-only file kept)."""
-        self.redis = Redis(self.base / "redis", self.base / "redis2.log", port=self.redis.port, config=SMALL_VALUES)
-        self.start_redis()
-
-    def start_workers(self, names=("w1", "w2")):
-        for n in names:
-            self.workers[n] = worker(self.redis.url, self.base / f"{n}.log", n, ENV).start()
-
-    def busy_worker(self, name):
-        """(worker process, its work horse's pid) for the worker running a job."""
-        proc = self.workers[name]
-        deadline = time.time() + 30
-        while time.time() < deadline:
-            kids = children(proc.pid)
-            if kids:
-                return proc, kids[0]
-            time.sleep(0.05)
-        raise AssertionError(f"worker {name} has no work horse")
-
-    def kill_worker(self, name):
-        """kill -9 a worker and its work horse (RQ puts the horse in a process group of its own), as
-        when the machine dies."""
-        proc = self.workers[name]
-        horses = children(proc.pid)
-        proc.kill9()
-        for pid in horses:
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-
-    def stop(self):
-        for name, w in self.workers.items():
-            for pid in children(w.pid) if w.alive() else []:
-                try:
-                    os.kill(pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-            w.stop(10)
-        self.redis.stop(10)
 
 
 @pytest.fixture(scope="module")
@@ -102,15 +46,6 @@ def pool(tmp_path_factory):
     yield p
     p.server.stop()
     p.stop()
-
-
-def rq_server(base, user: str) -> tuple[Pool, str, Server]:
-    """Redis and a server on the RQ backend over it, no worker yet: the pool, a user's token, the server."""
-    pool = Pool(base)
-    pool.start_redis()
-    token = add_user(base / "data", user)
-    return pool, token, Server(base / "data", base / "server.log", backend="rq", redis_url=pool.redis.url,
-                               env=ENV).start()
 
 
 @pytest.fixture

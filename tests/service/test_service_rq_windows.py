@@ -10,7 +10,7 @@ import time
 import warnings
 
 import pytest
-from servers import Redis, Server, add_user, children, have_redis, make_run, submit, wait_finished, worker
+from servers import children, have_redis, make_run, rq_server, submit, wait_finished
 
 from graph.api import solve
 from graph.io.calibration import load_calibration
@@ -22,7 +22,6 @@ pytestmark = pytest.mark.skipif(not have_redis(), reason="needs Debian's redis-s
 
 FRAMES = 6000
 CORE = 500
-ENV = {"ACINOSET_LEASE_SECONDS": "6", "ACINOSET_HEARTBEAT_SECONDS": "1"}
 
 
 @pytest.fixture(scope="module")
@@ -45,23 +44,13 @@ class Rig:
     """redis-server, a server on the RQ backend and two workers."""
 
     def __init__(self, base):
-        self.redis = Redis(base / "redis", base / "redis.log").start()
-        token = add_user(base / "data", "alice")
-        self.server = Server(base / "data", base / "server.log", backend="rq", redis_url=self.redis.url,
-                             env=ENV).start()
-        self.workers = {n: worker(self.redis.url, base / f"{n}.log", n, ENV).start() for n in ("w1", "w2")}
-        self.token = token
+        self.pool, self.token, self.server = rq_server(base, "alice")
+        self.pool.start_workers()
+        self.workers = self.pool.workers
 
     def stop(self):
-        for w in self.workers.values():
-            for pid in children(w.pid) if w.alive() else []:
-                try:
-                    os.kill(pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-            w.stop(10)
         self.server.stop()
-        self.redis.stop(10)
+        self.pool.stop()
 
 
 @pytest.fixture
