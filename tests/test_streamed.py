@@ -15,6 +15,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from servers import children
 
 from graph.api import solve
 from graph.io.calibration import load_calibration
@@ -266,15 +267,6 @@ def test_the_memory_does_not_grow_with_the_run(rig, tmp_path):
 
 def _workers(pid: int) -> list[int]:
     """The window workers below the command ``pid``: the children of its fork server."""
-    def children(p: int) -> list[int]:
-        out = []
-        for task in Path(f"/proc/{p}/task").glob("*"):
-            try:
-                out += [int(c) for c in (task / "children").read_text().split()]
-            except OSError:
-                pass
-        return out
-
     found = []
     for child in children(pid):
         try:
