@@ -190,30 +190,9 @@ def main() -> int:
     sampler = TreeSampler(proc.pid)
     sampler.start()
     try:
-        with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=600) as c:
-            _, r = submit(c, warm_dir, {"fps": bl.FPS})
-            assert r.status_code == 202, r.text
-            warm = wait(c, r.json()["id"])
-            bl.log(f"warm-up job: {warm['status']}")
-            time.sleep(3.0)  # the server idle, sampled
-            t0 = time.perf_counter()
-            up_s, r = submit(c, run_dir, {"fps": bl.FPS})
-            assert r.status_code == 202, r.text
-            t_up = time.perf_counter()
-            job = wait(c, r.json()["id"])
-            t1 = time.perf_counter()
-            bl.log(f"job {job['status']}: upload {up_s:.1f} s, then {t1 - t_up:.1f} s")
-            out["service"] = {"status": job["status"], "error": job.get("error"), "upload_s": up_s,
-                              "job_s": t1 - t_up, "total_s": t1 - t0,
-                              "run_seconds": (job.get("timings") or {}).get("run_seconds"),
-                              "tree_peak_mib_job": sampler.peak(t_up, t1), "tree_peak_mib_all": sampler.peak(),
-                              "tree_mib_idle": sampler.peak(t0 - 2.0, t0),
-                              "windows": ((job.get("result") or {}).get("report") or {}).get("windows")}
-            if job["status"] == "succeeded":
-                csv = work / "service.csv"
-                csv.write_bytes(c.get(job["links"]["result"]["csv"]).content)
-                markers, truth = bl.load_truth(run_dir / "truth.npz")
-                out["service"]["error"] = bl.score(bl.read_positions(csv, markers), truth, markers)
+        out["service"] = timed_job(base, token, warm_dir, run_dir, sampler, work)
+        out["service"].pop("csv_bytes", None)
+        out["service"]["tree_peak_mib_all"] = sampler.peak()
     finally:
         sampler.halt.set()
         proc.terminate()

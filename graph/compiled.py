@@ -38,15 +38,12 @@ from numba import njit
 PARALLEL_ITEMS = 2000
 
 _TWINS: dict[int, Any] = {}  # id(serial dispatcher) -> its parallel twin, once compiled
-_SOURCES: dict[int, Any] = {}  # id(serial dispatcher) -> the Python function both are compiled from
 _threads: int | None = None  # set by use_threads; else numba's configured count
 
 
 def loop_kernel(f):
     """``f`` compiled serially (cached); :func:`for_items` gives its parallel twin for large calls."""
-    kernel = njit(cache=True)(f)
-    _SOURCES[id(kernel)] = f
-    return kernel
+    return njit(cache=True)(f)
 
 
 def use_threads(threads: int) -> None:
@@ -70,7 +67,7 @@ def for_items(kernel, items: int):
         return kernel
     twin = _TWINS.get(id(kernel))
     if twin is None:
-        f = _SOURCES[id(kernel)]
+        f = kernel.py_func  # the Python function both are compiled from
         g = types.FunctionType(f.__code__, f.__globals__, f.__name__, f.__defaults__, f.__closure__)
         g.__qualname__ = f"{f.__qualname__}_parallel"  # numba's cache file is named after it
         g.__doc__ = f.__doc__

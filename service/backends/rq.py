@@ -267,13 +267,13 @@ class RQBackend(Backend):
         RQ jobs and the windows' keys (a work horse killed, by a cancel, cleans up nothing itself)."""
         from rq.job import Job as RQJob
 
-        from service.store.jobfiles import PARTIAL, helper_id, input_key, result_key, windows_key
+        from service.store.jobfiles import PARTIAL, helpers_prefix, input_key, result_key, windows_key
 
         rj = self._full(token)
         if rj is not None:
             rj.delete()
         self.redis.delete(input_key(token), result_key(token), input_key(token) + PARTIAL, result_key(token) + PARTIAL)
-        helpers = [jid for jid in self.queue.get_job_ids() if jid.startswith(helper_id(token, -1))]
+        helpers = [jid for jid in self.queue.get_job_ids() if jid.startswith(helpers_prefix(token))]
         for helper in RQJob.fetch_many(helpers, connection=self.redis, serializer=self.serializer):
             if helper is not None:
                 helper.delete()

@@ -178,14 +178,12 @@ class SharedWindows:
             archive = get_archive(r, k_.done(k))
             if archive is not None:
                 r.delete(k_.done(k))
-                owner = r.hget(k_.claims, str(k))
-                worker = (owner.decode() if isinstance(owner, bytes) else str(owner)).rpartition("@")[2]
+                worker = self._owner(k).rpartition("@")[2]
                 self.solved[worker] = self.solved.get(worker, 0) + 1
                 return _unpack(archive)
             if r.hsetnx(k_.claims, str(k), self.me):
                 return mine(k)
-            owner = r.hget(k_.claims, str(k))
-            who = owner.decode() if isinstance(owner, bytes) else str(owner)
+            who = self._owner(k)
             if who == self.me or not r.exists(k_.alive(who)):
                 if r.exists(k_.done(k)):  # finished as its heartbeat ran out
                     continue
@@ -197,6 +195,11 @@ class SharedWindows:
                 ahead[j] = mine(j)
                 continue
             time.sleep(POLL_S)
+
+    def _owner(self, k: int) -> str:
+        """Who claimed window k."""
+        owner = self.redis.hget(self.keys.claims, str(k))
+        return owner.decode() if isinstance(owner, bytes) else str(owner)
 
     def _end(self, n: int) -> None:
         """The helpers not started are dropped; the keys go (a helper still solving finds ``stop``

@@ -517,11 +517,11 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, h
     from rq import get_current_job
 
     rq_job = get_current_job()
-    if helper_of is not None:
-        return _help(rq_job, job_id, helper_of, niceness)
     die_with_parent()  # a worker that dies takes its work horse along: the job is retried, not orphaned
     _yield_cpu(niceness)
-    worker = os.environ.get("RQ_WORKER_ID") or f"{socket.gethostname()}:{os.getpid()}"
+    worker = _this_worker()
+    if helper_of is not None:
+        return _help(rq_job, job_id, helper_of, worker)
     if rq_job is not None:
         rq_job.meta["host"] = f"{socket.gethostname()}:{os.getpid()}"
         rq_job.save_meta()
@@ -566,7 +566,7 @@ def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int
         return sum(1 for w in Worker.all(queue=queue) if w.get_state() == "idle")
 
     def enqueue(n: int) -> list[str]:
-        ids = [jobfiles.helper_id(token, time.time_ns() + i) for i in range(n)]
+        ids = [f"{jobfiles.helpers_prefix(token)}{time.time_ns()}-{i}" for i in range(n)]
         for jid in ids:
             queue.enqueue_call(function, args=(job_id, progress_interval, niceness), kwargs={"helper_of": token},
                                job_id=jid, timeout=rq_job.timeout, result_ttl=0, failure_ttl=600,
@@ -576,9 +576,14 @@ def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int
     return SharedWindows(rq_job.connection, token, _worker_name(rq_job), enqueue, idle, int(rq_job.timeout or 3600))
 
 
+def _this_worker() -> str:
+    """This worker as a job's record names it: ``RQ_WORKER_ID``, else host:pid."""
+    return os.environ.get("RQ_WORKER_ID") or f"{socket.gethostname()}:{os.getpid()}"
+
+
 def _worker_name(rq_job) -> str:
     """The RQ worker running ``rq_job`` (unique among the queue's workers)."""
-    return str(rq_job.worker_name or os.environ.get("RQ_WORKER_ID") or f"{socket.gethostname()}:{os.getpid()}")
+    return str(rq_job.worker_name or _this_worker())
 
 
 def _others_waiting(rq_job, token: str):
@@ -587,18 +592,15 @@ def _others_waiting(rq_job, token: str):
     from rq.serializers import JSONSerializer
 
     queue = Queue(rq_job.origin, connection=rq_job.connection, serializer=JSONSerializer)
-    mine = jobfiles.helper_id(token, -1)
+    mine = jobfiles.helpers_prefix(token)
     return lambda: any(not jid.startswith(mine) for jid in queue.get_job_ids())
 
 
-def _help(rq_job, job_id: str, token: str, niceness: int) -> dict:
-    """This RQ job helps the job whose token is ``token`` with its windows
+def _help(rq_job, job_id: str, token: str, worker: str) -> dict:
+    """This RQ job (on ``worker``) helps the job whose token is ``token`` with its windows
     (:func:`service.run.shared_windows.help_with_windows`), from the job's input files in Redis."""
     from service.run.shared_windows import help_with_windows
 
-    die_with_parent()
-    _yield_cpu(niceness)
-    worker = os.environ.get("RQ_WORKER_ID") or f"{socket.gethostname()}:{os.getpid()}"
     archive = get_archive(rq_job.connection, input_key(token)) if rq_job is not None else None
     if archive is None:
         return {"status": "helped", "windows": 0, "worker": worker}

@@ -254,10 +254,9 @@ def windows_key(token: str) -> str:
     return f"acinoset:windows:{token}"
 
 
-def helper_id(token: str, n: int) -> str:
-    """The id of the ``n``-th RQ job helping the RQ job ``token`` with its windows; every one starts
-    with :func:`helper_id` of the token and ``""``."""
-    return f"{token}-helper-{n}" if n >= 0 else f"{token}-helper-"
+def helpers_prefix(token: str) -> str:
+    """What the id of every RQ job helping the RQ job ``token`` with its windows starts with."""
+    return f"{token}-helper-"
 
 
 ARCHIVE_CHUNK_BYTES = 1_000_000  # one Redis value: under the smallest proto-max-bulk-len Redis takes (1 MB)
