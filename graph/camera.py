@@ -353,6 +353,7 @@ CAMERA_MODELS: dict[str, CameraModel] = {m.name: m for m in (
 )}
 
 # distortion coefficients in packed intrinsics: the most any model has
+PLACE_TOLERANCE = 1e-6  # centres this close, relative to the rig's extent, are one place (Calibration.places)
 DISTORTION_SLOTS = max(m.n_coefficients for m in CAMERA_MODELS.values())
 
 
@@ -380,3 +381,35 @@ class Calibration:
     def project(self, X: np.ndarray) -> np.ndarray:
         """World points (..., 3) to pixels in every camera (C, ..., 2)."""
         return np.stack([c.project(X) for c in self.cameras])
+
+    def places(self) -> np.ndarray:
+        """An index per camera (C,), shared by cameras at one place: centres within
+        :data:`PLACE_TOLERANCE` of the rig's extent (its largest distance between two centres) of
+        each other. Two views from one place are one ray: together they fix no depth (a calibration
+        entry copied from another camera's puts two cameras there)."""
+        c = np.stack([cam.center for cam in self.cameras])
+        d = np.linalg.norm(c[:, None] - c[None], axis=-1)
+        place = np.arange(len(c))
+        for i in range(len(c)):
+            near = np.flatnonzero(d[i, :i] <= PLACE_TOLERANCE * d.max())
+            if near.size:
+                place[i] = place[near[0]]
+        return place
+
+    def places_seeing(self, valid: np.ndarray) -> np.ndarray:
+        """How many places (:meth:`places`) saw each marker in each frame, from ``valid`` (N, C, M): (N, M)."""
+        places = self.places()
+        if len(np.unique(places)) == len(places):
+            return valid.sum(axis=1)
+        return np.sum([valid[:, places == p].any(axis=1) for p in np.unique(places)], axis=0)
+
+    def same_places(self) -> str | None:
+        """A one-line note naming the cameras at one place (:meth:`places`), or None when each has its own."""
+        places = self.places()
+        groups = [[n for n, q in zip(self.names, places) if q == p] for p in np.unique(places)]
+        shared = [g for g in groups if len(g) > 1]
+        if not shared:
+            return None
+        return (f"cameras {'; '.join(' and '.join(g) for g in shared)} are at one place in the calibration (the same "
+                "centre): views from one place fix no depth, so they count as one view there (an entry copied from "
+                "another camera's?)")

@@ -62,7 +62,7 @@ from graph.camera import PINHOLE, Calibration, Camera
 from graph.errors import InputError, unreadable
 from graph.io.calibration import default_rig_path, load_calibration, write_acinoset_json, write_anipose_toml
 from graph.io.keypoints import Keypoints, write_dlc_csv
-from graph.skeleton import Skeleton, load_skeleton
+from graph.skeleton import Skeleton, left_right_pairs, load_skeleton
 from graph.types import jsonable
 
 CAMERA_HEIGHT = 0.5  # m: the cameras' mean height above the ground
@@ -376,12 +376,6 @@ def observe(calibration: Calibration, positions: np.ndarray, markers: list[str],
     keypoints = [Keypoints(bodyparts=list(markers), xy=xy[c], likelihood=lik[c], scorer="acinoset-simulated",
                            source=calibration.names[c]) for c in range(C)]
     return keypoints, proj, outlier & ~missing, swapped & ~missing, dropout
-
-
-def left_right_pairs(markers: list[str]) -> list[tuple[int, int]]:
-    """Index pairs ``(l_X, r_X)`` present in ``markers``."""
-    idx = {m: i for i, m in enumerate(markers)}
-    return [(i, idx["r_" + m[2:]]) for m, i in idx.items() if m.startswith("l_") and "r_" + m[2:] in idx]
 
 
 # ---------------------------------------------------------------------------------------- the run

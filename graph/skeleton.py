@@ -38,7 +38,10 @@ import numpy as np
 from graph.errors import NESTED_TOO_DEEPLY, InputError
 
 AXES = {"x": 0, "y": 1, "z": 2}
-SIDE_PREFIXES = ("l_", "r_")
+# a side in a bodypart's name: a word of its own (l_eye, front_left_paw, Ear_R, Shoulder_left) or a capital
+# prefix before a capital or digit (OpenPose's LShoulder, a fly's L1A)
+SIDE_WORDS = {"l": "left", "left": "left", "r": "right", "right": "right"}
+SIDE_PREFIX = re.compile(r"^(L|R|Left|Right)(?=[A-Z0-9])(.+)$")
 POINTS_PROCESS_NOISE = 60.0  # std of the per-frame change of a free point's acceleration (m/s^2)
 # the nine arrays of :meth:`SkeletonArrays.kernel_args`, seg_parent .. marker_dep
 KernelArgs = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
@@ -313,9 +316,39 @@ def _from_spec(data: dict, where: str) -> Skeleton:
                     point_group=pt_group)
 
 
+def side_of(name: str) -> tuple[str, str] | None:
+    """``("left" | "right", the name without its side)`` for a bodypart named by a side, else None:
+    ``l_eye`` -> ``("left", "eye")``, ``front_right_paw`` -> ``("right", "front_paw")``, ``Ear_R`` ->
+    ``("right", "Ear")``, ``LShoulder`` -> ``("left", "Shoulder")``, ``R1A`` -> ``("right", "1A")``. A side is
+    a word between separators (``_ - . `` or a space; one such word only) or a capital prefix before a capital
+    or a digit (:data:`SIDE_WORDS`, :data:`SIDE_PREFIX`)."""
+    parts = re.split(r"([_\-.\s]+)", name)  # words at even places, separators between
+    sided = [k for k in range(0, len(parts), 2) if parts[k].lower() in SIDE_WORDS]
+    if len(sided) == 1 and len(parts) > 1:
+        k = sided[0]
+        rest = parts[:k] + parts[k + 2:] if k + 1 < len(parts) else parts[:k - 1]
+        return SIDE_WORDS[parts[k].lower()], "".join(rest)
+    m = SIDE_PREFIX.match(name)
+    if m:
+        return SIDE_WORDS[m.group(1).lower()[0]], m.group(2)
+    return None
+
+
+def left_right_pairs(markers: list[str]) -> list[tuple[int, int]]:
+    """Index pairs ``(left, right)`` of ``markers`` whose names differ only by their side
+    (:func:`side_of`): the limbs a 2D tracker may swap."""
+    found: dict[str, dict[str, int]] = {}
+    for i, m in enumerate(markers):
+        side = side_of(m)
+        if side is not None:
+            found.setdefault(side[1], {})[side[0]] = i
+    return [(at["left"], at["right"]) for at in found.values() if len(at) == 2]
+
+
 def _side_free(name: str) -> str:
-    """A point's default length group: its name without a side prefix (``l_eye`` -> ``eye``)."""
-    return name[2:] if name.startswith(SIDE_PREFIXES) and len(name) > 2 else name
+    """A point's default length group: its name without its side (``l_eye`` -> ``eye``, :func:`side_of`)."""
+    side = side_of(name)
+    return side[1] if side is not None else name
 
 
 def points_skeleton(bodyparts: list[str], bone_pairs: list[tuple[str, str]] | None = None,

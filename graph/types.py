@@ -98,6 +98,9 @@ class SolveOptions:
     # it (``ncams`` 0 or 1, a larger sd); positions seen by fewer than ``min_views`` cameras are left NaN
     # (2: only what two cameras triangulate). tri, without a motion model, needs two in any case
     min_views: int = 0
+    # fte: the share of left/right marker pairs the 2D tracker swapped in a camera and frame (graph.solve.swaps):
+    # "auto", estimated from the data; a number below 0.5, given; 0: every pair taken as labelled
+    swap_rate: float | Literal["auto"] = "auto"
     # fte: frames kept from each window of a long run, solved in windows of bounded memory
     # (graph.solve.windows); 0: the whole run at once; None: WINDOW_FRAMES a window above WINDOWED_ABOVE
     window_frames: int | None = None
@@ -153,6 +156,9 @@ class SolveOptions:
             raise ValueError("time_offsets must be finite numbers of frames, one per camera")
         if not (isinstance(self.min_views, int) and 0 <= self.min_views <= MAX_MIN_VIEWS):
             raise ValueError(f"min_views must be a whole number from 0 to {MAX_MIN_VIEWS}, not {self.min_views!r}")
+        if self.swap_rate != "auto" and not (isinstance(self.swap_rate, (int, float)) and not isinstance(
+                self.swap_rate, bool) and 0 <= self.swap_rate < 0.5):
+            raise ValueError(f"swap_rate must be 'auto' or a share from 0 to below 0.5, not {self.swap_rate!r}")
         if self.window_frames is not None and not (isinstance(self.window_frames, int) and not isinstance(
                 self.window_frames, bool) and (self.window_frames == 0 or MIN_WINDOW_FRAMES <= self.window_frames)):
             raise ValueError(f"window_frames must be 0 (the whole run) or a whole number of frames of at least "
@@ -197,6 +203,9 @@ class SolveReport:
     # fte and ekf: per marker, the frames answered from the motion model (fewer than two cameras saw it)
     motion_only_frames: dict[str, int] = field(default_factory=dict)
     bounds_active: int = 0
+    # (camera, frame, left/right pair) taken as swapped by the 2D tracker and solved exchanged (graph.solve.swaps)
+    side_swaps: int = 0
+    swap_rate: float | None = None  # the share of pairs swapped, estimated (swap_rate "auto") or given
     sigma_px: float = float("nan")  # the detection noise the loss and the uncertainties assumed (px)
     noise_px: float = float("nan")  # the noise measured from the inlier residuals (px; graph.solve.noise)
     # motion_scale "auto": the scale fitted per group ({marker: scale} for free points, {"all": scale}),

@@ -62,6 +62,32 @@ def test_the_check_alone_on_the_session(session):
     assert not disagreement.worth_checking(np.zeros((3, 4, 5)), np.ones((3, 4, 5), dtype=bool))
 
 
+def test_two_views_from_one_place_count_as_one(session):
+    """Back, side and top, side's entry top's: where back misses a node only two rays from one centre
+    see it. Triangulated, that put the point at the centre, and the marginals' Cholesky then met a
+    pivot that was not positive (numpy's LinAlgError, a traceback from ``solve``). Now the two cameras
+    are named as one place, count as one view, and those frames are answered by the motion model."""
+    kps, cal = session
+    keep = [0, 2, 3]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = solve([kps[i] for i in keep], Calibration(cameras=[cal.cameras[i] for i in keep]),
+                       SolveOptions(skeleton="points", fps=30.0, likelihood_threshold=0.0))
+    assert [w for w in result.report.warnings if w.startswith("cameras side and top are at one place")]
+    seen = np.stack([k.likelihood > 0 for k in kps])  # (4, N, M)
+    two_places = seen[0] & (seen[2] | seen[3])
+    one_place = ~seen[0] & seen[2] & seen[3]
+    answered = np.isfinite(result.positions).all(axis=-1)
+    assert one_place.sum() > 100 and answered[two_places].all()
+    # a marker seen from two places in some frames is carried by the motion model between them, with a wider sd
+    carried = one_place & two_places.any(axis=0)[None]
+    sd = np.linalg.norm(result.std, axis=-1)
+    assert answered[carried].all() and np.median(sd[carried]) > 1.1 * np.median(sd[two_places])
+    # one never seen from two places has no estimate, as a marker no camera pair sees
+    never = ~two_places.any(axis=0)
+    assert not answered[:, never].any()
+
+
 def test_a_clean_simulation_of_the_rig_names_no_camera():
     rig = load_calibration(default_rig_path())
     for seed in (0, 1):

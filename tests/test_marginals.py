@@ -46,7 +46,7 @@ def test_banded_marginals_are_the_blocks_of_the_inverse(N, d, G, stiff):
     if G:
         assert np.allclose(SW, inv[N * d:, N * d:], rtol=1e-7, atol=1e-9 * scale)
     chain = np.linalg.inv(full[:N * d, :N * d])
-    plain = chain_marginals(G_frames, np.full(d, stiff))
+    plain, _ = chain_marginals(G_frames, np.full(d, stiff))
     for n in range(N):
         assert np.allclose(plain[n], chain[n * d:(n + 1) * d, n * d:(n + 1) * d], rtol=1e-7,
                            atol=1e-9 * np.max(np.abs(chain)))
@@ -70,6 +70,18 @@ def test_chain_marginals_of_a_lower_order_prior_are_the_blocks_of_the_inverse(or
     for n in range(N):
         full[n * d:(n + 1) * d, n * d:(n + 1) * d] += G_frames[n]
     inv = np.linalg.inv(full)
-    ours = chain_marginals(G_frames, np.full(d, stiff), STENCILS[order])
+    ours, _ = chain_marginals(G_frames, np.full(d, stiff), STENCILS[order])
     for n in range(N):
         assert np.allclose(ours[n], inv[n * d:(n + 1) * d, n * d:(n + 1) * d], rtol=1e-7, atol=1e-9 * np.abs(inv).max())
+
+
+def test_a_chain_nothing_fixes_takes_a_ridge_and_says_so():
+    """The motion prior alone (no frame's information): its null space (the polynomials it leaves
+    free) makes the Cholesky meet a pivot that is not positive; the marginals take the smallest
+    ridge that factors and return it, instead of numpy's LinAlgError."""
+    from graph.solve.marginals import RIDGES, chain_marginals
+
+    S, ridge = chain_marginals(np.zeros((30, 2, 2)), np.ones(2))
+    assert ridge in RIDGES and np.isfinite(S).all() and (np.diagonal(S, axis1=1, axis2=2) > 0).all()
+    S, ridge = chain_marginals(np.tile(np.eye(2), (30, 1, 1)), np.ones(2))
+    assert ridge == 0.0

@@ -16,13 +16,12 @@ from graph.simulate import (
     GOOD_LIKELIHOOD,
     LOW_LIKELIHOOD,
     ObservationModel,
-    left_right_pairs,
     load_truth,
     observe,
     rig_stage,
     simulate_run,
 )
-from graph.skeleton import load_skeleton
+from graph.skeleton import left_right_pairs, load_skeleton
 
 # the run of the ``run`` fixture (tests/conftest.py)
 SIMULATION = dict(frames=240, fps=120.0, noise=5.0, outliers=0.1, outlier_std=100.0, seed=7)

@@ -266,6 +266,11 @@ def add_solve_options(p) -> None:
                    help="leave a marker's position NaN in frames fewer than K cameras see confidently (default "
                         f"{defaults.min_views}: fte and ekf answer every frame, from the motion model where fewer "
                         "than two cameras see it, flagged by ncams and a larger sd; 2: only triangulated positions)")
+    p.add_argument("--swap-rate", type=_swap_rate, default=defaults.swap_rate, metavar="auto|P",
+                   help="fte: the share of left/right pairs (l_eye/r_eye, Ear_L/Ear_R, LShoulder/RShoulder) the 2D "
+                        "tracker swapped in a camera and frame; each pair is taken as labelled or swapped, whichever "
+                        "the other cameras agree with, against these odds (default auto: estimated from the data; "
+                        "0: every pair as labelled)")
     p.add_argument("--window-frames", type=int, default=None, metavar="N",
                    help="fte: solve a long run in windows keeping N frames each, in memory that does not grow with "
                         f"the run (default: windows of {WINDOW_FRAMES} frames for runs over {WINDOWED_ABOVE}; 0: the "
@@ -316,6 +321,16 @@ def _positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
     return value
+
+
+def _swap_rate(text: str) -> float | str:
+    """``--swap-rate``: ``auto`` or a number (its range is the options' to check)."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"takes a share such as 0.02, or 'auto', not {text!r}") from None
 
 
 def _auto_option(text: str, option: str = "--measurement-std", unit: str = "a number of pixels"):
@@ -423,7 +438,7 @@ def solve_options(args: argparse.Namespace, fps: float | None = None):
                                motion_order=order,
                                likelihood_threshold=args.likelihood_threshold, individual=args.individual,
                                individuals=args.individuals,
-                               min_views=args.min_views, window_frames=args.window_frames,
+                               min_views=args.min_views, window_frames=args.window_frames, swap_rate=args.swap_rate,
                                calibration_units=args.calibration_units, bone_lengths=bones,
                                uncertainty=args.uncertainty)
     except ValueError as e:

@@ -46,7 +46,7 @@ from graph.skeleton import KernelArgs
 from graph.solve import kernels
 from graph.solve.fte import PRIOR_SIGMA, Estimate, IndefiniteSystem, TrajectoryCost, bone_lengths, solve_from, solve_fte
 from graph.solve.initial import body_scale, initial_poses
-from graph.solve.marginals import banded_marginals, chain_band, information_taken, solve_band
+from graph.solve.marginals import chain_band, information_taken, ridged_marginals, solve_band
 from graph.solve.problem import Problem
 from graph.solve.robust import A as RA
 from graph.solve.robust import B as RB
@@ -285,15 +285,16 @@ class JointTrajectoryProblem(TrajectoryCost[JointState, JointNormals]):
         Sigma = np.zeros((self.N, self.P, self.P))
         cross = np.zeros((self.N, self.P, G))
         if len(self.groups) == 1:
-            Sigma, cross, SW = banded_marginals(bands[0], Bs[0], DW)
+            Sigma, cross, SW, self.ridge = ridged_marginals(bands[0], Bs[0], DW)
             return Sigma, cross, SW
         # what each chain takes off W's information when eliminated
         taken = [information_taken(band, B) for band, B in zip(bands, Bs)]
         total = sum(taken)
-        SW = None
+        SW = np.zeros((G, G))
         for idx, band, B, t in zip(self.groups, bands, Bs, taken):
             a, b = idx[0], idx[-1] + 1
-            S, X, SW = banded_marginals(band, B, DW - (total - t))
+            S, X, SW, ridge = ridged_marginals(band, B, DW - (total - t))
+            self.ridge = max(self.ridge, ridge)
             Sigma[:, a:b, a:b] = S
             cross[:, a:b] = X
         return Sigma, cross, SW

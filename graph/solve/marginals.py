@@ -30,6 +30,8 @@ about a digit every few frames and are useless after a few dozen.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -100,14 +102,43 @@ def chain_band(G, w2, stencil=D3):
     return band
 
 
-@njit(cache=True)
-def chain_marginals(G, w2, stencil=D3):
+def chain_marginals(G, w2, stencil=D3) -> tuple[np.ndarray, float]:
     """Marginal covariances (N, d, d) of a chain with per-frame information ``G`` (N, d, d) and
     difference weights ``w2`` (d,) (``1/sigma_3^2``) on ``stencil`` (:func:`chain_band`); see the
-    module docstring (a lower order leaves the band's outer blocks zero)."""
+    module docstring (a lower order leaves the band's outer blocks zero). With the ridge
+    :func:`ridged_marginals` needed."""
     N, d = G.shape[0], G.shape[1]
-    out, _, _ = banded_marginals(chain_band(G, w2, stencil), np.zeros((N, d, 0)), np.zeros((0, 0)))
-    return out
+    out, _, _, ridge = ridged_marginals(chain_band(G, w2, stencil), np.zeros((N, d, 0)), np.zeros((0, 0)))
+    return out, ridge
+
+
+RIDGES = (1e-12, 1e-9, 1e-6)  # ridges tried, relative to the largest diagonal information
+
+
+def ridged_marginals(band, B, Dw) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """:func:`banded_marginals`, and where its Cholesky factors meet a pivot that is not positive
+    (information numerically singular: a point two views from one centre see, whose depth only
+    the weak anchor fixes, at 1e-17 of the largest information), again with a ridge
+    ``r max_i Lambda_ii`` on every diagonal, ``r`` the first of :data:`RIDGES` that factors.
+    Returns ``(Sigma_n, Sigma_nW, Sigma_W, r)``, ``r`` 0 when none was needed, infinite (and the
+    covariances NaN) when none would do. A ridge adds information: the sds it gives are a lower
+    bound along the direction nothing fixed."""
+    try:
+        return (*banded_marginals(band, B, Dw), 0.0)
+    except np.linalg.LinAlgError:
+        pass
+    d, G = band.shape[2], Dw.shape[0]
+    scale = max([float(np.abs(np.diagonal(band[:, 0], axis1=1, axis2=2)).max()) if band.size else 0.0]
+                + ([float(np.abs(np.diag(Dw)).max())] if G else []))
+    for r in RIDGES:
+        ridged = band.copy()
+        ridged[:, 0] += r * scale * np.eye(d)
+        try:
+            return (*banded_marginals(ridged, B, Dw + r * scale * np.eye(G)), r)
+        except np.linalg.LinAlgError:
+            continue
+    N = band.shape[0]
+    return np.full((N, d, d), np.nan), np.full((N, d, G), np.nan), np.full((G, G), np.nan), math.inf
 
 
 def information_taken(band, B):

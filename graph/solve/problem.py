@@ -70,8 +70,9 @@ class Problem:
         return self.calibration.packed()
 
     def views(self) -> np.ndarray:
-        """Cameras that saw each marker in each frame (N, M)."""
-        return self.valid.sum(axis=1)
+        """Cameras that saw each marker in each frame (N, M), those at one place counted once
+        (:meth:`graph.camera.Calibration.places`): two views from one centre fix no depth."""
+        return self.calibration.places_seeing(self.valid)
 
     def unconstrained(self) -> tuple[list[str], list[int]]:
         """Markers never seen by two cameras; frames in which no marker is seen by two cameras."""
@@ -96,9 +97,10 @@ def build(keypoints: list[Keypoints], calibration: Calibration, options: SolveOp
 
     notes: list[str] = []
     calibration, note = in_metres(calibration, options.calibration_units)
-    if note:
-        notes.append(note)
-        warnings.warn(note, stacklevel=2)
+    for note in (note, calibration.same_places()):
+        if note:
+            notes.append(note)
+            warnings.warn(note, stacklevel=2)
     skeleton = skeleton_of([kp.bodyparts for kp in keypoints], options)
     if options.motion_scale is None:  # the skeleton's and method's default, as the solvers will use it
         free_points = skeleton.kind == "points" and not skeleton.bones

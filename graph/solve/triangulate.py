@@ -28,10 +28,10 @@ from graph.solve import kernels
 
 def robust_points(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, sigma_px: float = 5.0,
                   iterations: int = 10):
-    """The triangulated points alone: ``X`` (N, M, 3), NaN with fewer than two views, the
-    Gauss-Newton information ``H`` (N*M, 3, 3) of each and the views used, ``ok`` (N*M, C). The
-    per-point work runs compiled (:func:`graph.solve.kernels.triangulate_points`); the smoothers start
-    from ``X``."""
+    """The triangulated points alone: ``X`` (N, M, 3), NaN with fewer than two views (views from
+    one place, :meth:`graph.camera.Calibration.places`, count once), the Gauss-Newton information
+    ``H`` (N*M, 3, 3) of each and the views used, ``ok`` (N*M, C). The per-point work runs compiled
+    (:func:`graph.solve.kernels.triangulate_points`); the smoothers start from ``X``."""
     N, C, M, _ = meas.shape
     K = N * M
     z = meas.transpose(0, 2, 1, 3).reshape(K, C, 2)  # (K, C, 2)
@@ -42,7 +42,9 @@ def robust_points(calibration: Calibration, meas: np.ndarray, valid: np.ndarray,
     intr, Rc, tc = calibration.packed()
     X, H = for_items(kernels.triangulate_points, N)(np.nan_to_num(norm), np.nan_to_num(z), ok, intr, Rc, tc, Pm,
                                       float(sigma_px), iterations)
-    return X.reshape(N, M, 3), H, ok
+    X = X.reshape(N, M, 3)
+    X[calibration.places_seeing(valid) < 2] = np.nan  # two views from one place: one ray, no depth
+    return X, H, ok
 
 
 def triangulate(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, sigma_px: float = 5.0,

@@ -202,6 +202,8 @@ def held_options(options: SolveOptions, settled: Result) -> tuple[SolveOptions, 
     if options.body == "estimate" and rep.body_lengths:
         change["body"] = "given"
         change["body_lengths"] = {k: float(v["length_m"]) for k, v in rep.body_lengths.items()}
+    if options.swap_rate == "auto" and rep.swap_rate is not None:
+        change["swap_rate"] = float(rep.swap_rate)
     if options.sync == "estimate" and rep.time_offsets_frames is not None:
         change["sync"] = "given"
         change["time_offsets"] = [float(t) for t in rep.time_offsets_frames]
@@ -272,13 +274,15 @@ class Windows:
         self.iterations = self.settled.result.report.iterations
         self.cost = 0.0
         self.bounds_active = 0
+        self.side_swaps = 0  # the windows' left/right swaps (their margins counted twice, as the cost)
         self.warnings: list[list[str]] = []
 
     def state(self) -> dict:
         """Where the windows stand, as JSON values: the windows finished, the last kept frame's angles
         and what they added up to (:meth:`restore` goes on from there)."""
         return {"done": self.done, "last": self.last, "iterations": self.iterations, "cost": self.cost,
-                "bounds_active": self.bounds_active, "warnings": self.warnings, "held": jsonable(self.settled.held)}
+                "bounds_active": self.bounds_active, "side_swaps": self.side_swaps, "warnings": self.warnings,
+                "held": jsonable(self.settled.held)}
 
     def restore(self, state: dict) -> None:
         """Go on from :meth:`state` of the same run: ValueError when the values the windows hold are not
@@ -288,6 +292,7 @@ class Windows:
         self.done, self.iterations = int(state["done"]), int(state["iterations"])
         self.last = None if state["last"] is None else [float(v) for v in state["last"]]
         self.cost, self.bounds_active = float(state["cost"]), int(state["bounds_active"])
+        self.side_swaps = int(state.get("side_swaps", 0))
         self.warnings = [[str(w) for w in ws] for ws in state["warnings"]]
 
     def __iter__(self) -> Iterator[Core]:
@@ -305,6 +310,7 @@ class Windows:
             self.iterations += r.report.iterations
             self.cost += r.report.cost  # the windows' costs (their margins counted twice)
             self.bounds_active += r.report.bounds_active
+            self.side_swaps += r.report.side_swaps
             self.warnings.append(r.report.warnings)
             core = Core(a, r.frames(a - lo, b - lo), valid[a - lo:b - lo])
             del r, valid  # one window at a time
@@ -353,6 +359,7 @@ class Windows:
         st = self.settled
         report.windows = {"count": len(self.starts), "core_frames": self.core, "margin_frames": self.margin,
                           "settled_on": [st.start, st.stop], "held": st.held}
+        report.side_swaps = self.side_swaps
         for name in ("motion_scales", "motion_orders", "body_lengths", "time_offsets_frames",
                      "time_offsets_std_frames", "offsets_not_identified"):
             setattr(report, name, getattr(st.result.report, name))
