@@ -79,6 +79,10 @@ def register(subparsers) -> None:
     w.add_argument("--redis-url", help="the server's Redis (default redis://127.0.0.1:6379/0)")
     w.add_argument("--queue-name", help="default acinoset")
     w.add_argument("--name", help="worker name shown in jobs, unique among live workers (default: host.pid.random)")
+    w.add_argument("--data-dir", help="the server's data dir as this machine mounts it, for a server that shares "
+                                      "it with its workers (ACINOSET_SHARED_DATA_DIR): jobs' files are read and "
+                                      "results written there instead of through Redis (default: $ACINOSET_DATA_DIR "
+                                      "or ~/.local/share/acinoset)")
     w.add_argument("--burst", action="store_true", help="stop when the queue is empty")
     w.add_argument("--log-level", choices=["debug", "info", "warning", "error"], help="default info")
     w.set_defaults(func=worker)
@@ -216,7 +220,8 @@ def worker(args: argparse.Namespace) -> int:
     from service.backends.rq import project_worker_class
     from service.settings import redacted
 
-    s = _settings(args, "redis_url", "queue_name", "log_level")
+    s = _settings(args, "redis_url", "queue_name", "log_level", "data_dir")
+    os.environ["ACINOSET_DATA_DIR"] = str(s.data_dir)  # the work horses' (a shared data dir's jobs: worker.shared_job)
     logging.basicConfig(level=s.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     conn = Redis.from_url(s.redis_url)
     try:

@@ -41,6 +41,9 @@ class Settings(BaseSettings):
     backend: Literal["embedded", "rq"] = "embedded"
     redis_url: str = "redis://127.0.0.1:6379/0"
     queue_name: str = "acinoset"
+    # rq: the workers see this data dir (a volume or network disk they mount, each given it as its own
+    # --data-dir): a job's input files reach them by path and their results come back on disk, not through Redis
+    shared_data_dir: bool = False
     workers: int = Field(default_factory=default_workers, ge=1, le=256)  # embedded: parallel solves
     log_level: str = "info"
 

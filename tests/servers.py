@@ -254,9 +254,11 @@ class Redis(Proc):
         raise RuntimeError(f"redis-server did not start:\n{self.log()}")
 
 
-def worker(redis_url: str, log: Path, name: str, env: dict | None = None) -> Proc:
-    return Proc([PY, "-m", "service", "worker", "--redis-url", redis_url, "--name", name, "--log-level", "warning"],
-                log, env)
+def worker(redis_url: str, log: Path, name: str, env: dict | None = None, data_dir: Path | None = None) -> Proc:
+    """``data_dir``: the server's, shared with the worker (ACINOSET_SHARED_DATA_DIR)."""
+    where = ["--data-dir", str(data_dir)] if data_dir is not None else []
+    return Proc([PY, "-m", "service", "worker", "--redis-url", redis_url, "--name", name, "--log-level", "warning",
+                 *where], log, env)
 
 
 def have_redis() -> bool:
@@ -288,9 +290,9 @@ class Pool:
         self.redis = Redis(self.base / "redis", self.base / "redis2.log", port=self.redis.port, config=SMALL_VALUES)
         self.start_redis()
 
-    def start_workers(self, names=("w1", "w2")):
+    def start_workers(self, names=("w1", "w2"), data_dir: Path | None = None):
         for n in names:
-            self.workers[n] = worker(self.redis.url, self.base / f"{n}.log", n, ENV).start()
+            self.workers[n] = worker(self.redis.url, self.base / f"{n}.log", n, ENV, data_dir).start()
 
     def busy_worker(self, name):
         """(worker process, its work horse's pid) for the worker running a job."""
@@ -326,13 +328,15 @@ class Pool:
         self.redis.stop(10)
 
 
-def rq_server(base, user: str) -> tuple[Pool, str, Server]:
-    """Redis and a server on the RQ backend over it, no worker yet: the pool, a user's token, the server."""
+def rq_server(base, user: str, shared: bool = False) -> tuple[Pool, str, Server]:
+    """Redis and a server on the RQ backend over it, no worker yet: the pool, a user's token, the server
+    (``shared``: sharing its data dir, ``base / "data"``, with the workers)."""
     pool = Pool(base)
     pool.start_redis()
     token = add_user(base / "data", user)
+    env = {**ENV, "ACINOSET_SHARED_DATA_DIR": "1"} if shared else ENV
     return pool, token, Server(base / "data", base / "server.log", backend="rq", redis_url=pool.redis.url,
-                               env=ENV).start()
+                               env=env).start()
 
 
 # -- the API -------------------------------------------------------------------------------------

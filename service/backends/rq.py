@@ -6,7 +6,10 @@ archive in the Redis key ``acinoset:input:<token>`` (workers need no shared disk
 come back in ``acinoset:result:<token>`` (each a list of 1 MB chunks, so that footage and labelled
 videos are not bounded by the largest value Redis takes: :func:`service.store.jobfiles.put_archive`); the server's
 collector thread copies them into the data
-dir and the table, then deletes them and the RQ job from Redis. RQ is used with
+dir and the table, then deletes them and the RQ job from Redis. With ``shared_data_dir`` the workers
+mount the data dir: a job's files stay where the API stored them, the worker writes its results beside
+them (``result.<token>.tmp``) and the collector installs that folder; nothing but the job's id and
+its progress goes through Redis. RQ is used with
 ``Retry`` (a work horse that dies is queued again by its worker), ``result_ttl=-1`` (a result
 waits in Redis until the server has stored it, even across a server restart), a job timeout above
 the longest solve, and the JSON serializer (nothing from a job is ever unpickled).
@@ -211,16 +214,19 @@ class RQBackend(Backend):
         with self._lock:
             remaining = max(1, job.max_attempts - job.attempts)
             token = f"{job.id}-{job.attempts + 1}"
+            shared = self.settings.shared_data_dir
             if RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0] is None:
-                try:
-                    archive = input_archive(job_dir(self.settings.jobs_dir, job.id) / INPUT)
-                except Exception as e:  # noqa: BLE001 - this job's files, not the service
-                    self._unsendable(job, token, e)
-                    return
-                put_archive(self.redis, input_key(token), archive)
+                if not shared:
+                    try:
+                        archive = input_archive(job_dir(self.settings.jobs_dir, job.id) / INPUT)
+                    except Exception as e:  # noqa: BLE001 - this job's files, not the service
+                        self._unsendable(job, token, e)
+                        return
+                    put_archive(self.redis, input_key(token), archive)
                 self.queue.enqueue_call(
                     RQ_FUNCTION,
                     args=(job.id, self.settings.progress_interval_seconds, self.settings.solve_niceness),
+                    kwargs={"shared": True} if shared else None,
                     job_id=token, timeout=int(self.settings.job_timeout_seconds), result_ttl=-1,
                     failure_ttl=7 * 24 * 3600, retry=Retry(max=remaining - 1) if remaining > 1 else None,
                     meta={"attempts_before": job.attempts, "retries": remaining - 1, "job": job.id},
@@ -267,12 +273,24 @@ class RQBackend(Backend):
         RQ jobs and the windows' keys (a work horse killed, by a cancel, cleans up nothing itself)."""
         from rq.job import Job as RQJob
 
-        from service.store.jobfiles import PARTIAL, helpers_prefix, input_key, result_key, windows_key
+        from service.store.jobfiles import (
+            JOB_ID,
+            PARTIAL,
+            helpers_prefix,
+            input_key,
+            job_dir,
+            result_key,
+            result_tmp,
+            windows_key,
+        )
 
         rj = self._full(token)
         if rj is not None:
             rj.delete()
         self.redis.delete(input_key(token), result_key(token), input_key(token) + PARTIAL, result_key(token) + PARTIAL)
+        job_id = token.rsplit("-", 1)[0]
+        if JOB_ID.match(job_id):  # results a worker on the shared data dir left (a cancel, a lost run)
+            shutil.rmtree(result_tmp(job_dir(self.settings.jobs_dir, job_id), token), ignore_errors=True)
         helpers = [jid for jid in self.queue.get_job_ids() if jid.startswith(helpers_prefix(token))]
         for helper in RQJob.fetch_many(helpers, connection=self.redis, serializer=self.serializer):
             if helper is not None:
@@ -413,27 +431,32 @@ class RQBackend(Backend):
             install_result,
             is_result_name,
             job_dir,
+            keep_results,
             result_key,
             result_tmp,
             unpack_files,
         )
 
         rv = rj.return_value()
-        archive = get_archive(self.redis, result_key(rj.id))
+        dest = job_dir(self.settings.jobs_dir, row.id)
+        tmp = result_tmp(dest, rj.id)
+        on_disk = isinstance(rv, dict) and rv.get("files") == "shared" and tmp.is_dir()  # the worker wrote them there
+        archive = None if on_disk else get_archive(self.redis, result_key(rj.id))
         if not isinstance(rv, dict) or rv.get("status") not in ("succeeded", "failed"):
             self.store.mirror_finished(row.id, rj.id, "failed", attempt, error="the worker returned no result")
         elif rv["status"] == "failed":
             self.store.mirror_finished(row.id, rj.id, "failed", attempt, error=rv.get("error") or "failed",
                                        error_kind=rv.get("error_kind"), worker=rv.get("worker"))
-        elif archive is None:
+        elif archive is None and not on_disk:
             self.store.mirror_finished(row.id, rj.id, "failed", attempt, error="the worker's result files are "
-                                       "missing from Redis", worker=rv.get("worker"))
+                                       "missing", worker=rv.get("worker"))
         else:
-            dest = job_dir(self.settings.jobs_dir, row.id)
-            tmp = result_tmp(dest, rj.id)
-            shutil.rmtree(tmp, ignore_errors=True)
             try:
-                unpack_files(archive, tmp, allowed=is_result_name)
+                if archive is not None:
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    unpack_files(archive, tmp, allowed=is_result_name)
+                else:
+                    keep_results(tmp)
                 self.store.mirror_finished(row.id, rj.id, "succeeded", attempt, summary=rv.get("report"),
                                            solve_seconds=rv.get("seconds"), worker=rv.get("worker"),
                                            commit=lambda: install_result(dest, tmp))

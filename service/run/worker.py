@@ -508,10 +508,13 @@ def _log_traceback(job_dir: Path) -> None:
 
 # -- rq: a work horse anywhere -----------------------------------------------------------------
 
-def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, helper_of: str | None = None) -> dict:
+def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, helper_of: str | None = None,
+               shared: bool = False) -> dict:
     """The RQ job function. Reads the input archive from Redis (:func:`input_key`), stores the result
     archive there (:func:`result_key`) and returns ``{"status": "succeeded", "report", "seconds",
     "worker"}`` or ``{"status": "failed", "error"}``; raises only if the process itself is in trouble.
+    ``shared``: the server shares its data dir with the workers (:func:`shared_job`): the inputs are read
+    where the API stored them and the results written beside them (``"files": "shared"``).
     A long run's windows are shared with the workers that are idle (:mod:`service.run.shared_windows`);
     ``helper_of``, the RQ token of such a job: this one helps it (``{"status": "helped", "windows"}``)."""
     from rq import get_current_job
@@ -521,7 +524,7 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, h
     _yield_cpu(niceness)
     worker = _this_worker()
     if helper_of is not None:
-        return _help(rq_job, job_id, helper_of, worker)
+        return _help(rq_job, job_id, helper_of, worker, shared)
     if rq_job is not None:
         rq_job.meta["host"] = f"{socket.gethostname()}:{os.getpid()}"
         rq_job.save_meta()
@@ -533,16 +536,33 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, h
         return True
 
     t0 = time.time()
-    token = rq_job.id if rq_job is not None else job_id
-    archive = get_archive(rq_job.connection, input_key(token)) if rq_job is not None else None
-    if rq_job is None or archive is None:
+    if rq_job is None:
+        return {"status": "failed", "error": "not run by an RQ worker", "worker": worker}
+    token = rq_job.id
+    if shared:
+        job = shared_job(job_id)
+        if isinstance(job, str):
+            return {"status": "failed", "error": job, "worker": worker}
+        out_dir = jobfiles.result_tmp(job, token)
+        shutil.rmtree(out_dir, ignore_errors=True)
+        try:
+            report = solve_job(job / INPUT, out_dir, ThrottledProgress(sink, progress_interval),
+                               _shared_windows(rq_job, job_id, progress_interval, niceness, shared))
+        except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
+            traceback.print_exc()
+            shutil.rmtree(out_dir, ignore_errors=True)
+            return {"status": "failed", "error": one_line(e), "error_kind": error_kind(e), "worker": worker}
+        return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker,
+                "files": "shared"}
+    archive = get_archive(rq_job.connection, input_key(token))
+    if archive is None:
         return {"status": "failed", "error": "the job's input files are no longer in Redis", "worker": worker}
     with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-") as tmp:
         input_dir, out_dir = Path(tmp) / INPUT, Path(tmp) / RESULT
         unpack_files(archive, input_dir)
         try:
             report = solve_job(input_dir, out_dir, ThrottledProgress(sink, progress_interval),
-                               _shared_windows(rq_job, job_id, progress_interval, niceness))
+                               _shared_windows(rq_job, job_id, progress_interval, niceness, shared))
         except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
             traceback.print_exc()
             return {"status": "failed", "error": one_line(e), "error_kind": error_kind(e), "worker": worker}
@@ -550,7 +570,22 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, h
         return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker}
 
 
-def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int):
+def shared_job(job_id: str) -> Path | str:
+    """The job's directory on the data dir this worker shares with the server (its ``--data-dir``, or
+    ``ACINOSET_DATA_DIR``), or a one-line reason why this worker cannot reach it."""
+    from service.settings import Settings
+
+    if not jobfiles.JOB_ID.match(job_id):
+        return f"not a job id: {job_id!r}"
+    jobs = Settings().jobs_dir
+    job = jobfiles.job_dir(jobs, job_id)
+    if not (job / INPUT / jobfiles.MANIFEST).is_file():
+        return (f"worker {_this_worker()} does not see the server's data dir (no job {job_id} under {jobs}): start it "
+                "with --data-dir where it mounts the server's, or unset the server's ACINOSET_SHARED_DATA_DIR")
+    return job
+
+
+def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int, shared: bool):
     """The windows of this RQ job's run shared with the workers of its queue that are idle: a helper
     is this function's RQ job again, given ``helper_of`` (the one function the workers run)."""
     from rq import Queue, Worker
@@ -568,7 +603,8 @@ def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int
     def enqueue(n: int) -> list[str]:
         ids = [f"{jobfiles.helpers_prefix(token)}{time.time_ns()}-{i}" for i in range(n)]
         for jid in ids:
-            queue.enqueue_call(function, args=(job_id, progress_interval, niceness), kwargs={"helper_of": token},
+            queue.enqueue_call(function, args=(job_id, progress_interval, niceness),
+                               kwargs={"helper_of": token, "shared": shared},
                                job_id=jid, timeout=rq_job.timeout, result_ttl=0, failure_ttl=600,
                                description=f"acinoset job {job_id}: a helper with its windows")
         return ids
@@ -596,18 +632,23 @@ def _others_waiting(rq_job, token: str):
     return lambda: any(not jid.startswith(mine) for jid in queue.get_job_ids())
 
 
-def _help(rq_job, job_id: str, token: str, worker: str) -> dict:
+def _help(rq_job, job_id: str, token: str, worker: str, shared: bool) -> dict:
     """This RQ job (on ``worker``) helps the job whose token is ``token`` with its windows
-    (:func:`service.run.shared_windows.help_with_windows`), from the job's input files in Redis."""
+    (:func:`service.run.shared_windows.help_with_windows`), from the job's input files in Redis, or
+    on the shared data dir (``shared``)."""
     from service.run.shared_windows import help_with_windows
 
-    archive = get_archive(rq_job.connection, input_key(token)) if rq_job is not None else None
-    if archive is None:
+    job = shared_job(job_id) if shared else None
+    archive = get_archive(rq_job.connection, input_key(token)) if rq_job is not None and not shared else None
+    if archive is None and not isinstance(job, Path):
         return {"status": "helped", "windows": 0, "worker": worker}
     with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-helper-") as tmp:
-        input_dir = Path(tmp) / INPUT
-        unpack_files(archive, input_dir)
-        del archive
+        if isinstance(job, Path):
+            input_dir = job / INPUT
+        elif archive is not None:
+            input_dir = Path(tmp) / INPUT
+            unpack_files(archive, input_dir)
+            del archive
         try:  # staged while the parent stages and settles the run
             run = stage_job(input_dir, Path(tmp) / "staged", lambda frames: True)
             n = 0 if run is None else help_with_windows(rq_job.connection, token,

@@ -164,6 +164,18 @@ def install_result(job_dir: Path, tmp: Path) -> None:
     os.replace(tmp, final)
 
 
+def keep_results(tmp: Path) -> None:
+    """Leave in ``tmp`` only what a result archive may carry (:func:`unpack_files` with
+    :func:`is_result_name`): regular files with a result's name. Links and other names are removed (a
+    worker on a shared data dir writes the folder itself; the API serves what is installed)."""
+    for root, dirs, files in os.walk(tmp, followlinks=False):
+        for name in files + [d for d in dirs if os.path.islink(os.path.join(root, d))]:
+            path = Path(root) / name
+            rel = path.relative_to(tmp).as_posix()
+            if path.is_symlink() or not path.is_file() or not is_result_name(rel):
+                path.unlink()
+
+
 def result_path(job_dir: Path, fmt: str, individual: int | None = None) -> Path:
     """The result file of download format ``fmt``: the job's, or its ``individual``-th individual's (0-based)."""
     folder = job_dir / RESULT if individual is None else job_dir / RESULT / individual_folder(individual)

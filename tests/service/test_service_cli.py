@@ -96,6 +96,10 @@ def test_the_compose_file_runs_an_api_two_workers_and_a_durable_redis_behind_a_p
         url = s["environment"]["ACINOSET_REDIS_URL"]
         assert url.startswith("redis://:${ACINOSET_REDIS_PASSWORD:?") and url.endswith("@redis:6379/0")
     assert [p for s in services.values() for p in s.get("ports", [])] == ["8000:8000"]
+    # the workers mount the API's data dir, which it shares with them: no job's files through Redis
+    assert services["api"]["environment"]["ACINOSET_SHARED_DATA_DIR"] == "1"
+    for s in [services["api"], *workers]:
+        assert s["volumes"] == ["acinoset-data:/data"] and s["environment"]["ACINOSET_DATA_DIR"] == "/data"
     dockerfile = (ROOT / "docker" / "Dockerfile").read_text()
     assert "pip install ." in dockerfile and 'CMD ["acinoset", "serve"' in dockerfile
 

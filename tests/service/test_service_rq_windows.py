@@ -1,6 +1,7 @@
 """One long job over several RQ workers (real redis-server, server and workers): the job's windows are
 shared with the worker that is idle, and the answer is the one the library gives, byte for byte, whoever
-solved which window; a helper killed mid-run costs time, not the answer."""
+solved which window; a helper killed mid-run costs time, not the answer. The same with the data dir
+shared with the workers: the job's files go by path, none through Redis."""
 
 from __future__ import annotations
 
@@ -41,11 +42,11 @@ def library_csv(run, tmp_path_factory):
 
 
 class Rig:
-    """redis-server, a server on the RQ backend and two workers."""
+    """redis-server, a server on the RQ backend and two workers (``shared``: the data dir theirs too)."""
 
-    def __init__(self, base):
-        self.pool, self.token, self.server = rq_server(base, "alice")
-        self.pool.start_workers()
+    def __init__(self, base, shared: bool = False):
+        self.pool, self.token, self.server = rq_server(base, "alice", shared)
+        self.pool.start_workers(data_dir=base / "data" if shared else None)
         self.workers = self.pool.workers
 
     def stop(self):
@@ -100,3 +101,45 @@ def test_a_helper_killed_mid_run_costs_time_not_the_answer(rig, run, library_csv
         assert done["status"] == "succeeded", done
         csv = c.get(done["links"]["result"]["csv"]).content
     assert csv == library_csv
+
+
+def test_a_shared_data_dir_sends_no_file_through_redis(tmp_path, run, library_csv):
+    """The server and its workers share the data dir: while the job runs Redis holds none of its
+    files, the workers write the results beside the inputs, and the answer is the same bytes."""
+    from redis import Redis
+
+    from service.store.jobfiles import input_key, result_key
+
+    rig = Rig(tmp_path, shared=True)
+    try:
+        job = _job(rig, run)
+        redis = Redis.from_url(rig.pool.redis.url)
+        files = []
+        with rig.server.client(rig.token) as c:
+            while (status := c.get(f"/v1/jobs/{job}").json()["status"]) in ("queued", "running"):
+                files += [k for prefix in (input_key(""), result_key("")) for k in redis.scan_iter(match=prefix + "*")]
+                time.sleep(0.2)
+            done = wait_finished(c, job, timeout=60)
+            assert done["status"] == "succeeded", done
+            report = c.get(done["links"]["result"]["report"]).json()
+            csv = c.get(done["links"]["result"]["csv"]).content
+        assert status == "succeeded" and files == []
+        assert sorted(report["windows"]["solved_by"]) == ["w1", "w2"]
+        assert csv == library_csv
+        assert not list((tmp_path / "data" / "jobs" / job).glob("result.*.tmp"))  # installed, nothing left
+    finally:
+        rig.stop()
+
+
+def test_a_worker_that_does_not_see_the_shared_data_dir_says_so(tmp_path, run):
+    pool, token, server = rq_server(tmp_path, "alice", shared=True)
+    try:
+        pool.start_workers(["w1"], data_dir=tmp_path / "elsewhere")
+        with server.client(token) as c:
+            r = submit(c, run, {"method": "tri"})
+            done = wait_finished(c, r.json()["id"], timeout=120)
+        assert done["status"] == "failed"
+        assert "does not see the server's data dir" in done["error"] and "\n" not in done["error"], done["error"]
+    finally:
+        server.stop()
+        pool.stop()
