@@ -199,6 +199,8 @@ class JobService:
                 msg = "must be a positive number, 'auto', or {group: positive number} as a report's motion_scales"
             elif where == "motion_order":
                 msg = "must be 1, 2, 3, 'auto', or {group: 1, 2 or 3} as a report's motion_orders"
+            elif where == "swap_rate":
+                msg = "must be 'auto' or a share from 0 to below 0.5"
             raise Unprocessable(f"options: {where + ': ' if where else ''}{msg}")
         except (TypeError, ValueError) as e:
             raise Unprocessable(f"options: {e}")

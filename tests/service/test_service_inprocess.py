@@ -87,6 +87,8 @@ def test_an_unknown_job_is_404_naming_it(app_client):
     ("{not json", "options: not valid JSON"),
     ("[1, 2]", "options: must be a JSON object"),
     (json.dumps({"methd": "fte"}), "options: unknown option 'methd'"),
+    (json.dumps({"swap_rate": "often"}), "options: swap_rate: must be 'auto' or a share from 0 to below 0.5"),
+    (json.dumps({"swap_rate": 0.7}), "options: swap_rate must be 'auto' or a share from 0 to below 0.5, not 0.7"),
 ])
 def test_bad_options_are_422_before_any_file_is_read(app_client, options, says):
     files = [("keypoints", ("cam1.csv", b"not read", "text/csv")),
