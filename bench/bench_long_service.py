@@ -2,14 +2,16 @@
 a real embedded server and solved there, beside the same run from a shell.
 
     .venv/bin/python bench/bench_long_service.py [--minutes 10] [--workers 1] [--seed 0] [--work DIR] [--out NAME]
-    .venv/bin/python bench/bench_long_service.py --rq-workers 1,2 [--minutes 10]
+    .venv/bin/python bench/bench_long_service.py --rq-workers 1,2 [--minutes 10] [--shared-data-dir]
 
 With ``--rq-workers``, the same job on the RQ backend instead, once per count of workers given: a
 ``redis-server`` of its own, the server with ``--backend rq`` and that many ``acinoset worker`` processes
 (``python -m service worker``), all on this machine. A long job's windows are shared with the workers
 that are idle (``service.run.shared_windows``): the ratio of the job's time with 2 workers to its time
 with 1 is the issue's "through the service with 2 workers, <= 0.6x the time of 1". The memory sampled
-is then the server's tree and every worker's tree, summed.
+is then the server's tree and every worker's tree, summed. ``--shared-data-dir``: the server shares its
+data dir with the workers (``ACINOSET_SHARED_DATA_DIR``, each worker ``--data-dir``): the job's files go
+by path, not through Redis.
 
 The run: ``bench_long.make_run`` (the simulator's cheetah walking at 1 m/s on the AcinoSet 2019 rig,
 120 fps, six DeepLabCut CSVs). The server: ``python -m service serve --backend embedded --workers N``
@@ -79,14 +81,18 @@ def start_redis(work: Path) -> tuple[subprocess.Popen, str]:
     raise RuntimeError((work / "redis.log").read_text()[-2000:])
 
 
-def start_workers(redis_url: str, n: int, frames: int, work: Path) -> list[subprocess.Popen]:
+def start_workers(redis_url: str, n: int, frames: int, work: Path,
+                  data_dir: Path | None = None) -> list[subprocess.Popen]:
+    """``data_dir``: the server's, which it shares with them."""
+    where = ["--data-dir", str(data_dir)] if data_dir is not None else []
     return [_spawn([PY, "-m", "service", "worker", "--redis-url", redis_url, "--name", f"w{i + 1}",
-                    "--log-level", "warning"], work / f"w{i + 1}.log", _env(frames)) for i in range(n)]
+                    "--log-level", "warning", *where], work / f"w{i + 1}.log", _env(frames)) for i in range(n)]
 
 
-def start_server(data: Path, workers: int, frames: int, log: Path,
-                 redis_url: str | None = None) -> tuple[subprocess.Popen, str, str]:
-    """The server: embedded with ``workers`` solve processes, or on the RQ backend of ``redis_url``."""
+def start_server(data: Path, workers: int, frames: int, log: Path, redis_url: str | None = None,
+                 shared: bool = False) -> tuple[subprocess.Popen, str, str]:
+    """The server: embedded with ``workers`` solve processes, or on the RQ backend of ``redis_url``
+    (``shared``: its data dir shared with the workers)."""
     from service.store import Store
 
     store = Store(data / "acinoset.db")
@@ -96,7 +102,7 @@ def start_server(data: Path, workers: int, frames: int, log: Path,
     backend = ["--backend", "rq", "--redis-url", redis_url] if redis_url else ["--backend", "embedded", "--workers",
                                                                              str(workers)]
     proc = _spawn([PY, "-m", "service", "serve", "--port", str(port), "--data-dir", str(data), *backend,
-                   "--log-level", "warning"], log, _env(frames))
+                   "--log-level", "warning"], log, {**_env(frames), "ACINOSET_SHARED_DATA_DIR": "1" if shared else "0"})
     base = f"http://127.0.0.1:{port}"
     deadline = time.time() + 120
     while True:
@@ -170,6 +176,8 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--work", default=None)
     ap.add_argument("--out", default="long_service")
+    ap.add_argument("--shared-data-dir", action="store_true",
+                    help="RQ: the workers mount the server's data dir (files by path, not through Redis)")
     ap.add_argument("--rq-workers", default=None,
                     help="the RQ backend instead, once per count of workers given (comma-separated, e.g. 1,2)")
     args = ap.parse_args()
@@ -272,8 +280,9 @@ def main_rq(args) -> int:
         here = work / f"rq{n}"
         (here / "data").mkdir(parents=True, exist_ok=True)
         redis, url = start_redis(here)
-        server, base, token = start_server(here / "data", 0, frames, here / "server.log", redis_url=url)
-        workers = start_workers(url, n, frames, here)
+        server, base, token = start_server(here / "data", 0, frames, here / "server.log", redis_url=url,
+                                           shared=args.shared_data_dir)
+        workers = start_workers(url, n, frames, here, here / "data" if args.shared_data_dir else None)
         sampler = TreeSampler(server.pid, *(w.pid for w in workers))
         sampler.start()
         try:
