@@ -569,9 +569,9 @@ def settle_swaps(tp: TrajectoryCost[StateT, Any], X: StateT, cost: float, max_it
     """The left/right pairs the tracker swapped (:mod:`graph.solve.swaps`), decided at the robust
     optimum ``X`` (whose cost is ``cost``) and, where a decision changed, solved again and decided
     again, until none changes (at most :data:`SWAP_ROUNDS` times). Deciding where the stretched stage
-    of the loss ended instead, to save the solve again, was measured and not kept: the decisions from
-    that rough state cost more solves than they saved, and accuracy (the accuracy table's hard regime,
-    seed 6 of 8: 16.5 mm against 14.8). A decision moves a few
+    of the loss ended instead, to save the solve again, was measured and not kept: from that rough
+    state the decisions cost more solves than they saved, and accuracy (the accuracy table's hard
+    regime, seed 6 of 8, went to 16.5 mm; bench/RESULTS.md, section 23). A decision moves a few
     frames, whose gain is a tiny share of the whole run's cost: each solve's tolerance is the
     optimiser's times the share of frames moved (at the whole run's, a run of 1,200 frames stopped
     0.5 mm short of where the same frames solved in a window of 700 ended). Sets ``tp.side_swaps``

@@ -539,35 +539,40 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, h
     if rq_job is None:
         return {"status": "failed", "error": "not run by an RQ worker", "worker": worker}
     token = rq_job.id
-    if shared:
-        job = shared_job(job_id)
-        if isinstance(job, str):
-            return {"status": "failed", "error": job, "worker": worker}
-        out_dir = jobfiles.result_tmp(job, token)
-        shutil.rmtree(out_dir, ignore_errors=True)
-        try:
-            report = solve_job(job / INPUT, out_dir, ThrottledProgress(sink, progress_interval),
-                               _shared_windows(rq_job, job_id, progress_interval, niceness, shared))
-        except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
-            traceback.print_exc()
-            shutil.rmtree(out_dir, ignore_errors=True)
-            return {"status": "failed", "error": one_line(e), "error_kind": error_kind(e), "worker": worker}
-        return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker,
-                "files": "shared"}
-    archive = get_archive(rq_job.connection, input_key(token))
-    if archive is None:
-        return {"status": "failed", "error": "the job's input files are no longer in Redis", "worker": worker}
-    with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-") as tmp:
-        input_dir, out_dir = Path(tmp) / INPUT, Path(tmp) / RESULT
-        unpack_files(archive, input_dir)
+
+    def solved(input_dir: Path, out_dir: Path) -> dict:
+        """The job solved from ``input_dir`` into ``out_dir``: what the function returns, less how the
+        files travel."""
         try:
             report = solve_job(input_dir, out_dir, ThrottledProgress(sink, progress_interval),
                                _shared_windows(rq_job, job_id, progress_interval, niceness, shared))
         except Exception as e:  # noqa: BLE001 - a failed solve is a result, not a retry
             traceback.print_exc()
             return {"status": "failed", "error": one_line(e), "error_kind": error_kind(e), "worker": worker}
-        put_archive(rq_job.connection, result_key(token), pack_files(out_dir, jobfiles.written_outputs(out_dir)))
         return {"status": "succeeded", "report": report, "seconds": time.time() - t0, "worker": worker}
+
+    if shared:
+        job = shared_job(job_id)
+        if isinstance(job, str):
+            return {"status": "failed", "error": job, "worker": worker}
+        out_dir = jobfiles.result_tmp(job, token)
+        shutil.rmtree(out_dir, ignore_errors=True)
+        done = solved(job / INPUT, out_dir)
+        if done["status"] == "succeeded":
+            return {**done, "files": "shared"}
+        shutil.rmtree(out_dir, ignore_errors=True)
+        return done
+    archive = get_archive(rq_job.connection, input_key(token))
+    if archive is None:
+        return {"status": "failed", "error": "the job's input files are no longer in Redis", "worker": worker}
+    with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-") as tmp:
+        input_dir, out_dir = Path(tmp) / INPUT, Path(tmp) / RESULT
+        unpack_files(archive, input_dir)
+        del archive
+        done = solved(input_dir, out_dir)
+        if done["status"] == "succeeded":
+            put_archive(rq_job.connection, result_key(token), pack_files(out_dir, jobfiles.written_outputs(out_dir)))
+        return done
 
 
 def shared_job(job_id: str) -> Path | str:
