@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import shutil
 import socket
 import sys
@@ -523,6 +524,8 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, h
     die_with_parent()  # a worker that dies takes its work horse along: the job is retried, not orphaned
     _yield_cpu(niceness)
     worker = _this_worker()
+    if rq_job is not None and rq_job.timeout:
+        sweep_stale_scratch(float(rq_job.timeout))
     if helper_of is not None:
         return _help(rq_job, job_id, helper_of, worker, shared)
     if rq_job is not None:
@@ -573,6 +576,31 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, h
         if done["status"] == "succeeded":
             put_archive(rq_job.connection, result_key(token), pack_files(out_dir, jobfiles.written_outputs(out_dir)))
         return done
+
+
+SCRATCH = re.compile(r"^acinoset-([0-9a-f]{8}-|window-)")  # the work horses' temporary folders (their prefixes)
+
+
+def sweep_stale_scratch(older_than_s: float, where: str | None = None) -> list[str]:
+    """Remove the work horses' temporary folders (:data:`SCRATCH`) in ``where`` (the temporary
+    directory) untouched for longer than ``older_than_s``, a job's timeout: a work horse killed by
+    SIGKILL (a cancel, a lost worker) leaves its folder behind, and no job still running can own one
+    that old. Returns the names removed."""
+    base = Path(where or tempfile.gettempdir())
+    removed: list[str] = []
+    now = time.time()
+    try:
+        entries = list(os.scandir(base))
+    except OSError:
+        return removed
+    for e in entries:
+        try:
+            if SCRATCH.match(e.name) and e.is_dir(follow_symlinks=False) and now - e.stat().st_mtime > older_than_s:
+                shutil.rmtree(e.path, ignore_errors=True)
+                removed.append(e.name)
+        except OSError:
+            continue
+    return removed
 
 
 def shared_job(job_id: str) -> Path | str:
