@@ -47,6 +47,7 @@ def test_windows_equal_the_whole_solve_with_the_same_held_values(rig, slow_run, 
         r = windows.solve_in_windows(prob, CORE, settled=st)
     assert st.held, "the settled stretch held nothing"
     assert r.report.windows["count"] == FRAMES // CORE
+    assert r.report.swap_rate == st.held["swap_rate"] == st.result.report.swap_rate  # the rate every window held
     d = _mm(r.positions, whole.positions)
     seams = np.r_[[k * CORE + i for k in range(1, FRAMES // CORE) for i in (-1, 0)]]
     assert np.isfinite(d).all()

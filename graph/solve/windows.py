@@ -361,7 +361,7 @@ class Windows:
                           "settled_on": [st.start, st.stop], "held": st.held}
         report.side_swaps = self.side_swaps
         for name in ("motion_scales", "motion_orders", "body_lengths", "time_offsets_frames",
-                     "time_offsets_std_frames", "offsets_not_identified"):
+                     "time_offsets_std_frames", "offsets_not_identified", "swap_rate"):
             setattr(report, name, getattr(st.result.report, name))
 
 
