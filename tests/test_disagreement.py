@@ -83,6 +83,7 @@ def test_two_views_from_one_place_count_as_one(session):
     carried = one_place & two_places.any(axis=0)[None]
     sd = np.linalg.norm(result.std, axis=-1)
     assert answered[carried].all() and np.median(sd[carried]) > 1.1 * np.median(sd[two_places])
+    assert (result.ncams[one_place] == 1).all()  # flagged as the motion model's answer, though two cameras saw it
     # one never seen from two places has no estimate, as a marker no camera pair sees
     never = ~two_places.any(axis=0)
     assert not answered[:, never].any()

@@ -33,10 +33,11 @@ def build_result(prob: Problem, method: str, *, positions, std, reprojections, s
     out = (outlier & valid).transpose(1, 0, 2)
     used = np.isfinite(res_px) & ~out
     rmse = float(np.sqrt(np.mean(res_px[used] ** 2))) if used.any() else float("nan")
-    ncams = valid.sum(axis=1)
+    seen = valid.sum(axis=1)  # cameras that saw each marker
+    ncams = prob.views()  # the same, cameras at one place counted once: 0 or 1 flags the motion model's answer
     with np.errstate(invalid="ignore", divide="ignore"):
-        score = np.where(ncams > 0, (prob.likelihood * valid).sum(axis=1) / np.maximum(ncams, 1), 0.0)
-    noise = measured_scatter(method, rel_px, ncams)
+        score = np.where(seen > 0, (prob.likelihood * valid).sum(axis=1) / np.maximum(seen, 1), 0.0)
+    noise = measured_scatter(method, rel_px, seen)
     notes = list(prob.warnings)
     if prob.window is None:  # a window's inputs and answer are checked with the whole run's
         misfit = inputs_misfit(out, valid.transpose(1, 0, 2), prob.calibration.names)
