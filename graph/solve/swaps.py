@@ -32,7 +32,7 @@ project close together the costs are nearly equal and the detections stay as giv
 weight over the pairs both of whose detections are valid: each pair's posterior of being swapped,
 ``1 / (1 + exp(ln((1 - p) / p) - gain))`` with ``gain`` the cost the exchange saves, averaged, gives
 the next ``p`` (:data:`RATE_RANGE` bounds it). On the simulated regime of 10 % swaps it finds
-0.09-0.11; on runs without swaps it ends at the lower bound, where a swap must save ln 999 = 6.9.
+0.086-0.087 (seeds 0-3); on runs without swaps it ends at the lower bound, where a swap must save ln 999 = 6.9.
 """
 
 from __future__ import annotations
