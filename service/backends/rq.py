@@ -39,6 +39,16 @@ from service.store import Job, Store, StoreFull
 RQ_FUNCTION = "service.run.worker.run_rq_job"
 
 
+def run_token(job_id: str, attempt: int) -> str:
+    """The RQ job id of a job's attempt chain from ``attempt`` on: the row's run token."""
+    return f"{job_id}-{attempt}"
+
+
+def job_of(token: str) -> str:
+    """The job id in a run token (:func:`run_token`)."""
+    return token.rsplit("-", 1)[0]
+
+
 def project_worker_class():
     """RQ's ``Worker``, refusing every job whose function is not :data:`RQ_FUNCTION`.
 
@@ -213,7 +223,7 @@ class RQBackend(Backend):
 
         with self._lock:
             remaining = max(1, job.max_attempts - job.attempts)
-            token = f"{job.id}-{job.attempts + 1}"
+            token = run_token(job.id, job.attempts + 1)
             shared = self.settings.shared_data_dir
             if RQJob.fetch_many([token], connection=self.redis, serializer=self.serializer)[0] is None:
                 if not shared:
@@ -288,7 +298,7 @@ class RQBackend(Backend):
         if rj is not None:
             rj.delete()
         self.redis.delete(input_key(token), result_key(token), input_key(token) + PARTIAL, result_key(token) + PARTIAL)
-        job_id = token.rsplit("-", 1)[0]
+        job_id = job_of(token)
         if JOB_ID.match(job_id):  # results a worker on the shared data dir left (a cancel, a lost run)
             shutil.rmtree(result_tmp(job_dir(self.settings.jobs_dir, job_id), token), ignore_errors=True)
         helpers = [jid for jid in self.queue.get_job_ids() if jid.startswith(helpers_prefix(token))]

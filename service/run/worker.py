@@ -524,23 +524,21 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, h
     die_with_parent()  # a worker that dies takes its work horse along: the job is retried, not orphaned
     _yield_cpu(niceness)
     worker = _this_worker()
-    if rq_job is not None and rq_job.timeout:
+    if rq_job is None:
+        return {"status": "failed", "error": "not run by an RQ worker", "worker": worker}
+    if rq_job.timeout:
         sweep_stale_scratch(float(rq_job.timeout))
     if helper_of is not None:
         return _help(rq_job, job_id, helper_of, worker, shared)
-    if rq_job is not None:
-        rq_job.meta["host"] = f"{socket.gethostname()}:{os.getpid()}"
-        rq_job.save_meta()
+    rq_job.meta["host"] = f"{socket.gethostname()}:{os.getpid()}"
+    rq_job.save_meta()
 
     def sink(stage, fraction, iteration, cost) -> bool:
-        if rq_job is not None:
-            rq_job.meta["progress"] = {"stage": stage, "fraction": fraction, "iteration": iteration, "cost": cost}
-            rq_job.save_meta()
+        rq_job.meta["progress"] = {"stage": stage, "fraction": fraction, "iteration": iteration, "cost": cost}
+        rq_job.save_meta()
         return True
 
     t0 = time.time()
-    if rq_job is None:
-        return {"status": "failed", "error": "not run by an RQ worker", "worker": worker}
     token = rq_job.id
 
     def solved(input_dir: Path, out_dir: Path) -> dict:
@@ -671,17 +669,16 @@ def _help(rq_job, job_id: str, token: str, worker: str, shared: bool) -> dict:
     on the shared data dir (``shared``)."""
     from service.run.shared_windows import help_with_windows
 
-    job = shared_job(job_id) if shared else None
-    archive = get_archive(rq_job.connection, input_key(token)) if rq_job is not None and not shared else None
-    if archive is None and not isinstance(job, Path):
+    where = shared_job(job_id) if shared else get_archive(rq_job.connection, input_key(token))
+    if where is None or isinstance(where, str):  # the files are gone, or not seen from here
         return {"status": "helped", "windows": 0, "worker": worker}
     with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-helper-") as tmp:
-        if isinstance(job, Path):
-            input_dir = job / INPUT
-        elif archive is not None:
+        if isinstance(where, Path):
+            input_dir = where / INPUT
+        else:
             input_dir = Path(tmp) / INPUT
-            unpack_files(archive, input_dir)
-            del archive
+            unpack_files(where, input_dir)
+            del where
         try:  # staged while the parent stages and settles the run
             run = stage_job(input_dir, Path(tmp) / "staged", lambda frames: True)
             n = 0 if run is None else help_with_windows(rq_job.connection, token,
