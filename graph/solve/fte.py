@@ -285,6 +285,13 @@ class TrajectoryCost(Generic[StateT, NormalsT]):
         self._kept_normals = (X, stretch, self.sigma_px, nrm)
         return nrm
 
+    def scatter(self, X: StateT) -> float:
+        """The detection noise measured on the residuals at ``X`` of the detections the solve uses
+        (px; :func:`graph.solve.noise.scatter_px`; NaN with none)."""
+        nrm: Any = self.normals_at(X)  # every problem's normals have the residuals s
+        s = nrm.s
+        return scatter_px(np.where(self.valid & np.isfinite(s), s * self.sigma_px, np.nan))
+
     def motion_residuals(self, Q) -> np.ndarray:
         """Each group's k-th differences whitened, ``Dk q / sigma_3`` (third differences for the
         constant-acceleration model): (N-3, P) when every group is of order 3, else all of them
@@ -552,8 +559,7 @@ def remeasure_noise(tp: TrajectoryCost[Any, Any], Q: np.ndarray, cost: float, ma
     (Q, iterations, cost)."""
     iterations = 0
     for _ in range(NOISE_ROUNDS):
-        s = tp.normals_at(Q).s
-        sigma = scatter_px(np.where(tp.prob.valid & np.isfinite(s), s * tp.sigma_px, np.nan))
+        sigma = tp.scatter(Q)
         if not np.isfinite(sigma) or abs(sigma / tp.sigma_px - 1.0) <= NOISE_TOLERANCE:
             break
         tp.sigma_px = float(np.clip(sigma, *AUTO_RANGE_PX))
@@ -598,7 +604,7 @@ def decide_swaps(tp: TrajectoryCost[StateT, Any], X: StateT) -> np.ndarray:
     10.2 mm against 9.4 without swaps decided).
     Returns the frames (N,) whose detections a decision changed."""
     nrm = tp.normals_at(X)
-    measured = scatter_px(np.where(tp.valid & np.isfinite(nrm.s), nrm.s * tp.sigma_px, np.nan))
+    measured = tp.scatter(X)
     scale = measured / tp.sigma_px if np.isfinite(measured) and measured > 0 else 1.0
     swap, tp.swap_rate = exchanged(nrm.uv, tp.given[0], tp.given[1], tp.sigma_cm * scale, tp.pairs,
                                    tp.prob.options.swap_rate)
@@ -636,7 +642,7 @@ def fit_motion(tp: TrajectoryCost[Any, Any], X, choose_orders: bool = False) -> 
     fit_args = (tp.poses(X), tp.Q0, PRIOR_SIGMA, tp.base_sigma3, tp.groups)
     orders = tp.orders
     if choose_orders:
-        measured = scatter_px(np.where(tp.prob.valid & np.isfinite(nrm.s), nrm.s * tp.sigma_px, np.nan))
+        measured = tp.scatter(X)
         r = (tp.sigma_px / measured) ** 2 if np.isfinite(measured) and measured > 0 else 1.0
         orders = fit_motion_scales(nrm.H * r, nrm.g * r, *fit_args, max_stiffness=tp.max_stiffness,
                                    candidates=ORDERS).orders

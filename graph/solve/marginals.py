@@ -128,8 +128,8 @@ def ridged_marginals(band, B, Dw) -> tuple[np.ndarray, np.ndarray, np.ndarray, f
     except np.linalg.LinAlgError:
         pass
     d, G = band.shape[2], Dw.shape[0]
-    scale = max([float(np.abs(np.diagonal(band[:, 0], axis1=1, axis2=2)).max()) if band.size else 0.0]
-                + ([float(np.abs(np.diag(Dw)).max())] if G else []))
+    scale = max(np.abs(np.diagonal(band[:, 0], axis1=1, axis2=2)).max(initial=0.0),
+                np.abs(np.diag(Dw)).max(initial=0.0))
     for r in RIDGES:
         ridged = band.copy()
         ridged[:, 0] += r * scale * np.eye(d)
