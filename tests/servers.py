@@ -294,6 +294,21 @@ class Pool:
         for n in names:
             self.workers[n] = worker(self.redis.url, self.base / f"{n}.log", n, ENV, data_dir).start()
 
+    def wait_idle(self, timeout: float = 300):
+        """Until every worker started is registered in Redis and idle (a worker registers once its
+        warm-up is done; a long job invites helpers only for the workers idle when it starts)."""
+        from redis import Redis as Client
+        from rq import Worker
+
+        conn = Client.from_url(self.redis.url)
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            idle = {w.name for w in Worker.all(connection=conn) if w.get_state() == "idle"}
+            if set(self.workers) <= idle:
+                return
+            time.sleep(0.2)
+        raise AssertionError(f"workers {sorted(set(self.workers) - idle)} not idle after {timeout} s")
+
     def busy_worker(self, name):
         """(worker process, its work horse's pid) for the worker running a job."""
         proc = self.workers[name]

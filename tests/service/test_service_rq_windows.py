@@ -47,6 +47,7 @@ class Rig:
     def __init__(self, base, shared: bool = False):
         self.pool, self.token, self.server = rq_server(base, "alice", shared)
         self.pool.start_workers(data_dir=base / "data" if shared else None)
+        self.pool.wait_idle()  # both there when a job starts: it invites a helper for each idle worker
         self.workers = self.pool.workers
 
     def stop(self):
