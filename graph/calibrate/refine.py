@@ -1,15 +1,18 @@
 """Refining a rig's extrinsics from an animal's keypoints (``acinoset calibrate refine``).
 
 1. Confident keypoints (likelihood at least ``min_likelihood``) seen by three or more cameras are
-   triangulated robustly with the old rig (:func:`graph.solve.triangulate.robust_points`); at most
+   triangulated robustly (:func:`graph.solve.triangulate.robust_points`, with the rig of step 2); at most
    :data:`MAX_POINTS` of them, spread evenly over the run, become unknowns.
-2. A bundle adjustment (:mod:`graph.calibrate.bundle`, the points as 3-dof "boards") over the camera
+2. A camera that is off, further than the adjustment could bring it back (its detections beyond the
+   trimming below), is first posed again from the other cameras' points
+   (:mod:`graph.calibrate.resection`): a bumped camera, or an entry copied from another camera's.
+3. A bundle adjustment (:mod:`graph.calibrate.bundle`, the points as 3-dof "boards") over the camera
    poses and the 3D points, under Huber's loss: camera 1 is held, and so is its distance to camera 2
    (keypoints carry no scale); the intrinsics are held. Before each of :data:`ROUNDS` solves, the
    detections further than 3.03 noise sd from their prediction are left out (the noise measured as
    ``median |e| / 1.1774``), so DeepLabCut's confident mistakes neither pull the rig nor slow the
    solve to a crawl (Huber's loss alone converges linearly when many terms sit on its linear part).
-3. The check, on frames the adjustment did not use: the run is cut into :data:`BLOCKS` blocks of
+4. The check, on frames the adjustment did not use: the run is cut into :data:`BLOCKS` blocks of
    consecutive frames, and the adjustment takes its points from every other block (the first, third,
    ...); the blocks between are held out. Leave each camera out in turn, triangulate every point of
    the held-out frames from the others, reproject it into the camera left out and take the median
@@ -36,13 +39,14 @@ import numpy as np
 from graph.calibrate import bundle
 from graph.calibrate.model import intrinsics_of
 from graph.calibrate.poses import rotation_angle
+from graph.calibrate.resection import repose_off_cameras
 from graph.camera import CALIBRATION_UNITS, Calibration, Camera
 from graph.errors import InputError
 from graph.io.calibration import resolve_units
+from graph.solve.noise import RAYLEIGH_MEDIAN
 
 MAX_POINTS = 1500  # 3D points in the adjustment (the rig has 6 unknowns a camera; more points add little)
 ROUNDS = 3  # trim the detections that do not fit, solve; three times, as the rig (and the noise) settles
-RAYLEIGH_MEDIAN = 1.1774  # the median length of a 2D Gaussian residual, in sd: sqrt(2 ln 2)
 MIN_GAIN = 0.01  # the new rig must predict left-out cameras at least 1 % better to replace the old one
 MIN_VIEWS = 2  # cameras a point needs to be triangulated for the leave-one-out check
 BLOCKS = 10  # the run cut into this many blocks of frames: adjusted on the odd ones, scored on the even
@@ -68,6 +72,7 @@ class RefineResult:
     fit_loo_old_px: list[float] = field(default_factory=list)  # per camera, on the frames adjusted on
     fit_loo_new_px: list[float] = field(default_factory=list)
     held_out_frames: int = 0  # frames scored that the adjustment did not use (0: scored on its own)
+    reposed: list[dict] = field(default_factory=list)  # cameras posed again from the others' points (resection)
 
     def to_dict(self) -> dict:
         return {"accepted": self.accepted, "rms_px": self.rms_after_px, "rms_before_px": self.rms_before_px,
@@ -143,7 +148,7 @@ class _Adjusted:
 
 def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frames: np.ndarray,
             start: Calibration | None = None, rounds: int = ROUNDS) -> _Adjusted:
-    """Steps 1-2 of the module on the frames ``frames`` (bool (N,)): the points triangulated with
+    """Steps 1 and 3 of the module on the frames ``frames`` (bool (N,)): the points triangulated with
     ``start`` (default the rig itself), the poses adjusted from it in ``rounds`` rounds of trimming
     and solving; scale and camera 1 held at ``calibration``'s."""
     from graph.solve.triangulate import robust_points
@@ -173,7 +178,7 @@ def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frame
                           np.broadcast_to(np.eye(3), (P, 3, 3)).copy(), pts.copy())
 
     old_rig, rig = rig_of(calibration), rig_of(begin)
-    d01 = float(np.linalg.norm(old_rig.t_cam[1] - old_rig.t_cam[0]))
+    d01 = float(np.linalg.norm(rig.t_cam[1] - rig.t_cam[0]))
     for _ in range(rounds):
         e = bundle.residuals(rig, all_obs, jacobians=False)
         s = np.linalg.norm(e, axis=1)
@@ -204,7 +209,8 @@ def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float 
         raise InputError(f"{len(keypoints)} keypoint files for a calibration of {C} cameras")
     meas, valid = _measurements(calibration, keypoints, min_likelihood)
     fit, held = split_blocks(len(meas))
-    adjusted = _adjust(calibration, meas, valid, fit)
+    start_rig, reposed = repose_off_cameras(calibration, meas, valid, fit, held, MIN_GAIN)
+    adjusted = _adjust(calibration, meas, valid, fit, start=start_rig)
     refined = adjusted.calibration
     loo_old = leave_one_out(calibration, meas[held], valid[held])
     loo_new = leave_one_out(refined, meas[held], valid[held])
@@ -218,13 +224,19 @@ def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float 
         adjusted = _adjust(calibration, meas, valid, np.ones(len(meas), bool), start=refined, rounds=1)
         refined = adjusted.calibration
     cams = refined.cameras
+    again = {r["camera"]: r for r in reposed}
     units, units_note = resolve_units(calibration, "auto")  # the rig's own units: metres or millimetres
     mm_per_unit = CALIBRATION_UNITS[units] * 1000.0
     changes = [{"name": name, "position_change_mm": float(np.linalg.norm(a.center - b.center) * mm_per_unit),
                 "rotation_change_deg": float(np.degrees(rotation_angle(a.R @ b.R.T))),
-                "leave_one_out_old_px": lo, "leave_one_out_new_px": ln}
-               for name, a, b, lo, ln in zip(calibration.names, calibration.cameras, cams, loo_old, loo_new)]
+                "leave_one_out_old_px": lo, "leave_one_out_new_px": ln, "re_posed": i in again}
+               for i, (name, a, b, lo, ln) in enumerate(zip(calibration.names, calibration.cameras, cams, loo_old,
+                                                            loo_new))]
     notes = [units_note] if units_note else []
+    for i, r in again.items():
+        notes.append(f"{calibration.names[i]} was off: its detections sat {r['old_px']:.1f} px (median) from the "
+                     f"other cameras' points on the held-out frames; posed again from those points ({r['new_px']:.1f} "
+                     "px) before the adjustment")
     where = f"on {int(held.sum())} held-out frames" if split else "on the frames adjusted on (too few to hold out)"
     if accepted and split:
         notes.append(f"accepted on the {int(held.sum())} held-out frames; the rig written was then adjusted on all "
@@ -241,7 +253,7 @@ def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float 
                                                                      "refined_from_keypoints": accepted})
     return RefineResult(kept, refined, accepted, loo_old, loo_new, changes, rms_before,
                         adjusted.rms_after_px, adjusted.points, adjusted.observations, time.perf_counter() - start,
-                        notes, fit_old, fit_new, int(held.sum()) if split else 0)
+                        notes, fit_old, fit_new, int(held.sum()) if split else 0, reposed)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -264,5 +276,7 @@ def run(args: argparse.Namespace) -> int:
     for note in result.notes:
         print(f"  note: {note}")
     for ch in result.changes:
-        print(f"  {ch['name']}: moved {ch['position_change_mm']:.1f} mm, turned {ch['rotation_change_deg']:.3f} deg")
+        again = " (posed again from the others' points)" if ch["re_posed"] else ""
+        print(f"  {ch['name']}: moved {ch['position_change_mm']:.1f} mm, turned {ch['rotation_change_deg']:.3f} deg"
+              f"{again}")
     return 0
