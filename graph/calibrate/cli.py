@@ -79,14 +79,23 @@ def _rig_options(q, sources) -> None:
 
 def _register_refine(cmds) -> None:
     q = cmds.add_parser("refine", help="refine a rig's extrinsics from an animal's keypoints",
-                        description="Refine the cameras' poses from confident DeepLabCut keypoints, jointly "
-                        "with their 3D positions; keeps the old rig when leave-one-camera-out "
-                        "reprojection says the new one is worse.")
+                        description="Refine the cameras' poses (and optionally focal lengths and k1) from "
+                        "confident keypoints, jointly with their 3D positions; a camera that is far off is "
+                        "first posed again from the others' points; keeps the old rig when "
+                        "leave-one-camera-out reprojection on held-out frames says the new one is not better.")
     q.add_argument("calibration", metavar="CALIBRATION", help="calibration.toml or AcinoSet scene JSON")
-    q.add_argument("keypoints", nargs="+", metavar="KEYPOINTS", help="DeepLabCut CSV or H5, one per camera")
+    q.add_argument("keypoints", nargs="+", metavar="KEYPOINTS",
+                   help="keypoints, one file per camera (DeepLabCut CSV or H5, SLEAP .slp or analysis H5, ...)")
     q.add_argument("--out", required=True, metavar="calibration.toml")
     q.add_argument("--report", metavar="R.json")
     q.add_argument("--likelihood", type=float, default=0.9, help="keypoints at least this confident (default 0.9)")
+    q.add_argument("--refine-intrinsics", default="", metavar="focal,k1",
+                   help="also refine each camera's focal length (one scale for fx and fy) and/or first "
+                   "distortion coefficient, under a prior centred on the calibration's values")
+    q.add_argument("--focal-sd", type=float, default=0.02,
+                   help="the focal prior's sd, relative (default 0.02: two board calibrations of one camera "
+                   "differ by up to 2 %%)")
+    q.add_argument("--k1-sd", type=float, default=0.02, help="the k1 prior's sd (default 0.02)")
     q.add_argument("--individual", help="multi-animal DeepLabCut: the individual to use")
     q.set_defaults(func=run_refine)
 
