@@ -8,18 +8,22 @@ from pathlib import Path
 import numpy as np
 
 from graph.calibrate.extrinsics import RigResult
+from graph.camera import Calibration
 from graph.viewer.figures import _figure, _set_equal_3d
 
 
 def viewing_frame(result: RigResult) -> np.ndarray:
     """The rotation ``V`` (3, 3) the rig is drawn in, ``x' = V x``: the world itself when its z is up
-    (``--origin board:FRAME``); with camera 1 as the world (z its optical axis, not up) the drawing's
-    z is the cameras' mean up, ``u = -mean_i R_i[1]`` (an image's y runs down, and cameras are mostly
-    mounted upright: the average of the cameras' up vectors, as structure-from-motion tools level a
-    reconstruction), and its x camera 1's viewing direction made level."""
-    if result.origin != "camera1":
-        return np.eye(3)
-    cams = result.calibration.cameras
+    (``--origin board:FRAME``); with camera 1 as the world (z its optical axis, not up),
+    :func:`upright_frame`."""
+    return np.eye(3) if result.origin != "camera1" else upright_frame(result.calibration.cameras)
+
+
+def upright_frame(cams: list) -> np.ndarray:
+    """``V`` whose z is the cameras' mean up, ``u = -mean_i R_i[1]`` (an image's y runs down, and
+    cameras are mostly mounted upright: the average of the cameras' up vectors, as
+    structure-from-motion tools level a reconstruction), and its x camera 1's viewing direction made
+    level."""
     up = -np.mean([c.R[1] for c in cams], axis=0)
     if np.linalg.norm(up) < 1e-6:
         return np.eye(3)
@@ -29,6 +33,37 @@ def viewing_frame(result: RigResult) -> np.ndarray:
         ahead = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
     ahead /= np.linalg.norm(ahead)
     return np.stack([ahead, np.cross(up, ahead), up])
+
+
+def refine_figure(old: Calibration, result, path: Path) -> Path:
+    """A refinement (:class:`graph.calibrate.refine.RefineResult`): each camera before (grey) and
+    after (blue: kept; orange: refined but not kept), centre and viewing direction, drawn upright
+    (:func:`upright_frame` of the old rig), in the rig's own units."""
+    from graph.io.calibration import resolve_units
+
+    units, _ = resolve_units(old, "auto")
+    fig = _figure(7.5, 6.0)
+    ax = fig.add_subplot(projection="3d")
+    V = upright_frame(old.cameras)
+    before = np.stack([c.center for c in old.cameras]) @ V.T
+    after = np.stack([c.center for c in result.refined.cameras]) @ V.T
+    scale = 0.15 * float(np.ptp(np.vstack([before, after]), axis=0).max() or 1.0)
+    colour = "tab:blue" if result.accepted else "tab:orange"
+    for cams, centres, col in ((old.cameras, before, "0.6"), (result.refined.cameras, after, colour)):
+        for c, C in zip(cams, centres):
+            d = (V @ c.R[2]) * scale
+            ax.scatter(*C, color=col, s=24)
+            ax.plot(*np.stack([C, C + d]).T, color=col, lw=1.5)
+    for name, C in zip(old.names, after):
+        ax.text(*C, name, fontsize=8)
+    _set_equal_3d(ax, np.vstack([before, after]), min_extent=scale)
+    for axis, label in zip("xyz", ("ahead of camera 1", "left", "up")):
+        getattr(ax, f"set_{axis}label")(f"{label} ({units})")
+    verdict = "refined" if result.accepted else "kept the old rig (refined in orange)"
+    ax.set_title(f"before (grey) and after: {verdict}; leave one camera out {np.nanmean(result.loo_old_px):.2f} -> "
+                 f"{np.nanmean(result.loo_new_px):.2f} px", fontsize=9)
+    fig.savefig(path)
+    return path
 
 
 def rig_figure(result: RigResult, path: Path, board_outline: np.ndarray) -> Path:

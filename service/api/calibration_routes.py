@@ -82,6 +82,32 @@ def submit_calibration(
     return out
 
 
+@router.post(
+    "/v1/calibrations/refine", status_code=202, response_model=CalibrationOut,
+    summary="Refine a job's rig from its keypoints",
+    responses={404: error_doc("No such job of the caller's"),
+               413: error_doc("The caller's storage full"),
+               422: error_doc("Bad options, or a job of several animals"),
+               429: error_doc("The caller already has the most queued and running jobs allowed")})
+def submit_refine(
+    user: CurrentUser, calibrations: Calibrations, response: Response,
+    job_id: Annotated[str, Form(description="one of the caller's solve jobs: its calibration and keypoints")],
+    options: Annotated[str, Form(description='JSON object: {"likelihood": 0.9 (keypoints at least this confident), '
+                                             '"refine_intrinsics": [] or ["focal"] or ["focal", "k1"], "focal_sd": '
+                                             '0.02, "k1_sd": 0.02, "label": "..."}')] = "{}",
+) -> CalibrationOut:
+    """Queue ``acinoset calibrate refine`` on the job's rig and keypoints (copied into the new
+    calibration): a camera far off posed again from the others, the poses (and optionally focal
+    lengths and k1) adjusted, the new rig kept only when it predicts each camera from the others
+    better on held-out frames. Poll ``links.self``; once succeeded, ``report`` has each camera's
+    change and leave-one-camera-out error before and after, and ``calibration.toml`` is the rig to
+    use (the old one when the check kept it)."""
+    job = calibrations.submit_refine(user, job_id, options)
+    out = calibration_out(job)
+    response.headers["Location"] = out.links["self"]
+    return out
+
+
 @router.get("/v1/calibrations", response_model=CalibrationList, summary="List calibrations")
 def list_calibrations(
     user: CurrentUser, calibrations: Calibrations,

@@ -366,6 +366,9 @@ class CalibrationInputs(BaseModel):
     detections: list[CalibrationInput] = Field(default_factory=list, description="one per camera, in camera order")
     videos: list[CalibrationInput] = Field(default_factory=list, description="one per camera, if videos were given")
     intrinsics: list[CalibrationInput] = Field(default_factory=list, description="camera JSON per camera, if given")
+    refined_from: str | None = Field(None, description="a refinement: the solve job whose rig and keypoints it took")
+    keypoints: list[CalibrationInput] = Field(default_factory=list, description="a refinement: the keypoint files, "
+                                                                                "one per camera")
 
 
 class CalibrationOut(BaseModel):

@@ -12,6 +12,13 @@ Input layout (under the job's ``input/``)::
     detections/01/<uploaded name>.json    AcinoSet detections JSON, one directory per camera, in order
     intrinsics/01/<uploaded name>.json    optional: AcinoSet camera JSON per camera
 
+A refinement (:meth:`CalibrationService.submit_refine`) takes the rig and the keypoints of one of the
+caller's solve jobs instead, copied into its own input (the solve job's layout:
+:func:`service.store.jobfiles.keypoints_dir` per camera, the calibration in ``calibration/``), and
+its manifest names them under ``"refine"``: ``{"kind": "calibration", "refine": {"job": ID,
+"keypoints": [...], "calibration": ..., "individual": ...}, "options": {...}}``. It writes the refined
+``calibration.toml`` and the report of ``acinoset calibrate refine``.
+
 Outputs (its ``result/``): :data:`service.store.jobfiles.CALIBRATION_FILES`, the files ``acinoset
 calibrate extrinsics`` writes with ``--out --scene --report --figures``.
 
@@ -40,6 +47,7 @@ VIDEOS_DIR = "videos"
 INTRINSICS_DIR = "intrinsics"
 MODELS = tuple(CAMERA_MODELS)  # the camera models a calibration may fit
 OPTION_NAMES = ("model", "origin", "every", "label")
+REFINE_OPTION_NAMES = ("likelihood", "refine_intrinsics", "focal_sd", "k1_sd", "label")
 
 
 def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
@@ -72,6 +80,35 @@ def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
     if not isinstance(every, int) or isinstance(every, bool) or every < 1:
         raise Unprocessable(f"options: every must be a whole number of frames, at least 1, not {every!r}")
     return {"kind": CALIBRATION_KIND, "board": board.spec, "model": model, "origin": origin, "every": every}, label
+
+
+def parse_refine_options(text: str | None) -> tuple[dict, str | None]:
+    """The ``options`` JSON object of a refinement (``likelihood``, ``refine_intrinsics``: a list of
+    :data:`graph.calibrate.refine.LENS`, ``focal_sd``, ``k1_sd``, ``label``) as the job's options, and
+    its label; refusals are one line."""
+    from graph.calibrate.refine import LENS
+
+    try:
+        data = json.loads(text) if text and text.strip() else {}
+    except (json.JSONDecodeError, RecursionError):
+        raise Unprocessable("options: not a valid JSON object") from None
+    if not isinstance(data, dict):
+        raise Unprocessable('options: must be a JSON object such as {"refine_intrinsics": ["focal"]}')
+    unknown = sorted(set(data) - set(REFINE_OPTION_NAMES))
+    if unknown:
+        raise Unprocessable(f"options: unknown option {unknown[0]!r}; known: {', '.join(REFINE_OPTION_NAMES)}")
+    label = parse_label(data.get("label"))
+    out: dict = {"kind": CALIBRATION_KIND, "refine": True}
+    for name, default in (("likelihood", 0.9), ("focal_sd", 0.02), ("k1_sd", 0.02)):
+        v = data.get(name, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= 1:
+            raise Unprocessable(f"options: {name} must be a number in (0, 1], not {v!r}")
+        out[name] = float(v)
+    lens = data.get("refine_intrinsics", [])
+    if not isinstance(lens, list) or any(x not in LENS for x in lens):
+        raise Unprocessable(f"options: refine_intrinsics must be a list of {', '.join(LENS)}, not {lens!r}")
+    out["refine_intrinsics"] = list(dict.fromkeys(lens))
+    return out, label
 
 
 class CalibrationService:
@@ -141,6 +178,60 @@ class CalibrationService:
                         "intrinsics": [rel(p) for p in cam_paths], "options": options}
             jobfiles.write_manifest(input_dir, manifest)
         return job_id, inputs
+
+    def submit_refine(self, user: User, job_id: str, options_text: str | None) -> Job:
+        """Queue the refinement of the rig of the caller's solve job ``job_id`` from its keypoints (see
+        the module): its files copied into the new job, so it keeps them if the solve job is deleted."""
+        s = self.jobs.settings
+        source = self.jobs.visible(user, job_id)
+        if source.owner_id != user.id:  # admins too refine only their own jobs' rigs
+            raise NotFound(f"no job {job_id}")
+        if source.options.get("individuals"):
+            raise Unprocessable(f"job {job_id} tracks several animals; a rig is refined from a single animal's "
+                                "keypoints (a job with one individual)")
+        options, label = parse_refine_options(options_text)
+        src_dir = jobfiles.job_dir(s.jobs_dir, source.id) / jobfiles.INPUT
+        try:
+            src = jobfiles.read_manifest(src_dir)
+            files = [jobfiles.inside(src_dir, rel) for rel in [*src["keypoints"], src["calibration"]]]
+        except (OSError, KeyError, ValueError):
+            raise Unprocessable(f"job {job_id}: its input files are gone") from None
+        self.jobs.check_quota(user)
+        self.jobs.check_storage(user, sum(p.stat().st_size for p in files))
+        try:
+            new_id, inputs = self._copy_inputs(src_dir, src, job_id, source.options.get("individual"), options)
+            try:
+                job = self.jobs.store.insert_job(new_id, user.id, self.jobs.backend.name, options, inputs,
+                                                 s.max_attempts, max_active=s.max_active_jobs_per_user, label=label)
+            except BaseException:
+                jobfiles.remove(s.jobs_dir, new_id)
+                raise
+        except QuotaExceeded:
+            self.jobs.check_quota(user)
+            raise
+        except (OSError, StoreFull) as e:
+            if storage_full(e):
+                raise NoSpace(DISK_FULL) from None
+            raise
+        self.jobs.backend.submit(job.id)
+        return job
+
+    def _copy_inputs(self, src_dir: Path, src: dict, job_id: str, individual: str | None,
+                     options: dict) -> tuple[str, dict]:
+        with jobfiles.staged_input(self.jobs.settings.jobs_dir) as (new_id, input_dir):
+            rels = []
+            for rel in [*src["keypoints"], src["calibration"]]:
+                dest = jobfiles.inside(input_dir, rel)
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(jobfiles.inside(src_dir, rel), dest)
+                rels.append(rel)
+            manifest = {"kind": CALIBRATION_KIND, "options": options,
+                        "refine": {"job": job_id, "keypoints": rels[:-1], "calibration": rels[-1],
+                                   "individual": individual}}
+            jobfiles.write_manifest(input_dir, manifest)
+            inputs = {"cameras": len(rels) - 1, "refined_from": job_id,
+                      "keypoints": [{"name": Path(r).name, "bytes": (input_dir / r).stat().st_size} for r in rels[:-1]]}
+        return new_id, inputs
 
     def visible(self, user: User, calibration_id: str) -> Job:
         """The calibration if the caller may see it (its owner, or an admin); 404 otherwise."""

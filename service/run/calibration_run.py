@@ -25,6 +25,8 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
 
     progress.report(READING, 0.0)
     m = read_manifest(input_dir)
+    if m.get("refine"):
+        return run_refine(input_dir, m, out_dir, progress)
     opts = m["options"]
     board = parse_board(opts["board"])
     if m.get("videos"):  # the board found in every ``every``-th frame, the progress per video
@@ -55,3 +57,29 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
     write_figures(result, out_dir, board)
     return {**report, "files": jobfiles.written_outputs(out_dir)}
 
+
+
+def run_refine(input_dir: Path, m: dict, out_dir: Path, progress) -> dict:
+    """A refinement (:meth:`service.core.calibrations.CalibrationService.submit_refine`): the rig of its
+    manifest refined from the keypoints (:func:`graph.calibrate.refine.refine_rig`); writes
+    ``calibration.toml`` (the rig to use: the refined one, or the old when the check kept it),
+    ``report.json`` and ``rig.png`` (the cameras before and after); returns the report."""
+    from graph.calibrate.refine import refine_rig
+    from graph.calibrate.report import refine_figure
+    from graph.io.calibration import load_calibration, write_anipose_toml
+    from graph.io.keypoints import read_keypoints
+    from graph.types import Progress, jsonable
+
+    r, opts = m["refine"], m["options"]
+    calibration = load_calibration(inside(input_dir, r["calibration"]))
+    keypoints = [read_keypoints(inside(input_dir, rel), individual=r.get("individual")) for rel in r["keypoints"]]
+    progress(Progress("refine", 0.1))
+    result = refine_rig(calibration, keypoints, opts["likelihood"], tuple(opts["refine_intrinsics"]),
+                        opts["focal_sd"], opts["k1_sd"])
+    progress.report(WRITING, 1.0)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_anipose_toml(out_dir / "calibration.toml", result.calibration)
+    report = jsonable({**result.to_dict(), "refined_from": r["job"]})
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2))
+    refine_figure(calibration, result, out_dir / "rig.png")
+    return {**report, "files": jobfiles.written_outputs(out_dir)}

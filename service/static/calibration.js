@@ -20,6 +20,7 @@
     "residuals.png": "Reprojection error of every corner, per camera",
     "coverage.png": "Every corner used, in each camera's image, coloured by its reprojection error",
   };
+  const REFINE_RIG = "The cameras before (grey) and after the refinement (blue when kept, orange when the old rig was kept)";
   let timer = null;
   let figuresShown = false;
   $("cal-title").textContent = `Calibration ${short}`;
@@ -30,11 +31,30 @@
   const num = (x, digits) => (x === null || x === undefined ? "–" : Number(x).toFixed(digits));
   const worst = (xs) => (Array.isArray(xs) && xs.length ? Math.max(...xs) : null);
 
+  function drawRefineFacts(cal) {
+    const o = cal.options || {}, i = cal.inputs || {}, r = cal.report;
+    fact("Refined from job", el("a", { href: `/jobs/${encodeURIComponent(i.refined_from || "")}`, text: String(i.refined_from || "").slice(0, 8) }));
+    fact("Keypoints", el("ul", { class: "plain" }, (i.keypoints || []).map((d, k) => el("li", { text: `camera ${k + 1}: ${d.name}` }))));
+    fact("Keypoints used", `likelihood at least ${o.likelihood}`);
+    fact("Intrinsics refined", (o.refine_intrinsics || []).length ? `${o.refine_intrinsics.join(", ")} (prior sd: focal ${o.focal_sd}, k1 ${o.k1_sd})` : "none (held)");
+    if (r) {
+      const loo = r.leave_one_out_px || {};
+      fact("Verdict", r.accepted ? "refined: the new rig predicts each camera from the others better" : "kept the old rig");
+      fact("Leave one camera out", `${num(loo.old_mean, 2)} px before, ${num(loo.new_mean, 2)} px after, on ${loo.held_out_frames || "the"} ${loo.frames} frames`);
+    }
+  }
+
   function drawFacts(cal) {
     $("cal-facts").replaceChildren();
     const o = cal.options || {}, i = cal.inputs || {}, t = cal.timings || {}, r = cal.report;
     fact("Calibration id", el("code", { text: cal.id }));
     fact("Label", cal.label);
+    if (o.refine) {
+      drawRefineFacts(cal);
+      fact("Submitted", A.fmtDate(t.created_at));
+      fact("Ran", t.run_seconds != null ? A.fmtSeconds(t.run_seconds) : null);
+      return;
+    }
     fact("Board", o.board);
     fact("Camera model", o.model);
     fact("World frame", o.origin === "camera1" ? "camera 1 at the origin" : `the board of view ${String(o.origin).slice(6)}`);
@@ -50,10 +70,21 @@
     }
   }
 
+  function drawRefineQuality(r) {
+    const cols = ["camera", "before: leave one out (px)", "after (px)", "moved (mm)", "turned (deg)", "focal change (%)", "posed again"];
+    $("cal-head").replaceChildren(el("tr", {}, cols.map((c) => el("th", { scope: "col", text: c }))));
+    $("cal-cameras").replaceChildren(...(r.cameras || []).map((c) => el("tr", {},
+      el("th", { scope: "row", text: c.name }), el("td", { text: num(c.leave_one_out_old_px, 2) }),
+      el("td", { text: num(c.leave_one_out_new_px, 2) }), el("td", { text: num(c.position_change_mm, 1) }),
+      el("td", { text: num(c.rotation_change_deg, 3) }), el("td", { text: num(c.focal_change_percent, 2) }),
+      el("td", { text: c.re_posed ? "yes" : "no" }))));
+  }
+
   function drawQuality(cal) {
     const r = cal.report;
     $("cal-quality").hidden = !r;
     if (!r) return;
+    if ((cal.options || {}).refine) return drawRefineQuality(r);
     $("cal-cameras").replaceChildren(...(r.cameras || []).map((c) => el("tr", {},
       el("th", { scope: "row", text: c.name }), el("td", { text: num(c.rms_px, 3) }),
       el("td", { text: String(c.views_used) }),
@@ -67,9 +98,10 @@
     if (cal.status === "failed") {
       box.append(el("section", { class: "alert", role: "alert", "data-testid": "cal-error" },
         el("h2", { text: "This calibration failed" }), el("p", { class: "error-text", text: cal.error || "" })));
-    } else if (cal.status === "succeeded" && cal.report && (cal.report.warnings || []).length) {
-      box.append(el("section", { class: "notice", role: "status" }, el("h2", { text: "Warnings" }),
-        el("ul", {}, cal.report.warnings.map((w) => el("li", { text: w })))));
+    } else if (cal.status === "succeeded" && cal.report && (cal.report.warnings || cal.report.notes || []).length) {
+      const said = cal.report.warnings || cal.report.notes;
+      box.append(el("section", { class: "notice", role: "status" }, el("h2", { text: cal.report.warnings ? "Warnings" : "Notes" }),
+        el("ul", {}, said.map((w) => el("li", { text: w })))));
     }
   }
 
@@ -93,11 +125,12 @@
     const list = $("figure-list");
     list.replaceChildren();
     for (const n of names) {
-      const fig = el("figure", { "data-figure": n }, el("figcaption", { text: FIGURES[n] }));
+      const caption = (cal.options || {}).refine && n === "rig.png" ? REFINE_RIG : FIGURES[n];
+      const fig = el("figure", { "data-figure": n }, el("figcaption", { text: caption }));
       list.append(fig);
       try {
         const res = await A.api(cal.links[n], { raw: true, headers: { Accept: "image/png" } });
-        const img = el("img", { alt: FIGURES[n], src: URL.createObjectURL(await res.blob()) });
+        const img = el("img", { alt: caption, src: URL.createObjectURL(await res.blob()) });
         img.style.maxWidth = "100%";
         fig.prepend(img);
       } catch (e) {

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from servers import Redis, Server, add_user, have_redis, server_with_users, wait_finished, worker
-from shared_data import ACINOSET_CALIB
+from shared_data import ACINOSET_CALIB, SLEAP_MINIMAL
 
 DATA = ACINOSET_CALIB
 EX1 = [DATA / "Ex1_static" / f"points_cam{n}.json" for n in (3, 4)]
@@ -283,3 +283,52 @@ def test_a_calibration_from_videos(alice, tmp_path):
     files += [("detections", (p.name, p.read_bytes(), "application/json")) for p in EX1]
     r = alice.post("/v1/calibrations", files=files, data={"board": board_spec()})
     assert r.status_code == 422 and "not both" in r.json()["detail"], r.text
+
+
+def test_a_jobs_rig_refined_from_its_keypoints(alice, bob, tmp_path):
+    """SLEAP's minimal session as a solve job (its four proofread .slp and the shipped rig, whose side
+    entry is a copy of top's), then ``POST /v1/calibrations/refine`` naming the job: side is posed
+    again and every camera predicts the mouse from the others better; the rig it writes reads in
+    aniposelib. Bob cannot refine Alice's job; bad options are one line."""
+    from aniposelib.cameras import CameraGroup
+
+    from graph.io.calibration import load_calibration
+
+    cams = ("back", "mid", "side", "top")
+    files = [("keypoints", (f"{c}.slp", (SLEAP_MINIMAL / c / f"minimal_{c}_proofread.slp").read_bytes(),
+                            "application/octet-stream")) for c in cams]
+    files.append(("calibration", ("calibration.toml", (SLEAP_MINIMAL / "calibration.toml").read_bytes(), "text/plain")))
+    r = alice.post("/v1/jobs", files=files,
+                   data={"options": json.dumps({"method": "tri", "skeleton": "points", "fps": 30})})
+    assert r.status_code == 202, r.text
+    job_id = r.json()["id"]
+
+    r = alice.post("/v1/calibrations/refine", data={"job_id": job_id, "options": json.dumps(
+        {"likelihood": 0.01, "label": "mended side"})})
+    assert r.status_code == 202, r.text
+    assert r.headers["location"] == f"/v1/calibrations/{r.json()['id']}"
+    cal = wait_calibration(alice, r.json()["id"])
+    assert cal["status"] == "succeeded", cal["error"]
+    assert cal["inputs"]["refined_from"] == job_id and len(cal["inputs"]["keypoints"]) == 4
+    assert cal["label"] == "mended side" and cal["options"]["refine"] is True
+    rep = cal["report"]
+    assert rep["accepted"] and [c["re_posed"] for c in rep["cameras"]] == [False, False, True, False]
+    old, new = rep["leave_one_out_px"]["old"], rep["leave_one_out_px"]["new"]
+    assert all(n < o for n, o in zip(new, old)) and new[2] < 20, (old, new)
+    assert {"calibration.toml", "report.json", "rig.png"} <= set(cal["links"])
+    (tmp_path / "refined.toml").write_bytes(alice.get(cal["links"]["calibration.toml"]).content)
+    group = CameraGroup.load(str(tmp_path / "refined.toml"))  # the field's own reader
+    assert group.get_names() == list(cams)
+    ours = load_calibration(tmp_path / "refined.toml")
+    assert np.linalg.norm(ours.cameras[2].center - ours.cameras[3].center) > 100  # side is no longer top (mm)
+    png = alice.get(cal["links"]["rig.png"])
+    assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
+
+    r = bob.post("/v1/calibrations/refine", data={"job_id": job_id})
+    assert r.status_code == 404 and job_id in r.json()["detail"]
+    for bad, fragment in (({"likelihood": 2}, "likelihood"), ({"refine_intrinsics": ["zoom"]}, "refine_intrinsics"),
+                          ({"every": 2}, "unknown option")):
+        r = alice.post("/v1/calibrations/refine", data={"job_id": job_id, "options": json.dumps(bad)})
+        assert r.status_code == 422 and fragment in r.json()["detail"] and "\n" not in r.json()["detail"], r.text
+    r = alice.post("/v1/calibrations/refine", data={"job_id": "../" + job_id})
+    assert r.status_code == 404, r.text

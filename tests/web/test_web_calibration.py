@@ -166,3 +166,44 @@ def test_the_calibration_form_says_why_the_server_refused(page, server):
     assert page.url.endswith("/calibrations/new")
     after = httpx.get(f"{base}/v1/calibrations", headers={"Authorization": f"Bearer {token}"}).json()["total"]
     assert after == before
+
+
+def test_a_refinement_page_shows_each_cameras_change(page, server):
+    """A refinement of SLEAP's shipped rig from its own job's keypoints: the page says the rig was
+    refined, lists each camera's leave-one-out error before and after and which camera was posed
+    again (side), and draws the cameras before and after."""
+    from PIL import Image
+    from shared_data import SLEAP_MINIMAL
+
+    base, token = server
+    auth = {"Authorization": f"Bearer {token}"}
+    cams = ("back", "mid", "side", "top")
+    files = [("keypoints", (f"{c}.slp", (SLEAP_MINIMAL / c / f"minimal_{c}_proofread.slp").read_bytes(),
+                            "application/octet-stream")) for c in cams]
+    files.append(("calibration", ("calibration.toml", (SLEAP_MINIMAL / "calibration.toml").read_bytes(), "text/plain")))
+    r = httpx.post(f"{base}/v1/jobs", files=files, headers=auth,
+                   data={"options": json.dumps({"method": "tri", "skeleton": "points", "fps": 30})})
+    assert r.status_code == 202, r.text
+    r = httpx.post(f"{base}/v1/calibrations/refine", headers=auth,
+                   data={"job_id": r.json()["id"], "options": json.dumps({"likelihood": 0.01})})
+    assert r.status_code == 202, r.text
+    page.goto("/login")
+    page.get_by_label("API token").fill(token)
+    page.get_by_role("button", name="Sign in").click()
+    page.wait_for_url(re.compile(r"/$"))
+    page.goto(f"/calibrations/{r.json()['id']}")
+    page.locator("body[data-ready=true]").wait_for(timeout=240_000)
+    assert page.locator("#cal-status [data-status=succeeded]").count() == 1
+    verdict = page.locator("dt", has_text="Verdict").locator("xpath=following-sibling::dd[1]").inner_text()
+    assert verdict.startswith("refined"), verdict
+    assert "posed again" in page.locator("#cal-head").inner_text()
+    rows = page.locator("#cal-cameras tr")
+    assert rows.count() == 4 and rows.nth(2).locator("th").inner_text() == "side"
+    assert rows.nth(2).locator("td").last.inner_text() == "yes" and rows.nth(0).locator("td").last.inner_text() == "no"
+    before, after = (float(rows.nth(2).locator("td").nth(k).inner_text()) for k in (0, 1))
+    assert before > 80 and after < 20, (before, after)
+    assert "side was off" in page.locator("#cal-alert").inner_text()
+    img = page.locator("#figure-list figure img")
+    assert img.count() == 1 and img.evaluate("i => i.complete && i.naturalWidth > 300")
+    drawn = np.asarray(Image.open(io.BytesIO(img.screenshot())).convert("L"))
+    assert (drawn < 200).mean() > 0.01
