@@ -8,6 +8,10 @@ Unknowns (each a GTSAM key):
 * ``k_i``: camera i's intrinsics ``theta`` (:mod:`graph.calibrate.model`), when refined, with an
   optional Gaussian prior ``|L (theta - theta0)|^2``.
 
+A camera's pose may have a Gaussian prior too, ``|Log(R_0^T R_c)|^2 / s_r^2 + |t_c - t_0|^2 / s_t^2``
+(:attr:`Settings.pose_priors`), whose Jacobian by ``(w_c, v_c)`` is taken as ``[[I / s_r, 0], [0,
+R_c / s_t]]`` (exact in the position; in the rotation to first order in the angle from ``R_0``).
+
 A corner ``p`` (board frame) seen at ``z`` by camera i in view j predicts::
 
     X_c = R_c^T (R_b p + t_b - t_c),    z_hat = pi(theta_i, X_c),    e = z_hat - z
@@ -137,6 +141,7 @@ class Settings:
     huber_px: float | None = None
     board_dof: int = 6
     fixed_distance: tuple[int, int, float] | None = None
+    pose_priors: dict = field(default_factory=dict)  # camera i -> (R_0, t_0, s_r radians, s_t): see the module
     max_iterations: int = 100
     tolerance: float = 1e-9
 
@@ -222,8 +227,23 @@ def _distance_term(rig: Rig, fixed: tuple[int, int, float]) -> tuple[float, np.n
     return (L - d) / FIXED_DISTANCE_SD, J
 
 
+def _pose_prior_term(rig: Rig, i: int, prior: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Camera i's pose prior (:attr:`Settings.pose_priors`): whitened residual (6,) and its Jacobian
+    by the pose's ``(w, v)`` (6, 6)."""
+    R0, t0, s_r, s_t = prior
+    phi = np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(R0.T @ rig.R_cam[i])))
+    r = np.concatenate([phi / s_r, (rig.t_cam[i] - t0) / s_t])
+    J = np.zeros((6, 6))
+    J[:3, :3] = np.eye(3) / s_r
+    J[3:, 3:] = rig.R_cam[i] / s_t
+    return r, J
+
+
 def _prior_cost(rig: Rig, settings: Settings) -> float:
     total = 0.0
+    for i, prior in settings.pose_priors.items():
+        r, _ = _pose_prior_term(rig, i, prior)
+        total += 0.5 * float(r @ r)
     if settings.fixed_distance is not None:
         total += 0.5 * _distance_term(rig, settings.fixed_distance)[0] ** 2
     for i, prior in settings.free_intrinsics.items():
@@ -283,6 +303,10 @@ def linearize(rig: Rig, obs: Observations, settings: Settings):
         r, J = _distance_term(rig, settings.fixed_distance)
         key = cam_key(settings.fixed_distance[1])
         factors.append(gtsam.JacobianFactor(key, J[None, :], np.array([-r]), gtsam.noiseModel.Unit.Create(1)))
+    for i, prior in settings.pose_priors.items():
+        if cam_free[i]:
+            r6, J6 = _pose_prior_term(rig, i, prior)
+            factors.append(gtsam.JacobianFactor(cam_key(i), J6, -r6, gtsam.noiseModel.Unit.Create(6)))
     for i, prior in settings.free_intrinsics.items():
         if prior is not None:
             theta0, L = prior
@@ -350,6 +374,12 @@ def normal_equations(rig: Rig, obs: Observations, settings: Settings) -> NormalE
         a, z = cam_slots[settings.fixed_distance[1]]
         H_cc[a:z, a:z] += np.outer(J, J)
         g_c[a:z] += J * res
+    for i, prior in settings.pose_priors.items():
+        if i in cam_slots:
+            res6, J6 = _pose_prior_term(rig, i, prior)
+            a, z = cam_slots[i]
+            H_cc[a:z, a:z] += J6.T @ J6
+            g_c[a:z] += J6.T @ res6
     for i, prior in settings.free_intrinsics.items():
         if prior is not None:
             theta0, L = prior

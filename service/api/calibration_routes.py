@@ -94,7 +94,8 @@ def submit_refine(
     job_id: Annotated[str, Form(description="one of the caller's solve jobs: its calibration and keypoints")],
     options: Annotated[str, Form(description='JSON object: {"likelihood": 0.9 (keypoints at least this confident), '
                                              '"refine_intrinsics": [] or ["focal"] or ["focal", "k1"], "focal_sd": '
-                                             '0.02, "k1_sd": 0.02, "label": "..."}')] = "{}",
+                                             '0.02, "k1_sd": 0.02, "pose_sd": 1 (degrees; a camera the keypoints '
+                                             'would move beyond 3 sd is held), "label": "..."}')] = "{}",
 ) -> CalibrationOut:
     """Queue ``acinoset calibrate refine`` on the job's rig and keypoints (copied into the new
     calibration): a camera far off posed again from the others, the poses (and optionally focal

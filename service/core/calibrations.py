@@ -47,7 +47,7 @@ VIDEOS_DIR = "videos"
 INTRINSICS_DIR = "intrinsics"
 MODELS = tuple(CAMERA_MODELS)  # the camera models a calibration may fit
 OPTION_NAMES = ("model", "origin", "every", "label")
-REFINE_OPTION_NAMES = ("likelihood", "refine_intrinsics", "focal_sd", "k1_sd", "label")
+REFINE_OPTION_NAMES = ("likelihood", "refine_intrinsics", "focal_sd", "k1_sd", "pose_sd", "label")
 
 
 def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
@@ -84,7 +84,8 @@ def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
 
 def parse_refine_options(text: str | None) -> tuple[dict, str | None]:
     """The ``options`` JSON object of a refinement (``likelihood``, ``refine_intrinsics``: a list of
-    :data:`graph.calibrate.refine.LENS`, ``focal_sd``, ``k1_sd``, ``label``) as the job's options, and
+    :data:`graph.calibrate.refine.LENS`, ``focal_sd``, ``k1_sd``, ``pose_sd`` (degrees), ``label``) as
+    the job's options, and
     its label; refusals are one line."""
     from graph.calibrate.refine import LENS
 
@@ -108,6 +109,10 @@ def parse_refine_options(text: str | None) -> tuple[dict, str | None]:
     if not isinstance(lens, list) or any(x not in LENS for x in lens):
         raise Unprocessable(f"options: refine_intrinsics must be a list of {', '.join(LENS)}, not {lens!r}")
     out["refine_intrinsics"] = list(dict.fromkeys(lens))
+    pose_sd = data.get("pose_sd", 1.0)
+    if isinstance(pose_sd, bool) or not isinstance(pose_sd, (int, float)) or not 0 <= pose_sd <= 180:
+        raise Unprocessable(f"options: pose_sd must be a number of degrees in [0, 180], not {pose_sd!r}")
+    out["pose_sd"] = float(pose_sd)
     return out, label
 
 

@@ -36,6 +36,7 @@
     fact("Refined from job", el("a", { href: `/jobs/${encodeURIComponent(i.refined_from || "")}`, text: String(i.refined_from || "").slice(0, 8) }));
     fact("Keypoints", el("ul", { class: "plain" }, (i.keypoints || []).map((d, k) => el("li", { text: `camera ${k + 1}: ${d.name}` }))));
     fact("Keypoints used", `likelihood at least ${o.likelihood}`);
+    fact("Pose prior", o.pose_sd ? `sd ${o.pose_sd}°: a camera the keypoints would move beyond 3 sd is held where it was` : "none");
     fact("Intrinsics refined", (o.refine_intrinsics || []).length ? `${o.refine_intrinsics.join(", ")} (prior sd: focal ${o.focal_sd}, k1 ${o.k1_sd})` : "none (held)");
     if (r) {
       const loo = r.leave_one_out_px || {};
@@ -71,13 +72,13 @@
   }
 
   function drawRefineQuality(r) {
-    const cols = ["camera", "before: leave one out (px)", "after (px)", "moved (mm)", "turned (deg)", "focal change (%)", "posed again"];
+    const cols = ["camera", "before: leave one out (px)", "after (px)", "moved (mm)", "turned (deg)", "focal change (%)", "posed again", "held"];
     $("cal-head").replaceChildren(el("tr", {}, cols.map((c) => el("th", { scope: "col", text: c }))));
     $("cal-cameras").replaceChildren(...(r.cameras || []).map((c) => el("tr", {},
       el("th", { scope: "row", text: c.name }), el("td", { text: num(c.leave_one_out_old_px, 2) }),
       el("td", { text: num(c.leave_one_out_new_px, 2) }), el("td", { text: num(c.position_change_mm, 1) }),
       el("td", { text: num(c.rotation_change_deg, 3) }), el("td", { text: num(c.focal_change_percent, 2) }),
-      el("td", { text: c.re_posed ? "yes" : "no" }))));
+      el("td", { text: c.re_posed ? "yes" : "no" }), el("td", { text: c.held ? "yes" : "no" }))));
   }
 
   function drawQuality(cal) {
