@@ -33,7 +33,7 @@ import contextlib
 import json
 import shutil
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 from graph.camera import CAMERA_MODELS
 from graph.errors import InputError
@@ -144,8 +144,15 @@ class CalibrationService:
         options, label = parse_options(board_spec, options_text)
         self.jobs.check_quota(user)
         self.jobs.check_storage(user, sum(stream_size(u.file) for u in [*detections, *intrinsics]))
+        return self._queue(user, lambda: self._store_upload(detections, intrinsics, options, videos=bool(videos)),
+                           options, label)
+
+    def _queue(self, user: User, stage: Callable[[], tuple[str, dict]], options: dict, label: str | None) -> Job:
+        """Stage the job's input (``stage`` returns its id and the inputs' description), add its row and
+        queue it; a refusal on the way removes the files."""
+        s = self.jobs.settings
         try:
-            job_id, inputs = self._store_upload(detections, intrinsics, options, videos=bool(videos))
+            job_id, inputs = stage()
             try:
                 job = self.jobs.store.insert_job(job_id, user.id, self.jobs.backend.name, options, inputs,
                                                  s.max_attempts, max_active=s.max_active_jobs_per_user, label=label)
@@ -203,23 +210,8 @@ class CalibrationService:
             raise Unprocessable(f"job {job_id}: its input files are gone") from None
         self.jobs.check_quota(user)
         self.jobs.check_storage(user, sum(p.stat().st_size for p in files))
-        try:
-            new_id, inputs = self._copy_inputs(src_dir, src, job_id, source.options.get("individual"), options)
-            try:
-                job = self.jobs.store.insert_job(new_id, user.id, self.jobs.backend.name, options, inputs,
-                                                 s.max_attempts, max_active=s.max_active_jobs_per_user, label=label)
-            except BaseException:
-                jobfiles.remove(s.jobs_dir, new_id)
-                raise
-        except QuotaExceeded:
-            self.jobs.check_quota(user)
-            raise
-        except (OSError, StoreFull) as e:
-            if storage_full(e):
-                raise NoSpace(DISK_FULL) from None
-            raise
-        self.jobs.backend.submit(job.id)
-        return job
+        individual = source.options.get("individual")
+        return self._queue(user, lambda: self._copy_inputs(src_dir, src, job_id, individual, options), options, label)
 
     def _copy_inputs(self, src_dir: Path, src: dict, job_id: str, individual: str | None,
                      options: dict) -> tuple[str, dict]:

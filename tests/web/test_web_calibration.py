@@ -27,15 +27,19 @@ def _calibrate(base: str, token: str) -> str:
     return r.json()["id"]
 
 
+def sign_in(page, token: str) -> None:
+    page.goto("/login")
+    page.get_by_label("API token").fill(token)
+    page.get_by_role("button", name="Sign in").click()
+    page.wait_for_url(re.compile(r"/$"))
+
+
 def test_the_calibration_page_shows_quality_and_figures(page, server):
     from PIL import Image
 
     base, token = server
     cal_id = _calibrate(base, token)
-    page.goto("/login")
-    page.get_by_label("API token").fill(token)
-    page.get_by_role("button", name="Sign in").click()
-    page.wait_for_url(re.compile(r"/$"))
+    sign_in(page, token)
     page.goto(f"/calibrations/{cal_id}")
     page.locator("body[data-ready=true]").wait_for(timeout=240_000)
     assert page.locator("#cal-status [data-status=succeeded]").count() == 1
@@ -62,10 +66,7 @@ def test_calibrate_on_the_form_then_solve_with_it(page, server, simulated_run, t
     from playwright.sync_api import expect
 
     base, token = server
-    page.goto("/login")
-    page.get_by_label("API token").fill(token)
-    page.get_by_role("button", name="Sign in").click()
-    page.wait_for_url(re.compile(r"/$"))
+    sign_in(page, token)
     page.get_by_role("link", name="Calibrations", exact=True).click()
     page.get_by_role("link", name="New calibration").click()
     page.wait_for_url(re.compile(r"/calibrations/new$"))
@@ -149,10 +150,7 @@ def test_the_calibration_form_says_why_the_server_refused(page, server):
     from playwright.sync_api import expect
 
     base, token = server
-    page.goto("/login")
-    page.get_by_label("API token").fill(token)
-    page.get_by_role("button", name="Sign in").click()
-    page.wait_for_url(re.compile(r"/$"))
+    sign_in(page, token)
     page.goto("/calibrations/new")
     before = httpx.get(f"{base}/v1/calibrations", headers={"Authorization": f"Bearer {token}"}).json()["total"]
     page.get_by_label("Inner corners down").fill("9")
@@ -187,10 +185,7 @@ def test_a_refinement_page_shows_each_cameras_change(page, server):
     r = httpx.post(f"{base}/v1/calibrations/refine", headers=auth,
                    data={"job_id": r.json()["id"], "options": json.dumps({"likelihood": 0.01})})
     assert r.status_code == 202, r.text
-    page.goto("/login")
-    page.get_by_label("API token").fill(token)
-    page.get_by_role("button", name="Sign in").click()
-    page.wait_for_url(re.compile(r"/$"))
+    sign_in(page, token)
     page.goto(f"/calibrations/{r.json()['id']}")
     page.locator("body[data-ready=true]").wait_for(timeout=240_000)
     assert page.locator("#cal-status [data-status=succeeded]").count() == 1
