@@ -96,6 +96,9 @@ def _register_refine(cmds) -> None:
                    help="the focal prior's sd, relative (default 0.02: two board calibrations of one camera "
                    "differ by up to 2 %%)")
     q.add_argument("--k1-sd", type=float, default=0.02, help="the k1 prior's sd (default 0.02)")
+    q.add_argument("--hold", metavar="CAMERA",
+                   help="the camera whose pose, with its distance to the next, keeps the old rig's world frame and "
+                   "scale (default: the first camera not posed again)")
     q.add_argument("--pose-sd", type=float, default=1.0, metavar="DEG",
                    help="the poses' prior sd in degrees (the position's: that angle at the camera's distance to the "
                    "animal); a camera the keypoints would move beyond 3 sd is held and reported (default 1; 0: no "

@@ -7,12 +7,12 @@
    trimming below), is first posed again from the other cameras' points
    (:mod:`graph.calibrate.resection`): a bumped camera, or an entry copied from another camera's.
 3. A bundle adjustment (:mod:`graph.calibrate.bundle`, the points as 3-dof "boards") over the camera
-   poses and the 3D points, under Huber's loss: camera 1 is held, and so is its distance to camera 2
-   (keypoints carry no scale); the intrinsics are held, or each camera's focal length and first
-   distortion coefficient are refined under a prior centred on the old values (:func:`lens_prior`).
-   Before each of :data:`ROUNDS` solves, the
-   detections further than 3.03 noise sd from their prediction are left out (the noise measured as
-   ``median |e| / 1.1774``), so DeepLabCut's confident mistakes neither pull the rig nor slow the
+   poses and the 3D points, under Huber's loss: one camera is held (the first not posed again in
+   step 2, or the one named), and so is its distance to the next (keypoints carry no scale); the
+   intrinsics are held, or each camera's focal length and first distortion coefficient are refined
+   under a prior centred on the old values (:func:`lens_prior`). Before each of :data:`ROUNDS`
+   solves, the detections further than 3.03 noise sd from their prediction are left out (the noise
+   measured as ``median |e| / 1.1774``), so DeepLabCut's confident mistakes neither pull the rig nor slow the
    solve to a crawl (Huber's loss alone converges linearly when many terms sit on its linear part).
    Each pose has a prior centred where step 2 left it (:func:`pose_priors`, sd ``pose_sd_deg``).
 4. A camera the adjustment moves beyond :data:`MOVE_WARN_SD` sd of that prior is held where it was,
@@ -220,14 +220,14 @@ def _bundle_rig(cal: Calibration, pts: np.ndarray) -> bundle.Rig:
                       np.broadcast_to(np.eye(3), (len(pts), 3, 3)).copy(), pts.copy())
 
 
-def pose_priors(anchor: Calibration, pts: np.ndarray, sd_deg: float) -> dict:
-    """The cameras' pose priors (:attr:`graph.calibrate.bundle.Settings.pose_priors`), camera 1's
-    excepted (it is held): centred on ``anchor``'s poses, the rotation's sd ``s_r = sd_deg`` and the
+def pose_priors(anchor: Calibration, pts: np.ndarray, sd_deg: float, gauge: int = 0) -> dict:
+    """The cameras' pose priors (:attr:`graph.calibrate.bundle.Settings.pose_priors`), camera
+    ``gauge``'s excepted (it is held): centred on ``anchor``'s poses, the rotation's sd ``s_r = sd_deg`` and the
     position's ``s_t = s_r d_i``, ``d_i`` the median distance from camera i to the points ``pts``
     (P, 3): a turn of ``s_r`` and a shift of ``s_t`` move the animal in the image alike."""
     s_r = float(np.radians(sd_deg))
     return {i: (c.R.T, c.center, s_r, s_r * float(np.median(np.linalg.norm(pts - c.center, axis=1))))
-            for i, c in enumerate(anchor.cameras) if i > 0}
+            for i, c in enumerate(anchor.cameras) if i != gauge}
 
 
 def prior_moves(anchor: Calibration, moved: Calibration, pts: np.ndarray, sd_deg: float) -> np.ndarray:
@@ -244,14 +244,15 @@ def prior_moves(anchor: Calibration, moved: Calibration, pts: np.ndarray, sd_deg
 def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frames: np.ndarray,
             start: Calibration | None = None, rounds: int = ROUNDS, lens: tuple[str, ...] = (),
             focal_sd: float = 0.0, k1_sd: float = 0.0, anchor: Calibration | None = None,
-            pose_sd_deg: float = 0.0, held: frozenset = frozenset()) -> _Adjusted:
+            pose_sd_deg: float = 0.0, held: frozenset = frozenset(), gauge: tuple[int, int] = (0, 1)) -> _Adjusted:
     """Steps 1 and 3 of the module on the frames ``frames`` (bool (N,)), from ``start`` (default the
     rig itself), in ``rounds`` rounds: triangulate with the rig so far, trim, solve. The points are
     triangulated again each round: the detections a wrong rig's triangulation rejects are the very
     ones that would mend it (a copied entry's camera, once posed again, is still a few degrees off).
     Each camera's detections are trimmed at its own noise: one camera labelled less precisely than
     the others would otherwise lose its detections that disagree most, and with them the evidence of
-    its own pose. Scale and camera 1 held at the start's; the lens priors centred on
+    its own pose. The camera ``gauge[0]`` held at the start's pose, and its distance to camera
+    ``gauge[1]`` (the world frame and the scale); the lens priors centred on
     ``calibration``'s, the pose priors (:func:`pose_priors`) on ``anchor``'s; the cameras ``held``
     stay at ``anchor``'s poses."""
     rig = calibration if start is None else start
@@ -261,7 +262,8 @@ def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frame
         rig = Calibration([anchor.cameras[i] if i in held else c for i, c in enumerate(rig.cameras)],
                           source=rig.source, metadata=dict(rig.metadata))
     priors = {i: lens_prior(c, lens, focal_sd, k1_sd) for i, c in enumerate(calibration.cameras)} if lens else {}
-    d01 = float(np.linalg.norm(rig.cameras[1].center - rig.cameras[0].center))
+    g, partner = gauge
+    distance = float(np.linalg.norm(rig.cameras[partner].center - rig.cameras[g].center))
     rms_before = math.nan
     for r in range(rounds):
         pts, all_obs = _points(rig, meas, valid, frames)
@@ -276,10 +278,11 @@ def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frame
         if r == 0:  # the old rig on the points the start triangulates
             e_old = bundle.residuals(_bundle_rig(calibration, pts), obs, jacobians=False)
             rms_before = float(np.sqrt((e_old ** 2).sum(axis=1).mean()))
-        settings = bundle.Settings(fixed_cams=frozenset({0}) | held, huber_px=bundle.HUBER_SIGMAS * sigma, board_dof=3,
-                                   fixed_distance=None if 1 in held else (0, 1, d01), free_intrinsics=priors,
-                                   tolerance=TOLERANCE,
-                                   pose_priors=pose_priors(anchor, pts, pose_sd_deg) if anchor and pose_sd_deg else {})
+        settings = bundle.Settings(fixed_cams=frozenset({g}) | held, huber_px=bundle.HUBER_SIGMAS * sigma, board_dof=3,
+                                   fixed_distance=None if partner in held else (g, partner, distance),
+                                   free_intrinsics=priors, tolerance=TOLERANCE,
+                                   pose_priors=(pose_priors(anchor, pts, pose_sd_deg, g)
+                                                if anchor and pose_sd_deg else {}))
         sol = bundle.solve(state, obs, settings)
         cams = []
         for i, c in enumerate(calibration.cameras):
@@ -291,17 +294,26 @@ def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frame
 
 
 def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float = 0.9, lens: tuple[str, ...] = (),
-               focal_sd: float = 0.02, k1_sd: float = 0.02, pose_sd_deg: float = POSE_SD_DEG) -> RefineResult:
+               focal_sd: float = 0.02, k1_sd: float = 0.02, pose_sd_deg: float = POSE_SD_DEG,
+               hold: str | None = None) -> RefineResult:
     """See the module. Accepted on the held-out frames, the rig is adjusted once more on every frame
-    (from the rig the check accepted: the held-out half of the data is not thrown away)."""
+    (from the rig the check accepted: the held-out half of the data is not thrown away). The world
+    frame and the scale are the old rig's through the camera named ``hold`` (default: the first
+    camera not posed again) and its distance to the next such camera."""
     start = time.perf_counter()
     C = len(calibration)
     if len(keypoints) != C:
         raise InputError(f"{len(keypoints)} keypoint files for a calibration of {C} cameras")
     meas, valid = _measurements(calibration, keypoints, min_likelihood)
     fit, held = split_blocks(len(meas))
+    if hold is not None and hold not in calibration.names:
+        raise InputError(f"--hold: no camera {hold!r} in the calibration (its cameras: {', '.join(calibration.names)})")
     start_rig, reposed = repose_off_cameras(calibration, meas, valid, fit, held, MIN_GAIN)
-    adjust = partial(_adjust, lens=lens, focal_sd=focal_sd, k1_sd=k1_sd, anchor=start_rig, pose_sd_deg=pose_sd_deg)
+    steady = [i for i in range(C) if i not in {r["camera"] for r in reposed}] or list(range(C))
+    g = calibration.names.index(hold) if hold is not None else steady[0]
+    gauge = (g, next((i for i in steady if i != g), (g + 1) % C))
+    adjust = partial(_adjust, lens=lens, focal_sd=focal_sd, k1_sd=k1_sd, anchor=start_rig, pose_sd_deg=pose_sd_deg,
+                     gauge=gauge)
     holding: frozenset = frozenset()
     moves: dict[int, float] = {}
     while True:  # a camera the data move beyond MOVE_WARN_SD sd of the prior is held where it was
@@ -309,7 +321,7 @@ def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float 
         if not pose_sd_deg:
             break
         far = prior_moves(start_rig, adjusted.calibration, adjusted.points_xyz, pose_sd_deg)
-        more = {i for i, sds in enumerate(far) if sds > MOVE_WARN_SD and i > 0} - holding
+        more = {i for i, sds in enumerate(far) if sds > MOVE_WARN_SD and i != g} - holding
         if not more:
             break
         moves.update({i: float(far[i]) for i in more})
@@ -385,7 +397,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--pose-sd must be in [0, 180] degrees, got {args.pose_sd}")
     calibration = load_calibration(args.calibration)
     keypoints = [read_keypoints(p, individual=args.individual) for p in args.keypoints]
-    result = refine_rig(calibration, keypoints, args.likelihood, lens, args.focal_sd, args.k1_sd, args.pose_sd)
+    result = refine_rig(calibration, keypoints, args.likelihood, lens, args.focal_sd, args.k1_sd, args.pose_sd,
+                        args.hold)
     write_anipose_toml(args.out, result.calibration)
     if args.report:
         Path(args.report).write_text(json.dumps(result.to_dict(), indent=2) + "\n", encoding="utf-8")
