@@ -261,7 +261,7 @@ def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frame
         assert anchor is not None
         rig = Calibration([anchor.cameras[i] if i in held else c for i, c in enumerate(rig.cameras)],
                           source=rig.source, metadata=dict(rig.metadata))
-    priors = {i: lens_prior(c, lens, focal_sd, k1_sd) for i, c in enumerate(calibration.cameras)} if lens else {}
+    lens_priors = {i: lens_prior(c, lens, focal_sd, k1_sd) for i, c in enumerate(calibration.cameras)} if lens else {}
     g, partner = gauge
     distance = float(np.linalg.norm(rig.cameras[partner].center - rig.cameras[g].center))
     rms_before = math.nan
@@ -278,11 +278,15 @@ def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frame
         if r == 0:  # the old rig on the points the start triangulates
             e_old = bundle.residuals(_bundle_rig(calibration, pts), obs, jacobians=False)
             rms_before = float(np.sqrt((e_old ** 2).sum(axis=1).mean()))
+        # the bundle's data terms are in pixels, not in noise sd: a prior's whitened rows are scaled by the
+        # noise sd so that the posterior is the one the priors and the measured noise say
+        pose = pose_priors(anchor, pts, pose_sd_deg, g) if anchor and pose_sd_deg else {}
         settings = bundle.Settings(fixed_cams=frozenset({g}) | held, huber_px=bundle.HUBER_SIGMAS * sigma, board_dof=3,
                                    fixed_distance=None if partner in held else (g, partner, distance),
-                                   free_intrinsics=priors, tolerance=TOLERANCE,
-                                   pose_priors=(pose_priors(anchor, pts, pose_sd_deg, g)
-                                                if anchor and pose_sd_deg else {}))
+                                   free_intrinsics={i: (t0, sigma * L) for i, (t0, L) in lens_priors.items()},
+                                   pose_priors={i: (R0, t0, s_r / sigma, s_t / sigma)
+                                                for i, (R0, t0, s_r, s_t) in pose.items()},
+                                   tolerance=TOLERANCE)
         sol = bundle.solve(state, obs, settings)
         cams = []
         for i, c in enumerate(calibration.cameras):
