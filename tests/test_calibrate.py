@@ -534,6 +534,27 @@ def test_refine_poses_again_a_camera_whose_entry_is_another_cameras(rig, copied,
     assert r.changes[held]["position_change_mm"] < 1e-6 and r.changes[held]["rotation_change_deg"] < 1e-6
 
 
+def test_the_cameras_covariance_by_the_schur_complement_equals_gtsams_marginals(rig):
+    """The covariance of the camera poses, the points marginalised in numpy
+    (:func:`bundle.camera_covariance`, which the refinement reads its lenses' sd from), equals GTSAM's
+    marginals of the same linear system where GTSAM can take them."""
+    from graph.calibrate import refine as rf
+    from graph.simulate import simulate_run
+
+    run = simulate_run(rig, frames=60, noise=2.0, outliers=0.0, seed=4)
+    meas, valid = rf._measurements(rig, run.keypoints, 0.9)
+    pts, obs = rf._points(rig, meas, valid, np.ones(len(meas), bool))
+    d = float(np.linalg.norm(rig.cameras[1].center - rig.cameras[0].center))
+    settings = bundle.Settings(fixed_cams=frozenset({0}), board_dof=3, fixed_distance=(0, 1, d),
+                               pose_priors={3: (rig.cameras[3].R.T, rig.cameras[3].center, 0.01, 0.05)})
+    sol = bundle.solve(rf._bundle_rig(rig, pts), obs, settings)
+    ours, eq = bundle.camera_covariance(sol.rig, obs, settings, 2.0)
+    theirs = bundle.covariances(sol, [bundle.cam_key(i) for i in range(1, 6)], 2.0)
+    for i in range(1, 6):
+        a, z = eq.cam_slots[i]
+        assert np.allclose(ours[a:z, a:z], theirs[bundle.cam_key(i)], rtol=1e-6, atol=1e-12), i
+
+
 def test_refine_splits_the_run_into_interleaved_blocks():
     """Ten blocks of consecutive frames, the first, third, ... adjusted on and the others held out;
     a run too short to split is adjusted on and scored on every frame."""
@@ -637,6 +658,8 @@ def test_refine_takes_the_focal_length_back_under_its_prior(rig):
         assert np.allclose(new.K[:2, 2], old.K[:2, 2], atol=1e-3) and np.allclose(new.dist, old.dist, atol=1e-6)
         assert abs(new.K[0, 0] / new.K[1, 1] - old.K[0, 0] / old.K[1, 1]) < 1e-6
     assert all(abs(c["focal_change_percent"]) > 1 for c in r.changes)
+    # each focal's posterior sd is reported, and the data determine it (no lens held)
+    assert all(0 < c["focal_sd_percent"] < 0.5 and not c["lens_held"] for c in r.changes), r.changes
     p = run_cli("calibrate", "refine", "x.toml", "a.csv", "--out", "y.toml", "--refine-intrinsics", "focal,zoom")
     assert p.returncode == 2 and "Traceback" not in p.stderr and "--refine-intrinsics: unknown zoom" in p.stderr
     with pytest.raises(InputError, match="--hold: no camera 'cam9'"):

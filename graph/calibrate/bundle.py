@@ -515,6 +515,24 @@ def view_rms(e: np.ndarray, obs: Observations) -> np.ndarray:
     return np.sqrt(sq / np.maximum(n, 1))
 
 
+def camera_covariance(rig: Rig, obs: Observations, settings: Settings,
+                      sigma: float) -> tuple[np.ndarray, NormalEquations]:
+    """The covariance of the camera-side unknowns (:class:`NormalEquations`' columns), the points or
+    boards marginalised: ``sigma^2 S^+``, ``S = H_cc - sum_j W_j H_j^-1 W_j^T`` the Schur complement
+    of the undamped system at ``rig`` (a pseudo-inverse: a direction no data or prior sees has no
+    finite variance, and GTSAM's marginals refuse such a system outright). With its equations, for
+    the slots."""
+    eq = normal_equations(rig, obs, settings)
+    Hb = eq.H_bb.copy()
+    unseen = np.diagonal(Hb, axis1=1, axis2=2).max(axis=1) <= 0
+    Hb[unseen] = np.eye(Hb.shape[-1])
+    Hinv = np.linalg.inv(Hb)
+    D = len(eq.g_c)
+    S = eq.H_cc - (np.matmul(eq.W, Hinv).transpose(1, 0, 2).reshape(D, -1)
+                   @ eq.W.transpose(1, 0, 2).reshape(D, -1).T)
+    return sigma * sigma * np.linalg.pinv(0.5 * (S + S.T)), eq
+
+
 def covariances(solution: Solution, keys: list[int], sigma: float) -> dict[int, np.ndarray]:
     """Marginal covariances of ``keys`` from GTSAM's marginals of the final linear system, scaled by
     the detection noise ``sigma^2`` (the factors are whitened to 1 px)."""

@@ -71,6 +71,7 @@ TOLERANCE = 1e-5  # a solve stops when a step lowers the cost by less than this 
 # detections, far below what their noise resolves. Measured: 1e-9 ran every solve of the fly's near-telecentric rig
 # to its 100 steps (9 s for 250 frames; 2 s here), with the same rigs on the fly, SLEAP's session and the simulation
 POSE_SD_DEG = 1.0  # the poses' prior sd: a bumped camera (turned 0.3-1 degree) is within one sd
+LENS_INSIST = 0.5  # a lens is refined only where the data at least halve its prior's sd (3x its information)
 MOVE_WARN_SD = 3.0  # a camera moved further than this many prior sd from where it was is reported
 HELD = 1e-6  # the prior sd of an intrinsic held (relative for the focal lengths, else in its units)
 POINT_VIEWS = 3  # cameras a point needs to enter the adjustment: with two, one confident mistake
@@ -167,6 +168,7 @@ class _Adjusted:
     points: int
     observations: int
     points_xyz: np.ndarray  # (P, 3) the last round's points
+    lens_sd: dict = field(default_factory=dict)  # camera -> (focal scale sd (relative), k1 sd), refined ones
 
 
 def lens_prior(camera: Camera, lens: tuple[str, ...], focal_sd: float, k1_sd: float) -> tuple[np.ndarray, np.ndarray]:
@@ -244,7 +246,8 @@ def prior_moves(anchor: Calibration, moved: Calibration, pts: np.ndarray, sd_deg
 def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frames: np.ndarray,
             start: Calibration | None = None, rounds: int = ROUNDS, lens: tuple[str, ...] = (),
             focal_sd: float = 0.0, k1_sd: float = 0.0, anchor: Calibration | None = None,
-            pose_sd_deg: float = 0.0, held: frozenset = frozenset(), gauge: tuple[int, int] = (0, 1)) -> _Adjusted:
+            pose_sd_deg: float = 0.0, held: frozenset = frozenset(), gauge: tuple[int, int] = (0, 1),
+            lens_held: frozenset = frozenset()) -> _Adjusted:
     """Steps 1 and 3 of the module on the frames ``frames`` (bool (N,)), from ``start`` (default the
     rig itself), in ``rounds`` rounds: triangulate with the rig so far, trim, solve. The points are
     triangulated again each round: the detections a wrong rig's triangulation rejects are the very
@@ -261,7 +264,8 @@ def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frame
         assert anchor is not None
         rig = Calibration([anchor.cameras[i] if i in held else c for i, c in enumerate(rig.cameras)],
                           source=rig.source, metadata=dict(rig.metadata))
-    lens_priors = {i: lens_prior(c, lens, focal_sd, k1_sd) for i, c in enumerate(calibration.cameras)} if lens else {}
+    lens_priors = ({i: lens_prior(c, () if i in lens_held else lens, focal_sd, k1_sd)
+                    for i, c in enumerate(calibration.cameras)} if lens else {})
     g, partner = gauge
     distance = float(np.linalg.norm(rig.cameras[partner].center - rig.cameras[g].center))
     rms_before = math.nan
@@ -294,7 +298,16 @@ def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frame
             cams.append(camera_with(sol.rig.intrinsics[i], c.model, c.size, c.name, R=R, t=-R @ sol.rig.t_cam[i]))
         rig = Calibration(cams, source=calibration.source, metadata=dict(calibration.metadata))
     rms_after = float(np.sqrt((sol.residuals ** 2).sum(axis=1).mean()))
-    return _Adjusted(rig, rms_before, rms_after, P, obs.n_views, sol.rig.t_board.copy())
+    lens_sd: dict[int, tuple[float, float]] = {}
+    if lens_priors:  # the focal scale's and k1's posterior sd per camera
+        cov, eq = bundle.camera_covariance(sol.rig, obs, settings, sigma)
+        for i, (a, z) in eq.lens_slots.items():
+            theta0 = lens_priors[i][0]
+            grad = np.zeros(z - a)
+            grad[:2] = 0.5 / theta0[0], 0.5 / theta0[1]
+            block = cov[a:z, a:z]
+            lens_sd[i] = (float(np.sqrt(max(grad @ block @ grad, 0.0))), float(np.sqrt(max(block[4, 4], 0.0))))
+    return _Adjusted(rig, rms_before, rms_after, P, obs.n_views, sol.rig.t_board.copy(), lens_sd)
 
 
 def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float = 0.9, lens: tuple[str, ...] = (),
@@ -330,6 +343,11 @@ def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float 
             break
         moves.update({i: float(far[i]) for i in more})
         holding |= more
+    loose = {i: sd for i, sd in adjusted.lens_sd.items()
+             if ("focal" in lens and sd[0] > LENS_INSIST * focal_sd) or ("k1" in lens and sd[1] > LENS_INSIST * k1_sd)}
+    if loose:  # the keypoints do not determine these cameras' lenses: held at the calibration's
+        adjust = partial(adjust, lens_held=frozenset(loose))
+        adjusted = adjust(calibration, meas, valid, fit, start=start_rig, held=holding)
     refined = adjusted.calibration
     loo_old = leave_one_out(calibration, meas[held], valid[held])
     loo_new = leave_one_out(refined, meas[held], valid[held])
@@ -350,8 +368,10 @@ def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float 
                 "rotation_change_deg": float(np.degrees(rotation_angle(a.R @ b.R.T))),
                 "focal_change_percent": float((b.K[0, 0] / a.K[0, 0] - 1) * 100),
                 "k1_change": float(b.dist[0] - a.dist[0]),
+                "focal_sd_percent": (adjusted.lens_sd[i][0] * 100 if i in adjusted.lens_sd and i not in loose
+                                     else None),
                 "leave_one_out_old_px": lo, "leave_one_out_new_px": ln, "re_posed": i in again,
-                "held": i in holding}
+                "held": i in holding, "lens_held": i in loose}
                for i, (name, a, b, lo, ln) in enumerate(zip(calibration.names, calibration.cameras, cams, loo_old,
                                                             loo_new))]
     notes = [units_note] if units_note else []
@@ -366,6 +386,12 @@ def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float 
                      f"({pose_sd_deg:g} deg), more than a bumped camera moves. Errors of the keypoints themselves "
                      "(labels placed differently in each view, refraction through a wall) are fitted that way too; "
                      "if the rig was rebuilt, give a larger --pose-sd")
+    if loose:
+        names = ", ".join(calibration.names[i] for i in sorted(loose))
+        sds = ", ".join(f"{loose[i][0] * 100:.2f} % and {loose[i][1]:.3f}" for i in sorted(loose))
+        notes.append(f"lens held at the calibration's: {names}; the keypoints determine the focal length and k1 only "
+                     f"to {sds} sd, against the priors' {focal_sd * 100:g} % and {k1_sd:g} (more frames, spread "
+                     "over more of the images, would)")
     where = f"on {int(held.sum())} held-out frames" if split else "on the frames adjusted on (too few to hold out)"
     if accepted and split:
         notes.append(f"accepted on the {int(held.sum())} held-out frames; the rig written was then adjusted on all "
