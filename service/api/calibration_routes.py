@@ -83,26 +83,25 @@ def submit_calibration(
 
 
 @router.post(
-    "/v1/calibrations/refine", status_code=202, response_model=CalibrationOut,
+    "/v1/jobs/{job_id}/refinement", status_code=202, response_model=CalibrationOut,
     summary="Refine a job's rig from its keypoints",
     responses={404: error_doc("No such job of the caller's"),
                413: error_doc("The caller's storage full"),
                422: error_doc("Bad options, or a job of several animals"),
                429: error_doc("The caller already has the most queued and running jobs allowed")})
 def submit_refine(
-    user: CurrentUser, calibrations: Calibrations, response: Response,
-    job_id: Annotated[str, Form(description="one of the caller's solve jobs: its calibration and keypoints")],
+    job_id: str, user: CurrentUser, calibrations: Calibrations, response: Response,
     options: Annotated[str, Form(description='JSON object: {"likelihood": 0.9 (keypoints at least this confident), '
                                              '"refine_intrinsics": [] or ["focal"] or ["focal", "k1"], "focal_sd": '
                                              '0.02, "k1_sd": 0.02, "pose_sd": 1 (degrees; a camera the keypoints '
                                              'would move beyond 3 sd is held), "label": "..."}')] = "{}",
 ) -> CalibrationOut:
-    """Queue ``acinoset calibrate refine`` on the job's rig and keypoints (copied into the new
-    calibration): a camera far off posed again from the others, the poses (and optionally focal
-    lengths and k1) adjusted, the new rig kept only when it predicts each camera from the others
-    better on held-out frames. Poll ``links.self``; once succeeded, ``report`` has each camera's
-    change and leave-one-camera-out error before and after, and ``calibration.toml`` is the rig to
-    use (the old one when the check kept it)."""
+    """Queue ``acinoset calibrate refine`` on the rig and keypoints of the caller's solve job
+    ``job_id`` (copied into a new calibration): a camera far off posed again from the others, the
+    poses (and optionally focal lengths and k1) adjusted, the new rig kept only when it predicts
+    each camera from the others better on held-out frames. Poll ``links.self``; once succeeded,
+    ``report`` has each camera's change and leave-one-camera-out error before and after, and
+    ``calibration.toml`` is the rig to use (the old one when the check kept it)."""
     job = calibrations.submit_refine(user, job_id, options)
     out = calibration_out(job)
     response.headers["Location"] = out.links["self"]

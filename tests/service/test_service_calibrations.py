@@ -287,7 +287,7 @@ def test_a_calibration_from_videos(alice, tmp_path):
 
 def test_a_jobs_rig_refined_from_its_keypoints(alice, bob, tmp_path):
     """SLEAP's minimal session as a solve job (its four proofread .slp and the shipped rig, whose side
-    entry is a copy of top's), then ``POST /v1/calibrations/refine`` naming the job: side is posed
+    entry is a copy of top's), then ``POST /v1/jobs/{id}/refinement`` naming the job: side is posed
     again and every camera predicts the mouse from the others better; the rig it writes reads in
     aniposelib. Bob cannot refine Alice's job; bad options are one line."""
     from aniposelib.cameras import CameraGroup
@@ -303,7 +303,7 @@ def test_a_jobs_rig_refined_from_its_keypoints(alice, bob, tmp_path):
     assert r.status_code == 202, r.text
     job_id = r.json()["id"]
 
-    r = alice.post("/v1/calibrations/refine", data={"job_id": job_id, "options": json.dumps(
+    r = alice.post(f"/v1/jobs/{job_id}/refinement", data={"options": json.dumps(
         {"likelihood": 0.01, "label": "mended side"})})
     assert r.status_code == 202, r.text
     assert r.headers["location"] == f"/v1/calibrations/{r.json()['id']}"
@@ -324,11 +324,12 @@ def test_a_jobs_rig_refined_from_its_keypoints(alice, bob, tmp_path):
     png = alice.get(cal["links"]["rig.png"])
     assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
 
-    r = bob.post("/v1/calibrations/refine", data={"job_id": job_id})
+    r = bob.post(f"/v1/jobs/{job_id}/refinement")
     assert r.status_code == 404 and job_id in r.json()["detail"]
     for bad, fragment in (({"likelihood": 2}, "likelihood"), ({"refine_intrinsics": ["zoom"]}, "refine_intrinsics"),
                           ({"every": 2}, "unknown option")):
-        r = alice.post("/v1/calibrations/refine", data={"job_id": job_id, "options": json.dumps(bad)})
+        r = alice.post(f"/v1/jobs/{job_id}/refinement", data={"options": json.dumps(bad)})
         assert r.status_code == 422 and fragment in r.json()["detail"] and "\n" not in r.json()["detail"], r.text
-    r = alice.post("/v1/calibrations/refine", data={"job_id": "../" + job_id})
-    assert r.status_code == 404, r.text
+    for other in ("0" * 32, job_id[:-1], "..%2F" + job_id):
+        r = alice.post(f"/v1/jobs/{other}/refinement")
+        assert r.status_code == 404, r.text

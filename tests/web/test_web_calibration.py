@@ -182,8 +182,8 @@ def test_a_refinement_page_shows_each_cameras_change(page, server):
     r = httpx.post(f"{base}/v1/jobs", files=files, headers=auth,
                    data={"options": json.dumps({"method": "tri", "skeleton": "points", "fps": 30})})
     assert r.status_code == 202, r.text
-    r = httpx.post(f"{base}/v1/calibrations/refine", headers=auth,
-                   data={"job_id": r.json()["id"], "options": json.dumps({"likelihood": 0.01})})
+    r = httpx.post(f"{base}/v1/jobs/{r.json()['id']}/refinement", headers=auth,
+                   data={"options": json.dumps({"likelihood": 0.01})})
     assert r.status_code == 202, r.text
     sign_in(page, token)
     page.goto(f"/calibrations/{r.json()['id']}")
