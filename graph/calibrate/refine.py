@@ -52,7 +52,7 @@ import numpy as np
 from graph.calibrate import bundle
 from graph.calibrate.model import camera_with, intrinsics_of
 from graph.calibrate.poses import rotation_angle
-from graph.calibrate.resection import repose_off_cameras
+from graph.calibrate.resection import errors, repose_off_cameras
 from graph.camera import CALIBRATION_UNITS, Calibration, Camera
 from graph.errors import InputError
 from graph.io.calibration import resolve_units
@@ -63,7 +63,7 @@ MAX_POINTS = 20000  # 3D points in the adjustment, spread over the run. Measured
 # points 11.7 mm, all 7808 6.0 mm), and a step costs 11 ms per 1500 points
 ROUNDS = 5  # triangulate, trim the detections that do not fit, solve; as the rig (and the noise) settles
 MIN_GAIN = 0.01  # the new rig must predict left-out cameras at least 1 % better to replace the old one
-MIN_VIEWS = 2  # cameras a point needs to be triangulated for the leave-one-out check
+MIN_VIEWS = 2  # detections a point keeps after the trimming, to stay in the adjustment
 BLOCKS = 10  # the run cut into this many blocks of frames: adjusted on the odd ones, scored on the even
 MIN_SPLIT_FRAMES = 2 * BLOCKS  # shorter runs are adjusted and scored on every frame
 LENS = ("focal", "k1")  # what of a camera's intrinsics can be refined with its pose
@@ -142,22 +142,8 @@ def _measurements(calibration: Calibration, keypoints, min_likelihood: float):
 
 def leave_one_out(calibration: Calibration, meas: np.ndarray, valid: np.ndarray) -> list[float]:
     """For each camera: the median error (px) of its confident detections predicted by the points the
-    other cameras triangulate (two or more of them)."""
-    from graph.solve.triangulate import robust_points
-
-    out = []
-    for c, cam in enumerate(calibration.cameras):
-        others = valid.copy()
-        others[:, c] = False
-        enough = others.sum(axis=1) >= MIN_VIEWS  # (N, M)
-        X, _, _ = robust_points(calibration, meas, others)
-        use = enough & valid[:, c] & np.isfinite(X).all(axis=-1)
-        if not use.any():
-            out.append(float("nan"))
-            continue
-        uv = cam.project(X[use])
-        out.append(float(np.nanmedian(np.linalg.norm(uv - meas[:, c][use], axis=-1))))
-    return out
+    other cameras triangulate (two or more places of them: :func:`graph.calibrate.resection.errors`)."""
+    return [float(m) for m in errors(calibration, meas, valid)[0]]
 
 
 @dataclass
