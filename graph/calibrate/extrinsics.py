@@ -221,8 +221,10 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
         if progress:
             progress("bundle adjustment", (n + round_ / MAX_ROUNDS) / (n + 1))
         sigma = bundle.noise_sigma(bundle.residuals(rig, cur, jacobians=False))
-        settings = bundle.Settings(fixed_cams=frozenset({0}), free_intrinsics=priors,
-                                   huber_px=bundle.HUBER_SIGMAS * sigma)
+        # the data terms are pixels, the priors' rows noise sd: scaled by the noise, the posterior is the
+        # one the intrinsic calibrations' covariances and this noise say
+        settings = bundle.Settings(fixed_cams=frozenset({0}), huber_px=bundle.HUBER_SIGMAS * sigma,
+                                   free_intrinsics={i: (t0, sigma * L) for i, (t0, L) in priors.items()})
         sol = bundle.solve(rig, cur, settings)
         total_it += sol.iterations
         total_s += sol.seconds
