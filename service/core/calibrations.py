@@ -103,15 +103,15 @@ def parse_refine_options(text: str | None) -> tuple[dict, str | None]:
     for name, default in (("likelihood", 0.9), ("focal_sd", 0.02), ("k1_sd", 0.02)):
         v = data.get(name, default)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= 1:
-            raise Unprocessable(f"options: {name} must be a number in (0, 1], not {v!r}")
+            raise Unprocessable(f"options: {name} must be a number in (0, 1], not {repr(v):.80}")
         out[name] = float(v)
     lens = data.get("refine_intrinsics", [])
     if not isinstance(lens, list) or any(x not in LENS for x in lens):
-        raise Unprocessable(f"options: refine_intrinsics must be a list of {', '.join(LENS)}, not {lens!r}")
+        raise Unprocessable(f"options: refine_intrinsics must be a list of {', '.join(LENS)}, not {repr(lens):.80}")
     out["refine_intrinsics"] = list(dict.fromkeys(lens))
     pose_sd = data.get("pose_sd", 1.0)
     if isinstance(pose_sd, bool) or not isinstance(pose_sd, (int, float)) or not 0 <= pose_sd <= 180:
-        raise Unprocessable(f"options: pose_sd must be a number of degrees in [0, 180], not {pose_sd!r}")
+        raise Unprocessable(f"options: pose_sd must be a number of degrees in [0, 180], not {repr(pose_sd):.80}")
     out["pose_sd"] = float(pose_sd)
     return out, label
 

@@ -327,9 +327,11 @@ def test_a_jobs_rig_refined_from_its_keypoints(alice, bob, tmp_path):
     r = bob.post(f"/v1/jobs/{job_id}/refinement")
     assert r.status_code == 404 and job_id in r.json()["detail"]
     for bad, fragment in (({"likelihood": 2}, "likelihood"), ({"refine_intrinsics": ["zoom"]}, "refine_intrinsics"),
-                          ({"every": 2}, "unknown option")):
+                          ({"every": 2}, "unknown option"),
+                          ({"refine_intrinsics": ["x" * 100_000]}, "refine_intrinsics")):
         r = alice.post(f"/v1/jobs/{job_id}/refinement", data={"options": json.dumps(bad)})
         assert r.status_code == 422 and fragment in r.json()["detail"] and "\n" not in r.json()["detail"], r.text
+        assert len(r.json()["detail"]) < 300  # the value quoted, not echoed whole
     for other in ("0" * 32, job_id[:-1], "..%2F" + job_id):
         r = alice.post(f"/v1/jobs/{other}/refinement")
         assert r.status_code == 404, r.text
