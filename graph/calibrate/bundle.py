@@ -395,6 +395,14 @@ def _damped(H: np.ndarray, lam: float, floor_of: np.ndarray) -> np.ndarray:
     return H + lam * np.maximum(d, floor_of)[..., None] * np.eye(H.shape[-1])
 
 
+def _schur(A: np.ndarray, W: np.ndarray, Hinv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The camera side's reduced system ``S = A - sum_j W_j H_j^-1 W_j^T`` (D, D), each board's (or
+    point's) block ``H_j`` eliminated, and ``W H^-1`` laid out (D, B nb) for the right-hand side."""
+    D = W.shape[1]
+    WH2 = np.matmul(W, Hinv).transpose(1, 0, 2).reshape(D, -1)
+    return A - WH2 @ W.transpose(1, 0, 2).reshape(D, -1).T, WH2
+
+
 def _step(eq: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray, float] | None:
     """The damped step ``(d_c (D,), d_b (B, nb))`` by the Schur complement: each board's block
     eliminated, ``(A - sum_j W_j H_j^-1 W_j^T) d_c = -g_c + sum_j W_j H_j^-1 g_j``, then
@@ -426,9 +434,7 @@ def _step(eq: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray, floa
         A = _damped(eq.H_cc, lam, floor_c)
         seen_c = dcd > 0
         damp_c = lam * np.maximum(dcd, floor_c) * seen_c
-        WH = np.matmul(eq.W, Hinv)  # (B, D, nb)
-        WH2 = WH.transpose(1, 0, 2).reshape(D, -1)
-        S = A - WH2 @ eq.W.transpose(1, 0, 2).reshape(D, -1).T
+        S, WH2 = _schur(A, eq.W, Hinv)
         rhs = -eq.g_c + WH2 @ eq.g_b.reshape(-1)
         S[~seen_c, :], S[:, ~seen_c] = 0.0, 0.0
         S[~seen_c, ~seen_c] = 1.0
@@ -527,9 +533,7 @@ def camera_covariance(rig: Rig, obs: Observations, settings: Settings,
     unseen = np.diagonal(Hb, axis1=1, axis2=2).max(axis=1) <= 0
     Hb[unseen] = np.eye(Hb.shape[-1])
     Hinv = np.linalg.inv(Hb)
-    D = len(eq.g_c)
-    S = eq.H_cc - (np.matmul(eq.W, Hinv).transpose(1, 0, 2).reshape(D, -1)
-                   @ eq.W.transpose(1, 0, 2).reshape(D, -1).T)
+    S, _ = _schur(eq.H_cc, eq.W, Hinv)
     return sigma * sigma * np.linalg.pinv(0.5 * (S + S.T)), eq
 
 

@@ -67,6 +67,8 @@ MIN_VIEWS = 2  # detections a point keeps after the trimming, to stay in the adj
 BLOCKS = 10  # the run cut into this many blocks of frames: adjusted on the odd ones, scored on the even
 MIN_SPLIT_FRAMES = 2 * BLOCKS  # shorter runs are adjusted and scored on every frame
 LENS = ("focal", "k1")  # what of a camera's intrinsics can be refined with its pose
+FOCAL_SD = 0.02  # the focal scale's prior sd, relative: two board calibrations of one camera differ by up to 2 %
+K1_SD = 0.02  # k1's prior sd
 TOLERANCE = 1e-5  # a solve stops when a step lowers the cost by less than this fraction: with thousands of
 # detections, far below what their noise resolves. Measured: 1e-9 ran every solve of the fly's near-telecentric rig
 # to its 100 steps (9 s for 250 frames; 2 s here), with the same rigs on the fly, SLEAP's session and the simulation
@@ -172,12 +174,18 @@ def lens_prior(camera: Camera, lens: tuple[str, ...], focal_sd: float, k1_sd: fl
     theta0 = intrinsics_of(camera)
     n = len(theta0)
     L = np.zeros((n, n))
-    fx0, fy0 = theta0[0], theta0[1]
-    L[0, :2] = np.array([0.5 / fx0, 0.5 / fy0]) / (focal_sd if "focal" in lens else HELD)
-    L[1, :2] = np.array([1.0 / fx0, -1.0 / fy0]) / HELD
+    L[0] = focal_scale_gradient(theta0) / (focal_sd if "focal" in lens else HELD)
+    L[1, :2] = np.array([1.0 / theta0[0], -1.0 / theta0[1]]) / HELD
     for j in range(2, n):
         L[j, j] = 1.0 / (k1_sd if (j == 4 and "k1" in lens) else HELD)
     return theta0, L
+
+
+def focal_scale_gradient(theta0: np.ndarray) -> np.ndarray:
+    """The gradient of the focal scale ``((fx - fx0) / fx0 + (fy - fy0) / fy0) / 2`` by ``theta``."""
+    grad = np.zeros(len(theta0))
+    grad[:2] = 0.5 / theta0[0], 0.5 / theta0[1]
+    return grad
 
 
 def _points(rig: Calibration, meas: np.ndarray, valid: np.ndarray, frames: np.ndarray):
@@ -210,9 +218,9 @@ def _bundle_rig(cal: Calibration, pts: np.ndarray) -> bundle.Rig:
 
 def pose_priors(anchor: Calibration, pts: np.ndarray, sd_deg: float, gauge: int = 0) -> dict:
     """The cameras' pose priors (:attr:`graph.calibrate.bundle.Settings.pose_priors`), camera
-    ``gauge``'s excepted (it is held): centred on ``anchor``'s poses, the rotation's sd ``s_r = sd_deg`` and the
-    position's ``s_t = s_r d_i``, ``d_i`` the median distance from camera i to the points ``pts``
-    (P, 3): a turn of ``s_r`` and a shift of ``s_t`` move the animal in the image alike."""
+    ``gauge``'s excepted (it is held; -1: none): centred on ``anchor``'s poses, the rotation's sd
+    ``s_r = sd_deg`` and the position's ``s_t = s_r d_i``, ``d_i`` the median distance from camera i
+    to the points ``pts`` (P, 3): a turn of ``s_r`` and a shift of ``s_t`` move the animal in the image alike."""
     s_r = float(np.radians(sd_deg))
     return {i: (c.R.T, c.center, s_r, s_r * float(np.median(np.linalg.norm(pts - c.center, axis=1))))
             for i, c in enumerate(anchor.cameras) if i != gauge}
@@ -221,12 +229,9 @@ def pose_priors(anchor: Calibration, pts: np.ndarray, sd_deg: float, gauge: int 
 def prior_moves(anchor: Calibration, moved: Calibration, pts: np.ndarray, sd_deg: float) -> np.ndarray:
     """How far each camera of ``moved`` is from ``anchor``'s, in sd of :func:`pose_priors` (C,): the
     larger of the turn over ``s_r`` and the shift over ``s_t``."""
-    out = np.zeros(len(anchor))
-    for i, (a, b) in enumerate(zip(anchor.cameras, moved.cameras)):
-        s_r = np.radians(sd_deg)
-        s_t = s_r * float(np.median(np.linalg.norm(pts - a.center, axis=1)))
-        out[i] = max(rotation_angle(a.R @ b.R.T) / s_r, float(np.linalg.norm(a.center - b.center)) / s_t)
-    return out
+    priors = pose_priors(anchor, pts, sd_deg, gauge=-1)
+    return np.array([max(rotation_angle(R0.T @ b.R.T) / s_r, float(np.linalg.norm(t0 - b.center)) / s_t)
+                     for b, (R0, t0, s_r, s_t) in zip(moved.cameras, priors.values())])
 
 
 def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frames: np.ndarray,
@@ -288,16 +293,14 @@ def _adjust(calibration: Calibration, meas: np.ndarray, valid: np.ndarray, frame
     if lens_priors:  # the focal scale's and k1's posterior sd per camera
         cov, eq = bundle.camera_covariance(sol.rig, obs, settings, sigma)
         for i, (a, z) in eq.lens_slots.items():
-            theta0 = lens_priors[i][0]
-            grad = np.zeros(z - a)
-            grad[:2] = 0.5 / theta0[0], 0.5 / theta0[1]
+            grad = focal_scale_gradient(lens_priors[i][0])
             block = cov[a:z, a:z]
             lens_sd[i] = (float(np.sqrt(max(grad @ block @ grad, 0.0))), float(np.sqrt(max(block[4, 4], 0.0))))
     return _Adjusted(rig, rms_before, rms_after, P, obs.n_views, sol.rig.t_board.copy(), lens_sd)
 
 
 def refine_rig(calibration: Calibration, keypoints: list, min_likelihood: float = 0.9, lens: tuple[str, ...] = (),
-               focal_sd: float = 0.02, k1_sd: float = 0.02, pose_sd_deg: float = POSE_SD_DEG,
+               focal_sd: float = FOCAL_SD, k1_sd: float = K1_SD, pose_sd_deg: float = POSE_SD_DEG,
                hold: str | None = None) -> RefineResult:
     """See the module. Accepted on the held-out frames, the rig is adjusted once more on every frame
     (from the rig the check accepted: the held-out half of the data is not thrown away). The world

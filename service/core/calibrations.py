@@ -50,6 +50,21 @@ OPTION_NAMES = ("model", "origin", "every", "label")
 REFINE_OPTION_NAMES = ("likelihood", "refine_intrinsics", "focal_sd", "k1_sd", "pose_sd", "label")
 
 
+def options_object(text: str | None, known: tuple[str, ...], example: str) -> dict:
+    """The ``options`` form field as a JSON object of ``known`` names (empty: ``{}``); refusals are one
+    line, ``example`` shown for a value that is not an object."""
+    try:
+        data = json.loads(text) if text and text.strip() else {}
+    except (json.JSONDecodeError, RecursionError):
+        raise Unprocessable("options: not a valid JSON object") from None
+    if not isinstance(data, dict):
+        raise Unprocessable(f"options: must be a JSON object such as {example}")
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise Unprocessable(f"options: unknown option {unknown[0]!r}; known: {', '.join(known)}")
+    return data
+
+
 def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
     """The board spec and the ``options`` JSON object (``model``: fisheye|pinhole, ``origin``:
     camera1|board:FRAME, ``every``: use every N-th frame of videos, ``label``) as the job's options,
@@ -60,15 +75,7 @@ def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
         board = parse_board(board_spec)
     except InputError as e:
         raise Unprocessable(f"board: {e}") from None
-    try:
-        data = json.loads(text) if text and text.strip() else {}
-    except (json.JSONDecodeError, RecursionError):
-        raise Unprocessable("options: not a valid JSON object") from None
-    if not isinstance(data, dict):
-        raise Unprocessable('options: must be a JSON object such as {"model": "fisheye", "origin": "camera1"}')
-    unknown = sorted(set(data) - set(OPTION_NAMES))
-    if unknown:
-        raise Unprocessable(f"options: unknown option {unknown[0]!r}; known: {', '.join(OPTION_NAMES)}")
+    data = options_object(text, OPTION_NAMES, '{"model": "fisheye", "origin": "camera1"}')
     label = parse_label(data.get("label"))
     model = data.get("model", "fisheye")
     if model not in MODELS:
@@ -87,20 +94,12 @@ def parse_refine_options(text: str | None) -> tuple[dict, str | None]:
     :data:`graph.calibrate.refine.LENS`, ``focal_sd``, ``k1_sd``, ``pose_sd`` (degrees), ``label``) as
     the job's options, and
     its label; refusals are one line."""
-    from graph.calibrate.refine import LENS
+    from graph.calibrate.refine import FOCAL_SD, K1_SD, LENS, POSE_SD_DEG
 
-    try:
-        data = json.loads(text) if text and text.strip() else {}
-    except (json.JSONDecodeError, RecursionError):
-        raise Unprocessable("options: not a valid JSON object") from None
-    if not isinstance(data, dict):
-        raise Unprocessable('options: must be a JSON object such as {"refine_intrinsics": ["focal"]}')
-    unknown = sorted(set(data) - set(REFINE_OPTION_NAMES))
-    if unknown:
-        raise Unprocessable(f"options: unknown option {unknown[0]!r}; known: {', '.join(REFINE_OPTION_NAMES)}")
+    data = options_object(text, REFINE_OPTION_NAMES, '{"refine_intrinsics": ["focal"]}')
     label = parse_label(data.get("label"))
     out: dict = {"kind": CALIBRATION_KIND, "refine": True}
-    for name, default in (("likelihood", 0.9), ("focal_sd", 0.02), ("k1_sd", 0.02)):
+    for name, default in (("likelihood", 0.9), ("focal_sd", FOCAL_SD), ("k1_sd", K1_SD)):
         v = data.get(name, default)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= 1:
             raise Unprocessable(f"options: {name} must be a number in (0, 1], not {repr(v):.80}")
@@ -109,7 +108,7 @@ def parse_refine_options(text: str | None) -> tuple[dict, str | None]:
     if not isinstance(lens, list) or any(x not in LENS for x in lens):
         raise Unprocessable(f"options: refine_intrinsics must be a list of {', '.join(LENS)}, not {repr(lens):.80}")
     out["refine_intrinsics"] = list(dict.fromkeys(lens))
-    pose_sd = data.get("pose_sd", 1.0)
+    pose_sd = data.get("pose_sd", POSE_SD_DEG)
     if isinstance(pose_sd, bool) or not isinstance(pose_sd, (int, float)) or not 0 <= pose_sd <= 180:
         raise Unprocessable(f"options: pose_sd must be a number of degrees in [0, 180], not {repr(pose_sd):.80}")
     out["pose_sd"] = float(pose_sd)

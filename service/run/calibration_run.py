@@ -75,7 +75,7 @@ def run_refine(input_dir: Path, m: dict, out_dir: Path, progress) -> dict:
     keypoints = [read_keypoints(inside(input_dir, rel), individual=r.get("individual")) for rel in r["keypoints"]]
     progress(Progress("refine", 0.1))
     result = refine_rig(calibration, keypoints, opts["likelihood"], tuple(opts["refine_intrinsics"]),
-                        opts["focal_sd"], opts["k1_sd"], opts.get("pose_sd", 1.0))
+                        opts["focal_sd"], opts["k1_sd"], opts["pose_sd"])
     progress.report(WRITING, 1.0)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_anipose_toml(out_dir / "calibration.toml", result.calibration)
