@@ -113,8 +113,12 @@ def kinematic_result() -> Result:
 def test_payload_is_strict_json_with_the_result_numbers(solved):
     result, calib = solved
     p = payload.result_payload(result, calib)
-    text = json.dumps(p, allow_nan=False)  # raises on NaN or infinity
-    back = json.loads(text)
+    text = payload.payload_json(p).decode("utf-8")
+
+    def not_json(token: str):
+        raise AssertionError(f"{token} is not JSON")
+
+    back = json.loads(text, parse_constant=not_json)  # NaN or Infinity in the text fails
     N, M = result.positions.shape[:2]
     C = len(result.camera_names)
     np.testing.assert_allclose(np.array(back["reprojection_error_px"], dtype=float), result.error, atol=0.006)

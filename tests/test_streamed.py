@@ -20,7 +20,7 @@ from servers import children
 from graph.api import solve
 from graph.io.calibration import load_calibration
 from graph.io.keypoints import read_keypoints
-from graph.io.results import read_result, write_anipose_csv
+from graph.io.results import H5Stream, read_result, write_anipose_csv, write_h5
 from graph.io.staged import StagedRun
 from graph.simulate import simulate_run, write_run
 from graph.solve import problem, windows
@@ -86,6 +86,26 @@ def test_the_command_streams_the_same_answer_as_the_run_in_memory(rig, long_run,
             assert report[key] == whole[key], key
     assert report["windows"]["count"] == FRAMES // CORE
     assert not list(tmp_path.glob(".acinoset-staged-*")), "the staged copy was left behind"
+
+
+@pytest.mark.parametrize("step", [3, 7])
+def test_an_overview_written_as_the_windows_finish_is_every_kth_frame_of_the_whole(in_memory, step, tmp_path):
+    """The job page's view of a long run is kept as the windows finish (stretches of uneven lengths,
+    whose first kept frame moves): it is ``read_result(whole, step=k)`` array for array."""
+    write_h5(tmp_path / "whole.h5", in_memory)
+    stream = H5Stream(tmp_path / "view.h5", FRAMES, step=step)
+    cuts = [0, 1, 499, 500, 1234, 2999, FRAMES]
+    for a, b in zip(cuts, cuts[1:]):
+        stream.write(in_memory.frames(a, b))
+    stream.close(in_memory.report, in_memory.options)
+    every, kept = read_result(tmp_path / "whole.h5", step=step), read_result(tmp_path / "view.h5")
+    assert kept.positions.shape[0] == -(-FRAMES // step)
+    for name in FRAME_AXIS:
+        a, b = getattr(every, name), getattr(kept, name)
+        assert (a is None) == (b is None), name
+        if a is not None:
+            assert a.shape == b.shape and np.array_equal(a, b, equal_nan=True), name
+    assert kept.report.to_dict() == every.report.to_dict()
 
 
 def test_angles_stay_on_one_turn_across_the_seams(in_memory):

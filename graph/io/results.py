@@ -235,29 +235,37 @@ class H5Stream:
     """The file of :func:`write_h5` written a stretch of frames at a time, for a run of ``frames``
     frames whose windows finish one after another: each per-frame array a dataset of the run's
     length, chunked along its frame axis (:data:`graph.types.FRAME_AXIS`) and filled as the stretches
-    come; the report (and the body, clocks and rig) written by :meth:`close`, after the last."""
+    come; the report (and the body, clocks and rig) written by :meth:`close`, after the last.
+    ``step`` > 1: the run's frames ``0, step, 2 step, ...`` only (a long run's overview, as
+    ``read_result(..., step=step)`` of the whole file reads it, without reading the whole)."""
 
     CHUNK_FRAMES = 1024
 
-    def __init__(self, path: str | Path, frames: int, resume: int | None = None):
+    def __init__(self, path: str | Path, frames: int, resume: int | None = None, step: int = 1):
         import h5py
 
-        self.frames, self.rows = frames, 0
+        self.frames, self.step, self.seen = frames, max(1, int(step)), 0
         if resume:  # a file of which ``resume`` frames were written (:meth:`flush`): on from there
             self.file = h5py.File(path, "r+")
-            self.rows = resume
+            self.seen = resume
         else:
             self.file = h5py.File(path, "w")
 
+    @property
+    def rows(self) -> int:
+        """The file's frames written so far."""
+        return -(-self.seen // self.step)
+
     def flush(self) -> int:
-        """The frames written so far, on disk."""
+        """The run's frames written so far, on disk."""
         self.file.flush()
-        return self.rows
+        return self.seen
 
     def write(self, result: Result) -> None:
-        """The next frames: every frame of ``result``."""
+        """The next frames: every frame of ``result`` (every ``step``-th of the run's)."""
         f, n = self.file, result.positions.shape[0]
-        if self.rows == 0:
+        first, rows = (-self.seen) % self.step, self.rows  # the stretch's first frame kept, where it goes
+        if self.seen == 0:
             _write_header(f, result)
             for name in _ARRAYS + _OPTIONAL_ARRAYS:
                 a = getattr(result, name, None)
@@ -268,22 +276,23 @@ class H5Stream:
                 if axis is None:  # not per frame: once
                     _write_array(f, name, a)
                     continue
-                shape = a.shape[:axis] + (self.frames,) + a.shape[axis + 1:]
-                chunks = a.shape[:axis] + (max(1, min(self.frames, self.CHUNK_FRAMES)),) + a.shape[axis + 1:]
+                length = -(-self.frames // self.step)
+                shape = a.shape[:axis] + (length,) + a.shape[axis + 1:]
+                chunks = a.shape[:axis] + (max(1, min(length, self.CHUNK_FRAMES)),) + a.shape[axis + 1:]
                 _write_array(f, name, a, shape=shape, chunks=chunks)
         for name, axis in FRAME_AXIS.items():
             a = getattr(result, name, None)
             if a is not None and name in f:
-                a = np.asarray(a)
-                f[name][(slice(None),) * axis + (slice(self.rows, self.rows + n),)] = (
+                a = np.asarray(a)[(slice(None),) * axis + (slice(first, None, self.step),)]
+                f[name][(slice(None),) * axis + (slice(rows, rows + a.shape[axis]),)] = (
                     a.astype(np.uint8) if a.dtype == bool else a)
-        self.rows += n
+        self.seen += n
 
     def close(self, report: SolveReport, options: SolveOptions, calibration: Calibration | None = None) -> None:
         """The run's ``report``, body, clocks and rig, and the file closed."""
-        if self.rows != self.frames:
+        if self.seen != self.frames:
             self.file.close()
-            raise ValueError(f"{self.rows} of {self.frames} frames were written")
+            raise ValueError(f"{self.seen} of {self.frames} frames were written")
         self.file.attrs["report"] = json.dumps(report.to_dict())
         _write_run(self.file, report, options, calibration)
         self.file.close()

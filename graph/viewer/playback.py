@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import html
 import importlib.util
-import json
 from collections.abc import Sequence
 from pathlib import Path
 
 from graph.types import Result
 from graph.viewer import SCRIPTS, STYLES, viewer_dir
-from graph.viewer.payload import group_payload, result_payload
+from graph.viewer.payload import group_payload, payload_json, result_payload
 
 HTML_NAME = "playback.html"
 
@@ -46,7 +45,7 @@ def playback_html(result: Result | Sequence[tuple[str, Result]], calibration=Non
         names = ", ".join(name for name, _ in result)
         result = result[0][1]
         title = title or f"acinoset: {result.method} / {result.skeleton}, {names}, {result.positions.shape[0]} frames"
-    payload = json.dumps(data, separators=(",", ":"), allow_nan=False)
+    payload = payload_json(data).decode("utf-8")
     css = "\n".join((d / name).read_text(encoding="utf-8") for name in STYLES)
     view = "\n".join((d / name).read_text(encoding="utf-8") for name in SCRIPTS)
     plotly = plotly_js_path().read_text(encoding="utf-8")

@@ -168,14 +168,14 @@ def write_results(result, out_dir: Path, calibration=None, individual: str | Non
     """Write every result format into ``out_dir`` (the H5 with the calibration solved with, so the
     exports carry the rig, and the ``individual`` it is of, one of several); return the report as a dict."""
     from graph.io.results import write_anipose_csv, write_h5
-    from graph.viewer.payload import result_payload  # what the job page draws: one definition for both sides
+    from graph.viewer.payload import payload_json, result_payload  # the job page: one definition for both sides
 
     out_dir.mkdir(parents=True, exist_ok=True)
     name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}
     write_anipose_csv(out_dir / name["csv"], result)
     write_h5(out_dir / name["h5"], result, calibration=calibration, individual=individual)
     report = result.report.to_dict()
-    (out_dir / name["json"]).write_text(json.dumps(result_payload(result), separators=(",", ":"), allow_nan=False))
+    (out_dir / name["json"]).write_bytes(payload_json(result_payload(result)))
     (out_dir / name["report"]).write_text(json.dumps(report, indent=2))
     return report
 
@@ -278,7 +278,7 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     from graph.api import solve_streamed
     from graph.io.results import AniposeCsv, H5Stream, read_result
     from graph.types import WINDOW_FRAMES, WINDOWED_ABOVE
-    from graph.viewer.payload import result_payload
+    from graph.viewer.payload import payload_json, result_payload
 
     options = job_options(input_dir)
     if options.method != "fte" or options.window_frames == 0 or options.individual or options.individuals:
@@ -301,6 +301,11 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
         out_dir.mkdir(parents=True, exist_ok=True)
         name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}
         h5 = H5Stream(out_dir / name["h5"], run.frames)
+        step = max(1, -(-run.frames // PAGE_FRAMES))
+        # the page's view: every step-th frame, kept as the windows finish (reading them back out of
+        # the whole H5 took 1.4-1.7 s at 72,000 frames)
+        seen_path = scratch / "view.h5" if step > 1 else out_dir / name["h5"]
+        streams = [h5] if step == 1 else [h5, H5Stream(seen_path, run.frames, step=step)]
         csv: list[AniposeCsv] = []
 
         def write(core) -> None:
@@ -308,14 +313,21 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
             if not csv:
                 csv.append(AniposeCsv(out_dir / name["csv"], r.markers))
             csv[0].write(r)
-            h5.write(r)
+            for stream in streams:
+                stream.write(r)
 
         try:
             report = solve_streamed(run, calibration, options, write, progress=progress, solver=solver)
             if solver is not None and solver.solved and report.windows is not None:
                 report.windows["solved_by"] = dict(solver.solved)  # the workers that solved windows, how many each
+            report.warnings = [strip_paths(w) for w in report.warnings]
+            for stream in streams:
+                stream.close(report, options, calibration)
+            progress.report(WRITING, 1.0, report.iterations, report.cost)
+            seen = read_result(seen_path)
         except BaseException:
-            h5.file.close()
+            for stream in streams:
+                stream.file.close()
             raise
         finally:
             for f in csv:
@@ -324,16 +336,11 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
         if solver is not None:
             solver.close()  # the helpers invited stop (the windows' own end stops them too)
         shutil.rmtree(scratch, ignore_errors=True)
-    report.warnings = [strip_paths(w) for w in report.warnings]
-    h5.close(report, options, calibration)
-    progress.report(WRITING, 1.0, report.iterations, report.cost)
-    step = max(1, -(-run.frames // PAGE_FRAMES))
-    view = read_result(out_dir / name["h5"], step=step)
-    payload = result_payload(dataclasses.replace(view, fps=view.fps / step))
+    payload = result_payload(dataclasses.replace(seen, fps=seen.fps / step))
     payload["frame_step"] = step
     # the view's frames: the run's frames n * step (the report's frame numbers are the run's)
     payload["report"]["unconstrained_frames"] = [n // step for n in report.unconstrained_frames if n % step == 0]
-    (out_dir / name["json"]).write_text(json.dumps(payload, separators=(",", ":"), allow_nan=False))
+    (out_dir / name["json"]).write_bytes(payload_json(payload))
     doc = report.to_dict()
     (out_dir / name["report"]).write_text(json.dumps(doc, indent=2))
     return doc
@@ -359,11 +366,10 @@ def solve_group_job(tracks: list, calibration, options, out_dir: Path, progress:
         for k, result in enumerate(results):
             write_results(result, out_dir / jobfiles.individual_folder(k), calibration, individual=group.names[k])
         from graph.io.results import write_group_h5
-        from graph.viewer.payload import group_payload  # the job page's view of them all
+        from graph.viewer.payload import group_payload, payload_json  # the job page's view of them all
 
         named = list(zip(group.names, results))
-        (out_dir / RESULT_FILES["json"][0]).write_text(
-            json.dumps(group_payload(named), separators=(",", ":"), allow_nan=False))
+        (out_dir / RESULT_FILES["json"][0]).write_bytes(payload_json(group_payload(named)))
         write_group_h5(out_dir / RESULT_FILES["h5"][0], named, calibration=calibration, identity=doc["identity"])
         report = {**doc["individuals"][group.names[0]], **doc}
         report["warnings"] = [f"{name}: {w}" for name, r in zip(group.names, results) for w in r.report.warnings]
