@@ -15,14 +15,17 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from group_files import write_dlc_multi
 from servers import children
 
 from graph.api import solve
+from graph.errors import InputError
 from graph.io.calibration import load_calibration
-from graph.io.keypoints import read_keypoints
+from graph.io.keypoints import read_blocks, read_keypoints
 from graph.io.results import H5Stream, read_result, write_anipose_csv, write_h5
-from graph.io.staged import StagedRun
-from graph.simulate import simulate_run, write_run
+from graph.io.staged import StagedRun, stage, stage_camera
+from graph.simulate import ring_rig, simulate_run, write_run
+from graph.simulate_group import simulate_group
 from graph.solve import problem, windows
 from graph.types import FRAME_AXIS, SolveOptions
 
@@ -131,6 +134,36 @@ def test_a_staged_run_reads_back_the_frames_asked_for(rig, long_run, tmp_path):
     source = windows.Staged(staged, rig, SolveOptions(fps=120))
     whole = problem.build(run.keypoints, rig, SolveOptions(fps=120))
     assert np.array_equal(source.seen(), whole.valid.sum(axis=(1, 2)))
+
+
+def test_cameras_staged_one_by_one_are_the_run_staged_in_turn(rig, long_run, tmp_path):
+    """Workers that share a data dir stage a run's cameras between them, each camera once, and put
+    them together: the same arrays and index as one process staging them in turn; a camera with
+    other frames is named as one process names it; a file of several animals stages no run."""
+    _, d = long_run
+    paths = _cams(rig, d)
+    whole = stage(paths, tmp_path / "whole", read_blocks, lambda frames: True)
+    assert whole is not None
+    folder = tmp_path / "together"
+    assert StagedRun(folder).unstaged(len(paths)) == list(range(len(paths)))
+    for c in reversed(range(len(paths))):  # in any order
+        stage_camera(paths[c], folder, c, read_blocks)
+    assert StagedRun(folder).unstaged(len(paths)) == []
+    together = StagedRun.gather(folder, len(paths))
+    assert together is not None and together.frames == whole.frames == FRAMES
+    assert together.cameras == whole.cameras
+    for a, b in zip(together.keypoints(0, FRAMES), whole.keypoints(0, FRAMES)):
+        assert np.array_equal(a.xy, b.xy, equal_nan=True) and np.array_equal(a.likelihood, b.likelihood)
+
+    short = tmp_path / "short.csv"
+    short.write_text("".join(Path(paths[1]).read_text().splitlines(keepends=True)[:-5]))
+    stage_camera(str(short), folder, 1, read_blocks)
+    with pytest.raises(InputError, match=r"has 2995 frames but .*\.csv has 3000; all cameras must have the same"):
+        StagedRun.gather(folder, len(paths))
+
+    pack = simulate_group(ring_rig(3), animals=2, frames=20, seed=1)
+    stage_camera(str(write_dlc_multi(tmp_path / "pack.csv", pack.tracks[0], ["a", "b"])), folder, 1, read_blocks)
+    assert StagedRun.gather(folder, len(paths)) is None  # several animals: solved together, not staged
 
 
 def _solve(rig, d, out, *extra, wait=True, stderr=False):

@@ -20,6 +20,7 @@ keep the cameras' index beside the arrays, for a run that goes on after it was s
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -57,11 +58,12 @@ class StagedRun:
         """Write one camera's detections; :class:`InputError` when its frames are not the first's."""
         self.add_blocks([kp])
 
-    def add_blocks(self, blocks: Iterable[Keypoints]) -> None:
+    def add_blocks(self, blocks: Iterable[Keypoints], index: int | None = None) -> None:
         """Write one camera's detections a stretch of frames at a time, in order (a reader's blocks:
-        :func:`graph.io.keypoints.read_blocks`); :class:`InputError` when its frames are not the first's
-        or a stretch's bodyparts are not the first stretch's."""
-        c, frames, first = len(self.cameras), 0, None
+        :func:`graph.io.keypoints.read_blocks`), as camera ``index`` (default: the next);
+        :class:`InputError` when its frames are not the first's or a stretch's bodyparts are not the
+        first stretch's."""
+        c, frames, first = len(self.cameras) if index is None else index, 0, None
         for kp in blocks:
             if first is None:
                 first = kp
@@ -78,10 +80,8 @@ class StagedRun:
             frames += kp.frames
         if first is None:
             raise InputError("no frames")
-        if self.cameras and frames != self.frames:
-            name = Path(self.cameras[0].source).name or "camera 1"
-            raise InputError(f"has {frames} frames but {name} has {self.frames}; all cameras must have the same "
-                             "frames", first.source or None)
+        if self.cameras:
+            _same_frames(frames, first.source, self.frames, self.cameras[0].source)
         self.frames = frames
         self.cameras.append(StagedCamera(c, list(first.bodyparts), first.source, first.scorer, first.fps,
                                          first.spread_px is not None))
@@ -130,6 +130,27 @@ class StagedRun:
             raise InputError(f"no staged run to go on from ({e})", folder) from None
         return run
 
+    @classmethod
+    def gather(cls, folder: str | Path, count: int) -> StagedRun | None:
+        """The run whose ``count`` cameras were staged in ``folder`` one by one (:func:`stage_camera`,
+        each entry there); None when a file holds several individuals; :class:`InputError` when the
+        cameras' frames differ (as :meth:`add_blocks` says it)."""
+        run = cls(folder)
+        for c in range(count):
+            entry = json.loads(run._path(c, "json").read_text(encoding="utf-8"))
+            if "camera" not in entry:
+                return None
+            cam = StagedCamera(**entry["camera"])
+            if run.cameras:
+                _same_frames(int(entry["frames"]), cam.source, run.frames, run.cameras[0].source)
+            run.frames = int(entry["frames"])
+            run.cameras.append(cam)
+        return run
+
+    def unstaged(self, count: int) -> list[int]:
+        """Which of ``count`` cameras staged one by one (:func:`stage_camera`) are not yet whole here."""
+        return [c for c in range(count) if not self._path(c, "json").is_file()]
+
     def _path(self, camera: int, name: str) -> Path:
         return self.folder / f"{camera}.{name}"
 
@@ -154,6 +175,31 @@ def stage(paths: list[str], folder: str | Path, read: Callable[[str], Iterable[T
         if len(run.cameras) == 1 and not long_enough(run.frames):
             return None
     return run
+
+
+def stage_camera(path: str, folder: str | Path, index: int, read: Callable[[str], Iterable[Tracks]]) -> None:
+    """Camera ``index``'s file ``path`` staged in ``folder`` on its own, for processes that stage a
+    run's cameras between them (:meth:`StagedRun.gather` puts them together): its arrays, then its
+    entry ``<index>.json`` (its frame count and :class:`StagedCamera`, or that the file holds several
+    individuals), written last and by a rename: an entry there means the camera is whole."""
+    run = StagedRun(folder)
+    run.folder.mkdir(parents=True, exist_ok=True)
+    try:
+        run.add_blocks(_one_individual(read(path)), index=index)
+        entry: dict = {"frames": run.frames, "camera": asdict(run.cameras[0])}
+    except _SeveralIndividuals:
+        entry = {"several_individuals": True}
+    part = run._path(index, "json.part")
+    part.write_text(json.dumps(entry), encoding="utf-8")
+    os.replace(part, run._path(index, "json"))
+
+
+def _same_frames(frames: int, source: str, first_frames: int, first_source: str) -> None:
+    """:class:`InputError` naming ``source`` when its ``frames`` are not the first camera's."""
+    if frames != first_frames:
+        name = Path(first_source).name or "camera 1"
+        raise InputError(f"has {frames} frames but {name} has {first_frames}; all cameras must have the same "
+                         "frames", source or None)
 
 
 class _SeveralIndividuals(Exception):

@@ -22,7 +22,11 @@ Redis keys, each under ``acinoset:windows:<token>`` and expiring with the job's 
   cameras and 20 markers);
 * ``:done:<k>``: window k's result, a zip of its ``result.h5`` (:func:`graph.io.results.write_h5`)
   and ``valid.npy`` (the confident detections) in chunks (:func:`service.store.jobfiles.put_archive`);
-* ``:stop``: set when the parent ends; a helper stops at its next window.
+* ``:stop``: set when the parent ends; a helper stops at its next window;
+* ``:staging``: on a data dir the workers share, who stages each camera's file (camera -> ``parent``
+  or the helper's name, set once), the run's cameras staged once between them in the parent's result
+  folder (:func:`stage_together`); ``together`` set when the parent asks its helpers to (without it,
+  a helper stages a copy of its own, as it does when the files travel through Redis).
 
 The answer does not depend on who solved which window when the workers run the same build on the
 same kind of CPU (tested on one machine): a window's result is a function of the run's frames and the
@@ -50,6 +54,10 @@ LOOKAHEAD = 6  # windows a helper may solve past the one the parent takes next (
 POLL_S = 0.05
 
 
+PARENT = "parent"  # who staged a camera (``:staging``), when the job's own work horse did
+TOGETHER = "together"  # in ``:staging``: the helpers stage the cameras with the work horse
+
+
 class Keys:
     """The Redis keys of one job's shared windows (module docstring)."""
 
@@ -57,7 +65,8 @@ class Keys:
         from service.store.jobfiles import windows_key
 
         self.base = windows_key(token)
-        self.plan, self.claims, self.next, self.stop = (f"{self.base}:{k}" for k in ("plan", "claims", "next", "stop"))
+        self.plan, self.claims, self.next, self.stop, self.staging = (
+            f"{self.base}:{k}" for k in ("plan", "claims", "next", "stop", "staging"))
 
     def alive(self, who: str) -> str:
         return f"{self.base}:alive:{who}"
@@ -104,14 +113,18 @@ class SharedWindows:
     """The parent's side: a :data:`graph.solve.windows.WindowSolver` that shares the windows with
     helpers (module docstring). ``me`` names the parent's worker; ``enqueue(n)`` starts ``n``
     helpers and returns their RQ jobs' ids; ``idle()`` counts the workers free to help; ``ttl``
-    bounds how long any key outlives the job. ``solved``: each worker's windows, once done."""
+    bounds how long any key outlives the job; ``shared``: the workers share the data dir (the cameras
+    can be staged together, :meth:`invite`). ``solved``: each worker's windows, once done; ``staged``:
+    each worker's cameras, when staged together."""
 
-    def __init__(self, redis, token: str, me: str, enqueue, idle, ttl: int):
-        self.redis, self.keys, self.me = redis, Keys(token), me
-        self.enqueue, self.idle, self.ttl = enqueue, idle, int(ttl)
+    def __init__(self, redis, token: str, me: str, enqueue, idle, ttl: int, shared: bool = False):
+        self.redis, self.token, self.keys, self.me = redis, token, Keys(token), me
+        self.enqueue, self.idle, self.ttl, self.shared = enqueue, idle, int(ttl), shared
         self.helpers: list[str] = []
         self.invited = False
+        self.together = False
         self.solved: dict[str, int] = {}
+        self.staged: dict[str, int] = {}
 
     def __call__(self, source, spans: list[tuple[int, int]], settled) -> Iterator[tuple[Any, Any]]:
         from graph.solve.windows import solve_window
@@ -142,17 +155,36 @@ class SharedWindows:
             r.set(k_.stop, 1, ex=self.ttl)
             self._end(n)
 
-    def invite(self, windows: int) -> None:
+    def invite(self, windows: int, before_staging: bool = False) -> None:
         """Enqueue a helper for each idle worker, at most ``windows - 1``, once. Called as soon as the
         run is known to be long (before it is settled), so that the helpers stage the run meanwhile
-        and wait for the plan; called again when the windows start, it does nothing."""
+        and wait for the plan; called again when the windows start, it does nothing. Invited
+        ``before_staging`` on a shared data dir, the helpers stage the run's cameras with this work
+        horse, each camera once (:func:`stage_together`; ``together`` then says so); otherwise each
+        stages a copy of its own."""
         if self.invited:
             return
         self.invited = True
-        self.redis.delete(self.keys.stop)
+        k_ = self.keys
+        self.redis.delete(k_.stop, k_.staging)  # a retried job's cameras are staged again
         helpers = min(max(0, self.idle()), windows - 1)
         if helpers > 0:
+            self.together = self.shared and before_staging
+            if self.together:
+                self.redis.hset(k_.staging, TOGETHER, 1)
+                self.redis.expire(k_.staging, self.ttl)
             self.helpers = list(self.enqueue(helpers))
+
+    def stage(self, paths: list[str], folder: Path, read):
+        """The run's cameras staged with the helpers (:func:`stage_together`); ``staged``: each
+        worker's cameras."""
+        run = stage_together(self.redis, self.token, PARENT, paths, folder, read, self.ttl)
+        for c in range(len(paths)):
+            owner = self.redis.hget(self.keys.staging, str(c))
+            owner = owner.decode() if isinstance(owner, bytes) else str(owner)
+            worker = self.me if owner == PARENT else owner.rpartition("@")[2]
+            self.staged[worker] = self.staged.get(worker, 0) + 1
+        return run
 
     def close(self) -> None:
         """The run ended (solved, failed, or found short): the helpers invited stop, those not started
@@ -217,7 +249,7 @@ class SharedWindows:
             except Exception:  # noqa: BLE001 - gone already
                 pass
         k_ = self.keys
-        self.redis.delete(k_.plan, k_.claims, k_.next, *(k_.done(k) for k in range(n)),
+        self.redis.delete(k_.plan, k_.claims, k_.next, k_.staging, *(k_.done(k) for k in range(n)),
                           *(k_.done(k) + PARTIAL for k in range(n)))
 
 
@@ -245,25 +277,48 @@ def _plan(redis, token: str) -> dict | None:
         time.sleep(0.2)
 
 
-def help_with_windows(redis, token: str, me: str, run, calibration, options, others_waiting) -> int:
-    """A helper's side: solve the windows of the job whose RQ token is ``token`` until none is left
-    to claim, the parent stops, or ``others_waiting()`` says other jobs wait for a worker; ``me``
-    names it in the claims (``<its RQ job>@<its worker>``), ``run`` is the job's run as this process
-    staged it (:class:`graph.io.staged.StagedRun`), ``calibration`` and ``options`` the job's.
+def stage_together(redis, token: str, me: str, paths: list[str], folder: Path, read, ttl: int):
+    """The job's cameras ``paths`` staged in ``folder``, on the data dir the workers share, by the job's
+    work horse and its helpers between them: each camera claimed by one (``:staging``, ``HSETNX``;
+    ``me`` is :data:`PARENT` for the work horse) and staged by it
+    (:func:`graph.io.staged.stage_camera`), the others waited for; a camera whose claimant is gone (a
+    helper's heartbeat expired, the job no longer running) is staged here. The run
+    (:meth:`graph.io.staged.StagedRun.gather`), or None: a file holds several individuals, or the job
+    ended first."""
+    from graph.io.staged import StagedRun, stage_camera
+
+    k_ = Keys(token)
+    for c, path in enumerate(paths):
+        if redis.hsetnx(k_.staging, str(c), me):
+            redis.expire(k_.staging, ttl)
+            stage_camera(path, folder, c, read)
+    run = StagedRun(folder)
+    while missing := run.unstaged(len(paths)):
+        for c in missing:
+            owner = redis.hget(k_.staging, str(c))
+            owner = owner.decode() if isinstance(owner, bytes) else owner
+            gone = not _running(redis, token) if owner == PARENT else not redis.exists(k_.alive(str(owner)))
+            if owner is None or owner == me or gone:  # mine and not whole: left by a try before
+                redis.hset(k_.staging, str(c), me)
+                redis.expire(k_.staging, ttl)
+                stage_camera(paths[c], folder, c, read)
+        if me != PARENT and (redis.exists(k_.stop) or not _running(redis, token)):
+            return None
+        time.sleep(POLL_S)
+    return StagedRun.gather(folder, len(paths))
+
+
+def help_with_windows(redis, token: str, me: str, stage, calibration, options, others_waiting) -> int:
+    """A helper's side: the job's run staged (``stage()``, a :class:`graph.io.staged.StagedRun` or
+    None: a copy of its own, or :func:`stage_together` on a shared data dir; its heartbeat beats
+    meanwhile), then the windows of the job whose RQ token is ``token`` solved until none is left to
+    claim, the parent stops, or ``others_waiting()`` says other jobs wait for a worker; ``me`` names it
+    in the claims (``<its RQ job>@<its worker>``), ``calibration`` and ``options`` are the job's.
     Returns the windows it solved."""
     from graph.solve.windows import Staged, solve_window
     from service.store.jobfiles import put_archive
 
     k_ = Keys(token)
-    plan = _plan(redis, token)
-    if plan is None:
-        return 0
-    ttl = max(60, int(redis.ttl(k_.plan)))
-    held = _options_from(plan["options"], options.skeleton)
-    spans = [(int(lo), int(hi)) for lo, hi in plan["spans"]]
-    source = Staged(run, calibration, options)
-    s0, s1 = plan["settled_on"]
-    source.stretch(int(s0), int(s1), dataclasses.replace(options, window_frames=0))  # the windows' template
     stopped = threading.Event()
 
     def beat() -> None:
@@ -275,6 +330,16 @@ def help_with_windows(redis, token: str, me: str, run, calibration, options, oth
     beating = threading.Thread(target=beat, name="window-helper-heartbeat", daemon=True)
     beating.start()
     try:
+        run = stage()
+        plan = None if run is None else _plan(redis, token)
+        if plan is None:
+            return 0
+        ttl = max(60, int(redis.ttl(k_.plan)))
+        held = _options_from(plan["options"], options.skeleton)
+        spans = [(int(lo), int(hi)) for lo, hi in plan["spans"]]
+        source = Staged(run, calibration, options)
+        s0, s1 = plan["settled_on"]
+        source.stretch(int(s0), int(s1), dataclasses.replace(options, window_frames=0))  # the windows' template
         solved = 0
         while not redis.exists(k_.stop) and _running(redis, token):  # a parent killed sets no stop
             if others_waiting() or not redis.exists(k_.plan):  # the parent ended: its claims are gone

@@ -253,14 +253,24 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress,
 PAGE_FRAMES = 20_000  # the job page's view of a long run: every k-th frame, at most this many
 
 
-def stage_job(input_dir: Path, scratch: Path, long_enough: Callable[[int], bool]):
+STAGED = "staged"  # the folder of a long run's staged detections, in the job's result folder
+
+
+def stage_job(input_dir: Path, scratch: Path, long_enough: Callable[[int], bool], together=None):
     """The job's keypoint files staged in ``scratch`` (:func:`graph.io.staged.stage`), each camera
-    named by its upload's name; None when ``long_enough`` says the run is not."""
+    named by its upload's name; None when ``long_enough`` says the run is not. ``together(paths,
+    folder, read)``: the cameras staged with other workers instead
+    (:func:`service.run.shared_windows.stage_together`)."""
     from graph.io.keypoints import read_blocks
     from graph.io.staged import stage
 
     m = read_manifest(input_dir)
-    run = stage([str(inside(input_dir, rel)) for rel in m["keypoints"]], scratch, read_blocks, long_enough)
+    paths = [str(inside(input_dir, rel)) for rel in m["keypoints"]]
+    if together is None:
+        run = stage(paths, scratch, read_blocks, long_enough)
+    else:
+        run = together(paths, scratch, read_blocks)
+        run = run if run is not None and long_enough(run.frames) else None
     if run is not None:
         run.cameras = [dataclasses.replace(cam, source=Path(rel).name) for cam, rel in zip(run.cameras, m["keypoints"])]
     return run
@@ -286,13 +296,15 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     above = options.window_frames or WINDOWED_ABOVE
     # staged inside the job's result folder: a run killed (cancelled, timed out) leaves nothing behind
     # that the job's own clean-up does not remove
-    scratch = out_dir / "staged"
+    scratch = out_dir / STAGED
     windows = lambda frames: -(-frames // (options.window_frames or WINDOW_FRAMES))  # noqa: E731
     hint = read_manifest(input_dir).get("frames")
     if solver is not None and isinstance(hint, int) and hint > above:
-        solver.invite(windows(hint))  # the helpers stage the run while this process stages and settles it
+        # the helpers stage the run while this process stages (with them, on a shared data dir) and settles it
+        solver.invite(windows(hint), before_staging=True)
     try:
-        run = stage_job(input_dir, scratch, lambda frames: frames > above)
+        run = stage_job(input_dir, scratch, lambda frames: frames > above,
+                        solver.stage if solver is not None and solver.together else None)
         if run is None:
             return None
         if solver is not None:  # no hint: invited now (once)
@@ -320,6 +332,8 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
             report = solve_streamed(run, calibration, options, write, progress=progress, solver=solver)
             if solver is not None and solver.solved and report.windows is not None:
                 report.windows["solved_by"] = dict(solver.solved)  # the workers that solved windows, how many each
+                if solver.staged:
+                    report.windows["staged_by"] = dict(solver.staged)  # and staged the cameras
             report.warnings = [strip_paths(w) for w in report.warnings]
             for stream in streams:
                 stream.close(report, options, calibration)
@@ -646,7 +660,8 @@ def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int
                                description=f"acinoset job {job_id}: a helper with its windows")
         return ids
 
-    return SharedWindows(rq_job.connection, token, _worker_name(rq_job), enqueue, idle, int(rq_job.timeout or 3600))
+    return SharedWindows(rq_job.connection, token, _worker_name(rq_job), enqueue, idle, int(rq_job.timeout or 3600),
+                         shared=shared)
 
 
 def _this_worker() -> str:
@@ -673,24 +688,30 @@ def _help(rq_job, job_id: str, token: str, worker: str, shared: bool) -> dict:
     """This RQ job (on ``worker``) helps the job whose token is ``token`` with its windows
     (:func:`service.run.shared_windows.help_with_windows`), from the job's input files in Redis, or
     on the shared data dir (``shared``)."""
-    from service.run.shared_windows import help_with_windows
+    from service.run.shared_windows import TOGETHER, Keys, help_with_windows, stage_together
 
-    where = shared_job(job_id) if shared else get_archive(rq_job.connection, input_key(token))
+    redis, me = rq_job.connection, f"{rq_job.id}@{_worker_name(rq_job)}"
+    where = shared_job(job_id) if shared else get_archive(redis, input_key(token))
     if where is None or isinstance(where, str):  # the files are gone, or not seen from here
         return {"status": "helped", "windows": 0, "worker": worker}
     with tempfile.TemporaryDirectory(prefix=f"acinoset-{job_id[:8]}-helper-") as tmp:
+        scratch, together = Path(tmp) / STAGED, None
         if isinstance(where, Path):
             input_dir = where / INPUT
+            if redis.hexists(Keys(token).staging, TOGETHER):  # the cameras staged with the parent, in its folder
+                scratch = jobfiles.result_tmp(where, token) / STAGED
+
+                def together(paths: list[str], folder: Path, read):
+                    return stage_together(redis, token, me, paths, folder, read, int(rq_job.timeout or 3600))
         else:
             input_dir = Path(tmp) / INPUT
             unpack_files(where, input_dir)
             del where
+
         try:  # staged while the parent stages and settles the run
-            run = stage_job(input_dir, Path(tmp) / "staged", lambda frames: True)
-            n = 0 if run is None else help_with_windows(rq_job.connection, token,
-                                                        f"{rq_job.id}@{_worker_name(rq_job)}", run,
-                                                        job_calibration(input_dir), job_options(input_dir),
-                                                        _others_waiting(rq_job, token))
+            stage = lambda: stage_job(input_dir, scratch, lambda frames: True, together)  # noqa: E731
+            n = help_with_windows(redis, token, me, stage, job_calibration(input_dir), job_options(input_dir),
+                                  _others_waiting(rq_job, token))
         except Exception:  # noqa: BLE001 - the parent solves what a helper did not
             traceback.print_exc()
             return {"status": "failed", "error": "the helper stopped", "worker": worker}

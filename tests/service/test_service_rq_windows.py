@@ -126,6 +126,8 @@ def test_a_shared_data_dir_sends_no_file_through_redis(tmp_path, run, library_cs
             csv = c.get(done["links"]["result"]["csv"]).content
         assert status == "succeeded" and files == []
         assert sorted(report["windows"]["solved_by"]) == ["w1", "w2"]
+        # the cameras staged once, in the job's folder, by whichever worker claimed each
+        assert sum(report["windows"]["staged_by"].values()) == 4 and set(report["windows"]["staged_by"]) <= {"w1", "w2"}
         assert csv == library_csv
         assert not list((tmp_path / "data" / "jobs" / job).glob("result.*.tmp"))  # installed, nothing left
     finally:
