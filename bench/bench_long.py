@@ -74,6 +74,7 @@ Prints progress lines to stderr, Markdown tables to stdout, and writes bench/res
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import shutil
@@ -167,10 +168,10 @@ def tree_command(cmd: list[str], env: dict, every: float = 0.1) -> dict:
             "stderr_last": last_line(err)}
 
 
-def solve_command(d: Path, out: str = "run", extra: tuple[str, ...] = ()) -> list[str]:
+def solve_command(d: Path, out: str = "run", extra: tuple[str, ...] = (), method: str = "fte") -> list[str]:
     cams = [str(d / f"cam{k}.csv") for k in range(1, 7)]
     return [ACINOSET, "solve", *cams, "--calibration", str(d / "calibration.toml"), "--fps", f"{FPS:g}",
-            "--out", str(d / f"{out}.csv"), "--report", str(d / f"{out}.json"), *extra]
+            "--method", method, "--out", str(d / f"{out}.csv"), "--report", str(d / f"{out}.json"), *extra]
 
 
 def make_run(cal, frames: int, seed: int, d: Path) -> float:
@@ -352,6 +353,7 @@ def main() -> int:
     ap.add_argument("--block-frames", type=int, default=7200, help="aniposelib's optimiser: frames a call")
     ap.add_argument("--jobs", type=int, default=1,
                     help="also solve each run with --jobs N (its process tree's peak memory sampled)")
+    ap.add_argument("--method", default="fte", choices=("fte", "ekf"), help="the method solved with (default fte)")
     ap.add_argument("--out", default="long", help="bench/results/OUT.json")
     ap.add_argument("--aniposelib-only", default=None, metavar="DIR", help=argparse.SUPPRESS)
     ap.add_argument("--result", default=None, help=argparse.SUPPRESS)
@@ -388,6 +390,7 @@ def main() -> int:
 
     cal = h.rig()
     alone = {**os.environ, "ACINOSET_RESIDENT": "0"}
+    solve_cmd = functools.partial(solve_command, method=args.method)
     runs: dict[int, dict] = {}
     comparison: dict = {}
     anipose: dict[int, dict] = {}
@@ -397,7 +400,7 @@ def main() -> int:
         warm = root / "warm"
         made.append(warm)
         make_run(cal, WARM_FRAMES, 99, warm)
-        c = command(solve_command(warm), alone)  # untimed: numba's kernels from its cache (or compiled into it)
+        c = command(solve_cmd(warm), alone)  # untimed: numba's kernels from its cache (or compiled into it)
         log(f"warm-up command ({WARM_FRAMES} frames): exit {c['exit']}, {c['wall_s']:.1f} s")
         warm_up = c
         if not args.keep:
@@ -420,15 +423,15 @@ def main() -> int:
             entry["input_bytes"] = sum(p.stat().st_size for p in d.iterdir())
             log(f"{m:g} min: written in {entry['simulate_write_s']:.1f} s ({entry['input_bytes'] / 1e6:.0f} MB); "
                 f"solving (load {os.getloadavg()[0]:.2f})")
-            c = command(solve_command(d), alone)
+            c = command(solve_cmd(d), alone)
             c.update(report_fields(d / "run.json") if c["exit"] == 0 else {})
             entry["command"] = c
             log(f"{m:g} min: exit {c['exit']}, {c['wall_s']:.1f} s (cpu {c['cpu_s']:.1f} s), peak "
                 f"{c['peak_rss_mib']:.0f} MiB, windows {(c.get('windows') or {}).get('count', '-')}, "
                 f"iterations {c.get('iterations', '-')}; {c['stderr_last']}")
             if args.jobs > 1 and c["exit"] == 0:  # the windows in worker processes, beside
-                tree = tree_command(solve_command(d, "jobs", ("--jobs", str(args.jobs))), alone)
-                alone_tree = tree_command(solve_command(d, "alone"), alone)
+                tree = tree_command(solve_cmd(d, "jobs", ("--jobs", str(args.jobs))), alone)
+                alone_tree = tree_command(solve_cmd(d, "alone"), alone)
                 tree["same_csv"] = (d / "jobs.csv").read_bytes() == (d / "run.csv").read_bytes()
                 entry["jobs"] = {"jobs": args.jobs, "with_jobs": tree, "one_process": alone_tree}
                 log(f"{m:g} min --jobs {args.jobs}: {tree['wall_s']:.1f} s, tree peak {tree['tree_peak_rss_mib']:.0f} "
@@ -452,7 +455,7 @@ def main() -> int:
 
             if m == 1:  # the whole run at once, beside the windows
                 log(f"{m:g} min: the whole run at once (--window-frames 0)")
-                w = command(solve_command(d, "whole", ("--window-frames", "0")), alone)
+                w = command(solve_cmd(d, "whole", ("--window-frames", "0")), alone)
                 w.update(report_fields(d / "whole.json") if w["exit"] == 0 else {})
                 log(f"{m:g} min whole: exit {w['exit']}, {w['wall_s']:.1f} s, peak {w['peak_rss_mib']:.0f} MiB, "
                     f"iterations {w.get('iterations', '-')}")
@@ -626,7 +629,8 @@ def main() -> int:
         "machine": info, "load_average_end": list(after), "args": vars(args), "minutes": minutes,
         "frames": by_label(frames_of), "speed_m_s": SPEED, "fps": FPS,
         "protocol": {"simulator": "simulate_run defaults (5 px noise, 10 % outliers of 100 px, 30 % confident)",
-                     "solve": "acinoset solve, every option at its default", "aniposelib": h.ANIPOSE_DEFAULTS},
+                     "solve": f"acinoset solve --method {args.method}, every other option at its default",
+                     "aniposelib": h.ANIPOSE_DEFAULTS},
         "warm_up": warm_up, "runs": by_label(runs), "windowed_vs_whole_1min": comparison,
         "aniposelib": by_label(anipose), "targets": by_label(TARGETS), "target_verdict": by_label(verdict),
         "accuracy_vs_1min": by_label(accuracy), "accuracy_tolerance": ACCURACY_TOLERANCE})

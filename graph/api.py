@@ -21,11 +21,20 @@ from graph.io.keypoint_types import Tracks
 from graph.io.keypoints import Keypoints
 from graph.io.staged import StagedRun
 from graph.solve import disagreement, problem, windows
-from graph.solve.online import solve_ekf
 from graph.solve.problem import Problem
 from graph.solve.tri import solve_tri
-from graph.solve.windows import Core, solve_fte_windowed
-from graph.types import METHODS, WINDOW_FRAMES, Method, Progress, ProgressCallback, Result, SolveOptions, SolveReport
+from graph.solve.windows import Core, solve_windowed
+from graph.types import (
+    METHODS,
+    WINDOW_FRAMES,
+    WINDOWED_METHODS,
+    Method,
+    Progress,
+    ProgressCallback,
+    Result,
+    SolveOptions,
+    SolveReport,
+)
 
 if TYPE_CHECKING:
     from graph.solve.identity import Identities
@@ -40,7 +49,7 @@ class Solver(Protocol):
 
 # fte: graph.solve.fte.solve_fte, with the body and the clocks as unknowns where the options ask (graph.solve.joint),
 # a long run in windows (graph.solve.windows)
-SOLVERS: dict[str, Solver] = {"tri": solve_tri, "ekf": solve_ekf, "fte": solve_fte_windowed}
+SOLVERS: dict[str, Solver] = {"tri": solve_tri, "ekf": solve_windowed, "fte": solve_windowed}
 assert tuple(SOLVERS) == METHODS, "graph.types.Method and SOLVERS must name the same methods"
 
 
@@ -77,7 +86,7 @@ def solve_streamed(run: StagedRun, calibration: Calibration, options: SolveOptio
                    progress: ProgressCallback | None = None, resume: dict | None = None,
                    saved: Callable[[dict], None] | None = None, sample_file: str | Path | None = None,
                    jobs: int = 1, solver: "windows.WindowSolver | None" = None) -> SolveReport:
-    """A long run staged on disk (:class:`graph.io.staged.StagedRun`) solved by ``fte`` in windows of
+    """A long run staged on disk (:class:`graph.io.staged.StagedRun`) solved by ``fte`` or ``ekf`` in windows of
     ``options.window_frames`` kept frames (default :data:`graph.types.WINDOW_FRAMES`), each window's
     kept frames handed to ``write`` as it finishes (a :class:`graph.solve.windows.Core`: the run's
     frame it starts at and its :class:`Result`); the run's report. Memory: one window's, whatever the
@@ -86,8 +95,8 @@ def solve_streamed(run: StagedRun, calibration: Calibration, options: SolveOptio
     side by side in worker processes, the same answer; ``solver``: the windows solved by it, as the
     job service's workers do). The disagreeing-camera
     check of :func:`solve` is made on the settled stretch."""
-    if options.method != "fte":
-        raise ValueError(f"a run is solved streamed by method 'fte', not {options.method!r}")
+    if options.method not in WINDOWED_METHODS:
+        raise ValueError(f"a run is solved streamed by {' or '.join(WINDOWED_METHODS)}, not {options.method!r}")
     t0 = time.perf_counter()
     core = options.window_frames or WINDOW_FRAMES
     report, settled = windows.solve_streamed(windows.Staged(run, calibration, options), core, write, progress,

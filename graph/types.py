@@ -39,8 +39,9 @@ MAX_MOTION_SCALE = 1e6
 MAX_LAG_SECONDS = 60.0
 MAX_INDIVIDUALS = 64  # individuals solved from one recording (graph.io.keypoint_types.MAX_SLOTS)
 MIN_WINDOW_FRAMES = 100  # a window's core: the margins are 200 frames
-WINDOW_FRAMES = 2000  # fte's windows keep this many frames each (window_frames None) ...
+WINDOW_FRAMES = 2000  # fte's and ekf's windows keep this many frames each (window_frames None) ...
 WINDOWED_ABOVE = 4000  # ... in runs longer than this (graph.solve.windows; bench/RESULTS.md, section 21)
+WINDOWED_METHODS = ("fte", "ekf")  # the methods a long run is solved in windows by (and streamed)
 MAX_MIN_VIEWS = 100
 
 
@@ -101,7 +102,7 @@ class SolveOptions:
     # fte: the share of left/right marker pairs the 2D tracker swapped in a camera and frame (graph.solve.swaps):
     # "auto", estimated from the data; a number below 0.5, given; 0: every pair taken as labelled
     swap_rate: float | Literal["auto"] = "auto"
-    # fte: frames kept from each window of a long run, solved in windows of bounded memory
+    # fte and ekf: frames kept from each window of a long run, solved in windows of bounded memory
     # (graph.solve.windows); 0: the whole run at once; None: WINDOW_FRAMES a window above WINDOWED_ABOVE
     window_frames: int | None = None
 

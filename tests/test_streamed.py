@@ -91,6 +91,26 @@ def test_the_command_streams_the_same_answer_as_the_run_in_memory(rig, long_run,
     assert not list(tmp_path.glob(".acinoset-staged-*")), "the staged copy was left behind"
 
 
+def test_ekf_streams_the_same_answer_as_its_windows_in_memory(rig, long_run, tmp_path):
+    """``acinoset solve --method ekf`` on a long run streams it in windows, as fte: the CSV is the
+    in-memory windowed ekf's byte for byte, and the report says ekf and its windows."""
+    _, d = long_run
+    out = tmp_path / "ekf.csv"
+    cmd = [sys.executable, "-m", "graph.app.cli", "solve", *_cams(rig, d), "--calibration", str(d / "calibration.toml"),
+           "--fps", "120", "--method", "ekf", "--window-frames", str(CORE), "--out", str(out),
+           "--report", str(tmp_path / "report.json")]
+    done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "ACINOSET_RESIDENT": "0"})
+    assert done.returncode == 0, done.stderr
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        memory = solve([read_keypoints(p) for p in _cams(rig, d)], load_calibration(d / "calibration.toml"),
+                       SolveOptions(fps=120, method="ekf", window_frames=CORE))
+    write_anipose_csv(tmp_path / "memory.csv", memory)
+    assert out.read_bytes() == (tmp_path / "memory.csv").read_bytes()
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["method"] == "ekf" == memory.report.method and report["windows"]["count"] == FRAMES // CORE
+
+
 @pytest.mark.parametrize("step", [3, 7])
 def test_an_overview_written_as_the_windows_finish_is_every_kth_frame_of_the_whole(in_memory, step, tmp_path):
     """The job page's view of a long run is kept as the windows finish (stretches of uneven lengths,

@@ -272,9 +272,9 @@ def add_solve_options(p) -> None:
                         "the other cameras agree with, against these odds (default auto: estimated from the data; "
                         "0: every pair as labelled)")
     p.add_argument("--window-frames", type=int, default=None, metavar="N",
-                   help="fte: solve a long run in windows keeping N frames each, in memory that does not grow with "
-                        f"the run (default: windows of {WINDOW_FRAMES} frames for runs over {WINDOWED_ABOVE}; 0: the "
-                        "whole run at once)")
+                   help="fte and ekf: solve a long run in windows keeping N frames each, in memory that does not "
+                        f"grow with the run (default: windows of {WINDOW_FRAMES} frames for runs over "
+                        f"{WINDOWED_ABOVE}; 0: the whole run at once)")
     p.add_argument("--measurement-std", default=str(defaults.measurement_std_px), metavar="PX|auto",
                    help=f"detection noise in pixels per coordinate (default {defaults.measurement_std_px:g}, the "
                         "paper's), or 'auto' to measure it from the data; the 3D uncertainties scale with it")
@@ -511,9 +511,11 @@ def run_solve(args: argparse.Namespace) -> int:
 
 
 def _streamable(args: argparse.Namespace, options) -> bool:
-    """Whether a long run may be solved streamed (:func:`_solve_streamed`): ``fte`` in windows, one
-    individual, no ensemble, no reprojections asked for (they are written from the whole run)."""
-    return (options.method == "fte" and options.window_frames != 0 and args.individual is None
+    """Whether a long run may be solved streamed (:func:`_solve_streamed`): ``fte`` or ``ekf`` in
+    windows, one individual, no ensemble, no reprojections asked for (they are written from the whole run)."""
+    from graph.types import WINDOWED_METHODS
+
+    return (options.method in WINDOWED_METHODS and options.window_frames != 0 and args.individual is None
             and args.individuals is None and not args.reprojections
             and not any(map(_is_ensemble, args.keypoints)))
 

@@ -111,7 +111,7 @@ class RunSums:
         misfit = inputs_misfit(self.rejected[:, None, None], self.valid[:, None, None], names)
         noise = scatter_px(self._noise_sample())
         self.sample = []
-        checks = [misfit, None if misfit else noise_mismatch("fte", opts.measurement_std_px, sigma_px, noise),
+        checks = [misfit, None if misfit else noise_mismatch(opts.method, opts.measurement_std_px, sigma_px, noise),
                   implausible_motion(settled.positions, opts.fps)]
         for note in [c for c in checks if c] + notes:
             said.append(note)
@@ -120,7 +120,7 @@ class RunSums:
             name: float(np.median(stretch.noise_scale[c])) for c, name in enumerate(names)}
         markers = stretch.markers
         return SolveReport(
-            method="fte", skeleton=stretch.skeleton.name, frames=self.frames, cameras=stretch.cameras,
+            method=opts.method, skeleton=stretch.skeleton.name, frames=self.frames, cameras=stretch.cameras,
             markers=len(markers), seconds={"total": 0.0, **{k: float(v) for k, v in seconds.items()}},
             iterations=int(iterations), cost=float(cost),
             reprojection_rmse_px=math.sqrt(self.squares / self.used) if self.used else float("nan"),

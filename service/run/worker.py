@@ -287,11 +287,12 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     it in memory)."""
     from graph.api import solve_streamed
     from graph.io.results import AniposeCsv, H5Stream, read_result
-    from graph.types import WINDOW_FRAMES, WINDOWED_ABOVE
+    from graph.types import WINDOW_FRAMES, WINDOWED_ABOVE, WINDOWED_METHODS
     from graph.viewer.payload import payload_json, result_payload
 
     options = job_options(input_dir)
-    if options.method != "fte" or options.window_frames == 0 or options.individual or options.individuals:
+    if (options.method not in WINDOWED_METHODS or options.window_frames == 0 or options.individual
+            or options.individuals):
         return None
     above = options.window_frames or WINDOWED_ABOVE
     # staged inside the job's result folder: a run killed (cancelled, timed out) leaves nothing behind
