@@ -47,8 +47,8 @@ class Solver(Protocol):
     def __call__(self, prob: Problem, progress: ProgressCallback | None = None) -> Result: ...
 
 
-# fte: graph.solve.fte.solve_fte, with the body and the clocks as unknowns where the options ask (graph.solve.joint),
-# a long run in windows (graph.solve.windows)
+# fte: graph.solve.fte.solve_fte, with the body and the clocks as unknowns where the options ask (graph.solve.joint);
+# ekf: graph.solve.online.solve_ekf; for both, a long run in windows (graph.solve.windows)
 SOLVERS: dict[str, Solver] = {"tri": solve_tri, "ekf": solve_windowed, "fte": solve_windowed}
 assert tuple(SOLVERS) == METHODS, "graph.types.Method and SOLVERS must name the same methods"
 

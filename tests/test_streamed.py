@@ -165,10 +165,14 @@ def test_cameras_staged_one_by_one_are_the_run_staged_in_turn(rig, long_run, tmp
     whole = stage(paths, tmp_path / "whole", read_blocks, lambda frames: True)
     assert whole is not None
     folder = tmp_path / "together"
+    with pytest.raises(FileNotFoundError):  # a folder removed (its job ended) is not made again
+        stage_camera(paths[0], folder, 0, read_blocks)
+    folder.mkdir()
     assert StagedRun(folder).unstaged(len(paths)) == list(range(len(paths)))
-    for c in reversed(range(len(paths))):  # in any order
+    for c in reversed(range(len(paths))):  # in any order, one twice (a camera taken over)
         stage_camera(paths[c], folder, c, read_blocks)
-    assert StagedRun(folder).unstaged(len(paths)) == []
+    stage_camera(paths[2], folder, 2, read_blocks)
+    assert StagedRun(folder).unstaged(len(paths)) == [] and not list(folder.glob(".*"))
     together = StagedRun.gather(folder, len(paths))
     assert together is not None and together.frames == whole.frames == FRAMES
     assert together.cameras == whole.cameras
@@ -179,6 +183,12 @@ def test_cameras_staged_one_by_one_are_the_run_staged_in_turn(rig, long_run, tmp
     short.write_text("".join(Path(paths[1]).read_text().splitlines(keepends=True)[:-5]))
     stage_camera(str(short), folder, 1, read_blocks)
     with pytest.raises(InputError, match=r"has 2995 frames but .*\.csv has 3000; all cameras must have the same"):
+        StagedRun.gather(folder, len(paths))
+
+    stage_camera(paths[1], folder, 1, read_blocks)
+    cut = folder / "3.xy"  # a camera's arrays cut short
+    cut.write_bytes(cut.read_bytes()[:-16])
+    with pytest.raises(ValueError, match="camera 4's xy is not whole"):
         StagedRun.gather(folder, len(paths))
 
     pack = simulate_group(ring_rig(3), animals=2, frames=20, seed=1)

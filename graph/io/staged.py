@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
+import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -121,11 +123,7 @@ class StagedRun:
                                         str(c["scorer"]), None if c["fps"] is None else float(c["fps"]),
                                         bool(c["spread"])) for c in index["cameras"]]
             for cam in run.cameras:
-                M = len(cam.bodyparts)
-                sizes = {"xy": 2 * M, "likelihood": M, **({"spread": M} if cam.spread else {})}
-                for name, per_frame in sizes.items():
-                    if run._path(cam.index, name).stat().st_size != run.frames * per_frame * _F64.itemsize:
-                        raise ValueError(f"camera {cam.index + 1}'s {name} is not whole")
+                run._check_whole(cam)
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise InputError(f"no staged run to go on from ({e})", folder) from None
         return run
@@ -134,7 +132,8 @@ class StagedRun:
     def gather(cls, folder: str | Path, count: int) -> StagedRun | None:
         """The run whose ``count`` cameras were staged in ``folder`` one by one (:func:`stage_camera`,
         each entry there); None when a file holds several individuals; :class:`InputError` when the
-        cameras' frames differ (as :meth:`add_blocks` says it)."""
+        cameras' frames differ (as :meth:`add_blocks` says it), ValueError when a camera's arrays are
+        not whole."""
         run = cls(folder)
         for c in range(count):
             entry = json.loads(run._path(c, "json").read_text(encoding="utf-8"))
@@ -144,12 +143,21 @@ class StagedRun:
             if run.cameras:
                 _same_frames(int(entry["frames"]), cam.source, run.frames, run.cameras[0].source)
             run.frames = int(entry["frames"])
+            run._check_whole(cam)
             run.cameras.append(cam)
         return run
 
     def unstaged(self, count: int) -> list[int]:
         """Which of ``count`` cameras staged one by one (:func:`stage_camera`) are not yet whole here."""
         return [c for c in range(count) if not self._path(c, "json").is_file()]
+
+    def _check_whole(self, cam: StagedCamera) -> None:
+        """ValueError when a camera's arrays are not the size its entry and the run's frames say."""
+        M = len(cam.bodyparts)
+        sizes = {"xy": 2 * M, "likelihood": M, **({"spread": M} if cam.spread else {})}
+        for name, per_frame in sizes.items():
+            if self._path(cam.index, name).stat().st_size != self.frames * per_frame * _F64.itemsize:
+                raise ValueError(f"camera {cam.index + 1}'s {name} is not whole")
 
     def _path(self, camera: int, name: str) -> Path:
         return self.folder / f"{camera}.{name}"
@@ -178,20 +186,30 @@ def stage(paths: list[str], folder: str | Path, read: Callable[[str], Iterable[T
 
 
 def stage_camera(path: str, folder: str | Path, index: int, read: Callable[[str], Iterable[Tracks]]) -> None:
-    """Camera ``index``'s file ``path`` staged in ``folder`` on its own, for processes that stage a
-    run's cameras between them (:meth:`StagedRun.gather` puts them together): its arrays, then its
-    entry ``<index>.json`` (its frame count and :class:`StagedCamera`, or that the file holds several
-    individuals), written last and by a rename: an entry there means the camera is whole."""
-    run = StagedRun(folder)
-    run.folder.mkdir(parents=True, exist_ok=True)
+    """Camera ``index``'s file ``path`` staged in ``folder`` (which must exist) on its own, for
+    processes that stage a run's cameras between them (:meth:`StagedRun.gather` puts them together):
+    its arrays written in a folder of this call's own, then renamed into ``folder``, then its entry
+    ``<index>.json`` (its frame count and :class:`StagedCamera`, or that the file holds several
+    individuals), by a rename too: an entry there means the camera is whole, and two processes that
+    stage the same camera never write into one file."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"no folder to stage into: {folder}")
+    own = Path(tempfile.mkdtemp(prefix=f".{index}-", dir=folder))
     try:
-        run.add_blocks(_one_individual(read(path)), index=index)
-        entry: dict = {"frames": run.frames, "camera": asdict(run.cameras[0])}
-    except _SeveralIndividuals:
-        entry = {"several_individuals": True}
-    part = run._path(index, "json.part")
-    part.write_text(json.dumps(entry), encoding="utf-8")
-    os.replace(part, run._path(index, "json"))
+        run = StagedRun(own)
+        try:
+            run.add_blocks(_one_individual(read(path)), index=index)
+            entry: dict = {"frames": run.frames, "camera": asdict(run.cameras[0])}
+        except _SeveralIndividuals:
+            entry = {"several_individuals": True}
+        for name in ("xy", "likelihood", "spread"):
+            if run._path(index, name).exists():
+                os.replace(run._path(index, name), folder / run._path(index, name).name)
+        run._path(index, "json").write_text(json.dumps(entry), encoding="utf-8")
+        os.replace(run._path(index, "json"), folder / run._path(index, "json").name)
+    finally:
+        shutil.rmtree(own, ignore_errors=True)
 
 
 def _same_frames(frames: int, source: str, first_frames: int, first_source: str) -> None:

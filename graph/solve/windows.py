@@ -79,8 +79,16 @@ from graph.types import (
     jsonable,
 )
 
-MARGIN_FRAMES = 200  # frames solved on each side of a core and thrown away
+MARGIN_FRAMES = 200  # frames solved on each side of a core and thrown away (ekf: and its lag, margin_frames)
 SETTLE_FRAMES = 2000  # the stretch the shared unknowns are settled on
+
+
+def margin_frames(options: SolveOptions) -> int:
+    """Frames solved each side of a window's core: :data:`MARGIN_FRAMES`; for ``ekf``, its lag's
+    frames more (the core's last frame is final only ``lag_seconds`` into the stream after it)."""
+    if options.method == "ekf":
+        return MARGIN_FRAMES + int(np.ceil(options.lag_seconds * options.fps))
+    return MARGIN_FRAMES
 
 
 def solve_windowed(prob: Problem, progress: ProgressCallback | None = None) -> Result:
@@ -250,7 +258,9 @@ def settle(source: Frames | Problem, frames: int) -> Settled:
     src = InMemory(source) if isinstance(source, Problem) else source
     s0 = best_seen(src.seen(), frames)
     s1 = min(src.frames, s0 + frames)
-    stretch = src.stretch(s0, s1, replace(src.options, window_frames=0))
+    # an ekf's stream is a constant-acceleration filter: its smoothing is fitted for the third differences
+    o = replace(src.options, window_frames=0)
+    stretch = src.stretch(s0, s1, replace(o, motion_order=3) if o.method == "ekf" else o)
     o = stretch.options  # as the problem resolved them (the skeleton's default motion scale)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the settling stretch's own warnings: the whole run's are made after
@@ -278,9 +288,10 @@ class Windows:
     """The windows of a run (module docstring), solved one at a time as they are iterated, each
     giving its :class:`Core`; what they add up to (iterations, cost, bounds, warnings) is kept here."""
 
-    def __init__(self, source: Frames, core: int, margin: int = MARGIN_FRAMES, settle_frames: int = SETTLE_FRAMES,
+    def __init__(self, source: Frames, core: int, margin: int | None = None, settle_frames: int = SETTLE_FRAMES,
                  progress: ProgressCallback | None = None, settled: Settled | None = None, jobs: int = 1,
                  solver: WindowSolver | None = None):
+        margin = margin_frames(source.options) if margin is None else margin
         if margin < 1:
             raise ValueError(f"a window needs at least one frame of margin, not {margin}")
         self.source, self.core, self.margin, self.progress, self.jobs = source, core, margin, progress, jobs
@@ -296,13 +307,14 @@ class Windows:
         self.bounds_active = 0
         self.side_swaps = 0  # the windows' left/right swaps (their margins counted twice, as the cost)
         self.warnings: list[list[str]] = []
+        self.per_frame: list[dict] = []  # ekf: each window's stream's time a frame (its report's per_frame_ms)
 
     def state(self) -> dict:
         """Where the windows stand, as JSON values: the windows finished, the last kept frame's angles
         and what they added up to (:meth:`restore` goes on from there)."""
         return {"done": self.done, "last": self.last, "iterations": self.iterations, "cost": self.cost,
                 "bounds_active": self.bounds_active, "side_swaps": self.side_swaps, "warnings": self.warnings,
-                "held": jsonable(self.settled.held)}
+                "per_frame": self.per_frame, "held": jsonable(self.settled.held)}
 
     def restore(self, state: dict) -> None:
         """Go on from :meth:`state` of the same run: ValueError when the values the windows hold are not
@@ -314,6 +326,7 @@ class Windows:
         self.cost, self.bounds_active = float(state["cost"]), int(state["bounds_active"])
         self.side_swaps = int(state.get("side_swaps", 0))
         self.warnings = [[str(w) for w in ws] for ws in state["warnings"]]
+        self.per_frame = [{str(k): float(v) for k, v in d.items()} for d in state.get("per_frame", [])]
 
     def __iter__(self) -> Iterator[Core]:
         st, N, t0 = self.settled, self.source.frames, time.perf_counter()
@@ -332,6 +345,8 @@ class Windows:
             self.bounds_active += r.report.bounds_active
             self.side_swaps += r.report.side_swaps
             self.warnings.append(r.report.warnings)
+            if r.report.per_frame_ms:
+                self.per_frame.append(dict(r.report.per_frame_ms))
             core = Core(a, r.frames(a - lo, b - lo), valid[a - lo:b - lo])
             del r, valid  # one window at a time
             self.done = k + 1
@@ -374,12 +389,22 @@ class Windows:
                 raise WorkerLost(f"a worker process solving window {self.done + 1} of {len(self.starts)} died "
                                  "(killed, or out of memory): fewer jobs use less memory") from None
 
+    def per_frame_ms(self) -> dict[str, float] | None:
+        """ekf: the windows' times a frame put together: the median of their medians and p95s, the
+        largest of their maxima."""
+        if not self.per_frame:
+            return None
+        return {"median": float(np.median([d["median"] for d in self.per_frame])),
+                "p95": float(np.median([d["p95"] for d in self.per_frame])),
+                "max": float(max(d["max"] for d in self.per_frame))}
+
     def report(self, report: SolveReport) -> None:
         """What the windows share written into the run's ``report``: ``windows`` and the settled values."""
         st = self.settled
         report.windows = {"count": len(self.starts), "core_frames": self.core, "margin_frames": self.margin,
                           "settled_on": [st.start, st.stop], "held": st.held}
         report.side_swaps = self.side_swaps
+        report.per_frame_ms = self.per_frame_ms()
         for name in ("motion_scales", "motion_orders", "body_lengths", "time_offsets_frames",
                      "time_offsets_std_frames", "offsets_not_identified", "swap_rate"):
             setattr(report, name, getattr(st.result.report, name))
@@ -399,9 +424,10 @@ def solve_window(source: Frames | None, lo: int, hi: int, options: SolveOptions,
         return solve_whole(prob), prob.valid
 
 
-def solve_in_windows(prob: Problem, core: int, margin: int = MARGIN_FRAMES, settle_frames: int = SETTLE_FRAMES,
+def solve_in_windows(prob: Problem, core: int, margin: int | None = None, settle_frames: int = SETTLE_FRAMES,
                      progress: ProgressCallback | None = None, settled: Settled | None = None) -> Result:
-    """``prob`` solved in windows of ``core`` kept frames and ``margin`` frames each side, with
+    """``prob`` solved in windows of ``core`` kept frames and ``margin`` frames each side (default
+    :func:`margin_frames`), with
     the shared unknowns settled on ``settle_frames`` frames (module docstring), or held as
     ``settled`` gives them; the cores put end to end into one :class:`Result`."""
     t0 = time.perf_counter()

@@ -1,9 +1,10 @@
 """The JSON payload the web job page and the HTML playback draw from: one definition for both.
 
-:func:`result_payload` turns a :class:`~graph.types.Result` into plain JSON (positions rounded to
-10 micrometres of the run's units at an animal's size, pixels to 0.01 px); the REST service returns it
-as ``GET /v1/jobs/{id}/result?format=json`` and :mod:`graph.viewer.playback` inlines it. The summaries
-it holds (:func:`error_table`, :func:`frame_error`) are the ones the figures draw.
+:func:`result_payload` turns a :class:`~graph.types.Result` into the view's data (positions rounded
+to 10 micrometres of the run's units at an animal's size, pixels to 0.01 px; its arrays NumPy's) and
+:func:`payload_json` writes it as JSON; the REST service returns it as ``GET
+/v1/jobs/{id}/result?format=json`` and :mod:`graph.viewer.playback` inlines it. The summaries it holds
+(:func:`error_table`, :func:`frame_error`) are the ones the figures draw.
 """
 
 from __future__ import annotations

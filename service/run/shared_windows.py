@@ -180,10 +180,10 @@ class SharedWindows:
         worker's cameras."""
         run = stage_together(self.redis, self.token, PARENT, paths, folder, read, self.ttl)
         for c in range(len(paths)):
-            owner = self.redis.hget(self.keys.staging, str(c))
-            owner = owner.decode() if isinstance(owner, bytes) else str(owner)
-            worker = self.me if owner == PARENT else owner.rpartition("@")[2]
-            self.staged[worker] = self.staged.get(worker, 0) + 1
+            owner = _text(self.redis.hget(self.keys.staging, str(c)))
+            if owner is not None:
+                worker = self.me if owner == PARENT else owner.rpartition("@")[2]
+                self.staged[worker] = self.staged.get(worker, 0) + 1
         return run
 
     def close(self) -> None:
@@ -230,8 +230,7 @@ class SharedWindows:
 
     def _owner(self, k: int) -> str:
         """Who claimed window k."""
-        owner = self.redis.hget(self.keys.claims, str(k))
-        return owner.decode() if isinstance(owner, bytes) else str(owner)
+        return str(_text(self.redis.hget(self.keys.claims, str(k))))
 
     def _end(self, n: int) -> None:
         """The helpers not started are dropped; the keys go (a helper still solving finds ``stop``
@@ -277,33 +276,68 @@ def _plan(redis, token: str) -> dict | None:
         time.sleep(0.2)
 
 
+# a camera claimed only while the cameras are staged together (the parent's ``together`` there): 1 claimed,
+# 0 someone else's, -1 the staging is over (the job ended, its keys gone)
+_CLAIM = """
+if redis.call('HEXISTS', KEYS[1], ARGV[3]) == 0 then return -1 end
+return redis.call('HSETNX', KEYS[1], ARGV[1], ARGV[2])
+"""
+# a camera taken over from a claimant that is gone, only if it is still that one's (one taker wins)
+_TAKE_OVER = """
+if redis.call('HGET', KEYS[1], ARGV[1]) == ARGV[2] then redis.call('HSET', KEYS[1], ARGV[1], ARGV[3]) return 1 end
+return 0
+"""
+
+
+def _text(value) -> str | None:
+    """A Redis reply as text (None stays None)."""
+    return value.decode() if isinstance(value, bytes) else value
+
+
 def stage_together(redis, token: str, me: str, paths: list[str], folder: Path, read, ttl: int):
-    """The job's cameras ``paths`` staged in ``folder``, on the data dir the workers share, by the job's
-    work horse and its helpers between them: each camera claimed by one (``:staging``, ``HSETNX``;
-    ``me`` is :data:`PARENT` for the work horse) and staged by it
-    (:func:`graph.io.staged.stage_camera`), the others waited for; a camera whose claimant is gone (a
-    helper's heartbeat expired, the job no longer running) is staged here. The run
-    (:meth:`graph.io.staged.StagedRun.gather`), or None: a file holds several individuals, or the job
-    ended first."""
+    """The job's cameras ``paths`` staged in ``folder`` (made by the work horse before it invited the
+    helpers), on the data dir the workers share, by the job's work horse and its helpers between
+    them: each camera claimed by one (``:staging``, set once while ``together`` is there; ``me`` is
+    :data:`PARENT` for the work horse) and staged by it (:func:`graph.io.staged.stage_camera`), the
+    others waited for; a camera whose claimant is gone (a helper's heartbeat expired, the job no longer
+    running) is taken over by one of those waiting (compare and set) and staged again. The run
+    (:meth:`graph.io.staged.StagedRun.gather`), or None: a file holds several individuals, or (a
+    helper's) the job ended or stopped first; RuntimeError when the work horse finds its staging
+    keys gone."""
     from graph.io.staged import StagedRun, stage_camera
 
     k_ = Keys(token)
+    claim, take_over = redis.register_script(_CLAIM), redis.register_script(_TAKE_OVER)
+
+    def ended() -> bool:
+        if me == PARENT:
+            return False
+        return bool(redis.exists(k_.stop)) or not _running(redis, token) or not folder.is_dir()
+
+    def over() -> None:
+        if me == PARENT:
+            raise RuntimeError("the job's staging keys are gone from Redis (expired, or deleted)")
+
     for c, path in enumerate(paths):
-        if redis.hsetnx(k_.staging, str(c), me):
+        if ended():
+            return None
+        got = claim(keys=[k_.staging], args=[str(c), me, TOGETHER])
+        if got == -1:
+            return over()
+        if got == 1:
             redis.expire(k_.staging, ttl)
             stage_camera(path, folder, c, read)
     run = StagedRun(folder)
     while missing := run.unstaged(len(paths)):
-        for c in missing:
-            owner = redis.hget(k_.staging, str(c))
-            owner = owner.decode() if isinstance(owner, bytes) else owner
-            gone = not _running(redis, token) if owner == PARENT else not redis.exists(k_.alive(str(owner)))
-            if owner is None or owner == me or gone:  # mine and not whole: left by a try before
-                redis.hset(k_.staging, str(c), me)
-                redis.expire(k_.staging, ttl)
-                stage_camera(paths[c], folder, c, read)
-        if me != PARENT and (redis.exists(k_.stop) or not _running(redis, token)):
+        if ended():
             return None
+        for c in missing:
+            owner = _text(redis.hget(k_.staging, str(c)))
+            if owner is None:
+                return over()
+            gone = not _running(redis, token) if owner == PARENT else not redis.exists(k_.alive(owner))
+            if gone and take_over(keys=[k_.staging], args=[str(c), owner, me]) == 1:
+                stage_camera(paths[c], folder, c, read)
         time.sleep(POLL_S)
     return StagedRun.gather(folder, len(paths))
 

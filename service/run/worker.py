@@ -281,10 +281,10 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     """A long run of one individual solved as ``acinoset solve`` solves it, streamed
     (:func:`graph.api.solve_streamed`: the inputs staged on disk a camera at a time, the CSV and H5
     written as the windows finish), in memory that does not grow with the run; the page's view
-    (``result.json``) made of every k-th frame of the H5, at most :data:`PAGE_FRAMES` (``frame_step``
-    says k). ``solver``: the windows shared with other workers too
-    (:class:`service.run.shared_windows.SharedWindows`). None when the job is not such a run (solve
-    it in memory)."""
+    (``result.json``) made of every k-th frame, at most :data:`PAGE_FRAMES` (``frame_step`` says k),
+    kept as the windows finish (an overview H5 beside the staged inputs). ``solver``: the windows
+    shared with other workers too (:class:`service.run.shared_windows.SharedWindows`). None when the
+    job is not such a run (solve it in memory)."""
     from graph.api import solve_streamed
     from graph.io.results import AniposeCsv, H5Stream, read_result
     from graph.types import WINDOW_FRAMES, WINDOWED_ABOVE, WINDOWED_METHODS
@@ -300,10 +300,11 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     scratch = out_dir / STAGED
     windows = lambda frames: -(-frames // (options.window_frames or WINDOW_FRAMES))  # noqa: E731
     hint = read_manifest(input_dir).get("frames")
-    if solver is not None and isinstance(hint, int) and hint > above:
-        # the helpers stage the run while this process stages (with them, on a shared data dir) and settles it
-        solver.invite(windows(hint), before_staging=True)
     try:
+        scratch.mkdir(parents=True, exist_ok=True)  # before the helpers come: they stage into it, never make it
+        if solver is not None and isinstance(hint, int) and hint > above:
+            # the helpers stage the run while this process stages (with them, on a shared data dir) and settles it
+            solver.invite(windows(hint), before_staging=True)
         run = stage_job(input_dir, scratch, lambda frames: frames > above,
                         solver.stage if solver is not None and solver.together else None)
         if run is None:

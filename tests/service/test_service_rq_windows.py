@@ -146,3 +146,48 @@ def test_a_worker_that_does_not_see_the_shared_data_dir_says_so(tmp_path, run):
     finally:
         server.stop()
         pool.stop()
+
+
+def test_cameras_staged_together_survive_a_helper_that_died_and_a_job_that_ended(tmp_path, run):
+    """The staging protocol against a real redis-server: a camera claimed by a helper whose heartbeat is
+    gone is taken over by the work horse (one taker) and the run comes out whole; a helper that comes
+    after the job's keys went, or whose job's folder is gone, stages nothing and makes no folder."""
+    from redis import Redis as RedisClient
+    from rq.job import Job
+    from rq.serializers import JSONSerializer
+    from servers import Redis
+
+    from graph.io.keypoints import read_blocks
+    from graph.io.staged import StagedRun
+    from service.run.shared_windows import PARENT, TOGETHER, Keys, stage_together
+
+    server = Redis(tmp_path / "redis", tmp_path / "redis.log").start()
+    try:
+        r = RedisClient.from_url(server.url)
+        token, paths = "job-token", [str(p) for p in run.cams]
+        parent = Job.create("os.getpid", id=token, connection=r, serializer=JSONSerializer)
+        parent.save()
+        parent.set_status("started")  # the job's work horse is running
+        k_ = Keys(token)
+        folder = tmp_path / "result.tmp" / "staged"
+        folder.mkdir(parents=True)
+        r.hset(k_.staging, mapping={TOGETHER: 1, "1": "helper-1@w2"})  # camera 2 claimed, its helper dead
+        got = stage_together(r, token, PARENT, paths, folder, read_blocks, ttl=60)
+        assert isinstance(got, StagedRun) and len(got.cameras) == len(paths) and got.frames == run.frames
+        assert r.hget(k_.staging, "1") == PARENT.encode()  # taken over, by one
+        assert StagedRun(folder).unstaged(len(paths)) == []
+
+        r.delete(k_.staging)  # the job ended: its keys are gone
+        late = tmp_path / "late"
+        late.mkdir()
+        assert stage_together(r, token, "helper-2@w2", paths, late, read_blocks, ttl=60) is None
+        assert list(late.iterdir()) == []
+        with pytest.raises(RuntimeError, match="staging keys are gone"):
+            stage_together(r, token, PARENT, paths, late, read_blocks, ttl=60)
+
+        r.hset(k_.staging, TOGETHER, 1)
+        gone = tmp_path / "removed" / "staged"
+        assert stage_together(r, token, "helper-3@w2", paths, gone, read_blocks, ttl=60) is None
+        assert not gone.parent.exists()
+    finally:
+        server.stop()
