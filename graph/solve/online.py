@@ -359,18 +359,21 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     N = prob.frames
     auto = prob.options.motion_scale == "auto"
     # the batch start sees the first frames only, as a stream would; to fit the motion model
-    # ("auto") it takes motion_start_frames
-    S = motion_start_frames(N, prob.options.fps) if auto else min(N, START_FRAMES)
+    # ("auto") it takes motion_start_frames; given the first poses (a long run's window continuing the
+    # stream before it), the stream starts from them
+    given = prob.start_poses
+    S = len(given) if given is not None else (
+        motion_start_frames(N, prob.options.fps) if auto else min(N, START_FRAMES))
     sub = replace(prob, meas=prob.meas[:S], likelihood=prob.likelihood[:S], valid=prob.valid[:S])
     X, _, _ = robust_points(sub.calibration, sub.meas, sub.valid, sub.sigma_px)
-    Q0 = initial_poses(sub, X)
+    Q0 = initial_poses(sub, X) if given is None else np.array(given, dtype=np.float64)
     tp = TrajectoryProblem(sub, Q0, bone_lengths(sub, X) if sub.skeleton.kind == "points" else None)
     tp.max_stiffness = GTSAM_MAX_STIFFNESS  # the stream (OnlineSmoother) eliminates on GTSAM, all markers together
     stiff = tp.bound_stiffness(tp.normals_at(Q0).H)  # as fte (solve_from): a fit's start of scale 1 too
     notes = [stiff] if stiff and not auto else []
-    Q_start, iters, cost = optimise(tp, Q0.copy(), 30)
-    if auto:  # the scales of largest marginal likelihood over the start (fitted at its optimum, as fte), kept
-        # for the stream
+    Q_start, iters, cost = (Q0, 0, float("nan")) if given is not None else optimise(tp, Q0.copy(), 30)
+    if auto and given is None:  # the scales of largest marginal likelihood over the start (fitted at its
+        # optimum, as fte), kept for the stream
         Q_start, more, _ = refit_motion(tp, Q_start, cost, 30)
         iters += more
     t_init = time.perf_counter() - t0

@@ -42,6 +42,9 @@ class Problem:
     # the frames [a, b) of a longer run this problem is a window of (graph.solve.windows): the checks
     # of the whole run's inputs and answer are made on the whole, not on each window
     window: tuple[int, int] | None = None
+    # ekf: the poses (S, P) of its first S frames, given: a long run's window that continues the stream
+    # of the window before it (graph.solve.windows) starts from that stream's poses, not afresh
+    start_poses: np.ndarray | None = None
 
     def sigma_cm(self, sigma_px: float | None = None) -> np.ndarray:
         """The detection noise of each camera and marker (C, M), px: ``sigma_px`` (default the

@@ -24,11 +24,14 @@ the body's lengths and the cameras' clocks. So:
    measured against the whole solve with the same held unknowns). The robust loss's weights are
    per detection, so they follow the same estimate in both.
 
-   ``ekf`` is windowed the same way: each window's stream (:func:`graph.solve.online.solve_ekf`)
-   starts afresh at the window's first frame, with the held values, and the core is kept: its first
-   frame is ``P`` frames into the stream, past its start's transient, and its last frame ``P``
-   frames before the window's end, beyond the stream's lag, so the core equals the whole stream
-   given the same held values (within 0.02 mm on the test's walking cheetah). What every frame
+   ``ekf`` is windowed the same way, its margin ``P`` its lag's frames more (:func:`margin_frames`),
+   but one window after another: each later window's stream (:func:`graph.solve.online.solve_ekf`)
+   starts from the poses the window before gave its first frames (inside that one's core), with the
+   held values, and the core is kept: its first frame is ``P`` frames into the stream and its last
+   ``P`` frames before the window's end, beyond the stream's lag, so the core follows the whole
+   stream given the same held values (within 0.1 mm on the test's walking cheetah). Started afresh
+   instead, a window that began where one camera alone saw the animal started with no depth and kept
+   that for its whole core (bench/probe_ekf_windows.py: 13-32x the whole stream's error). What every frame
    shares is settled by ``fte`` on the best-seen stretch for both methods (the whole-run ``ekf``
    settles it on its first seconds instead).
 
@@ -308,13 +311,14 @@ class Windows:
         self.side_swaps = 0  # the windows' left/right swaps (their margins counted twice, as the cost)
         self.warnings: list[list[str]] = []
         self.per_frame: list[dict] = []  # ekf: each window's stream's time a frame (its report's per_frame_ms)
+        self.start: list | None = None  # ekf: the next window's first poses, from this one's stream
 
     def state(self) -> dict:
         """Where the windows stand, as JSON values: the windows finished, the last kept frame's angles
         and what they added up to (:meth:`restore` goes on from there)."""
         return {"done": self.done, "last": self.last, "iterations": self.iterations, "cost": self.cost,
                 "bounds_active": self.bounds_active, "side_swaps": self.side_swaps, "warnings": self.warnings,
-                "per_frame": self.per_frame, "held": jsonable(self.settled.held)}
+                "per_frame": self.per_frame, "start": self.start, "held": jsonable(self.settled.held)}
 
     def restore(self, state: dict) -> None:
         """Go on from :meth:`state` of the same run: ValueError when the values the windows hold are not
@@ -327,6 +331,7 @@ class Windows:
         self.side_swaps = int(state.get("side_swaps", 0))
         self.warnings = [[str(w) for w in ws] for ws in state["warnings"]]
         self.per_frame = [{str(k): float(v) for k, v in d.items()} for d in state.get("per_frame", [])]
+        self.start = state.get("start")
 
     def __iter__(self) -> Iterator[Core]:
         st, N, t0 = self.settled, self.source.frames, time.perf_counter()
@@ -362,9 +367,21 @@ class Windows:
         """Each window from the ``first`` solved (:func:`solve_window`), in order: by the ``solver``
         given (the job service's workers), here, or ``jobs`` at a time in worker processes
         (:func:`graph.solve.workers.window_pool`), at most ``jobs + 1`` in flight. A window's answer
-        does not depend on where it was solved."""
+        does not depend on where it was solved. ``ekf``'s windows are one stream: here, in turn, each
+        starting from the poses the one before gave its first frames (``solver`` and ``jobs`` unused)."""
         st, N = self.settled, self.source.frames
         spans = [(max(0, a - self.margin), min(N, a + self.core + self.margin)) for a in self.starts[first:]]
+        if st.options.method == "ekf":  # one stream: each window goes on from the one before, in turn
+            from graph.solve.online import START_FRAMES
+
+            for k, (lo, hi) in enumerate(spans):
+                start = None if self.start is None else np.asarray(self.start, dtype=np.float64)
+                r, valid = solve_window(self.source, lo, hi, st.options, st.sigma_px, start)
+                if k + 1 < len(spans) and r.params is not None:
+                    nxt = spans[k + 1][0] - lo  # inside this window's core (the margin is shorter than it)
+                    self.start = r.params[nxt:nxt + START_FRAMES].tolist()
+                yield r, valid
+            return
         if self.solver is not None:
             yield from self.solver(self.source, spans, st)
             return
@@ -411,14 +428,17 @@ class Windows:
 
 
 def solve_window(source: Frames | None, lo: int, hi: int, options: SolveOptions,
-                 sigma_px: float) -> tuple[Result, np.ndarray]:
+                 sigma_px: float, start: np.ndarray | None = None) -> tuple[Result, np.ndarray]:
     """Frames ``[lo, hi)`` of ``source`` (None: a worker process's, :mod:`graph.solve.workers`) solved
-    with the held ``options`` and noise: the window's :class:`Result` and confident detections (n, C, M)."""
+    with the held ``options`` and noise: the window's :class:`Result` and confident detections (n, C, M).
+    ``start``: ekf's poses of the first frames, from the window before (:class:`Windows`)."""
     if source is None:
         from graph.solve.workers import worker_source
 
         source = worker_source()
     prob = source.window(lo, hi, options, sigma_px)
+    if start is not None:
+        prob = replace(prob, start_poses=start)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a window's warnings are gathered into the run's (grouped)
         return solve_whole(prob), prob.valid

@@ -295,6 +295,8 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
             or options.individuals):
         return None
     above = options.window_frames or WINDOWED_ABOVE
+    if options.method != "fte":
+        solver = None  # ekf's windows are one stream, solved in turn by this process (graph.solve.windows)
     # staged inside the job's result folder: a run killed (cancelled, timed out) leaves nothing behind
     # that the job's own clean-up does not remove
     scratch = out_dir / STAGED
