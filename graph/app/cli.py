@@ -214,8 +214,9 @@ def register(sub) -> None:
     p.add_argument("--reprojections", default=None, metavar="DIR",
                    help="also write the estimate reprojected into each camera as DeepLabCut CSVs")
     p.add_argument("--jobs", type=_positive_int, default=1, metavar="N",
-                   help="a long run solved in windows: N windows at a time in worker processes, each with its share "
-                        "of the cores (default 1; the same answer; about 0.5 GB more memory a worker)")
+                   help="a long run solved in windows by fte: N windows at a time in worker processes, each with its "
+                        "share of the cores (default 1; the same answer; about 0.5 GB more memory a worker; ekf's "
+                        "windows are one stream, solved in turn)")
     p.add_argument("--resume", action="store_true",
                    help="go on with a long run that stopped (killed, out of time) from its last finished window, "
                         "with the same files and options: a run solved in windows keeps OUT.csv.partial/ until done")

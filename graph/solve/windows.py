@@ -31,7 +31,7 @@ the body's lengths and the cameras' clocks. So:
    ``P`` frames before the window's end, beyond the stream's lag, so the core follows the whole
    stream given the same held values (within 0.1 mm on the test's walking cheetah). Started afresh
    instead, a window that began where one camera alone saw the animal started with no depth and kept
-   that for its whole core (bench/probe_ekf_windows.py: 13-32x the whole stream's error). What every frame
+   that for its whole core (bench/probe_ekf_windows.py: 8-15x the whole stream's error). What every frame
    shares is settled by ``fte`` on the best-seen stretch for both methods (the whole-run ``ekf``
    settles it on its first seconds instead).
 
