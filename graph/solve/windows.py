@@ -74,6 +74,7 @@ from graph.types import (
     FRAME_AXIS,
     WINDOW_FRAMES,
     WINDOWED_ABOVE,
+    WINDOWED_METHODS,
     Progress,
     ProgressCallback,
     Result,
@@ -86,10 +87,16 @@ MARGIN_FRAMES = 200  # frames solved on each side of a core and thrown away (ekf
 SETTLE_FRAMES = 2000  # the stretch the shared unknowns are settled on
 
 
+def one_stream(options: SolveOptions) -> bool:
+    """Whether a run's windows are one stream, solved in turn, each from the one before (``ekf``),
+    rather than each on its own, anywhere (``fte``: in worker processes, or by other workers)."""
+    return options.method == "ekf"
+
+
 def margin_frames(options: SolveOptions) -> int:
     """Frames solved each side of a window's core: :data:`MARGIN_FRAMES`; for ``ekf``, its lag's
     frames more (the core's last frame is final only ``lag_seconds`` into the stream after it)."""
-    if options.method == "ekf":
+    if one_stream(options):
         return MARGIN_FRAMES + int(np.ceil(options.lag_seconds * options.fps))
     return MARGIN_FRAMES
 
@@ -112,8 +119,8 @@ def solve_whole(prob: Problem, progress: ProgressCallback | None = None) -> Resu
         from graph.solve.online import solve_ekf
 
         return solve_ekf(prob, progress)
-    if prob.options.method != "fte":
-        raise ValueError(f"a run is solved in windows by 'fte' or 'ekf', not {prob.options.method!r}")
+    if prob.options.method not in WINDOWED_METHODS:
+        raise ValueError(f"a run is solved in windows by {' or '.join(WINDOWED_METHODS)}, not {prob.options.method!r}")
     return solve_fte_joint(prob, progress)
 
 
@@ -371,7 +378,7 @@ class Windows:
         starting from the poses the one before gave its first frames (``solver`` and ``jobs`` unused)."""
         st, N = self.settled, self.source.frames
         spans = [(max(0, a - self.margin), min(N, a + self.core + self.margin)) for a in self.starts[first:]]
-        if st.options.method == "ekf":  # one stream: each window goes on from the one before, in turn
+        if one_stream(st.options):  # each window goes on from the one before, in turn
             from graph.solve.online import START_FRAMES
 
             for k, (lo, hi) in enumerate(spans):

@@ -138,7 +138,7 @@ def _position_decimals(result: Result) -> int:
 # ------------------------------------------------------------------------------------ payload
 
 
-def _json_array(a, decimals: int | None = None) -> np.ndarray | None:
+def _payload_array(a, decimals: int | None = None) -> np.ndarray | None:
     """An array as the payload keeps it: rounded to ``decimals``, C-ordered and native, for
     :func:`payload_json` (NaN and infinities written as ``null``)."""
     if a is None:
@@ -202,23 +202,23 @@ def result_payload(result: Result, calibration=None) -> dict:
         "markers": list(result.markers),
         "bones": bones,
         "cameras": list(result.camera_names),
-        "camera_centers": _json_array(cc, pos_dec),
-        "camera_directions": _json_array(cd, 4),
-        "positions": _json_array(result.positions, pos_dec),
-        "std": _json_array(result.std, pos_dec),
-        "ncams": _json_array(np.asarray(result.ncams).astype(np.int64)),
-        "score": _json_array(result.score, _SCORE_DECIMALS),
-        "reprojection_error_px": _json_array(result.error, _PX_DECIMALS),
-        "residuals": _json_array(result.residuals, _PX_DECIMALS),
-        "outliers": _json_array(out),
-        "error_table": {"median": _json_array(table.median, _PX_DECIMALS),
-                        "observations": _json_array(table.observations),
-                        "outliers": _json_array(table.outliers)},
-        "frame_error": _json_array(frame_error(result), _PX_DECIMALS),
+        "camera_centers": _payload_array(cc, pos_dec),
+        "camera_directions": _payload_array(cd, 4),
+        "positions": _payload_array(result.positions, pos_dec),
+        "std": _payload_array(result.std, pos_dec),
+        "ncams": _payload_array(np.asarray(result.ncams).astype(np.int64)),
+        "score": _payload_array(result.score, _SCORE_DECIMALS),
+        "reprojection_error_px": _payload_array(result.error, _PX_DECIMALS),
+        "residuals": _payload_array(result.residuals, _PX_DECIMALS),
+        "outliers": _payload_array(out),
+        "error_table": {"median": _payload_array(table.median, _PX_DECIMALS),
+                        "observations": _payload_array(table.observations),
+                        "outliers": _payload_array(table.outliers)},
+        "frame_error": _payload_array(frame_error(result), _PX_DECIMALS),
         "param_names": list(result.param_names or []),
         "param_units": ["m" if is_length_param(p) else "rad" for p in (result.param_names or [])],
-        "params": _json_array(params, max(pos_dec, _PARAM_DECIMALS)) if params is not None else None,
-        "params_std": (_json_array(result.params_std, max(pos_dec, _PARAM_DECIMALS))
+        "params": _payload_array(params, max(pos_dec, _PARAM_DECIMALS)) if params is not None else None,
+        "params_std": (_payload_array(result.params_std, max(pos_dec, _PARAM_DECIMALS))
                        if result.params_std is not None else None),
         "report": jsonable(report),
         "options": jsonable(options),

@@ -42,6 +42,7 @@ import json
 import tempfile
 import threading
 import time
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -123,8 +124,8 @@ class SharedWindows:
         self.helpers: list[str] = []
         self.invited = False
         self.together = False
-        self.solved: dict[str, int] = {}
-        self.staged: dict[str, int] = {}
+        self.solved: Counter[str] = Counter()
+        self.staged: Counter[str] = Counter()
 
     def __call__(self, source, spans: list[tuple[int, int]], settled) -> Iterator[tuple[Any, Any]]:
         from graph.solve.windows import solve_window
@@ -143,7 +144,7 @@ class SharedWindows:
         ahead: dict[int, tuple[Any, Any]] = {}
 
         def mine(k: int) -> tuple[Any, Any]:
-            self.solved[self.me] = self.solved.get(self.me, 0) + 1
+            self.solved[self.me] += 1
             lo, hi = spans[k]
             return solve_window(source, lo, hi, options, sigma_px)
 
@@ -182,8 +183,7 @@ class SharedWindows:
         for c in range(len(paths)):
             owner = _text(self.redis.hget(self.keys.staging, str(c)))
             if owner is not None:
-                worker = self.me if owner == PARENT else owner.rpartition("@")[2]
-                self.staged[worker] = self.staged.get(worker, 0) + 1
+                self.staged[self._worker(owner)] += 1
         return run
 
     def close(self) -> None:
@@ -210,8 +210,7 @@ class SharedWindows:
             archive = get_archive(r, k_.done(k))
             if archive is not None:
                 r.delete(k_.done(k))
-                worker = self._owner(k).rpartition("@")[2]
-                self.solved[worker] = self.solved.get(worker, 0) + 1
+                self.solved[self._worker(self._owner(k))] += 1
                 return _unpack(archive)
             if r.hsetnx(k_.claims, str(k), self.me):
                 return mine(k)
@@ -227,6 +226,10 @@ class SharedWindows:
                 ahead[j] = mine(j)
                 continue
             time.sleep(POLL_S)
+
+    def _worker(self, claimant: str) -> str:
+        """The worker a claim names: this one's for the parent's, ``<job>@<worker>``'s for a helper's."""
+        return self.me if claimant == PARENT else claimant.rpartition("@")[2]
 
     def _owner(self, k: int) -> str:
         """Who claimed window k."""

@@ -287,6 +287,7 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     job is not such a run (solve it in memory)."""
     from graph.api import solve_streamed
     from graph.io.results import AniposeCsv, H5Stream, read_result
+    from graph.solve.windows import one_stream
     from graph.types import WINDOW_FRAMES, WINDOWED_ABOVE, WINDOWED_METHODS
     from graph.viewer.payload import payload_json, result_payload
 
@@ -295,8 +296,8 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
             or options.individuals):
         return None
     above = options.window_frames or WINDOWED_ABOVE
-    if options.method != "fte":
-        solver = None  # ekf's windows are one stream, solved in turn by this process (graph.solve.windows)
+    if one_stream(options):
+        solver = None  # ekf's windows: solved in turn by this process, none shared
     # staged inside the job's result folder: a run killed (cancelled, timed out) leaves nothing behind
     # that the job's own clean-up does not remove
     scratch = out_dir / STAGED
@@ -664,8 +665,12 @@ def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int
                                description=f"acinoset job {job_id}: a helper with its windows")
         return ids
 
-    return SharedWindows(rq_job.connection, token, _worker_name(rq_job), enqueue, idle, int(rq_job.timeout or 3600),
-                         shared=shared)
+    return SharedWindows(rq_job.connection, token, _worker_name(rq_job), enqueue, idle, _timeout(rq_job), shared=shared)
+
+
+def _timeout(rq_job) -> int:
+    """How long the job may run (s), and its keys in Redis outlive it at most: RQ's timeout, else an hour."""
+    return int(rq_job.timeout or 3600)
 
 
 def _this_worker() -> str:
@@ -706,7 +711,7 @@ def _help(rq_job, job_id: str, token: str, worker: str, shared: bool) -> dict:
                 scratch = jobfiles.result_tmp(where, token) / STAGED
 
                 def together(paths: list[str], folder: Path, read):
-                    return stage_together(redis, token, me, paths, folder, read, int(rq_job.timeout or 3600))
+                    return stage_together(redis, token, me, paths, folder, read, _timeout(rq_job))
         else:
             input_dir = Path(tmp) / INPUT
             unpack_files(where, input_dir)
