@@ -190,6 +190,9 @@ def test_cameras_staged_one_by_one_are_the_run_staged_in_turn(rig, long_run, tmp
     cut.write_bytes(cut.read_bytes()[:-16])
     with pytest.raises(ValueError, match="camera 4's xy is not whole"):
         StagedRun.gather(folder, len(paths))
+    (folder / "3.json").write_text('{"frames": 3000, "camera": {"index": 3}}')  # an entry not ours
+    with pytest.raises(ValueError, match="camera 4's entry is not a staged camera's"):
+        StagedRun.gather(folder, len(paths))
 
     pack = simulate_group(ring_rig(3), animals=2, frames=20, seed=1)
     stage_camera(str(write_dlc_multi(tmp_path / "pack.csv", pack.tracks[0], ["a", "b"])), folder, 1, read_blocks)

@@ -132,17 +132,20 @@ class StagedRun:
     def gather(cls, folder: str | Path, count: int) -> StagedRun | None:
         """The run whose ``count`` cameras were staged in ``folder`` one by one (:func:`stage_camera`,
         each entry there); None when a file holds several individuals; :class:`InputError` when the
-        cameras' frames differ (as :meth:`add_blocks` says it), ValueError when a camera's arrays are
-        not whole."""
+        cameras' frames differ (as :meth:`add_blocks` says it), ValueError when a camera's entry or
+        arrays are not whole."""
         run = cls(folder)
         for c in range(count):
-            entry = json.loads(run._path(c, "json").read_text(encoding="utf-8"))
-            if "camera" not in entry:
-                return None
-            cam = StagedCamera(**entry["camera"])
+            try:
+                entry = json.loads(run._path(c, "json").read_text(encoding="utf-8"))
+                if "camera" not in entry:
+                    return None
+                cam, frames = StagedCamera(**entry["camera"]), int(entry["frames"])
+            except (KeyError, TypeError, ValueError) as e:
+                raise ValueError(f"camera {c + 1}'s entry is not a staged camera's ({e})") from None
             if run.cameras:
-                _same_frames(int(entry["frames"]), cam.source, run.frames, run.cameras[0].source)
-            run.frames = int(entry["frames"])
+                _same_frames(frames, cam.source, run.frames, run.cameras[0].source)
+            run.frames = frames
             run._check_whole(cam)
             run.cameras.append(cam)
         return run
