@@ -3,6 +3,7 @@ a real embedded server and solved there, beside the same run from a shell.
 
     .venv/bin/python bench/bench_long_service.py [--minutes 10] [--workers 1] [--seed 0] [--work DIR] [--out NAME]
     .venv/bin/python bench/bench_long_service.py --rq-workers 1,2 [--minutes 10] [--shared-data-dir]
+    .venv/bin/python bench/bench_long_service.py --embedded-workers 1,2 [--minutes 10]
 
 With ``--rq-workers``, the same job on the RQ backend instead, once per count of workers given: a
 ``redis-server`` of its own, the server with ``--backend rq`` and that many ``acinoset worker`` processes
@@ -11,7 +12,8 @@ that are idle (``service.run.shared_windows``): the ratio of the job's time with
 with 1 is the issue's "through the service with 2 workers, <= 0.6x the time of 1". The memory sampled
 is then the server's tree and every worker's tree, summed. ``--shared-data-dir``: the server shares its
 data dir with the workers (``ACINOSET_SHARED_DATA_DIR``, each worker ``--data-dir``): the job's files go
-by path, not through Redis.
+by path, not through Redis. ``--embedded-workers``: the same on the embedded backend, a server with that
+many ``--workers``; a long job's windows go to helper processes in the slots no other job takes.
 
 The run: ``bench_long.make_run`` (the simulator's cheetah walking at 1 m/s on the AcinoSet 2019 rig,
 120 fps, six DeepLabCut CSVs). The server: ``python -m service serve --backend embedded --workers N``
@@ -180,9 +182,13 @@ def main() -> int:
                     help="RQ: the workers mount the server's data dir (files by path, not through Redis)")
     ap.add_argument("--rq-workers", default=None,
                     help="the RQ backend instead, once per count of workers given (comma-separated, e.g. 1,2)")
+    ap.add_argument("--embedded-workers", default=None,
+                    help="the embedded backend once per count of --workers given (comma-separated, e.g. 1,2)")
     args = ap.parse_args()
     if args.rq_workers:
-        return main_rq(args)
+        return main_counts(args, "rq", args.rq_workers)
+    if args.embedded_workers:
+        return main_counts(args, "embedded", args.embedded_workers)
     frames = int(round(args.minutes * 60 * bl.FPS))
     info = h.machine()
     work = Path(args.work or tempfile.mkdtemp(prefix="bench_long_service_"))
@@ -263,49 +269,54 @@ def timed_job(base: str, token: str, warm_dir: Path, run_dir: Path, sampler: Tre
     return out
 
 
-def main_rq(args) -> int:
-    """The job on the RQ backend with each count of workers in ``--rq-workers`` (module docstring)."""
-    counts = [int(n) for n in args.rq_workers.split(",")]
+def main_counts(args, backend: str, given: str) -> int:
+    """The job on the ``backend`` with each count of workers ``given`` (``--rq-workers``,
+    ``--embedded-workers``: module docstring)."""
+    counts = [int(n) for n in given.split(",")]
     frames = int(round(args.minutes * 60 * bl.FPS))
     info = h.machine()
-    work = Path(args.work or tempfile.mkdtemp(prefix="bench_long_service_rq_"))
+    work = Path(args.work or tempfile.mkdtemp(prefix=f"bench_long_service_{backend}_"))
     run_dir, warm_dir = work / "run", work / "warm"
     cal = h.rig()
     bl.make_run(cal, bl.WARM_FRAMES, 99, warm_dir)
     bl.log(f"{args.minutes:g} min: simulating and writing {frames:,} frames")
     bl.make_run(cal, frames, args.seed, run_dir)
-    out: dict = {"machine": info, "args": vars(args), "frames": frames, "rq": {}}
+    out: dict = {"machine": info, "args": vars(args), "frames": frames, backend: {}}
     csvs = {}
     for n in counts:
-        here = work / f"rq{n}"
+        here = work / f"{backend}{n}"
         (here / "data").mkdir(parents=True, exist_ok=True)
-        redis, url = start_redis(here)
-        server, base, token = start_server(here / "data", 0, frames, here / "server.log", redis_url=url,
-                                           shared=args.shared_data_dir)
-        workers = start_workers(url, n, frames, here, here / "data" if args.shared_data_dir else None)
+        if backend == "rq":
+            redis, url = start_redis(here)
+            server, base, token = start_server(here / "data", 0, frames, here / "server.log", redis_url=url,
+                                               shared=args.shared_data_dir)
+            workers = [*start_workers(url, n, frames, here, here / "data" if args.shared_data_dir else None), redis]
+        else:
+            server, base, token = start_server(here / "data", n, frames, here / "server.log")
+            workers = []
         sampler = TreeSampler(server.pid, *(w.pid for w in workers))
         sampler.start()
         try:
-            bl.log(f"RQ backend, {n} worker(s)")
+            bl.log(f"{backend} backend, {n} worker(s)")
             r = timed_job(base, token, warm_dir, run_dir, sampler, here)
         finally:
             sampler.halt.set()
-            for p in [server, *workers, redis]:
+            for p in [server, *workers]:
                 p.terminate()
-            for p in [server, *workers, redis]:
+            for p in [server, *workers]:
                 try:
                     p.wait(timeout=30)
                 except subprocess.TimeoutExpired:
                     p.kill()
         csvs[n] = r.pop("csv_bytes", None)
-        out["rq"][n] = r
+        out[backend][n] = r
     rows = []
-    for n, r in out["rq"].items():
+    for n, r in out[backend].items():
         w = r.get("windows") or {}
-        rows.append([n, r["status"], r["upload_s"], r["job_s"], r["job_s"] / out["rq"][counts[0]]["job_s"],
+        rows.append([n, r["status"], r["upload_s"], r["job_s"], r["job_s"] / out[backend][counts[0]]["job_s"],
                      r["tree_mib_idle"], r["tree_peak_mib_job"], (r.get("error") or {}).get("mean_mm"),
                      json.dumps(w.get("solved_by"))])
-    print(h.markdown_table(["RQ workers", "status", "upload s", "job s", f"vs {counts[0]}", "idle MiB",
+    print(h.markdown_table([f"{backend} workers", "status", "upload s", "job s", f"vs {counts[0]}", "idle MiB",
                             "peak MiB while solving", "error mean mm", "windows solved by"], rows))
     same = len({c for c in csvs.values() if c is not None}) == 1 and all(c is not None for c in csvs.values())
     out["same_csv"] = same

@@ -10,6 +10,11 @@ so numba's kernels are compiled): forking a job costs milliseconds, not an impor
 forkserver starts with the server; until it is up no job is started (their progress says
 ``compiling``) and ``/healthz`` says ``starting``.
 
+A long run's windows (:mod:`service.run.shared_windows`) use the slots no queued job takes: the run
+asks for helpers on its board (:mod:`service.run.folder_windows`), and the scheduler starts helper
+processes for it (:func:`service.run.worker.help_embedded`), counted among the ``workers``; a helper
+leaves when another job is queued, and goes with its run.
+
 Crash safety:
 
 * a job process that dies without finishing (killed, out of memory) interrupts its run: the job is
@@ -70,6 +75,7 @@ class EmbeddedBackend(Backend):
         super().__init__(settings, store)
         self._ctx = multiprocessing.get_context("forkserver")
         self._runs: dict[str, _Run] = {}
+        self._helpers: dict[str, list[multiprocessing.process.BaseProcess]] = {}  # a run's helper processes
         self._lock = threading.Lock()
         self._host = socket.gethostname()
         self._last_renew = 0.0
@@ -104,6 +110,7 @@ class EmbeddedBackend(Backend):
         with self._lock:
             runs = list(self._runs.values())
             self._runs.clear()
+        self._end_helpers(*(r.job_id for r in runs))
         for run in runs:
             run.process.kill()
             run.process.join(timeout=5)
@@ -122,6 +129,7 @@ class EmbeddedBackend(Backend):
                 run.process.kill()
         if run is not None:
             run.process.join(timeout=5)
+        self._end_helpers(job_id)
         self._wake.set()
 
     def health(self) -> dict:
@@ -155,6 +163,9 @@ class EmbeddedBackend(Backend):
         a restart."""
         with self._lock:
             ended = [r for r in self._runs.values() if r.process.exitcode is not None]
+            for job_id, helpers in self._helpers.items():
+                helpers[:] = [h for h in helpers if h.exitcode is None]
+        self._end_helpers(*(r.job_id for r in ended))
         for r in ended:
             code = r.process.exitcode
             r.process.join(timeout=1)
@@ -203,6 +214,18 @@ class EmbeddedBackend(Backend):
             tokens = [r.token for r in self._runs.values()]
         self.store.renew_leases(tokens, self.settings.lease_seconds)
 
+    def _busy(self) -> int:
+        """Slots taken: runs and their helpers (call with the lock held)."""
+        return len(self._runs) + sum(len(h) for h in self._helpers.values())
+
+    def _end_helpers(self, *job_ids: str) -> None:
+        """The helper processes of these jobs' runs killed (their runs ended)."""
+        with self._lock:
+            helpers = [h for j in job_ids for h in self._helpers.pop(j, [])]
+        for h in helpers:
+            h.kill()
+            h.join(timeout=5)
+
     def _fill(self) -> None:
         from service.run.worker import run_embedded
 
@@ -211,16 +234,17 @@ class EmbeddedBackend(Backend):
             return
         while True:
             with self._lock:
-                if len(self._runs) >= self.settings.workers:
+                if self._busy() >= self.settings.workers:
                     return
             job = self.store.claim_next(f"{self._host}:starting", self.settings.lease_seconds, self.name)
             if job is None:
-                return
+                break
             assert job.run_token is not None
             p = self._ctx.Process(
                 target=run_embedded, name=f"acinoset-job-{job.id[:8]}", daemon=True,
                 args=(str(self.settings.db_path), str(self.settings.jobs_dir), job.id, job.run_token,
-                      self.settings.progress_interval_seconds, self.settings.solve_niceness))
+                      self.settings.progress_interval_seconds, self.settings.solve_niceness,
+                      self.settings.workers - 1))
             try:
                 p.start()
             except Exception as e:  # cannot fork: give the attempt back and retry later
@@ -229,3 +253,28 @@ class EmbeddedBackend(Backend):
             with self._lock:
                 self._runs[job.id] = _Run(job.id, job.run_token, p, time.time())
             self.store.set_worker(job.id, job.run_token, f"{self._host}:{p.pid}")
+        self._help()
+
+    def _help(self) -> None:
+        """Slots no queued job took go to long runs that ask for helpers (their boards say how many)."""
+        from service.run.folder_windows import FolderBoard
+        from service.run.worker import help_embedded
+        from service.store.jobfiles import job_dir, windows_board
+
+        with self._lock:
+            runs = [r for r in self._runs.values() if not r.cancelled and r.process.exitcode is None]
+        for r in runs:
+            wanted = FolderBoard(windows_board(job_dir(self.settings.jobs_dir, r.job_id), r.token)).wanted()
+            while True:
+                with self._lock:
+                    helpers = self._helpers.setdefault(r.job_id, [])
+                    if len(helpers) >= wanted or self._busy() >= self.settings.workers:
+                        break
+                h = self._ctx.Process(
+                    target=help_embedded, name=f"acinoset-helper-{r.job_id[:8]}", daemon=True,
+                    args=(str(self.settings.db_path), str(self.settings.jobs_dir), r.job_id, r.token,
+                          self.settings.solve_niceness))
+                h.start()
+                with self._lock:
+                    helpers.append(h)
+                log.info("job %s: a helper process (%s) solves windows of its run", r.job_id, h.pid)

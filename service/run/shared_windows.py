@@ -1,104 +1,131 @@
-"""One long job over several RQ workers: its windows shared with the workers that are idle.
+"""One long job's windows shared with the workers that are idle, on either backend.
 
 A long run is solved in windows (:mod:`graph.solve.windows`): what every frame shares is settled
 once, then each window is solved on its own with those values held, and the windows' kept frames
-are written in order. On the RQ backend the job's work horse (the *parent*) settles the run, writes
-the *plan* into Redis and enqueues one *helper* RQ job for each worker that is idle (the same queue
-and job function: a helper is :func:`service.run.worker.run_rq_job` given ``helper_of``). A helper
-reads the job's input files from Redis as the parent did, stages them, and solves windows until
-none is left; the parent solves windows too while it waits, and takes the windows in order.
+are written in order. The job's own process (the *parent*) settles the run, publishes the *plan*
+on a :class:`Board` and asks for *helpers*; a helper solves windows until none is left; the parent
+solves windows too while it waits, and takes the windows in order.
 
-Redis keys, each under ``acinoset:windows:<token>`` and expiring with the job's timeout:
+The board is where they meet: Redis on the RQ backend (:class:`service.run.redis_windows.RedisBoard`,
+workers on any machine), the job's own folder on the embedded one
+(:class:`service.run.folder_windows.FolderBoard`, helper processes the server starts in its free
+slots). What it holds:
 
-* ``:plan``: JSON ``{"options", "sigma_px", "settled_on", "spans"}`` (the held options, the noise,
-  the settled stretch, each window's frames ``[lo, hi)``);
-* ``:claims``: a hash, window -> who solves it (the parent's worker, or a helper's RQ job and worker,
-  ``<job>@<worker>``), set once (``HSETNX``);
-* ``:alive:<helper>``: a helper's heartbeat, refreshed every :data:`BEAT_S` seconds; a window whose
-  helper's heartbeat has expired (:data:`BEAT_TTL_S`) is solved by the parent instead;
-* ``:next``: the window the parent takes next; a helper claims windows at most :data:`LOOKAHEAD`
-  after it, so that at most ``LOOKAHEAD + 1`` results wait in Redis, and the parent holds at most
-  ``LOOKAHEAD`` windows it solved ahead (a window's Result: about 11 MB at 2,400 frames of six
+* the *plan*: ``{"options", "sigma_px", "settled_on", "spans"}`` (the held options, the noise, the
+  settled stretch, each window's frames ``[lo, hi)``);
+* the *claims*: window -> who solves it (the parent, or a helper ``<helper>@<worker>``), set once;
+  a window whose helper is gone (its heartbeat older than :data:`BEAT_TTL_S`) is taken over by the
+  parent;
+* *next*: the window the parent takes next; a helper claims windows at most :data:`LOOKAHEAD` after
+  it, so that at most ``LOOKAHEAD + 1`` results wait on the board, and the parent holds at most
+  ``LOOKAHEAD`` windows it solved ahead (a window's result: about 11 MB at 2,400 frames of six
   cameras and 20 markers);
-* ``:done:<k>``: window k's result, a zip of its ``result.h5`` (:func:`graph.io.results.write_h5`)
-  and ``valid.npy`` (the confident detections) in chunks (:func:`service.store.jobfiles.put_archive`);
-* ``:stop``: set when the parent ends; a helper stops at its next window;
-* ``:staging``: on a data dir the workers share, who stages each camera's file (camera -> ``parent``
-  or the helper's name, set once), the run's cameras staged once between them in the parent's result
-  folder (:func:`stage_together`); ``together`` set when the parent asks its helpers to (without it,
-  a helper stages a copy of its own, as it does when the files travel through Redis).
+* each window's result once solved (its ``result.h5``, :func:`graph.io.results.write_h5`, and
+  ``valid.npy``, the confident detections: :func:`write_window`);
+* *stop*: set when the parent ends; a helper stops at its next window.
 
 The answer does not depend on who solved which window when the workers run the same build on the
 same kind of CPU (tested on one machine): a window's result is a function of the run's frames and the
-plan (the same inputs staged the same way), and its arrays travel as float64 in HDF5. Workers of
-other builds or CPUs may round differently, window by window. A helper leaves when other jobs wait in
-the queue (a long job does not hold idle workers from them). Nothing from Redis is unpickled.
+plan, and its arrays travel as float64 in HDF5. A helper leaves when other jobs wait for a worker (a
+long job does not hold idle workers from them). Nothing from a board is unpickled.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
-import tempfile
 import threading
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 BEAT_S = 2.0  # a helper's heartbeat period
 BEAT_TTL_S = 30.0  # a heartbeat older than this: the helper is gone (a long kernel call may delay a beat)
-LOOKAHEAD = 6  # windows a helper may solve past the one the parent takes next (results waiting in Redis)
+LOOKAHEAD = 6  # windows a helper may solve past the one the parent takes next (results waiting on the board)
 POLL_S = 0.05
 
-
-PARENT = "parent"  # who staged a camera (``:staging``), when the job's own work horse did
-TOGETHER = "together"  # in ``:staging``: the helpers stage the cameras with the work horse
-
-
-class Keys:
-    """The Redis keys of one job's shared windows (module docstring)."""
-
-    def __init__(self, token: str):
-        from service.store.jobfiles import windows_key
-
-        self.base = windows_key(token)
-        self.plan, self.claims, self.next, self.stop, self.staging = (
-            f"{self.base}:{k}" for k in ("plan", "claims", "next", "stop", "staging"))
-
-    def alive(self, who: str) -> str:
-        return f"{self.base}:alive:{who}"
-
-    def done(self, k: int) -> str:
-        return f"{self.base}:done:{k}"
+WINDOW_FILES = ("result.h5", "valid.npy")  # one window's result on a board
+PARENT = "parent"  # a claim of the job's own process where the backend names no worker (staging)
 
 
-def _pack(result, valid: np.ndarray) -> bytes:
+class Board(Protocol):
+    """Where a long job's parent and its helpers meet (module docstring)."""
+
+    def publish(self, plan: dict, windows: int, me: str) -> None:
+        """The parent: a retried run's claims and results gone, *next* 0, then the plan."""
+
+    def plan(self) -> dict | None:
+        """The plan, once published (None before, and once the parent ended)."""
+
+    def claim(self, k: int, who: str) -> bool:
+        """Window k claimed by ``who``, if no one had it."""
+
+    def owner(self, k: int) -> str | None:
+        """Who claimed window k."""
+
+    def take_over(self, k: int, who: str) -> None:
+        """Window k claimed by ``who`` (the parent), whoever had it."""
+
+    def all_claimed(self, windows: int) -> bool:
+        """Whether every one of the ``windows`` is claimed."""
+
+    def set_next(self, k: int) -> None: ...
+
+    def next(self) -> int: ...
+
+    def put(self, k: int, result, valid: np.ndarray) -> None:
+        """Window k's result, for the parent."""
+
+    def take(self, k: int) -> tuple[Any, np.ndarray] | None:
+        """Window k's result, off the board, if a helper put it there."""
+
+    def finished(self, k: int) -> bool:
+        """Whether window k's result is on the board."""
+
+    def beat(self, who: str) -> None:
+        """``who`` is alive (for :data:`BEAT_TTL_S`)."""
+
+    def alive(self, who: str) -> bool: ...
+
+    def leave(self, who: str) -> None:
+        """``who`` is gone (its heartbeat removed)."""
+
+    def stop(self) -> None:
+        """The parent ended: the helpers stop."""
+
+    def stopped(self) -> bool: ...
+
+    def parent_running(self) -> bool:
+        """Whether the parent is still running (a parent killed sets no *stop*)."""
+
+    def clear(self, windows: int) -> None:
+        """The plan, claims and results gone (the parent ended)."""
+
+
+def write_window(folder: Path, result, valid: np.ndarray) -> None:
+    """One window's result as :data:`WINDOW_FILES` in ``folder``."""
     from graph.io.results import write_h5
-    from service.store.jobfiles import pack_files
 
-    with tempfile.TemporaryDirectory(prefix="acinoset-window-") as tmp:
-        write_h5(Path(tmp) / "result.h5", result)
-        np.save(Path(tmp) / "valid.npy", valid, allow_pickle=False)
-        return pack_files(Path(tmp), ["result.h5", "valid.npy"])
+    write_h5(folder / WINDOW_FILES[0], result)
+    np.save(folder / WINDOW_FILES[1], valid, allow_pickle=False)
 
 
-def _unpack(archive: bytes):
+def read_window(folder: Path) -> tuple[Any, np.ndarray]:
+    """One window's result, as :func:`write_window` wrote it."""
     from graph.io.results import read_result
-    from service.store.jobfiles import unpack_files
 
-    with tempfile.TemporaryDirectory(prefix="acinoset-window-") as tmp:
-        unpack_files(archive, Path(tmp), ("result.h5", "valid.npy"))
-        return read_result(Path(tmp) / "result.h5"), np.load(Path(tmp) / "valid.npy", allow_pickle=False)
+    return read_result(folder / WINDOW_FILES[0]), np.load(folder / WINDOW_FILES[1], allow_pickle=False)
 
 
-def _options_json(options) -> dict:
+def plan_of(settled, spans: list[tuple[int, int]]) -> dict:
+    """The plan (module docstring) of a run's settled values and windows, as JSON values."""
     from graph.types import jsonable
 
-    return jsonable(dataclasses.asdict(options))
+    return {"options": jsonable(dataclasses.asdict(settled.options)), "sigma_px": float(settled.sigma_px),
+            "settled_on": [settled.start, settled.stop], "spans": [list(s) for s in spans]}
 
 
 def _options_from(d: dict, skeleton: str):
@@ -110,36 +137,34 @@ def _options_from(d: dict, skeleton: str):
     return TypeAdapter(SolveOptions).validate_python({**d, "skeleton": skeleton})
 
 
+def worker_of(claimant: str, parent: str) -> str:
+    """The worker a claim names: ``parent`` for :data:`PARENT`, ``<helper>@<worker>``'s worker for a helper's."""
+    return parent if claimant == PARENT else claimant.rpartition("@")[2]
+
+
 class SharedWindows:
     """The parent's side: a :data:`graph.solve.windows.WindowSolver` that shares the windows with
-    helpers (module docstring). ``me`` names the parent's worker; ``enqueue(n)`` starts ``n``
-    helpers and returns their RQ jobs' ids; ``idle()`` counts the workers free to help; ``ttl``
-    bounds how long any key outlives the job; ``shared``: the workers share the data dir (the cameras
-    can be staged together, :meth:`invite`). ``solved``: each worker's windows, once done; ``staged``:
-    each worker's cameras, when staged together."""
+    helpers (module docstring) on ``board``. ``me`` names the parent's worker; ``enqueue(n)`` asks for
+    ``n`` helpers and returns their names; ``idle()`` counts the workers free to help; ``drop(names)``
+    withdraws the helpers asked for that have not started (the run ended). ``solved``: each worker's
+    windows, once done; ``staged``: each worker's cameras, when the backend stages them together
+    (:meth:`stage`)."""
 
-    def __init__(self, redis, token: str, me: str, enqueue, idle, ttl: int, shared: bool = False):
-        self.redis, self.token, self.keys, self.me = redis, token, Keys(token), me
-        self.enqueue, self.idle, self.ttl, self.shared = enqueue, idle, int(ttl), shared
+    def __init__(self, board: Board, me: str, enqueue: Callable[[int], list[str]], idle: Callable[[], int],
+                 drop: Callable[[list[str]], None] | None = None):
+        self.board, self.me, self.enqueue, self.idle, self.drop = board, me, enqueue, idle, drop
         self.helpers: list[str] = []
         self.invited = False
-        self.together = False
+        self.together = False  # the helpers stage the cameras with the parent (:meth:`stage`)
         self.solved: Counter[str] = Counter()
         self.staged: Counter[str] = Counter()
 
     def __call__(self, source, spans: list[tuple[int, int]], settled) -> Iterator[tuple[Any, Any]]:
         from graph.solve.windows import solve_window
 
-        r, k_ = self.redis, self.keys
         n = len(spans)
         options, sigma_px = settled.options, settled.sigma_px
-        r.delete(k_.claims, k_.next, *(k_.done(k) for k in range(n)))  # a retried job's results are not reused
-        r.set(k_.next, 0, ex=self.ttl)
-        r.hset(k_.claims, "-1", self.me)  # the hash exists, so that its expiry holds
-        r.expire(k_.claims, self.ttl)
-        r.set(k_.plan, json.dumps({"options": _options_json(options), "sigma_px": float(sigma_px),
-                                   "settled_on": [settled.start, settled.stop],
-                                   "spans": [list(s) for s in spans]}), ex=self.ttl)
+        self.board.publish(plan_of(settled, spans), n, self.me)
         self.invite(n)
         ahead: dict[int, tuple[Any, Any]] = {}
 
@@ -150,252 +175,135 @@ class SharedWindows:
 
         try:
             for k in range(n):
-                r.set(k_.next, k, ex=self.ttl)
+                self.board.set_next(k)
                 yield self._take(k, n, ahead, mine)
         finally:
-            r.set(k_.stop, 1, ex=self.ttl)
+            self.board.stop()
             self._end(n)
 
     def invite(self, windows: int, before_staging: bool = False) -> None:
-        """Enqueue a helper for each idle worker, at most ``windows - 1``, once. Called as soon as the
-        run is known to be long (before it is settled), so that the helpers stage the run meanwhile
-        and wait for the plan; called again when the windows start, it does nothing. Invited
-        ``before_staging`` on a shared data dir, the helpers stage the run's cameras with this work
-        horse, each camera once (:func:`stage_together`; ``together`` then says so); otherwise each
-        stages a copy of its own."""
+        """Ask for a helper for each idle worker, at most ``windows - 1``, once. Called as soon as the
+        run is known to be long (before it is settled), so that the helpers get ready meanwhile;
+        called again when the windows start, it does nothing. ``before_staging``: the helpers may
+        stage the run's cameras with the parent, where the backend can (:meth:`stage`)."""
         if self.invited:
             return
         self.invited = True
-        k_ = self.keys
-        self.redis.delete(k_.stop, k_.staging)  # a retried job's cameras are staged again
         helpers = min(max(0, self.idle()), windows - 1)
         if helpers > 0:
-            self.together = self.shared and before_staging
-            if self.together:
-                self.redis.hset(k_.staging, TOGETHER, 1)
-                self.redis.expire(k_.staging, self.ttl)
+            self.together = self._stage_with_helpers(before_staging)
             self.helpers = list(self.enqueue(helpers))
 
+    def _stage_with_helpers(self, before_staging: bool) -> bool:
+        """Whether the helpers are to stage the cameras with the parent (:meth:`stage`); a backend
+        that can overrides it."""
+        return False
+
     def stage(self, paths: list[str], folder: Path, read):
-        """The run's cameras staged with the helpers (:func:`stage_together`); ``staged``: each
-        worker's cameras."""
-        run = stage_together(self.redis, self.token, PARENT, paths, folder, read, self.ttl)
-        for c in range(len(paths)):
-            owner = _text(self.redis.hget(self.keys.staging, str(c)))
-            if owner is not None:
-                self.staged[self._worker(owner)] += 1
-        return run
+        """The run's cameras staged with the helpers (only when :attr:`together`)."""
+        raise NotImplementedError("this backend's helpers do not stage the cameras")
 
     def close(self) -> None:
         """The run ended (solved, failed, or found short): the helpers invited stop, those not started
         are dropped."""
         if self.invited:
-            from redis.exceptions import RedisError
-
             try:
-                self.redis.set(self.keys.stop, 1, ex=self.ttl)
+                self.board.stop()
                 self._end(0)
-            except RedisError:  # Redis gone: the keys expire with the job's timeout, the helpers with the parent
+            except Exception:  # noqa: BLE001 - the board is gone (Redis down): its keys expire, the helpers end with the parent
                 pass
 
     def _take(self, k: int, n: int, ahead: dict, mine) -> tuple[Any, Any]:
         """Window k: solved ahead here, done by a helper, claimed now and solved here, or (its helper
         gone) taken over; while its helper works, a later window is solved here meanwhile."""
-        from service.store.jobfiles import get_archive
-
-        r, k_ = self.redis, self.keys
+        b = self.board
         while True:
             if k in ahead:
                 return ahead.pop(k)
-            archive = get_archive(r, k_.done(k))
-            if archive is not None:
-                r.delete(k_.done(k))
-                self.solved[self._worker(self._owner(k))] += 1
-                return _unpack(archive)
-            if r.hsetnx(k_.claims, str(k), self.me):
+            got = b.take(k)
+            if got is not None:
+                self.solved[worker_of(str(b.owner(k)), self.me)] += 1
+                return got
+            if b.claim(k, self.me):
                 return mine(k)
-            who = self._owner(k)
-            if who == self.me or not r.exists(k_.alive(who)):
-                if r.exists(k_.done(k)):  # finished as its heartbeat ran out
+            who = str(b.owner(k))
+            if who == self.me or not b.alive(who):
+                if b.finished(k):  # finished as its heartbeat ran out
                     continue
-                r.hset(k_.claims, str(k), self.me)  # its helper is gone: solved here
+                b.take_over(k, self.me)  # its helper is gone: solved here
                 return mine(k)
             j = next((j for j in range(k + 1, min(n, k + 1 + LOOKAHEAD)) if j not in ahead
-                      and not r.hexists(k_.claims, str(j))), None)
-            if j is not None and r.hsetnx(k_.claims, str(j), self.me):
+                      and b.owner(j) is None), None)
+            if j is not None and b.claim(j, self.me):
                 ahead[j] = mine(j)
                 continue
             time.sleep(POLL_S)
 
-    def _worker(self, claimant: str) -> str:
-        """The worker a claim names: this one's for the parent's, ``<job>@<worker>``'s for a helper's."""
-        return self.me if claimant == PARENT else claimant.rpartition("@")[2]
-
-    def _owner(self, k: int) -> str:
-        """Who claimed window k."""
-        return str(_text(self.redis.hget(self.keys.claims, str(k))))
-
     def _end(self, n: int) -> None:
-        """The helpers not started are dropped; the keys go (a helper still solving finds ``stop``
-        and its result expires with the job's timeout)."""
-        from rq.job import Job as RQJob
-        from rq.serializers import JSONSerializer
-
-        from service.store.jobfiles import PARTIAL
-
-        for jid in self.helpers:
-            try:
-                rj = RQJob.fetch(jid, connection=self.redis, serializer=JSONSerializer)
-                if rj.get_status() in ("queued", "deferred", "scheduled"):
-                    rj.delete()
-            except Exception:  # noqa: BLE001 - gone already
-                pass
-        k_ = self.keys
-        self.redis.delete(k_.plan, k_.claims, k_.next, k_.staging, *(k_.done(k) for k in range(n)),
-                          *(k_.done(k) + PARTIAL for k in range(n)))
+        """The helpers not started are dropped; the board is cleared (a helper still solving finds
+        *stop*)."""
+        if self.drop is not None and self.helpers:
+            self.drop(self.helpers)
+        self.board.clear(n)
 
 
-def _running(redis, token: str) -> bool:
-    """Whether the parent's RQ job is still running (a parent killed says no ``stop`` of its own)."""
-    from rq.exceptions import InvalidJobOperation, NoSuchJobError
-    from rq.job import Job as RQJob
-    from rq.serializers import JSONSerializer
-
-    try:
-        return RQJob.fetch(token, connection=redis, serializer=JSONSerializer).get_status(refresh=False) == "started"
-    except (NoSuchJobError, InvalidJobOperation):
-        return False
-
-
-def _plan(redis, token: str) -> dict | None:
-    """The plan, once the parent has written it; None if the parent stops or ends first."""
-    k_ = Keys(token)
+def wait_for_plan(board: Board, poll: float = 0.2) -> dict | None:
+    """The plan, once the parent has published it; None if the parent stops or ends first."""
     while True:
-        raw = redis.get(k_.plan)
-        if raw is not None:
-            return json.loads(raw)
-        if redis.exists(k_.stop) or not _running(redis, token):
+        plan = board.plan()
+        if plan is not None:
+            return plan
+        if board.stopped() or not board.parent_running():
             return None
-        time.sleep(0.2)
+        time.sleep(poll)
 
 
-# a camera claimed only while the cameras are staged together (the parent's ``together`` there): 1 claimed,
-# 0 someone else's, -1 the staging is over (the job ended, its keys gone)
-_CLAIM = """
-if redis.call('HEXISTS', KEYS[1], ARGV[3]) == 0 then return -1 end
-return redis.call('HSETNX', KEYS[1], ARGV[1], ARGV[2])
-"""
-# a camera taken over from a claimant that is gone, only if it is still that one's (one taker wins)
-_TAKE_OVER = """
-if redis.call('HGET', KEYS[1], ARGV[1]) == ARGV[2] then redis.call('HSET', KEYS[1], ARGV[1], ARGV[3]) return 1 end
-return 0
-"""
-
-
-def _text(value) -> str | None:
-    """A Redis reply as text (None stays None)."""
-    return value.decode() if isinstance(value, bytes) else value
-
-
-def stage_together(redis, token: str, me: str, paths: list[str], folder: Path, read, ttl: int):
-    """The job's cameras ``paths`` staged in ``folder`` (made by the work horse before it invited the
-    helpers), on the data dir the workers share, by the job's work horse and its helpers between
-    them: each camera claimed by one (``:staging``, set once while ``together`` is there; ``me`` is
-    :data:`PARENT` for the work horse) and staged by it (:func:`graph.io.staged.stage_camera`), the
-    others waited for; a camera whose claimant is gone (a helper's heartbeat expired, the job no longer
-    running) is taken over by one of those waiting (compare and set) and staged again. The run
-    (:meth:`graph.io.staged.StagedRun.gather`), or None: a file holds several individuals, or (a
-    helper's) the job ended or stopped first; RuntimeError when the work horse finds its staging
-    keys gone."""
-    from graph.io.staged import StagedRun, stage_camera
-
-    k_ = Keys(token)
-    claim, take_over = redis.register_script(_CLAIM), redis.register_script(_TAKE_OVER)
-
-    def ended() -> bool:
-        if me == PARENT:
-            return False
-        return bool(redis.exists(k_.stop)) or not _running(redis, token) or not folder.is_dir()
-
-    def over() -> None:
-        if me == PARENT:
-            raise RuntimeError("the job's staging keys are gone from Redis (expired, or deleted)")
-
-    for c, path in enumerate(paths):
-        if ended():
-            return None
-        got = claim(keys=[k_.staging], args=[str(c), me, TOGETHER])
-        if got == -1:
-            return over()
-        if got == 1:
-            redis.expire(k_.staging, ttl)
-            stage_camera(path, folder, c, read)
-    run = StagedRun(folder)
-    while missing := run.unstaged(len(paths)):
-        if ended():
-            return None
-        for c in missing:
-            owner = _text(redis.hget(k_.staging, str(c)))
-            if owner is None:
-                return over()
-            gone = not _running(redis, token) if owner == PARENT else not redis.exists(k_.alive(owner))
-            if gone and take_over(keys=[k_.staging], args=[str(c), owner, me]) == 1:
-                stage_camera(paths[c], folder, c, read)
-        time.sleep(POLL_S)
-    return StagedRun.gather(folder, len(paths))
-
-
-def help_with_windows(redis, token: str, me: str, stage, calibration, options, others_waiting) -> int:
+def help_with_windows(board: Board, me: str, stage: Callable[[], Any], calibration, options,
+                      others_waiting: Callable[[], bool]) -> int:
     """A helper's side: the job's run staged (``stage()``, a :class:`graph.io.staged.StagedRun` or
-    None: a copy of its own, or :func:`stage_together` on a shared data dir; its heartbeat beats
-    meanwhile), then the windows of the job whose RQ token is ``token`` solved until none is left to
-    claim, the parent stops, or ``others_waiting()`` says other jobs wait for a worker; ``me`` names it
-    in the claims (``<its RQ job>@<its worker>``), ``calibration`` and ``options`` are the job's.
-    Returns the windows it solved."""
+    None when the job ended first; the helper's heartbeat beats meanwhile), then the job's windows
+    solved until none is left to claim, the parent stops, or ``others_waiting()`` says other jobs wait
+    for a worker; ``me`` names it in the claims (``<helper>@<worker>``), ``calibration`` and
+    ``options`` are the job's. Returns the windows it solved."""
     from graph.solve.windows import Staged, solve_window
-    from service.store.jobfiles import put_archive
 
-    k_ = Keys(token)
     stopped = threading.Event()
 
     def beat() -> None:
         while not stopped.is_set():
-            redis.set(k_.alive(me), 1, ex=int(BEAT_TTL_S))
+            board.beat(me)
             stopped.wait(BEAT_S)
 
-    redis.set(k_.alive(me), 1, ex=int(BEAT_TTL_S))  # alive before its first claim
+    board.beat(me)  # alive before its first claim
     beating = threading.Thread(target=beat, name="window-helper-heartbeat", daemon=True)
     beating.start()
     try:
         run = stage()
-        plan = None if run is None else _plan(redis, token)
+        plan = None if run is None else wait_for_plan(board)
         if plan is None:
             return 0
-        ttl = max(60, int(redis.ttl(k_.plan)))
         held = _options_from(plan["options"], options.skeleton)
         spans = [(int(lo), int(hi)) for lo, hi in plan["spans"]]
         source = Staged(run, calibration, options)
         s0, s1 = plan["settled_on"]
         source.stretch(int(s0), int(s1), dataclasses.replace(options, window_frames=0))  # the windows' template
         solved = 0
-        while not redis.exists(k_.stop) and _running(redis, token):  # a parent killed sets no stop
-            if others_waiting() or not redis.exists(k_.plan):  # the parent ended: its claims are gone
+        while not board.stopped() and board.parent_running():
+            if others_waiting() or board.plan() is None:  # the parent ended: its claims are gone
                 break
-            nxt = int(redis.get(k_.next) or 0)
-            k = next((j for j in range(nxt, min(len(spans), nxt + 1 + LOOKAHEAD))
-                      if redis.hsetnx(k_.claims, str(j), me)), None)
-            redis.expire(k_.claims, ttl)  # should the parent have deleted it meanwhile
+            nxt = board.next()
+            k = next((j for j in range(nxt, min(len(spans), nxt + 1 + LOOKAHEAD)) if board.claim(j, me)), None)
             if k is None:
-                if redis.hlen(k_.claims) > len(spans):
-                    break  # every window claimed (and the parent's marker)
+                if board.all_claimed(len(spans)):
+                    break
                 time.sleep(POLL_S)
                 continue
             lo, hi = spans[k]
             result, valid = solve_window(source, lo, hi, held, float(plan["sigma_px"]))
-            put_archive(redis, k_.done(k), _pack(result, valid), ttl=ttl)
+            board.put(k, result, valid)
             solved += 1
         return solved
     finally:
         stopped.set()
         beating.join(timeout=BEAT_S + 1)
-        redis.delete(k_.alive(me))
+        board.leave(me)

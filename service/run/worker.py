@@ -42,6 +42,7 @@ from service.store.jobfiles import (
     INPUT,
     RESULT,
     RESULT_FILES,
+    STAGED,
     VIDEOS_DIR,
     get_archive,
     input_key,
@@ -253,14 +254,11 @@ def solve_job(input_dir: Path, out_dir: Path, progress: ThrottledProgress,
 PAGE_FRAMES = 20_000  # the job page's view of a long run: every k-th frame, at most this many
 
 
-STAGED = "staged"  # the folder of a long run's staged detections, in the job's result folder
-
-
 def stage_job(input_dir: Path, scratch: Path, long_enough: Callable[[int], bool], together=None):
     """The job's keypoint files staged in ``scratch`` (:func:`graph.io.staged.stage`), each camera
     named by its upload's name; None when ``long_enough`` says the run is not. ``together(paths,
     folder, read)``: the cameras staged with other workers instead
-    (:func:`service.run.shared_windows.stage_together`)."""
+    (:func:`service.run.redis_windows.stage_together`)."""
     from graph.io.keypoints import read_blocks
     from graph.io.staged import stage
 
@@ -314,6 +312,8 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
             return None
         if solver is not None:  # no hint: invited now (once)
             solver.invite(windows(run.frames))
+            if not solver.together:
+                run.save()  # for helpers that read this folder (the embedded backend's)
         calibration = job_calibration(input_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         name = {fmt: file for fmt, (file, _) in RESULT_FILES.items()}
@@ -481,8 +481,9 @@ def _yield_cpu(niceness: int) -> None:
 
 
 def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_interval: float,
-                 niceness: int) -> None:
-    """Body of the child process that runs one job for the embedded backend."""
+                 niceness: int, helpers: int = 0) -> None:
+    """Body of the child process that runs one job for the embedded backend. ``helpers``: how many
+    helper processes a long run's windows may have at most (:func:`help_embedded`)."""
     from service.store import Store
 
     server_child(niceness)
@@ -494,7 +495,8 @@ def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_
         return store.report_progress(job_id, token, stage, fraction, iteration, cost)
 
     try:
-        report = solve_job(job_dir / INPUT, tmp, ThrottledProgress(sink, progress_interval))
+        solver = _embedded_windows(job_dir, token, helpers) if helpers > 0 else None
+        report = solve_job(job_dir / INPUT, tmp, ThrottledProgress(sink, progress_interval), solver)
         store.finish(job_id, token, "succeeded", summary=report, commit=lambda: install_result(job_dir, tmp))
     except JobCancelled:
         pass
@@ -506,6 +508,49 @@ def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_
             store.finish(job_id, token, "failed", error=one_line(e), error_kind=error_kind(e))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+        store.close()
+
+
+def _embedded_windows(job_dir: Path, token: str, helpers: int) -> "SharedWindows":
+    """A long run's windows shared with at most ``helpers`` helper processes, which the server starts
+    in its free slots when the run asks (:mod:`service.run.folder_windows`)."""
+    from service.run.folder_windows import FolderBoard
+    from service.run.shared_windows import SharedWindows
+
+    board = FolderBoard(jobfiles.windows_board(job_dir, token))
+
+    def enqueue(n: int) -> list[str]:
+        board.want(n)
+        return []
+
+    return SharedWindows(board, f"{socket.gethostname()}:{os.getpid()}", enqueue, lambda: helpers)
+
+
+def help_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, niceness: int) -> None:
+    """Body of a helper process of the embedded backend: it solves windows of the run ``token`` of job
+    ``job_id`` (:func:`service.run.shared_windows.help_with_windows`), reading the cameras the run
+    staged, until none is left or another job waits for a slot."""
+    from graph.io.staged import StagedRun
+    from service.run.folder_windows import FolderBoard
+    from service.run.shared_windows import help_with_windows, wait_for_plan
+    from service.store import Store
+
+    server_child(niceness)
+    store = Store(db_path)
+    job_dir = jobfiles.job_dir(Path(jobs_dir), job_id)
+    board = FolderBoard(jobfiles.windows_board(job_dir, token))
+    me = f"helper-{os.getpid()}@{socket.gethostname()}:{os.getpid()}"
+
+    def stage():
+        return None if wait_for_plan(board) is None else StagedRun.open(board.folder.parent)
+
+    try:
+        help_with_windows(board, me, stage, job_calibration(job_dir / INPUT), job_options(job_dir / INPUT),
+                          lambda: store.oldest_queued_at() is not None)
+    except Exception:  # noqa: BLE001 - the parent solves what a helper did not
+        if board.folder.is_dir():  # not merely the run's end, which removes the folder under it
+            traceback.print_exc()
+    finally:
         store.close()
 
 
@@ -645,9 +690,10 @@ def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int
     """The windows of this RQ job's run shared with the workers of its queue that are idle: a helper
     is this function's RQ job again, given ``helper_of`` (the one function the workers run)."""
     from rq import Queue, Worker
+    from rq.job import Job as RQJob
     from rq.serializers import JSONSerializer
 
-    from service.run.shared_windows import SharedWindows
+    from service.run.redis_windows import RedisBoard, RQSharedWindows
 
     queue = Queue(rq_job.origin, connection=rq_job.connection, serializer=JSONSerializer)
     token = rq_job.id
@@ -665,7 +711,17 @@ def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int
                                description=f"acinoset job {job_id}: a helper with its windows")
         return ids
 
-    return SharedWindows(rq_job.connection, token, _worker_name(rq_job), enqueue, idle, _timeout(rq_job), shared=shared)
+    def drop(ids: list[str]) -> None:
+        for jid in ids:
+            try:
+                helper = RQJob.fetch(jid, connection=rq_job.connection, serializer=JSONSerializer)
+                if helper.get_status() in ("queued", "deferred", "scheduled"):
+                    helper.delete()
+            except Exception:  # noqa: BLE001 - gone already
+                pass
+
+    board = RedisBoard(rq_job.connection, token, _timeout(rq_job))
+    return RQSharedWindows(board, _worker_name(rq_job), enqueue, idle, drop, shared=shared)
 
 
 def _timeout(rq_job) -> int:
@@ -697,7 +753,8 @@ def _help(rq_job, job_id: str, token: str, worker: str, shared: bool) -> dict:
     """This RQ job (on ``worker``) helps the job whose token is ``token`` with its windows
     (:func:`service.run.shared_windows.help_with_windows`), from the job's input files in Redis, or
     on the shared data dir (``shared``)."""
-    from service.run.shared_windows import TOGETHER, Keys, help_with_windows, stage_together
+    from service.run.redis_windows import TOGETHER, Keys, RedisBoard, stage_together
+    from service.run.shared_windows import help_with_windows
 
     redis, me = rq_job.connection, f"{rq_job.id}@{_worker_name(rq_job)}"
     where = shared_job(job_id) if shared else get_archive(redis, input_key(token))
@@ -719,8 +776,8 @@ def _help(rq_job, job_id: str, token: str, worker: str, shared: bool) -> dict:
 
         try:  # staged while the parent stages and settles the run
             stage = lambda: stage_job(input_dir, scratch, lambda frames: True, together)  # noqa: E731
-            n = help_with_windows(redis, token, me, stage, job_calibration(input_dir), job_options(input_dir),
-                                  _others_waiting(rq_job, token))
+            n = help_with_windows(RedisBoard(redis, token, _timeout(rq_job)), me, stage, job_calibration(input_dir),
+                                  job_options(input_dir), _others_waiting(rq_job, token))
         except Exception:  # noqa: BLE001 - the parent solves what a helper did not
             traceback.print_exc()
             return {"status": "failed", "error": "the helper stopped", "worker": worker}

@@ -155,6 +155,15 @@ def result_tmp(job_dir: Path, token: str) -> Path:
     return job_dir / f"{RESULT}.{token}.tmp"
 
 
+STAGED = "staged"  # the folder of a long run's staged detections, in the run's result folder
+WINDOWS_BOARD = "board"  # in it, on the embedded backend: where its windows are shared (service.run.folder_windows)
+
+
+def windows_board(job_dir: Path, token: str) -> Path:
+    """Where the embedded run ``token`` shares a long run's windows with helper processes."""
+    return result_tmp(job_dir, token) / STAGED / WINDOWS_BOARD
+
+
 def install_result(job_dir: Path, tmp: Path) -> None:
     """Make ``tmp`` the job's result directory, replacing an older one (called inside the
     transaction that records the run's success)."""
@@ -262,7 +271,7 @@ def result_key(token: str) -> str:
 
 def windows_key(token: str) -> str:
     """The prefix of the Redis keys of the windows the RQ job ``token`` shares with helpers
-    (:mod:`service.run.shared_windows`)."""
+    (:mod:`service.run.redis_windows`)."""
     return f"acinoset:windows:{token}"
 
 

@@ -159,7 +159,7 @@ def test_cameras_staged_together_survive_a_helper_that_died_and_a_job_that_ended
 
     from graph.io.keypoints import read_blocks
     from graph.io.staged import StagedRun
-    from service.run.shared_windows import PARENT, TOGETHER, Keys, stage_together
+    from service.run.redis_windows import PARENT, TOGETHER, Keys, stage_together
 
     server = Redis(tmp_path / "redis", tmp_path / "redis.log").start()
     try:
