@@ -30,6 +30,7 @@ Crash safety:
 from __future__ import annotations
 
 import multiprocessing
+import shutil
 import socket
 import threading
 import time
@@ -39,6 +40,7 @@ from service.backends.base import Backend, log
 from service.errors import DISK_FULL, EXIT_DISK_FULL
 from service.settings import Settings
 from service.store import COMPILING, Store, StoreFull
+from service.store.jobfiles import job_dir, result_tmp
 
 WAITING_FOR_SOLVER = ("starting: the solver's kernels are being compiled (once after an install or upgrade, "
                       "about 1-2 minutes); jobs wait in the queue until then")
@@ -178,6 +180,8 @@ class EmbeddedBackend(Backend):
                     log.warning("job %s: %s; now %s", r.job_id, _describe_exit(code), status)
             with self._lock:
                 self._runs.pop(r.job_id, None)
+            # what a killed run (cancelled, timed out, lost) had written: its staged inputs can be a GB
+            shutil.rmtree(result_tmp(job_dir(self.settings.jobs_dir, r.job_id), r.token), ignore_errors=True)
             try:
                 r.process.close()
             except ValueError:
@@ -259,7 +263,7 @@ class EmbeddedBackend(Backend):
         """Slots no queued job took go to long runs that ask for helpers (their boards say how many)."""
         from service.run.folder_windows import FolderBoard
         from service.run.worker import help_embedded
-        from service.store.jobfiles import job_dir, windows_board
+        from service.store.jobfiles import windows_board
 
         with self._lock:
             runs = [r for r in self._runs.values() if not r.cancelled and r.process.exitcode is None]

@@ -9,12 +9,15 @@ files, each written whole (a temporary name, then a rename or link):
 * ``wanted``: how many helpers the parent asks for (the server reads it); ``parent``: its pid;
 * ``plan.json``, ``next``, ``stop``;
 * ``claims/<k>``: who solves window k (created by a hard link, which fails if it exists: one claim);
+* ``staging/<c>``: who stages camera c, when the helpers stage the cameras with the parent (the
+  folder is there while they do: :func:`~service.run.shared_windows.stage_together`);
 * ``alive/<who>``: a helper's heartbeat (its pid; gone when the file is older than
   :data:`~service.run.shared_windows.BEAT_TTL_S` or the process has ended);
 * ``done/<k>/``: window k's result (:func:`~service.run.shared_windows.write_window`).
 
-The run's cameras are staged by the parent beside the board (:meth:`graph.io.staged.StagedRun.save`)
-and read from there by the helpers; the folder goes with the run's scratch when the run ends.
+The run's cameras are staged beside the board, by the parent and its helpers between them (or by the
+parent alone, :meth:`graph.io.staged.StagedRun.save`, when it asked for helpers only after), and
+read from there by the helpers; the folder goes with the run's scratch when the run ends.
 """
 
 from __future__ import annotations
@@ -33,13 +36,17 @@ from service.run.shared_windows import BEAT_TTL_S, read_window, write_window
 
 
 def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine (a zombie, killed and not yet reaped, does not)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:  # another user's: it exists
         return True
-    return True
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):  # no /proc: it exists
+        return True
 
 
 class FolderBoard:
@@ -98,17 +105,21 @@ class FolderBoard:
         text = self._read("plan.json")
         return None if text is None else json.loads(text)
 
-    def claim(self, k: int, who: str) -> bool:
+    def _link(self, name: str, who: str) -> bool:
+        """``name`` made, holding ``who``, unless it exists (a hard link: made whole, at most once)."""
         fd, tmp = tempfile.mkstemp(prefix=".", dir=self.folder)
         try:
             with os.fdopen(fd, "w") as f:
                 f.write(who)
-            os.link(tmp, self.folder / "claims" / str(k))
+            os.link(tmp, self.folder / name)
             return True
         except FileExistsError:
             return False
         finally:
             os.unlink(tmp)
+
+    def claim(self, k: int, who: str) -> bool:
+        return self._link(f"claims/{k}", who)
 
     def owner(self, k: int) -> str | None:
         return self._read(f"claims/{k}")
@@ -178,7 +189,40 @@ class FolderBoard:
         return text is not None and text.isdigit() and _pid_alive(int(text))
 
     def clear(self, windows: int) -> None:
-        for sub in ("claims", "done"):
+        for sub in ("claims", "done", "staging"):
             shutil.rmtree(self.folder / sub, ignore_errors=True)
         for name in ("plan.json", "next"):
             (self.folder / name).unlink(missing_ok=True)
+
+    # -- the cameras staged together ---------------------------------------------------------------
+
+    def together(self, before_staging: bool) -> bool:
+        shutil.rmtree(self.folder / "staging", ignore_errors=True)  # a retried run's cameras are staged again
+        if before_staging:
+            (self.folder / "staging").mkdir(parents=True)
+        return before_staging
+
+    def staging_together(self) -> bool:
+        return (self.folder / "staging").is_dir()
+
+    def claim_camera(self, c: int, who: str) -> int:
+        try:
+            return 1 if self._link(f"staging/{c}", who) else 0
+        except FileNotFoundError:  # the staging is over: the run's board went
+            return -1
+
+    def camera_owner(self, c: int) -> str | None:
+        return self._read(f"staging/{c}")
+
+    def take_over_camera(self, c: int, owner: str, who: str) -> bool:
+        import fcntl
+
+        try:
+            with open(self.folder / "staging" / ".lock", "a") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)  # compare and set: one taker wins
+                if self.camera_owner(c) != owner:
+                    return False
+                self._write(f"staging/{c}", who)
+                return True
+        except FileNotFoundError:
+            return False

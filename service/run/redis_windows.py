@@ -13,30 +13,21 @@ Redis keys, each under ``acinoset:windows:<token>`` and expiring with the job's 
   in chunks (:func:`service.store.jobfiles.put_archive`);
 * ``:staging``: on a data dir the workers share, who stages each camera's file (camera -> ``parent``
   or the helper's name, set once), the run's cameras staged once between them in the parent's result
-  folder (:func:`stage_together`); ``together`` set when the parent asks its helpers to (without it,
-  a helper stages a copy of its own, as it does when the files travel through Redis).
+  folder (:func:`~service.run.shared_windows.stage_together`); ``together`` set when the parent asks its
+  helpers to (without it, a helper stages a copy of its own, as it does when the files travel through
+  Redis). A camera is claimed by a Lua script that claims only while ``together`` is there.
 """
 
 from __future__ import annotations
 
 import json
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from service.run.shared_windows import (
-    BEAT_TTL_S,
-    PARENT,
-    POLL_S,
-    WINDOW_FILES,
-    SharedWindows,
-    read_window,
-    worker_of,
-    write_window,
-)
+from service.run.shared_windows import BEAT_TTL_S, WINDOW_FILES, read_window, write_window
 
 TOGETHER = "together"  # in ``:staging``: the helpers stage the cameras with the work horse
 
@@ -77,10 +68,11 @@ def _running(redis, token: str) -> bool:
 
 class RedisBoard:
     """The :class:`~service.run.shared_windows.Board` of the RQ job ``token`` in Redis (module
-    docstring); every key expires after ``ttl`` seconds (the job's timeout)."""
+    docstring); every key expires after ``ttl`` seconds (the job's timeout). ``shared``: the workers
+    share the data dir, so the helpers can stage the cameras with the work horse."""
 
-    def __init__(self, redis, token: str, ttl: int):
-        self.redis, self.token, self.keys, self.ttl = redis, token, Keys(token), int(ttl)
+    def __init__(self, redis, token: str, ttl: int, shared: bool = False):
+        self.redis, self.token, self.keys, self.ttl, self.shared = redis, token, Keys(token), int(ttl), shared
 
     def publish(self, plan: dict, windows: int, me: str) -> None:
         r, k_ = self.redis, self.keys
@@ -161,38 +153,32 @@ class RedisBoard:
         self.redis.delete(k_.plan, k_.claims, k_.next, k_.staging, *(k_.done(k) for k in range(windows)),
                           *(k_.done(k) + PARTIAL for k in range(windows)))
 
-
-class RQSharedWindows(SharedWindows):
-    """The windows of an RQ job shared through :class:`RedisBoard`; ``shared``: the workers share the
-    data dir, so the helpers invited before staging stage the cameras with the work horse, each
-    camera once (:func:`stage_together`)."""
-
-    def __init__(self, board: RedisBoard, me: str, enqueue, idle, drop, shared: bool = False):
-        super().__init__(board, me, enqueue, idle, drop)
-        self.redis_board, self.shared = board, shared
-
-    def _stage_with_helpers(self, before_staging: bool) -> bool:
-        r, k_ = self.redis_board.redis, self.redis_board.keys
+    def together(self, before_staging: bool) -> bool:
+        r, k_ = self.redis, self.keys
         r.delete(k_.stop, k_.staging)  # a retried job's cameras are staged again
         if not (self.shared and before_staging):
             return False
         r.hset(k_.staging, TOGETHER, 1)
-        r.expire(k_.staging, self.redis_board.ttl)
+        r.expire(k_.staging, self.ttl)
         return True
 
-    def stage(self, paths: list[str], folder: Path, read):
-        """The run's cameras staged with the helpers (:func:`stage_together`); ``staged``: each
-        worker's cameras."""
-        b = self.redis_board
-        run = stage_together(b.redis, b.token, PARENT, paths, folder, read, b.ttl)
-        for c in range(len(paths)):
-            owner = _text(b.redis.hget(b.keys.staging, str(c)))
-            if owner is not None:
-                self.staged[worker_of(owner, self.me)] += 1
-        return run
+    def staging_together(self) -> bool:
+        return bool(self.redis.hexists(self.keys.staging, TOGETHER))
+
+    def claim_camera(self, c: int, who: str) -> int:
+        got = int(self.redis.register_script(_CLAIM)(keys=[self.keys.staging], args=[str(c), who, TOGETHER]))
+        if got == 1:
+            self.redis.expire(self.keys.staging, self.ttl)
+        return got
+
+    def camera_owner(self, c: int) -> str | None:
+        return _text(self.redis.hget(self.keys.staging, str(c)))
+
+    def take_over_camera(self, c: int, owner: str, who: str) -> bool:
+        return self.redis.register_script(_TAKE_OVER)(keys=[self.keys.staging], args=[str(c), owner, who]) == 1
 
 
-# a camera claimed only while the cameras are staged together (the parent's ``together`` there): 1 claimed,
+# a camera claimed only while the cameras are staged together (``together`` in ``:staging``): 1 claimed,
 # 0 someone else's, -1 the staging is over (the job ended, its keys gone)
 _CLAIM = """
 if redis.call('HEXISTS', KEYS[1], ARGV[3]) == 0 then return -1 end
@@ -203,51 +189,3 @@ _TAKE_OVER = """
 if redis.call('HGET', KEYS[1], ARGV[1]) == ARGV[2] then redis.call('HSET', KEYS[1], ARGV[1], ARGV[3]) return 1 end
 return 0
 """
-
-
-def stage_together(redis, token: str, me: str, paths: list[str], folder: Path, read, ttl: int):
-    """The job's cameras ``paths`` staged in ``folder`` (made by the work horse before it invited the
-    helpers), on the data dir the workers share, by the job's work horse and its helpers between
-    them: each camera claimed by one (``:staging``, set once while ``together`` is there; ``me`` is
-    :data:`PARENT` for the work horse) and staged by it (:func:`graph.io.staged.stage_camera`), the
-    others waited for; a camera whose claimant is gone (a helper's heartbeat expired, the job no longer
-    running) is taken over by one of those waiting (compare and set) and staged again. The run
-    (:meth:`graph.io.staged.StagedRun.gather`), or None: a file holds several individuals, or (a
-    helper's) the job ended or stopped first; RuntimeError when the work horse finds its staging
-    keys gone."""
-    from graph.io.staged import StagedRun, stage_camera
-
-    k_ = Keys(token)
-    claim, take_over = redis.register_script(_CLAIM), redis.register_script(_TAKE_OVER)
-
-    def ended() -> bool:
-        if me == PARENT:
-            return False
-        return bool(redis.exists(k_.stop)) or not _running(redis, token) or not folder.is_dir()
-
-    def over() -> None:
-        if me == PARENT:
-            raise RuntimeError("the job's staging keys are gone from Redis (expired, or deleted)")
-
-    for c, path in enumerate(paths):
-        if ended():
-            return None
-        got = claim(keys=[k_.staging], args=[str(c), me, TOGETHER])
-        if got == -1:
-            return over()
-        if got == 1:
-            redis.expire(k_.staging, ttl)
-            stage_camera(path, folder, c, read)
-    run = StagedRun(folder)
-    while missing := run.unstaged(len(paths)):
-        if ended():
-            return None
-        for c in missing:
-            owner = _text(redis.hget(k_.staging, str(c)))
-            if owner is None:
-                return over()
-            gone = not _running(redis, token) if owner == PARENT else not redis.exists(k_.alive(owner))
-            if gone and take_over(keys=[k_.staging], args=[str(c), owner, me]) == 1:
-                stage_camera(paths[c], folder, c, read)
-        time.sleep(POLL_S)
-    return StagedRun.gather(folder, len(paths))

@@ -102,7 +102,26 @@ class Board(Protocol):
         """Whether the parent is still running (a parent killed sets no *stop*)."""
 
     def clear(self, windows: int) -> None:
-        """The plan, claims and results gone (the parent ended)."""
+        """The plan, claims, results and staging claims gone (the parent ended)."""
+
+    # the run's cameras staged together (:func:`stage_together`)
+
+    def together(self, before_staging: bool) -> bool:
+        """The parent, asking for helpers (a retried run's staging claims gone first): whether they
+        are to stage the cameras with it (they can if invited ``before_staging`` and they see its
+        folder); if so the board says so to them (:meth:`staging_together`)."""
+
+    def staging_together(self) -> bool:
+        """Whether the helpers stage the cameras with the parent."""
+
+    def claim_camera(self, c: int, who: str) -> int:
+        """Camera c claimed by ``who``: 1, or 0 if another had it, or -1 if the staging is over (the
+        run ended: its board cleared)."""
+
+    def camera_owner(self, c: int) -> str | None: ...
+
+    def take_over_camera(self, c: int, owner: str, who: str) -> bool:
+        """Camera c claimed by ``who`` if ``owner`` still has it (one taker wins)."""
 
 
 def write_window(folder: Path, result, valid: np.ndarray) -> None:
@@ -191,17 +210,18 @@ class SharedWindows:
         self.invited = True
         helpers = min(max(0, self.idle()), windows - 1)
         if helpers > 0:
-            self.together = self._stage_with_helpers(before_staging)
+            self.together = self.board.together(before_staging)
             self.helpers = list(self.enqueue(helpers))
 
-    def _stage_with_helpers(self, before_staging: bool) -> bool:
-        """Whether the helpers are to stage the cameras with the parent (:meth:`stage`); a backend
-        that can overrides it."""
-        return False
-
     def stage(self, paths: list[str], folder: Path, read):
-        """The run's cameras staged with the helpers (only when :attr:`together`)."""
-        raise NotImplementedError("this backend's helpers do not stage the cameras")
+        """The run's cameras staged with the helpers (:func:`stage_together`; only when
+        :attr:`together`); ``staged``: each worker's cameras."""
+        run = stage_together(self.board, PARENT, paths, folder, read)
+        for c in range(len(paths)):
+            owner = self.board.camera_owner(c)
+            if owner is not None:
+                self.staged[worker_of(owner, self.me)] += 1
+        return run
 
     def close(self) -> None:
         """The run ended (solved, failed, or found short): the helpers invited stop, those not started
@@ -245,6 +265,47 @@ class SharedWindows:
         if self.drop is not None and self.helpers:
             self.drop(self.helpers)
         self.board.clear(n)
+
+
+def stage_together(board: Board, me: str, paths: list[str], folder: Path, read):
+    """The job's cameras ``paths`` staged in ``folder`` (made by the parent before it asked for
+    helpers), where the parent and its helpers both see it, between them: each camera claimed by one
+    (:meth:`Board.claim_camera`; ``me`` is :data:`PARENT` for the parent) and staged by it
+    (:func:`graph.io.staged.stage_camera`), the others waited for; a camera whose claimant is gone (a
+    helper's heartbeat expired, the parent no longer running) is taken over by one of those waiting
+    and staged again. The run (:meth:`graph.io.staged.StagedRun.gather`), or None: a file holds
+    several individuals, or (a helper's) the job ended or stopped first; RuntimeError when the parent
+    finds its staging claims gone."""
+    from graph.io.staged import StagedRun, stage_camera
+
+    def ended() -> bool:
+        return me != PARENT and (board.stopped() or not board.parent_running() or not folder.is_dir())
+
+    def over() -> None:
+        if me == PARENT:
+            raise RuntimeError("the run's staging claims are gone from its board (expired, or deleted)")
+
+    for c, path in enumerate(paths):
+        if ended():
+            return None
+        got = board.claim_camera(c, me)
+        if got == -1:
+            return over()
+        if got == 1:
+            stage_camera(path, folder, c, read)
+    run = StagedRun(folder)
+    while missing := run.unstaged(len(paths)):
+        if ended():
+            return None
+        for c in missing:
+            owner = board.camera_owner(c)
+            if owner is None:
+                return over()
+            gone = not board.parent_running() if owner == PARENT else not board.alive(owner)
+            if gone and board.take_over_camera(c, owner, me):
+                stage_camera(paths[c], folder, c, read)
+        time.sleep(POLL_S)
+    return StagedRun.gather(folder, len(paths))
 
 
 def wait_for_plan(board: Board, poll: float = 0.2) -> dict | None:

@@ -532,7 +532,7 @@ def help_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, niceness
     staged, until none is left or another job waits for a slot."""
     from graph.io.staged import StagedRun
     from service.run.folder_windows import FolderBoard
-    from service.run.shared_windows import help_with_windows, wait_for_plan
+    from service.run.shared_windows import help_with_windows, stage_together, wait_for_plan
     from service.store import Store
 
     server_child(niceness)
@@ -540,12 +540,16 @@ def help_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, niceness
     job_dir = jobfiles.job_dir(Path(jobs_dir), job_id)
     board = FolderBoard(jobfiles.windows_board(job_dir, token))
     me = f"helper-{os.getpid()}@{socket.gethostname()}:{os.getpid()}"
+    input_dir, scratch = job_dir / INPUT, board.folder.parent
 
     def stage():
-        return None if wait_for_plan(board) is None else StagedRun.open(board.folder.parent)
+        if board.staging_together():  # the cameras staged with the parent, in its folder
+            return stage_job(input_dir, scratch, lambda frames: True,
+                             lambda paths, folder, read: stage_together(board, me, paths, folder, read))
+        return None if wait_for_plan(board) is None else StagedRun.open(scratch)  # as the parent staged them
 
     try:
-        help_with_windows(board, me, stage, job_calibration(job_dir / INPUT), job_options(job_dir / INPUT),
+        help_with_windows(board, me, stage, job_calibration(input_dir), job_options(input_dir),
                           lambda: store.oldest_queued_at() is not None)
     except Exception:  # noqa: BLE001 - the parent solves what a helper did not
         if board.folder.is_dir():  # not merely the run's end, which removes the folder under it
@@ -693,7 +697,8 @@ def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int
     from rq.job import Job as RQJob
     from rq.serializers import JSONSerializer
 
-    from service.run.redis_windows import RedisBoard, RQSharedWindows
+    from service.run.redis_windows import RedisBoard
+    from service.run.shared_windows import SharedWindows
 
     queue = Queue(rq_job.origin, connection=rq_job.connection, serializer=JSONSerializer)
     token = rq_job.id
@@ -720,8 +725,8 @@ def _shared_windows(rq_job, job_id: str, progress_interval: float, niceness: int
             except Exception:  # noqa: BLE001 - gone already
                 pass
 
-    board = RedisBoard(rq_job.connection, token, _timeout(rq_job))
-    return RQSharedWindows(board, _worker_name(rq_job), enqueue, idle, drop, shared=shared)
+    board = RedisBoard(rq_job.connection, token, _timeout(rq_job), shared=shared)
+    return SharedWindows(board, _worker_name(rq_job), enqueue, idle, drop)
 
 
 def _timeout(rq_job) -> int:
@@ -753,10 +758,11 @@ def _help(rq_job, job_id: str, token: str, worker: str, shared: bool) -> dict:
     """This RQ job (on ``worker``) helps the job whose token is ``token`` with its windows
     (:func:`service.run.shared_windows.help_with_windows`), from the job's input files in Redis, or
     on the shared data dir (``shared``)."""
-    from service.run.redis_windows import TOGETHER, Keys, RedisBoard, stage_together
-    from service.run.shared_windows import help_with_windows
+    from service.run.redis_windows import RedisBoard
+    from service.run.shared_windows import help_with_windows, stage_together
 
     redis, me = rq_job.connection, f"{rq_job.id}@{_worker_name(rq_job)}"
+    board = RedisBoard(redis, token, _timeout(rq_job), shared=shared)
     where = shared_job(job_id) if shared else get_archive(redis, input_key(token))
     if where is None or isinstance(where, str):  # the files are gone, or not seen from here
         return {"status": "helped", "windows": 0, "worker": worker}
@@ -764,11 +770,11 @@ def _help(rq_job, job_id: str, token: str, worker: str, shared: bool) -> dict:
         scratch, together = Path(tmp) / STAGED, None
         if isinstance(where, Path):
             input_dir = where / INPUT
-            if redis.hexists(Keys(token).staging, TOGETHER):  # the cameras staged with the parent, in its folder
+            if board.staging_together():  # the cameras staged with the parent, in its folder
                 scratch = jobfiles.result_tmp(where, token) / STAGED
 
                 def together(paths: list[str], folder: Path, read):
-                    return stage_together(redis, token, me, paths, folder, read, _timeout(rq_job))
+                    return stage_together(board, me, paths, folder, read)
         else:
             input_dir = Path(tmp) / INPUT
             unpack_files(where, input_dir)
@@ -776,8 +782,8 @@ def _help(rq_job, job_id: str, token: str, worker: str, shared: bool) -> dict:
 
         try:  # staged while the parent stages and settles the run
             stage = lambda: stage_job(input_dir, scratch, lambda frames: True, together)  # noqa: E731
-            n = help_with_windows(RedisBoard(redis, token, _timeout(rq_job)), me, stage, job_calibration(input_dir),
-                                  job_options(input_dir), _others_waiting(rq_job, token))
+            n = help_with_windows(board, me, stage, job_calibration(input_dir), job_options(input_dir),
+                                  _others_waiting(rq_job, token))
         except Exception:  # noqa: BLE001 - the parent solves what a helper did not
             traceback.print_exc()
             return {"status": "failed", "error": "the helper stopped", "worker": worker}

@@ -65,6 +65,7 @@ def test_a_long_job_is_solved_in_windows_as_the_library_solves_it(job, run, tmp_
     # the server's second slot was free: a helper process solved windows too, with the same answer
     solved_by = report["windows"]["solved_by"]
     assert len(solved_by) == 2 and sum(solved_by.values()) == FRAMES // CORE, solved_by
+    assert sum(report["windows"]["staged_by"].values()) == len(run.cams)  # each camera staged once, between them
     for w in report["warnings"]:
         assert "/" not in w, f"a server path in a warning: {w}"
 

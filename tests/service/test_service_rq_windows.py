@@ -159,7 +159,8 @@ def test_cameras_staged_together_survive_a_helper_that_died_and_a_job_that_ended
 
     from graph.io.keypoints import read_blocks
     from graph.io.staged import StagedRun
-    from service.run.redis_windows import PARENT, TOGETHER, Keys, stage_together
+    from service.run.redis_windows import TOGETHER, Keys, RedisBoard
+    from service.run.shared_windows import PARENT, stage_together
 
     server = Redis(tmp_path / "redis", tmp_path / "redis.log").start()
     try:
@@ -168,11 +169,11 @@ def test_cameras_staged_together_survive_a_helper_that_died_and_a_job_that_ended
         parent = Job.create("os.getpid", id=token, connection=r, serializer=JSONSerializer)
         parent.save()
         parent.set_status("started")  # the job's work horse is running
-        k_ = Keys(token)
+        k_, board = Keys(token), RedisBoard(r, token, ttl=60, shared=True)
         folder = tmp_path / "result.tmp" / "staged"
         folder.mkdir(parents=True)
         r.hset(k_.staging, mapping={TOGETHER: 1, "1": "helper-1@w2"})  # camera 2 claimed, its helper dead
-        got = stage_together(r, token, PARENT, paths, folder, read_blocks, ttl=60)
+        got = stage_together(board, PARENT, paths, folder, read_blocks)
         assert isinstance(got, StagedRun) and len(got.cameras) == len(paths) and got.frames == run.frames
         assert r.hget(k_.staging, "1") == PARENT.encode()  # taken over, by one
         assert StagedRun(folder).unstaged(len(paths)) == []
@@ -180,14 +181,14 @@ def test_cameras_staged_together_survive_a_helper_that_died_and_a_job_that_ended
         r.delete(k_.staging)  # the job ended: its keys are gone
         late = tmp_path / "late"
         late.mkdir()
-        assert stage_together(r, token, "helper-2@w2", paths, late, read_blocks, ttl=60) is None
+        assert stage_together(board, "helper-2@w2", paths, late, read_blocks) is None
         assert list(late.iterdir()) == []
-        with pytest.raises(RuntimeError, match="staging keys are gone"):
-            stage_together(r, token, PARENT, paths, late, read_blocks, ttl=60)
+        with pytest.raises(RuntimeError, match="staging claims are gone"):
+            stage_together(board, PARENT, paths, late, read_blocks)
 
         r.hset(k_.staging, TOGETHER, 1)
         gone = tmp_path / "removed" / "staged"
-        assert stage_together(r, token, "helper-3@w2", paths, gone, read_blocks, ttl=60) is None
+        assert stage_together(board, "helper-3@w2", paths, gone, read_blocks) is None
         assert not gone.parent.exists()
     finally:
         server.stop()
