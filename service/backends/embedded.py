@@ -165,8 +165,12 @@ class EmbeddedBackend(Backend):
         a restart."""
         with self._lock:
             ended = [r for r in self._runs.values() if r.process.exitcode is not None]
-            for job_id, helpers in self._helpers.items():
+            left = [h for helpers in self._helpers.values() for h in helpers if h.exitcode is not None]
+            for helpers in self._helpers.values():
                 helpers[:] = [h for h in helpers if h.exitcode is None]
+        for h in left:  # a helper that left (its windows done, another job queued) or died
+            h.join(timeout=1)
+            h.close()
         self._end_helpers(*(r.job_id for r in ended))
         for r in ended:
             code = r.process.exitcode
@@ -277,7 +281,7 @@ class EmbeddedBackend(Backend):
                 h = self._ctx.Process(
                     target=help_embedded, name=f"acinoset-helper-{r.job_id[:8]}", daemon=True,
                     args=(str(self.settings.db_path), str(self.settings.jobs_dir), r.job_id, r.token,
-                          self.settings.solve_niceness))
+                          self.settings.solve_niceness, self.name))
                 h.start()
                 with self._lock:
                     helpers.append(h)

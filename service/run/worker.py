@@ -526,10 +526,10 @@ def _embedded_windows(job_dir: Path, token: str, helpers: int) -> "SharedWindows
     return SharedWindows(board, f"{socket.gethostname()}:{os.getpid()}", enqueue, lambda: helpers)
 
 
-def help_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, niceness: int) -> None:
+def help_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, niceness: int, backend: str) -> None:
     """Body of a helper process of the embedded backend: it solves windows of the run ``token`` of job
-    ``job_id`` (:func:`service.run.shared_windows.help_with_windows`), reading the cameras the run
-    staged, until none is left or another job waits for a slot."""
+    ``job_id`` (:func:`service.run.shared_windows.help_with_windows`), staging the run's cameras with
+    it, until none is left or another job of the ``backend`` waits for a slot."""
     from graph.io.staged import StagedRun
     from service.run.folder_windows import FolderBoard
     from service.run.shared_windows import help_with_windows, stage_together, wait_for_plan
@@ -550,7 +550,7 @@ def help_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, niceness
 
     try:
         help_with_windows(board, me, stage, job_calibration(input_dir), job_options(input_dir),
-                          lambda: store.oldest_queued_at() is not None)
+                          lambda: store.oldest_queued_at(backend) is not None)
     except Exception:  # noqa: BLE001 - the parent solves what a helper did not
         if board.folder.is_dir():  # not merely the run's end, which removes the folder under it
             traceback.print_exc()

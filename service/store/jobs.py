@@ -112,10 +112,14 @@ class JobStore(Database):
             found = counts(db, None)
         return {s: found.get(s, 0) for s in STATUSES}
 
-    def oldest_queued_at(self) -> float | None:
-        """When the job that has waited longest in the queue was submitted (None: nothing queued)."""
+    def oldest_queued_at(self, backend: str | None = None) -> float | None:
+        """When the job that has waited longest in the queue (of ``backend``, or any) was submitted
+        (None: nothing queued)."""
         with self.reading() as db:
-            return db.execute("SELECT MIN(created_at) FROM jobs WHERE status = 'queued'").fetchone()[0]
+            if backend is None:
+                return db.execute("SELECT MIN(created_at) FROM jobs WHERE status = 'queued'").fetchone()[0]
+            return db.execute("SELECT MIN(created_at) FROM jobs WHERE status = 'queued' AND backend = ?",
+                              (backend,)).fetchone()[0]
 
     def solve_seconds_histogram(self, buckets: list[float]) -> tuple[list[int], int, float]:
         """Cumulative counts of succeeded solves with ``solve_seconds <= b`` per bucket, count, sum."""
