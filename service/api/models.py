@@ -76,6 +76,8 @@ class Progress(BaseModel):
     fraction: float | None = Field(None, description="share of the whole solve done, 0 to 1")
     iteration: int | None = Field(None, description="optimiser iteration")
     cost: float | None = Field(None, description="optimiser cost at that iteration")
+    detail: str | None = Field(None, description="where the stage is, in words (a long run: its windows done "
+                                                 "and the time left)", examples=["window 12 of 36, 40 s left"])
 
 
 class Timings(BaseModel):
@@ -286,7 +288,7 @@ def _timings(job: Job) -> Timings:
 def _progress(job: Job) -> Progress | None:
     if job.stage is None and job.fraction is None:
         return None
-    return Progress(stage=job.stage, fraction=job.fraction, iteration=job.iteration, cost=job.cost)
+    return Progress(stage=job.stage, fraction=job.fraction, iteration=job.iteration, cost=job.cost, detail=job.detail)
 
 
 def job_out(job: Job, base: str = "/v1/jobs") -> JobOut:

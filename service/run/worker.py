@@ -187,7 +187,7 @@ class ThrottledProgress:
     """The solve's progress callback: passes a report on to ``sink`` at most every ``interval``
     seconds (and always at a new stage). ``sink`` returns False when the run should stop."""
 
-    def __init__(self, sink: Callable[[str, float, int, float | None], bool], interval: float):
+    def __init__(self, sink: Callable[[str, float, int, float | None, str | None], bool], interval: float):
         self.sink = sink
         self.interval = interval
         self._last = 0.0
@@ -197,18 +197,20 @@ class ThrottledProgress:
         now = time.monotonic()
         if p.stage == self._stage and now - self._last < self.interval:
             return
-        self.report(p.stage, p.fraction, p.iteration, p.cost)
+        self.report(p.stage, p.fraction, p.iteration, p.cost, p.detail)
 
     def throttled(self, stage: str, fraction: float) -> None:
         """:meth:`report`, at most every ``interval`` seconds."""
         if stage != self._stage or time.monotonic() - self._last >= self.interval:
             self.report(stage, fraction)
 
-    def report(self, stage: str, fraction: float, iteration: int = 0, cost: float | None = None) -> None:
+    def report(self, stage: str, fraction: float, iteration: int = 0, cost: float | None = None,
+               detail: str | None = None) -> None:
+        """``detail``: where the stage is, in words (a long run's windows done and the time left)."""
         self._last, self._stage = time.monotonic(), stage
         fraction = float(min(1.0, max(0.0, fraction))) if np.isfinite(fraction) else 0.0
         cost = float(cost) if cost is not None and np.isfinite(cost) else None
-        if not self.sink(stage, fraction, int(iteration), cost):
+        if not self.sink(stage, fraction, int(iteration), cost, detail or None):
             raise JobCancelled()
 
 
@@ -491,8 +493,8 @@ def run_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, progress_
     job_dir = jobfiles.job_dir(Path(jobs_dir), job_id)
     tmp = result_tmp(job_dir, token)
 
-    def sink(stage, fraction, iteration, cost) -> bool:
-        return store.report_progress(job_id, token, stage, fraction, iteration, cost)
+    def sink(stage, fraction, iteration, cost, detail) -> bool:
+        return store.report_progress(job_id, token, stage, fraction, iteration, cost, detail)
 
     try:
         solver = _embedded_windows(job_dir, token, helpers) if helpers > 0 else None
@@ -607,8 +609,9 @@ def run_rq_job(job_id: str, progress_interval: float = 0.5, niceness: int = 0, h
     rq_job.meta["host"] = f"{socket.gethostname()}:{os.getpid()}"
     rq_job.save_meta()
 
-    def sink(stage, fraction, iteration, cost) -> bool:
-        rq_job.meta["progress"] = {"stage": stage, "fraction": fraction, "iteration": iteration, "cost": cost}
+    def sink(stage, fraction, iteration, cost, detail) -> bool:
+        rq_job.meta["progress"] = {"stage": stage, "fraction": fraction, "iteration": iteration, "cost": cost,
+                                   "detail": detail}
         rq_job.save_meta()
         return True
 

@@ -153,7 +153,8 @@
     const p = job.progress || {};
     const bits = [];
     if (p.stage) bits.push(p.stage);
-    if (p.iteration) bits.push(`iteration ${p.iteration}`);
+    if (p.detail) bits.push(p.detail);
+    else if (p.iteration) bits.push(`iteration ${p.iteration}`);
     if (p.fraction !== null && p.fraction !== undefined) bits.push(`${Math.round(100 * p.fraction)}%`);
     return bits.join(", ");
   }

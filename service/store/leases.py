@@ -33,7 +33,7 @@ class LeaseStore(JobStore):
             db.execute(
                 "UPDATE jobs SET status = 'running', attempts = attempts + 1, started_at = ?, updated_at = ?, "
                 f"lease_until = ?, worker = ?, run_token = ?, stage = '{STARTING}', fraction = 0, iteration = 0, "
-                "cost = NULL WHERE id = ?", (now, now, now + lease_seconds, worker, token, row[0]))
+                "cost = NULL, detail = NULL WHERE id = ?", (now, now, now + lease_seconds, worker, token, row[0]))
         return self.job(row[0])
 
     def mark_queued(self, backend: str, stage: str) -> None:
@@ -51,13 +51,13 @@ class LeaseStore(JobStore):
                        f"({','.join('?' * len(tokens))})", (now + lease_seconds, *tokens))
 
     def report_progress(self, job_id: str, token: str, stage: str, fraction: float, iteration: int,
-                        cost: float | None) -> bool:
+                        cost: float | None, detail: str | None = None) -> bool:
         """Record a run's progress. False when the run no longer owns the job (cancelled or superseded)."""
         with self.transaction() as db:
             return db.execute(
-                "UPDATE jobs SET stage = ?, fraction = ?, iteration = ?, cost = ?, updated_at = ? "
+                "UPDATE jobs SET stage = ?, fraction = ?, iteration = ?, cost = ?, detail = ?, updated_at = ? "
                 "WHERE id = ? AND run_token = ? AND status = 'running'",
-                (stage, fraction, iteration, cost, time.time(), job_id, token)).rowcount == 1
+                (stage, fraction, iteration, cost, detail, time.time(), job_id, token)).rowcount == 1
 
     def finish(self, job_id: str, token: str, status: str, *, summary: dict | None = None,
                error: str | None = None, error_kind: ErrorKind | None = None,
@@ -102,7 +102,7 @@ class LeaseStore(JobStore):
                            (now, now, f"gave up after {attempts} interrupted attempts; last: {reason}", note, job_id))
                 return "failed"
             db.execute("UPDATE jobs SET status = 'queued', updated_at = ?, lease_until = NULL, run_token = NULL, "
-                       "worker = NULL, stage = NULL, fraction = NULL, iteration = NULL, cost = NULL, "
+                       "worker = NULL, stage = NULL, fraction = NULL, iteration = NULL, cost = NULL, detail = NULL, "
                        "interruption = ? WHERE id = ?", (now, note, job_id))
             return "queued"
 
@@ -118,7 +118,8 @@ class LeaseStore(JobStore):
             return db.execute(
                 "UPDATE jobs SET status = 'queued', attempts = MAX(attempts - 1, 0), updated_at = ?, "
                 "lease_until = NULL, run_token = NULL, worker = NULL, stage = NULL, fraction = NULL, "
-                "iteration = NULL, cost = NULL, interruption = ? WHERE id = ? AND run_token = ? AND status = 'running'",
+                "iteration = NULL, cost = NULL, detail = NULL, interruption = ? "
+                "WHERE id = ? AND run_token = ? AND status = 'running'",
                 (now, note, job_id, token)).rowcount == 1
 
     def adopt(self, backend: str, reason: str) -> dict[str, int]:

@@ -32,10 +32,11 @@ class MirrorStore(JobStore):
                 "UPDATE jobs SET status = 'running', attempts = MAX(attempts, ?), worker = COALESCE(?, worker), "
                 "started_at = COALESCE(?, started_at), lease_until = ?, updated_at = ?, "
                 f"stage = COALESCE(?, stage, '{STARTING}'), fraction = COALESCE(?, fraction, 0), "
-                "iteration = COALESCE(?, iteration, 0), cost = COALESCE(?, cost) "
+                "iteration = COALESCE(?, iteration, 0), cost = COALESCE(?, cost), "
+                "detail = CASE WHEN ? THEN ? ELSE detail END "
                 f"WHERE id = ? AND run_token = ? AND status IN {ACTIVE_IN}",
                 (attempts, worker, started_at, now + lease_seconds, now, p.get("stage"), p.get("fraction"),
-                 p.get("iteration"), p.get("cost"), job_id, token))
+                 p.get("iteration"), p.get("cost"), progress is not None, p.get("detail"), job_id, token))
 
     def mirror_requeued(self, job_id: str, token: str, attempts: int, note: str | None = None) -> None:
         """The queue took the job back (its worker died and RQ retries it)."""
@@ -43,7 +44,7 @@ class MirrorStore(JobStore):
         with self.transaction() as db:
             db.execute("UPDATE jobs SET status = 'queued', attempts = MAX(attempts, ?), updated_at = ?, "
                        "lease_until = NULL, worker = NULL, stage = NULL, fraction = NULL, iteration = NULL, "
-                       "cost = NULL, interruption = COALESCE(?, interruption) "
+                       "cost = NULL, detail = NULL, interruption = COALESCE(?, interruption) "
                        f"WHERE id = ? AND run_token = ? AND status IN {ACTIVE_IN}",
                        (attempts, now, note, job_id, token))
 

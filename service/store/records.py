@@ -75,6 +75,7 @@ class Job:
     solve_seconds: float | None
     label: str | None = None
     error_kind: str | None = None
+    detail: str | None = None  # where the stage is, in words (a long run's windows done and the time left)
 
     @property
     def active(self) -> bool:
@@ -90,12 +91,12 @@ ACTIVE_IN = sql_in(ACTIVE)
 FINISHED_IN = sql_in(FINISHED)
 # the progress of a run that ended with the status given twice as parameters: complete if it succeeded
 ENDED_PROGRESS = (f"fraction = CASE WHEN ? = 'succeeded' THEN 1.0 ELSE fraction END, "
-                  f"stage = CASE WHEN ? = 'succeeded' THEN '{DONE}' ELSE stage END")
+                  f"stage = CASE WHEN ? = 'succeeded' THEN '{DONE}' ELSE stage END, detail = NULL")
 
 JOB_COLUMNS = ("j.seq, j.id, j.owner_id, u.name, j.status, j.backend, j.created_at, j.started_at, "
                "j.finished_at, j.updated_at, j.attempts, j.max_attempts, j.lease_until, j.worker, "
                "j.run_token, j.options, j.inputs, j.stage, j.fraction, j.iteration, j.cost, j.error, "
-               "j.interruption, j.summary, j.solve_seconds, j.label, j.error_kind")
+               "j.interruption, j.summary, j.solve_seconds, j.label, j.error_kind, j.detail")
 JOB_SELECT = f"SELECT {JOB_COLUMNS} FROM jobs j JOIN users u ON u.id = j.owner_id"
 USER_COLUMNS = "id, name, is_admin, disabled, created_at"
 

@@ -86,6 +86,7 @@ MIGRATIONS: tuple[tuple[str, Callable[[sqlite3.Connection], None]], ...] = (
     ("users, tokens and jobs, with the jobs' indexes", _create_tables),
     ("jobs.label: the submitter's name for a job", _add_column("jobs", "label", "TEXT")),
     ("jobs.error_kind: why a failed job failed", _add_column("jobs", "error_kind", "TEXT")),
+    ("jobs.detail: where a running job's stage is, in words", _add_column("jobs", "detail", "TEXT")),
 )
 VERSION = len(MIGRATIONS)
 

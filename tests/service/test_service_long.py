@@ -6,6 +6,8 @@ view holds the run (every frame of a run this short: ``frame_step`` 1)."""
 from __future__ import annotations
 
 import json
+import re
+import time
 import warnings
 
 import numpy as np
@@ -36,15 +38,22 @@ def job(tmp_path_factory, run):
         with srv.client(token) as c:
             r = submit(c, run, {"method": "fte", "window_frames": CORE})
             assert r.status_code == 202, r.text
-            done = wait_finished(c, r.json()["id"], timeout=300)
+            said = set()  # the progress's words while it ran
+            deadline = time.time() + 300
+            while (j := c.get(f"/v1/jobs/{r.json()['id']}").json())["status"] in ("queued", "running"):
+                assert time.time() < deadline, j
+                said.add((j["progress"] or {}).get("detail"))
+                time.sleep(0.05)
+            done = wait_finished(c, r.json()["id"], timeout=10)
             assert done["status"] == "succeeded", done
-            yield c, done, data
+            assert done["progress"]["detail"] is None  # the words were the run's
+            yield c, done, data, said
     finally:
         srv.stop()
 
 
 def test_a_long_job_is_solved_in_windows_as_the_library_solves_it(job, run, tmp_path):
-    client, done, _ = job
+    client, done, _, _ = job
     csv = client.get(done["links"]["result"]["csv"])
     assert csv.status_code == 200
     with warnings.catch_warnings():
@@ -70,8 +79,16 @@ def test_a_long_job_is_solved_in_windows_as_the_library_solves_it(job, run, tmp_
         assert "/" not in w, f"a server path in a warning: {w}"
 
 
+def test_a_long_jobs_progress_says_its_windows_done_and_the_time_left(job):
+    said = job[3]
+    windows = sorted(d for d in said if d and d.startswith("window "))
+    assert windows, f"no window in the progress's words: {said}"
+    n = FRAMES // CORE
+    assert all(re.fullmatch(rf"window [1-{n}] of {n}, \d+ s left", d) for d in windows), windows
+
+
 def test_the_page_view_of_a_long_job(job):
-    client, done, _ = job
+    client, done, _, _ = job
     view = client.get(done["links"]["result"]["json"])
     assert view.status_code == 200
     payload = json.loads(view.content)
@@ -86,7 +103,7 @@ def test_the_page_view_of_a_longer_job_holds_every_kth_frame(job, monkeypatch, t
     from service.settings import Settings
     from service.store.jobfiles import INPUT, job_dir
 
-    _, done, data = job
+    _, done, data, _ = job
     monkeypatch.setattr(worker, "PAGE_FRAMES", 700)
     input_dir = job_dir(Settings(data_dir=data).jobs_dir, done["id"]) / INPUT
     report = worker.solve_streamed_job(input_dir, tmp_path, worker.ThrottledProgress(lambda *a: True, 1.0))

@@ -76,8 +76,10 @@ def test_a_stale_run_cannot_write(store):
     u, _ = store.add_user("u")
     j = _job(store, u.id, 1)
     run1 = store.claim_next("w", 30, "embedded")
-    assert store.report_progress(j, run1.run_token, "solve", 0.5, 3, 1.0)
+    assert store.report_progress(j, run1.run_token, "solve", 0.5, 3, 1.0, "window 2 of 5, 30 s left")
+    assert store.job(j).detail == "window 2 of 5, 30 s left"
     assert store.interrupt(j, run1.run_token, "killed") == "queued"
+    assert store.job(j).detail is None  # the words were the run's
     run2 = store.claim_next("w", 30, "embedded")
     assert run2.attempts == 2 and run2.run_token != run1.run_token
     # the first run comes back from the dead: nothing it says is recorded
@@ -87,7 +89,7 @@ def test_a_stale_run_cannot_write(store):
     assert committed == []
     assert store.finish(j, run2.run_token, "succeeded", summary={"frames": 1}, commit=lambda: committed.append(2))
     job = store.job(j)
-    assert committed == [2] and job.status == "succeeded" and job.summary == {"frames": 1}
+    assert committed == [2] and job.status == "succeeded" and job.summary == {"frames": 1} and job.detail is None
     assert job.solve_seconds is not None and job.solve_seconds >= 0
 
 
