@@ -50,6 +50,22 @@ def fly(tmp_path_factory) -> Path:
     return path
 
 
+def test_an_export_reads_only_the_arrays_it_writes(fly):
+    """The exporters read four of a result's per-frame arrays (an hour's reprojections alone are 0.8
+    GB): those are the file's, the other required ones are NaN of their shape and take no memory."""
+    from graph.export.base import EXPORTED
+    from graph.io.results import read_result
+
+    whole, run = read_result(fly), load_input(fly).result
+    for name in EXPORTED:
+        np.testing.assert_array_equal(getattr(run, name), getattr(whole, name))
+    skipped = run.reprojections
+    assert skipped.shape == whole.reprojections.shape and np.isnan(skipped).all()
+    assert skipped.strides == (0,) * skipped.ndim and not skipped.flags.writeable  # one value, viewed
+    assert run.ncams.dtype == whole.ncams.dtype and not run.ncams.any()
+    assert run.likelihood is None and whole.likelihood is not None  # an optional one is left out
+
+
 def test_the_h5_keeps_the_calibration_in_metres(fly):
     from graph.io.calibration import load_calibration
 

@@ -16,6 +16,8 @@ from graph.camera import Calibration
 from graph.errors import InputError
 from graph.types import Result
 
+EXPORTED = ("positions", "std", "residuals", "outlier")  # the per-frame arrays the exporters read
+
 
 @dataclass
 class ExportInput:
@@ -72,7 +74,7 @@ def load_input(source: str | Path | Result, calibration: str | Path | Calibratio
     if isinstance(source, Result):
         result, name = source, ""
     else:
-        result, name = read_result(source, individual=individual), Path(source).name
+        result, name = read_result(source, individual=individual, arrays=EXPORTED), Path(source).name
         stored = read_calibration(source)
         individual = individual or read_individual(source)
     if calibration is not None:

@@ -23,6 +23,7 @@ import json
 import math
 import os
 import re
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -447,10 +448,15 @@ def read_calibration(path: str | Path) -> Calibration | None:
         return Calibration(cameras=cams, source=_attr(g, "source") or "", metadata={"units": "m"})
 
 
-def read_result(path: str | Path, individual: str | None = None, step: int = 1) -> Result:
+def read_result(path: str | Path, individual: str | None = None, step: int = 1,
+                arrays: Collection[str] | None = None) -> Result:
     """Read a file written by :func:`write_h5` back into a :class:`Result`; of a group file
     (:func:`write_group_h5`), the ``individual`` named, which it must then be given. ``step`` > 1:
-    every ``step``-th frame only (a long run's overview; the rates and sds as they were)."""
+    every ``step``-th frame only (a long run's overview; the rates and sds as they were).
+    ``arrays``: only these of the per-frame arrays are read (an export of an hour needs four of them:
+    the cameras' reprojections alone are 0.8 GB); a required one not named is a read-only view of its
+    shape filled with NaN (False, 0 for flags and counts) that takes no memory, an optional one is
+    left out."""
     import h5py
 
     path = Path(path)
@@ -471,15 +477,23 @@ def read_result(path: str | Path, individual: str | None = None, step: int = 1) 
         elif individual is not None and _attr(f, "individual") not in (None, individual):
             raise InputError(f"is the result of '{_attr(f, 'individual')}', not '{individual}'", path)
         try:
-            arrays = {}
+            got: dict[str, Any] = {}
             for name in _ARRAYS + _OPTIONAL_ARRAYS:
                 if name in f:
                     axis = FRAME_AXIS.get(name)
                     index: tuple = () if at == () else (at,)
                     if step > 1 and axis is not None:
                         index += (slice(None),) * axis + (slice(None, None, step),)
+                    boolean = _attr(f[name], "dtype") == "bool"
+                    if arrays is not None and name not in arrays:
+                        if name in _ARRAYS:
+                            shape = np.broadcast_to(np.uint8(0), f[name].shape)[index].shape  # nothing read
+                            dtype = bool if boolean else f[name].dtype
+                            fill = np.array(np.nan if np.issubdtype(dtype, np.floating) else 0, dtype=dtype)
+                            got[name] = np.broadcast_to(fill, shape)
+                        continue
                     a = f[name][index]
-                    arrays[name] = a.astype(bool) if _attr(f[name], "dtype") == "bool" else a
+                    got[name] = a.astype(bool) if boolean else a
                 elif name in _ARRAYS:
                     raise InputError(f"result file lacks the dataset '{name}'", path)
             bones = [(_text(a), _text(b)) for a, b in f["bones"][()]] if "bones" in f else []
@@ -499,7 +513,7 @@ def read_result(path: str | Path, individual: str | None = None, step: int = 1) 
                 raise
             raise InputError(f"damaged acinoset result file ({type(e).__name__}: {e})", path) from None
     known = {fld.name for fld in dataclasses.fields(Result)}
-    return Result(**fields, **{k: v for k, v in arrays.items() if k in known})
+    return Result(**fields, **{k: v for k, v in got.items() if k in known})
 
 
 def _pick(value, at):

@@ -20,6 +20,7 @@ import re
 import shutil
 import threading
 import uuid
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
@@ -408,7 +409,10 @@ class JobService:
         job_dir = jobfiles.job_dir(self.settings.jobs_dir, job.id)
         path = result_path(job_dir, fmt, k)
         if fmt in jobfiles.EXPORT_FILES and not path.is_file():
-            export_result(job_dir, fmt, k)
+            try:  # in a helper process: reading an hour's result takes gigabytes
+                self.reader.run(export_result, job_dir=job_dir, fmt=fmt, individual=k)
+            except BrokenProcessPool:
+                raise RuntimeError(f"writing job {job_id}'s {fmt} crashed its process (out of memory?)") from None
         if not path.is_file():
             raise NotFound(f"job {job_id} has no {jobfiles.DOWNLOADS[fmt][0]} (its result files were removed)")
         return path

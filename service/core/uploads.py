@@ -160,8 +160,8 @@ def _helper_init(niceness: int) -> None:
 
 
 class UploadReader:
-    """:func:`inspect_upload` (and :func:`inspect_calibration_upload`) in ``processes`` helper
-    processes (0: in the calling thread), run at
+    """:func:`inspect_upload` (and :func:`inspect_calibration_upload`, and a job's exports:
+    :meth:`run`) in ``processes`` helper processes (0: in the calling thread), run at
     a lower priority than the API (``niceness``) so that a burst of uploads waits for the CPU
     rather than the status polls.
 
@@ -194,17 +194,27 @@ class UploadReader:
         """:func:`inspect_calibration_upload` of a calibration's files."""
         return self._run(inspect_calibration_upload, Path(kwargs["views"][0]).name, **kwargs)
 
-    def _run(self, read, first: str, **kwargs):
+    def run(self, work, **kwargs):
+        """``work(**kwargs)`` in a helper process (in the calling thread with no processes): the
+        readers, and a job's exports (an hour's result is gigabytes to read, kept out of the process
+        that serves everyone). BrokenProcessPool when it crashed its process (the next call starts
+        a new pool)."""
         if self.processes <= 0:
-            return read(**kwargs)
+            return work(**kwargs)
         pool = self._executor()
         try:
-            return self._handover.submit(lambda: pool.submit(read, **kwargs)).result().result()
+            return self._handover.submit(lambda: pool.submit(work, **kwargs)).result().result()
         except BrokenProcessPool:
             with self._lock:
                 if self._pool is pool:
                     self._pool = None
             pool.shutdown(wait=False, cancel_futures=True)
+            raise
+
+    def _run(self, read, first: str, **kwargs):
+        try:
+            return self.run(read, **kwargs)
+        except BrokenProcessPool:
             raise Unprocessable(f"{first} ...: reading the upload crashed a reader process (a malformed or "
                                "oversized file?)") from None
 
