@@ -290,10 +290,11 @@ def main_counts(args, backend: str, given: str) -> int:
             redis, url = start_redis(here)
             server, base, token = start_server(here / "data", 0, frames, here / "server.log", redis_url=url,
                                                shared=args.shared_data_dir)
-            workers = [*start_workers(url, n, frames, here, here / "data" if args.shared_data_dir else None), redis]
+            workers = start_workers(url, n, frames, here, here / "data" if args.shared_data_dir else None)
+            others = [redis]  # not sampled: the memory is the server's and the workers'
         else:
             server, base, token = start_server(here / "data", n, frames, here / "server.log")
-            workers = []
+            workers, others = [], []
         sampler = TreeSampler(server.pid, *(w.pid for w in workers))
         sampler.start()
         try:
@@ -301,9 +302,9 @@ def main_counts(args, backend: str, given: str) -> int:
             r = timed_job(base, token, warm_dir, run_dir, sampler, here)
         finally:
             sampler.halt.set()
-            for p in [server, *workers]:
+            for p in [server, *workers, *others]:
                 p.terminate()
-            for p in [server, *workers]:
+            for p in [server, *workers, *others]:
                 try:
                     p.wait(timeout=30)
                 except subprocess.TimeoutExpired:

@@ -120,16 +120,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             configure_forkserver(warm=settings.warm_start and settings.backend == "embedded")
             backend = make_backend(settings, store)
             reader = UploadReader(settings.upload_readers, settings.upload_niceness)
+            # exports in a process of their own: one that dies (an hour's result, memory) takes no upload along
+            exporter = UploadReader(min(1, settings.upload_readers), settings.upload_niceness)
             app.state.store = store
             app.state.token_failures = TokenFailures(settings.max_token_failures_per_minute)
             app.state.backend = backend
-            app.state.jobs = JobService(settings, store, backend, reader)
+            app.state.jobs = JobService(settings, store, backend, reader, exporter)
             backend.start()
             try:
                 yield
             finally:
                 backend.stop()
                 reader.close()
+                exporter.close()
         finally:
             lock.release()
 

@@ -78,6 +78,7 @@ class EmbeddedBackend(Backend):
         self._ctx = multiprocessing.get_context("forkserver")
         self._runs: dict[str, _Run] = {}
         self._helpers: dict[str, list[multiprocessing.process.BaseProcess]] = {}  # a run's helper processes
+        self._helper_failed: set[str] = set()  # runs (tokens) a helper of which failed: none started again
         self._lock = threading.Lock()
         self._host = socket.gethostname()
         self._last_renew = 0.0
@@ -168,8 +169,10 @@ class EmbeddedBackend(Backend):
             left = [h for helpers in self._helpers.values() for h in helpers if h.exitcode is not None]
             for helpers in self._helpers.values():
                 helpers[:] = [h for h in helpers if h.exitcode is None]
-        for h in left:  # a helper that left (its windows done, another job queued) or died
+        for h in left:  # a helper that left (its windows done, another job queued) or failed, or was killed
             h.join(timeout=1)
+            if h.exitcode != 0:
+                self._helper_failed.add(h.name.rpartition("-")[2])
             h.close()
         self._end_helpers(*(r.job_id for r in ended))
         for r in ended:
@@ -184,6 +187,7 @@ class EmbeddedBackend(Backend):
                     log.warning("job %s: %s; now %s", r.job_id, _describe_exit(code), status)
             with self._lock:
                 self._runs.pop(r.job_id, None)
+                self._helper_failed.discard(r.token)
             # what a killed run (cancelled, timed out, lost) had written: its staged inputs can be a GB
             shutil.rmtree(result_tmp(job_dir(self.settings.jobs_dir, r.job_id), r.token), ignore_errors=True)
             try:
@@ -270,7 +274,8 @@ class EmbeddedBackend(Backend):
         from service.store.jobfiles import windows_board
 
         with self._lock:
-            runs = [r for r in self._runs.values() if not r.cancelled and r.process.exitcode is None]
+            runs = [r for r in self._runs.values() if not r.cancelled and r.process.exitcode is None
+                    and r.token not in self._helper_failed]
         for r in runs:
             wanted = FolderBoard(windows_board(job_dir(self.settings.jobs_dir, r.job_id), r.token)).wanted()
             while True:
@@ -279,10 +284,16 @@ class EmbeddedBackend(Backend):
                     if len(helpers) >= wanted or self._busy() >= self.settings.workers:
                         break
                 h = self._ctx.Process(
-                    target=help_embedded, name=f"acinoset-helper-{r.job_id[:8]}", daemon=True,
+                    target=help_embedded, name=f"acinoset-helper-{r.token}", daemon=True,
                     args=(str(self.settings.db_path), str(self.settings.jobs_dir), r.job_id, r.token,
                           self.settings.solve_niceness, self.name))
                 h.start()
                 with self._lock:
-                    helpers.append(h)
+                    kept = self._helpers.get(r.job_id) is helpers  # not ended meanwhile (a cancel)
+                    if kept:
+                        helpers.append(h)
+                if not kept:
+                    h.kill()
+                    h.join(timeout=5)
+                    break
                 log.info("job %s: a helper process (%s) solves windows of its run", r.job_id, h.pid)

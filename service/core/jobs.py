@@ -147,11 +147,14 @@ class JobService:
     # Uploads stored and read at once (the reading runs in :class:`UploadReader`'s processes).
     VALIDATING_AT_ONCE = 2
 
-    def __init__(self, settings: Settings, store: Store, backend: Backend, reader: UploadReader | None = None):
+    def __init__(self, settings: Settings, store: Store, backend: Backend, reader: UploadReader | None = None,
+                 exporter: UploadReader | None = None):
+        """``reader``: the processes that read uploads; ``exporter``: those that write a job's exports."""
         self.settings = settings
         self.store = store
         self.backend = backend
         self.reader = reader or UploadReader(0)
+        self.exporter = exporter or UploadReader(0)
         self._validating = threading.BoundedSemaphore(self.VALIDATING_AT_ONCE)
 
     # -- submit ------------------------------------------------------------------------------
@@ -410,7 +413,7 @@ class JobService:
         path = result_path(job_dir, fmt, k)
         if fmt in jobfiles.EXPORT_FILES and not path.is_file():
             try:  # in a helper process: reading an hour's result takes gigabytes
-                self.reader.run(export_result, job_dir=job_dir, fmt=fmt, individual=k)
+                self.exporter.run(export_result, job_dir=job_dir, fmt=fmt, individual=k)
             except BrokenProcessPool:
                 raise RuntimeError(f"writing job {job_id}'s {fmt} crashed its process (out of memory?)") from None
         if not path.is_file():

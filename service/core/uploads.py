@@ -160,8 +160,8 @@ def _helper_init(niceness: int) -> None:
 
 
 class UploadReader:
-    """:func:`inspect_upload` (and :func:`inspect_calibration_upload`, and a job's exports:
-    :meth:`run`) in ``processes`` helper processes (0: in the calling thread), run at
+    """:func:`inspect_upload` (and :func:`inspect_calibration_upload`; any work: :meth:`run`, as a
+    job's exports in a pool of their own) in ``processes`` helper processes (0: in the calling thread), run at
     a lower priority than the API (``niceness``) so that a burst of uploads waits for the CPU
     rather than the status polls.
 

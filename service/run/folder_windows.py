@@ -59,9 +59,13 @@ class FolderBoard:
 
     def _write(self, name: str, text: str) -> None:
         fd, tmp = tempfile.mkstemp(prefix=".", dir=self.folder)
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, self.folder / name)
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(text)
+            os.replace(tmp, self.folder / name)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
 
     def _read(self, name: str) -> str | None:
         try:
@@ -161,6 +165,8 @@ class FolderBoard:
         return (self.folder / "done" / str(k)).is_dir()
 
     def beat(self, who: str) -> None:
+        if self.stopped():  # the run ended: nothing new in a folder on its way out
+            return
         try:
             self._write(f"alive/{who}", str(os.getpid()))
         except FileNotFoundError:  # the run ended: its folder went
@@ -196,8 +202,11 @@ class FolderBoard:
 
     # -- the cameras staged together ---------------------------------------------------------------
 
+    def begin(self) -> None:
+        (self.folder / "stop").unlink(missing_ok=True)
+        shutil.rmtree(self.folder / "staging", ignore_errors=True)
+
     def together(self, before_staging: bool) -> bool:
-        shutil.rmtree(self.folder / "staging", ignore_errors=True)  # a retried run's cameras are staged again
         if before_staging:
             (self.folder / "staging").mkdir(parents=True)
         return before_staging

@@ -153,9 +153,11 @@ class RedisBoard:
         self.redis.delete(k_.plan, k_.claims, k_.next, k_.staging, *(k_.done(k) for k in range(windows)),
                           *(k_.done(k) + PARTIAL for k in range(windows)))
 
+    def begin(self) -> None:
+        self.redis.delete(self.keys.stop, self.keys.staging)  # a retried job keeps its token: its cameras staged again
+
     def together(self, before_staging: bool) -> bool:
         r, k_ = self.redis, self.keys
-        r.delete(k_.stop, k_.staging)  # a retried job's cameras are staged again
         if not (self.shared and before_staging):
             return False
         r.hset(k_.staging, TOGETHER, 1)

@@ -104,12 +104,15 @@ class Board(Protocol):
     def clear(self, windows: int) -> None:
         """The plan, claims, results and staging claims gone (the parent ended)."""
 
+    def begin(self) -> None:
+        """The parent, before it asks for helpers: a retried run's *stop* and staging claims gone."""
+
     # the run's cameras staged together (:func:`stage_together`)
 
     def together(self, before_staging: bool) -> bool:
-        """The parent, asking for helpers (a retried run's staging claims gone first): whether they
-        are to stage the cameras with it (they can if invited ``before_staging`` and they see its
-        folder); if so the board says so to them (:meth:`staging_together`)."""
+        """The parent, asking for helpers: whether they are to stage the cameras with it (they can if
+        invited ``before_staging`` and they see its folder); if so the board says so to them
+        (:meth:`staging_together`)."""
 
     def staging_together(self) -> bool:
         """Whether the helpers stage the cameras with the parent."""
@@ -208,6 +211,7 @@ class SharedWindows:
         if self.invited:
             return
         self.invited = True
+        self.board.begin()
         helpers = min(max(0, self.idle()), windows - 1)
         if helpers > 0:
             self.together = self.board.together(before_staging)
@@ -308,13 +312,15 @@ def stage_together(board: Board, me: str, paths: list[str], folder: Path, read):
     return StagedRun.gather(folder, len(paths))
 
 
-def wait_for_plan(board: Board, poll: float = 0.2) -> dict | None:
-    """The plan, once the parent has published it; None if the parent stops or ends first."""
+def wait_for_plan(board: Board, others_waiting: Callable[[], bool] = lambda: False,
+                  poll: float = 0.2) -> dict | None:
+    """The plan, once the parent has published it; None if the parent stops or ends first, or
+    ``others_waiting()`` says other jobs wait for this worker."""
     while True:
         plan = board.plan()
         if plan is not None:
             return plan
-        if board.stopped() or not board.parent_running():
+        if board.stopped() or not board.parent_running() or others_waiting():
             return None
         time.sleep(poll)
 
@@ -340,7 +346,7 @@ def help_with_windows(board: Board, me: str, stage: Callable[[], Any], calibrati
     beating.start()
     try:
         run = stage()
-        plan = None if run is None else wait_for_plan(board)
+        plan = None if run is None else wait_for_plan(board, others_waiting)
         if plan is None:
             return 0
         held = _options_from(plan["options"], options.skeleton)

@@ -260,7 +260,7 @@ def stage_job(input_dir: Path, scratch: Path, long_enough: Callable[[int], bool]
     """The job's keypoint files staged in ``scratch`` (:func:`graph.io.staged.stage`), each camera
     named by its upload's name; None when ``long_enough`` says the run is not. ``together(paths,
     folder, read)``: the cameras staged with other workers instead
-    (:func:`service.run.redis_windows.stage_together`)."""
+    (:func:`service.run.shared_windows.stage_together`)."""
     from graph.io.keypoints import read_blocks
     from graph.io.staged import stage
 
@@ -356,7 +356,11 @@ def solve_streamed_job(input_dir: Path, out_dir: Path, progress: ThrottledProgre
     finally:
         if solver is not None:
             solver.close()  # the helpers invited stop (the windows' own end stops them too)
-        shutil.rmtree(scratch, ignore_errors=True)
+        for _ in range(3):  # a helper on its way out may have written in it meanwhile
+            shutil.rmtree(scratch, ignore_errors=True)
+            if not scratch.exists():
+                break
+            time.sleep(0.2)
     payload = result_payload(dataclasses.replace(seen, fps=seen.fps / step))
     payload["frame_step"] = step
     # the view's frames: the run's frames n * step (the report's frame numbers are the run's)
@@ -554,8 +558,9 @@ def help_embedded(db_path: str, jobs_dir: str, job_id: str, token: str, niceness
         help_with_windows(board, me, stage, job_calibration(input_dir), job_options(input_dir),
                           lambda: store.oldest_queued_at(backend) is not None)
     except Exception:  # noqa: BLE001 - the parent solves what a helper did not
-        if board.folder.is_dir():  # not merely the run's end, which removes the folder under it
+        if not board.stopped():  # not merely the run's end, which clears the board under it
             traceback.print_exc()
+            raise SystemExit(1) from None  # the scheduler starts no other helper for this run
     finally:
         store.close()
 

@@ -144,7 +144,7 @@ class JobStore(Database):
         now = time.time()
         with self.transaction() as db:
             n = db.execute("UPDATE jobs SET status = 'cancelled', finished_at = ?, updated_at = ?, lease_until = NULL, "
-                           f"error = NULL WHERE id = ? AND status IN {ACTIVE_IN}",
+                           f"error = NULL, detail = NULL WHERE id = ? AND status IN {ACTIVE_IN}",
                            (now, now, job_id)).rowcount
         return before if n == 1 else None
 

@@ -98,7 +98,8 @@ class LeaseStore(JobStore):
             note = f"attempt {attempts} of {max_attempts} interrupted: {reason}"
             if attempts >= max_attempts:
                 db.execute("UPDATE jobs SET status = 'failed', finished_at = ?, updated_at = ?, lease_until = NULL, "
-                           "run_token = NULL, error = ?, error_kind = 'interrupted', interruption = ? WHERE id = ?",
+                           "run_token = NULL, error = ?, error_kind = 'interrupted', interruption = ?, detail = NULL "
+                           "WHERE id = ?",
                            (now, now, f"gave up after {attempts} interrupted attempts; last: {reason}", note, job_id))
                 return "failed"
             db.execute("UPDATE jobs SET status = 'queued', updated_at = ?, lease_until = NULL, run_token = NULL, "

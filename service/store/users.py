@@ -83,7 +83,8 @@ class UserStore(Database):
             db.execute("UPDATE users SET disabled = 1 WHERE id = ?", (uid,))
             return db.execute(
                 "UPDATE jobs SET status = 'cancelled', finished_at = ?, updated_at = ?, lease_until = NULL, "
-                f"error = 'cancelled: the user was removed' WHERE owner_id = ? AND status IN {ACTIVE_IN}",
+                "detail = NULL, error = 'cancelled: the user was removed' "
+                f"WHERE owner_id = ? AND status IN {ACTIVE_IN}",
                 (now, now, uid)).rowcount
 
     def user(self, name: str) -> User | None:

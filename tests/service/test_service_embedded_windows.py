@@ -50,8 +50,25 @@ def server(tmp_path):
 
 def _helpers(data, job: str) -> list[int]:
     """The pids of the job's helper processes, as their heartbeats on the run's board name them."""
-    return [int(p.read_text()) for p in (data / "jobs" / job).glob("result.*.tmp/staged/board/alive/helper-*")
-            if p.read_text().isdigit()]
+    pids = []
+    for p in (data / "jobs" / job).glob("result.*.tmp/staged/board/alive/helper-*"):
+        try:
+            pids.append(int(p.read_text()))
+        except (OSError, ValueError):  # gone, or being written
+            continue
+    return pids
+
+
+def _claimed_by(data, job: str, pid: int) -> list[int]:
+    """The windows the helper ``pid`` has claimed on the run's board."""
+    got = []
+    for p in (data / "jobs" / job).glob("result.*.tmp/staged/board/claims/*"):
+        try:
+            if p.read_text().startswith(f"helper-{pid}@"):
+                got.append(int(p.name))
+        except (OSError, ValueError):
+            continue
+    return got
 
 
 def _wait_helper(data, job: str, timeout: float = 120) -> int:
@@ -70,19 +87,35 @@ def _submit(c, run) -> str:
     return r.json()["id"]
 
 
+def test_a_long_job_is_shared_with_a_helper_and_gives_the_librarys_answer(server, run, library_csv):
+    srv, token = server
+    with srv.client(token) as c:
+        done = wait_finished(c, _submit(c, run), timeout=600)
+        assert done["status"] == "succeeded", done
+        report = c.get(done["links"]["result"]["report"]).json()
+        csv = c.get(done["links"]["result"]["csv"]).content
+    solved_by = report["windows"]["solved_by"]
+    assert len(solved_by) == 2 and sum(solved_by.values()) == FRAMES // CORE, solved_by
+    assert csv == library_csv
+
+
 def test_a_helper_killed_mid_run_costs_time_not_the_answer(server, run, library_csv):
     srv, token = server
     with srv.client(token) as c:
         job = _submit(c, run)
         helper = _wait_helper(srv.data_dir, job)
-        time.sleep(2.0)  # solving windows
+        deadline = time.time() + 120
+        while not _claimed_by(srv.data_dir, job, helper):  # killed holding a window
+            assert time.time() < deadline, "the helper claimed no window"
+            time.sleep(0.02)
         os.kill(helper, signal.SIGKILL)
         done = wait_finished(c, job, timeout=600)
         assert done["status"] == "succeeded", done
         report = c.get(done["links"]["result"]["report"]).json()
         csv = c.get(done["links"]["result"]["csv"]).content
     assert sum(report["windows"]["solved_by"].values()) == FRAMES // CORE
-    assert csv == library_csv
+    assert csv == library_csv  # its window solved by the job's process instead
+    assert _helpers(srv.data_dir, job) == []
 
 
 def test_a_job_submitted_meanwhile_takes_the_helpers_slot(server, run):

@@ -71,9 +71,8 @@ def test_a_long_job_is_solved_in_windows_as_the_library_solves_it(job, run, tmp_
 
     report = client.get(done["links"]["result"]["report"]).json()
     assert report["windows"]["count"] == FRAMES // CORE and report["frames"] == FRAMES
-    # the server's second slot was free: a helper process solved windows too, with the same answer
-    solved_by = report["windows"]["solved_by"]
-    assert len(solved_by) == 2 and sum(solved_by.values()) == FRAMES // CORE, solved_by
+    # the server's second slot was free: a helper process came (test_service_embedded_windows.py says more)
+    assert sum(report["windows"]["solved_by"].values()) == FRAMES // CORE
     assert sum(report["windows"]["staged_by"].values()) == len(run.cams)  # each camera staged once, between them
     for w in report["warnings"]:
         assert "/" not in w, f"a server path in a warning: {w}"
@@ -84,7 +83,9 @@ def test_a_long_jobs_progress_says_its_windows_done_and_the_time_left(job):
     windows = sorted(d for d in said if d and d.startswith("window "))
     assert windows, f"no window in the progress's words: {said}"
     n = FRAMES // CORE
-    assert all(re.fullmatch(rf"window [1-{n}] of {n}, \d+ s left", d) for d in windows), windows
+    for d in windows:
+        k = re.fullmatch(rf"window (\d+) of {n}, \d+ s left", d)
+        assert k is not None and 1 <= int(k[1]) <= n, windows
 
 
 def test_the_page_view_of_a_long_job(job):
