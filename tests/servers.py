@@ -58,6 +58,25 @@ class Run:
     frames: int
 
 
+def library_csv(run: Run, window_frames: int, folder: Path) -> bytes:
+    """The CSV the library writes for ``run`` solved in memory in windows of ``window_frames`` (``fte``,
+    every other option at its default): what a long job's CSV must be, byte for byte."""
+    import warnings
+
+    from graph.api import solve
+    from graph.io.calibration import load_calibration
+    from graph.io.keypoints import read_keypoints
+    from graph.io.results import write_anipose_csv
+    from graph.types import SolveOptions
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        whole = solve([read_keypoints(p) for p in run.cams], load_calibration(run.calibration),
+                      SolveOptions(fps=run.fps, window_frames=window_frames))
+    write_anipose_csv(folder / "library.csv", whole)
+    return (folder / "library.csv").read_bytes()
+
+
 def make_run(out: Path, frames: int, cameras: int = 6, seed: int = 0) -> Run:
     """A simulated cheetah run on the AcinoSet rig (its first ``cameras`` cameras), written as
     DeepLabCut CSVs plus the calibration in both formats."""

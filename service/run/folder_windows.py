@@ -57,14 +57,19 @@ class FolderBoard:
 
     # -- files written whole ---------------------------------------------------------------------
 
-    def _write(self, name: str, text: str) -> None:
+    def _temporary(self, text: str) -> Path:
+        """``text`` in a new file of the board's, under a temporary name."""
         fd, tmp = tempfile.mkstemp(prefix=".", dir=self.folder)
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        return Path(tmp)
+
+    def _write(self, name: str, text: str) -> None:
+        tmp = self._temporary(text)
         try:
-            with os.fdopen(fd, "w") as f:
-                f.write(text)
             os.replace(tmp, self.folder / name)
         except BaseException:
-            Path(tmp).unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
             raise
 
     def _read(self, name: str) -> str | None:
@@ -111,16 +116,14 @@ class FolderBoard:
 
     def _link(self, name: str, who: str) -> bool:
         """``name`` made, holding ``who``, unless it exists (a hard link: made whole, at most once)."""
-        fd, tmp = tempfile.mkstemp(prefix=".", dir=self.folder)
+        tmp = self._temporary(who)
         try:
-            with os.fdopen(fd, "w") as f:
-                f.write(who)
             os.link(tmp, self.folder / name)
             return True
         except FileExistsError:
             return False
         finally:
-            os.unlink(tmp)
+            tmp.unlink()
 
     def claim(self, k: int, who: str) -> bool:
         return self._link(f"claims/{k}", who)

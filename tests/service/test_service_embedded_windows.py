@@ -8,17 +8,10 @@ from __future__ import annotations
 import os
 import signal
 import time
-import warnings
 from datetime import datetime
 
 import pytest
-from servers import Server, add_user, make_run, submit, wait_dead, wait_finished, wait_for
-
-from graph.api import solve
-from graph.io.calibration import load_calibration
-from graph.io.keypoints import read_keypoints
-from graph.io.results import write_anipose_csv
-from graph.types import SolveOptions
+from servers import Server, add_user, library_csv, make_run, submit, wait_dead, wait_finished, wait_for
 
 FRAMES = 4000
 CORE = 400
@@ -30,14 +23,8 @@ def run(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def library_csv(run, tmp_path_factory):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        whole = solve([read_keypoints(p) for p in run.cams], load_calibration(run.calibration),
-                      SolveOptions(fps=run.fps, window_frames=CORE))
-    path = tmp_path_factory.mktemp("embedded_windows_library") / "library.csv"
-    write_anipose_csv(path, whole)
-    return path.read_bytes()
+def library(run, tmp_path_factory):
+    return library_csv(run, CORE, tmp_path_factory.mktemp("embedded_windows_library"))
 
 
 @pytest.fixture
@@ -87,7 +74,7 @@ def _submit(c, run) -> str:
     return r.json()["id"]
 
 
-def test_a_long_job_is_shared_with_a_helper_and_gives_the_librarys_answer(server, run, library_csv):
+def test_a_long_job_is_shared_with_a_helper_and_gives_the_librarys_answer(server, run, library):
     srv, token = server
     with srv.client(token) as c:
         done = wait_finished(c, _submit(c, run), timeout=600)
@@ -96,10 +83,10 @@ def test_a_long_job_is_shared_with_a_helper_and_gives_the_librarys_answer(server
         csv = c.get(done["links"]["result"]["csv"]).content
     solved_by = report["windows"]["solved_by"]
     assert len(solved_by) == 2 and sum(solved_by.values()) == FRAMES // CORE, solved_by
-    assert csv == library_csv
+    assert csv == library
 
 
-def test_a_helper_killed_mid_run_costs_time_not_the_answer(server, run, library_csv):
+def test_a_helper_killed_mid_run_costs_time_not_the_answer(server, run, library):
     srv, token = server
     with srv.client(token) as c:
         job = _submit(c, run)
@@ -114,7 +101,7 @@ def test_a_helper_killed_mid_run_costs_time_not_the_answer(server, run, library_
         report = c.get(done["links"]["result"]["report"]).json()
         csv = c.get(done["links"]["result"]["csv"]).content
     assert sum(report["windows"]["solved_by"].values()) == FRAMES // CORE
-    assert csv == library_csv  # its window solved by the job's process instead
+    assert csv == library  # its window solved by the job's process instead
     assert _helpers(srv.data_dir, job) == []
 
 

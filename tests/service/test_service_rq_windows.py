@@ -8,16 +8,9 @@ from __future__ import annotations
 import os
 import signal
 import time
-import warnings
 
 import pytest
-from servers import children, have_redis, make_run, rq_server, submit, wait_finished
-
-from graph.api import solve
-from graph.io.calibration import load_calibration
-from graph.io.keypoints import read_keypoints
-from graph.io.results import write_anipose_csv
-from graph.types import SolveOptions
+from servers import children, have_redis, library_csv, make_run, rq_server, submit, wait_finished
 
 pytestmark = pytest.mark.skipif(not have_redis(), reason="needs Debian's redis-server (.ci/run installs it)")
 
@@ -31,14 +24,8 @@ def run(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def library_csv(run, tmp_path_factory):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        whole = solve([read_keypoints(p) for p in run.cams], load_calibration(run.calibration),
-                      SolveOptions(fps=run.fps, window_frames=CORE))
-    path = tmp_path_factory.mktemp("shared_library") / "library.csv"
-    write_anipose_csv(path, whole)
-    return path.read_bytes()
+def library(run, tmp_path_factory):
+    return library_csv(run, CORE, tmp_path_factory.mktemp("shared_library"))
 
 
 class Rig:
@@ -69,7 +56,7 @@ def _job(rig, run):
         return r.json()["id"]
 
 
-def test_a_long_job_is_shared_by_two_workers_with_the_librarys_answer(rig, run, library_csv):
+def test_a_long_job_is_shared_by_two_workers_with_the_librarys_answer(rig, run, library):
     job = _job(rig, run)
     with rig.server.client(rig.token) as c:
         done = wait_finished(c, job, timeout=600)
@@ -79,11 +66,11 @@ def test_a_long_job_is_shared_by_two_workers_with_the_librarys_answer(rig, run, 
     solved_by = report["windows"]["solved_by"]
     assert sum(solved_by.values()) == report["windows"]["count"] == FRAMES // CORE
     assert sorted(solved_by) == ["w1", "w2"], solved_by  # each worker solved windows
-    assert csv == library_csv
+    assert csv == library
 
 
 @pytest.mark.slow  # a helper killed: its window waits for its heartbeat to run out (30 s)
-def test_a_helper_killed_mid_run_costs_time_not_the_answer(rig, run, library_csv):
+def test_a_helper_killed_mid_run_costs_time_not_the_answer(rig, run, library):
     job = _job(rig, run)
     # the helper: the worker whose work horse started second
     deadline = time.time() + 120
@@ -101,10 +88,10 @@ def test_a_helper_killed_mid_run_costs_time_not_the_answer(rig, run, library_csv
         done = wait_finished(c, job, timeout=600)
         assert done["status"] == "succeeded", done
         csv = c.get(done["links"]["result"]["csv"]).content
-    assert csv == library_csv
+    assert csv == library
 
 
-def test_a_shared_data_dir_sends_no_file_through_redis(tmp_path, run, library_csv):
+def test_a_shared_data_dir_sends_no_file_through_redis(tmp_path, run, library):
     """The server and its workers share the data dir: while the job runs Redis holds none of its
     files, the workers write the results beside the inputs, and the answer is the same bytes."""
     from redis import Redis
@@ -128,7 +115,7 @@ def test_a_shared_data_dir_sends_no_file_through_redis(tmp_path, run, library_cs
         assert sorted(report["windows"]["solved_by"]) == ["w1", "w2"]
         # the cameras staged once, in the job's folder, by whichever worker claimed each
         assert sum(report["windows"]["staged_by"].values()) == 4 and set(report["windows"]["staged_by"]) <= {"w1", "w2"}
-        assert csv == library_csv
+        assert csv == library
         assert not list((tmp_path / "data" / "jobs" / job).glob("result.*.tmp"))  # installed, nothing left
     finally:
         rig.stop()
