@@ -31,6 +31,15 @@ Per frame n:
    ``bench/bench_dropout.py``'s seed 1 the tail tip stayed 0.7 m off for 1,200 frames without it
    (ekf 2.3x fte's error after the drop-outs), 1.07x with it.
 
+6. **No depth, no stream.** Where no marker is seen by two cameras for longer than the lag, the
+   stream has only its motion model for depth, and what it gives there depends on rounding: on
+   ``bench/bench_dropout.py``'s runs (camera 3 alone for 500 frames) 0.001 px of jitter moved its
+   error there between 0.1 and 2 m. Holding those frames in the window until two cameras see
+   again, or a convex loss on them, did not steady it (bench/RESULTS.md, section 28). So each such
+   stretch is solved after the stream as one ``fte`` batch over it and :data:`BATCH_MARGIN_SECONDS`
+   either side, with the stream's body and motion model; the smoothed trajectory takes the batch's
+   poses there, the causal estimates stay the stream's, and the report says so.
+
 The first few frames are solved as a small batch (:mod:`graph.solve.fte`) to start from a good pose: a
 per-frame start from nothing diverges. With ``motion_scale="auto"`` the batch is the first
 ``SHARED_START_SECONDS`` (or a quarter of a shorter run) and fits the motion model's scales
@@ -67,6 +76,7 @@ RESTART_PRIOR = 1e-4  # the prediction's weight in a restart's refinement (the p
 RESTART_GAIN = 1.0  # a restart is kept when it lowers the frame's robust cost by this much a lost marker
 RELINEARISE_EVERY = 10  # frames between relinearisations of the measurement factors in the window
 RELINEARISE_TOL = 1e-3  # a frame is relinearised when its estimate moved more than this (any parameter)
+BATCH_MARGIN_SECONDS = 2.0  # step 6: the frames either side of a stretch without depth in its batch
 
 
 @dataclass
@@ -352,6 +362,38 @@ def _whole_run(prob: Problem, tp: TrajectoryProblem, done: np.ndarray) -> tuple[
     return Q, iterations
 
 
+def _depthless_stretches(valid: np.ndarray, shortest: int) -> list[tuple[int, int]]:
+    """The stretches ``[a, b)`` of at least ``shortest`` frames in which no marker is seen by two
+    cameras (``valid`` (N, C, M)): the stream has no depth there but its motion model's."""
+    deep = (valid.sum(axis=1) >= 2).any(axis=1)
+    out, a = [], None
+    for n, d in enumerate(np.append(deep, True)):
+        if not d and a is None:
+            a = n
+        elif d and a is not None:
+            if n - a >= shortest:
+                out.append((a, n))
+            a = None
+    return out
+
+
+def _batch_through(prob: Problem, tp: TrajectoryProblem, a: int, b: int, margin: int) -> tuple[np.ndarray, int]:
+    """Frames ``[a, b)`` (a stretch without depth) solved by ``fte`` over ``[a - margin, b + margin)``
+    with the stream's body and motion model (scales and orders held). Returns its poses of ``[a, b)``
+    and its iterations."""
+    from graph.solve.joint import solve_fte_joint
+    from graph.solve.windows import frames_of
+
+    lo, hi = max(0, a - margin), min(prob.frames, b + margin)
+    names = tp.group_names()
+    held = replace(prob.options, method="fte", window_frames=0,
+                   motion_scale={g: float(v) for g, v in zip(names, tp.motion_scales)},
+                   motion_order={g: int(k) for g, k in zip(names, tp.orders)})
+    res = solve_fte_joint(frames_of(prob, lo, hi, held))
+    assert res.params is not None
+    return res.params[a - lo:b - lo], res.report.iterations
+
+
 def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
     t0 = time.perf_counter()
     if progress:
@@ -393,6 +435,16 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
                 if progress and (n - S) % every == 0:
                     progress(Progress(stage="filter", fraction=0.1 + 0.85 * (n - S) / (N - S), iteration=n))
             Q = sm.finish()
+            margin = int(round(BATCH_MARGIN_SECONDS * prob.options.fps))
+            depthless = [(a, b) for a, b in _depthless_stretches(prob.valid, sm.lag) if a >= S]
+            for a, b in depthless:  # step 6 of the module docstring
+                Q[a:b], more = _batch_through(prob, tp, a, b, margin)
+                iters += more
+            if depthless:
+                notes.append(f"{len(depthless)} stretch(es) no two cameras saw ({sum(b - a for a, b in depthless)} "
+                             f"frames, the longest {max(b - a for a, b in depthless)}) are fte's: each solved as "
+                             f"one batch with {margin} frames either side (the stream has no depth there; its "
+                             "causal estimates are the stream's)")
             if sm.restarts:
                 notes.append(f"the stream lost markers that three cameras or more saw and restarted them from the "
                              f"frame's triangulation in {sm.restarts} of {N - S} frames (after a stretch with "
