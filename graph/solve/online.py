@@ -31,7 +31,7 @@ Per frame n:
    ``bench/bench_dropout.py``'s seed 1 the tail tip stayed 0.7 m off for 1,200 frames without it
    (ekf 2.3x fte's error after the drop-outs), 1.07x with it.
 
-6. **No depth, no stream.** Where no marker is seen by two cameras for longer than the lag, the
+6. **No depth, no stream.** Where no marker is seen by two cameras for at least the lag, the
    stream has only its motion model for depth, and what it gives there depends on rounding: on
    ``bench/bench_dropout.py``'s runs (camera 3 alone for 500 frames) 0.001 px of jitter moved its
    error there between 0.1 and 2 m. Holding those frames in the window until two cameras see
@@ -387,7 +387,7 @@ def _batch_through(prob: Problem, tp: TrajectoryProblem, a: int, b: int, margin:
 
     lo, hi = max(0, a - margin), min(prob.frames, b + margin)
     names = tp.group_names()
-    held = replace(prob.options, method="fte", window_frames=0,
+    held = replace(prob.options, method="fte", window_frames=0, uncertainty=False,  # the run's sds: from Q after
                    motion_scale={g: float(v) for g, v in zip(names, tp.motion_scales)},
                    motion_order={g: int(k) for g, k in zip(names, tp.orders)})
     with warnings.catch_warnings():
@@ -395,6 +395,25 @@ def _batch_through(prob: Problem, tp: TrajectoryProblem, a: int, b: int, margin:
         res = solve_fte_joint(replace(frames_of(prob, lo, hi, held), start_poses=None))
     assert res.params is not None
     return res.params[a - lo:b - lo], res.report.iterations
+
+
+def _through_depthless(prob: Problem, tp: TrajectoryProblem, Q: np.ndarray, S: int, lag: int,
+                       notes: list[str]) -> int:
+    """Step 6 of the module docstring: the stretches of ``prob`` longer than ``lag`` frames that no two
+    cameras see, from the stream's start frames ``S`` on, given the poses of an ``fte`` batch in the
+    smoothed trajectory ``Q`` (in place), and a note for the report. Returns the batches' iterations."""
+    margin = max(lag, int(round(BATCH_MARGIN_SECONDS * prob.options.fps)))  # frames with depth either side
+    depthless = [(max(a, S), b) for a, b in _depthless_stretches(prob.valid, lag) if b > S]
+    iterations = 0
+    for a, b in depthless:
+        Q[a:b], more = _batch_through(prob, tp, a, b, margin)
+        iterations += more
+    if depthless:
+        notes.append(f"{len(depthless)} stretch(es) no two cameras saw ({sum(b - a for a, b in depthless)} frames, "
+                     f"the longest {max(b - a for a, b in depthless)}) are fte's: each solved as one batch with "
+                     f"{margin} frames either side (the stream has no depth there; its causal estimates are the "
+                     "stream's)")
+    return iterations
 
 
 def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
@@ -438,16 +457,6 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
                 if progress and (n - S) % every == 0:
                     progress(Progress(stage="filter", fraction=0.1 + 0.85 * (n - S) / (N - S), iteration=n))
             Q = sm.finish()
-            margin = int(round(BATCH_MARGIN_SECONDS * prob.options.fps))
-            depthless = [(a, b) for a, b in _depthless_stretches(prob.valid, sm.lag) if a >= S]
-            for a, b in depthless:  # step 6 of the module docstring
-                Q[a:b], more = _batch_through(prob, tp, a, b, margin)
-                iters += more
-            if depthless:
-                notes.append(f"{len(depthless)} stretch(es) no two cameras saw ({sum(b - a for a, b in depthless)} "
-                             f"frames, the longest {max(b - a for a, b in depthless)}) are fte's: each solved as "
-                             f"one batch with {margin} frames either side (the stream has no depth there; its "
-                             "causal estimates are the stream's)")
             if sm.restarts:
                 notes.append(f"the stream lost markers that three cameras or more saw and restarted them from the "
                              f"frame's triangulation in {sm.restarts} of {N - S} frames (after a stretch with "
@@ -462,6 +471,8 @@ def _ekf(prob: Problem, progress: ProgressCallback | None) -> Result:
                          f"(a motion model far stiffer than the data, {prob.options.fps:g} fps, or a long stretch "
                          "without two cameras): the trajectory is the whole run's smoother's (as fte), and from "
                          "that frame on so are the causal estimates")
+        else:
+            iters += _through_depthless(prob, tp, Q, S, sm.lag, notes)
     t_solve = time.perf_counter() - t0 - t_init
     ms = np.array(per_frame) * 1000.0
     per_frame_ms = ({"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "max": float(ms.max())}
