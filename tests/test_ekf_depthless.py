@@ -11,24 +11,10 @@ import warnings
 
 import numpy as np
 import pytest
+from dropouts import with_dropouts
 
 from graph.api import SolveOptions, solve
 from graph.simulate import simulate_run
-
-FOUR_BLIND = (0, 3, 4, 5)  # cameras 1, 4, 5, 6: no detections in frames 250-749
-ONLY = 2  # camera 3: the only one seeing frames 750-874
-
-
-def _dropouts(run):
-    idx = np.arange(run.frames)
-    four, only = (idx >= 250) & (idx < 750), (idx >= 750) & (idx < 875)
-    keypoints = []
-    for c, kp in enumerate(run.keypoints):
-        blind = (four if c in FOUR_BLIND else np.zeros_like(four)) | (only if c != ONLY else np.zeros_like(only))
-        xy, lik = kp.xy.copy(), kp.likelihood.copy()
-        xy[blind], lik[blind] = np.nan, 0.0
-        keypoints.append(dataclasses.replace(kp, xy=xy, likelihood=lik))
-    return keypoints, only
 
 
 def _jittered(keypoints, draw: int):
@@ -41,7 +27,7 @@ def _jittered(keypoints, draw: int):
 def test_a_stretch_one_camera_sees_is_answered_the_same_under_tiny_jitters(rig, seed):
     run = simulate_run(rig, frames=1800, fps=120.0, noise=5.0, outliers=0.1, outlier_std=100.0, seed=seed,
                        confident_outliers=1.0, speed=1.0)
-    keypoints, only = _dropouts(run)
+    keypoints, _, only = with_dropouts(run, 250, 750, 875)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         fte = solve(keypoints, rig, SolveOptions(fps=run.fps, skeleton="cheetah"))

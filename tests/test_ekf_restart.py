@@ -10,30 +10,20 @@ all markers or one) is followed within ten frames without a restart, so it does 
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
+from dropouts import with_dropouts
 
 from graph.api import SolveOptions, solve
 from graph.simulate import simulate_run
-
-FOUR_BLIND = (0, 3, 4, 5)  # cameras 1, 4, 5, 6: no detections in frames 1000-2999
-ONLY = 2  # camera 3: the only one seeing frames 3000-3499
 
 
 @pytest.mark.slow  # about 15 s
 def test_a_marker_lost_after_the_drop_outs_is_taken_up_again(rig):
     run = simulate_run(rig, frames=7200, fps=120.0, noise=5.0, outliers=0.1, outlier_std=100.0, seed=1,
                        confident_outliers=1.0, speed=1.0)
+    keypoints, _, _ = with_dropouts(run, 1000, 3000, 3500)
     idx = np.arange(run.frames)
-    four, only = (idx >= 1000) & (idx < 3000), (idx >= 3000) & (idx < 3500)
-    keypoints = []
-    for c, kp in enumerate(run.keypoints):
-        blind = (four if c in FOUR_BLIND else np.zeros_like(four)) | (only if c != ONLY else np.zeros_like(only))
-        xy, lik = kp.xy.copy(), kp.likelihood.copy()
-        xy[blind], lik[blind] = np.nan, 0.0
-        keypoints.append(dataclasses.replace(kp, xy=xy, likelihood=lik))
     result = solve(keypoints, rig, SolveOptions(method="ekf", fps=run.fps))
     err = np.linalg.norm(result.positions - run.positions, axis=-1)  # (N, M) metres
     after = idx >= 3500
