@@ -66,6 +66,23 @@ def test_an_export_reads_only_the_arrays_it_writes(fly):
     assert run.likelihood is None and whole.likelihood is not None  # an optional one is left out
 
 
+def test_a_result_whose_positions_are_not_frames_of_markers_is_refused_in_one_line(fly, tmp_path):
+    """A forged result file (positions of the wrong shape) is named and refused, not a ValueError from
+    an exporter unpacking a shape."""
+    import shutil
+
+    import h5py
+
+    forged = tmp_path / "forged.h5"
+    shutil.copy(fly, forged)
+    with h5py.File(forged, "r+") as f:
+        del f["positions"]
+        f["positions"] = np.zeros(3)
+    with pytest.raises(InputError, match=r"forged\.h5: damaged acinoset result file \(its positions have shape "
+                                         r"\(3,\), not \(frames, 12 markers, 3\)\)"):
+        load_input(forged)
+
+
 def test_the_h5_keeps_the_calibration_in_metres(fly):
     from graph.io.calibration import load_calibration
 

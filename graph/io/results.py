@@ -508,6 +508,11 @@ def read_result(path: str | Path, individual: str | None = None, step: int = 1,
                 "options": _options(json.loads(_attr(f, "options") or "")),
                 "report": _report(_pick(json.loads(_attr(f, "report") or ""), at)),
             }
+            M = len(fields["markers"])
+            for name in ("positions", "std"):  # what every reader of a result takes as (N, M, 3)
+                if got[name].ndim != 3 or got[name].shape[1:] != (M, 3):
+                    raise InputError(f"damaged acinoset result file (its {name} have shape {got[name].shape}, "
+                                     f"not (frames, {M} markers, 3))", path)
         except (KeyError, ValueError, TypeError, IndexError) as e:
             if isinstance(e, InputError):
                 raise
