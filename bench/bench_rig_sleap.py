@@ -93,8 +93,10 @@ def main() -> int:
     env = dict(os.environ)
     doc: dict = {"variants": {}}
     with tempfile.TemporaryDirectory() as tmp:
-        for variant, extra in (("intrinsics held", []), ("--refine-intrinsics", ["--refine-intrinsics"])):
-            scratch = Path(tmp) / variant.strip("-").replace(" ", "_")
+        for variant, extra in (("intrinsics held", []), ("--refine-intrinsics", ["--refine-intrinsics"]),
+                               ("--lens k1 (Anipose's lens)", ["--lens", "k1"]),
+                               ("--lens k1 --refine-intrinsics", ["--lens", "k1", "--refine-intrinsics"])):
+            scratch = Path(tmp) / "".join(ch if ch.isalnum() else "_" for ch in variant)
             folders = linked_images(args.data, scratch / "images")
             out, report = scratch / "calibration.toml", scratch / "report.json"
             runs = []

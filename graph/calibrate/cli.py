@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from graph.calibrate.model import LENSES
 from graph.camera import CAMERA_MODELS, FISHEYE
 from graph.errors import InputError
 
@@ -39,6 +40,10 @@ def register(sub) -> None:
         q.add_argument("--board", required=True, metavar="SPEC", help=board_help)
         q.add_argument("--model", choices=list(CAMERA_MODELS), default=FISHEYE,
                        help="camera model (default fisheye: OpenCV's 4 coefficients)")
+        q.add_argument("--lens", choices=list(LENSES), default="full",
+                       help="what of the lens is fitted: full (default), every coefficient of the model; k1, "
+                       "Anipose's: one focal length, the principal point at the image's centre and radial k1 "
+                       "alone")
         q.add_argument("--every", type=int, default=1, metavar="N", help="use every N-th frame of a video")
         q.add_argument("--no-cache", action="store_true", help="detect again even when a cache matches")
         q.add_argument("--report", metavar="R.json", help="write the quality report here")
@@ -153,7 +158,7 @@ def run_intrinsics(args: argparse.Namespace) -> int:
     board = parse_board(args.board)
     _warn_mm(board)
     (views,) = _load_sources([args.sources], board, args.every, not args.no_cache)
-    result = calibrate_intrinsics(views, board, args.model)
+    result = calibrate_intrinsics(views, board, args.model, args.lens)
     doc = result.to_dict()
     camera = {k: doc[k] for k in ("camera_resolution", "k", "d", "model", "rms_px")}
     _write_json(args.out, camera)
@@ -186,12 +191,14 @@ def run_extrinsics(args: argparse.Namespace) -> int:
         if args.refine_intrinsics:
             raise InputError("--refine-intrinsics needs the intrinsics calibrated here (their uncertainty is "
                              "the prior): leave out --intrinsics")
+        if args.lens != "full":
+            raise InputError("--lens is what the intrinsics calibrated here fit: leave out --intrinsics")
     names = _camera_names(args.names, len(args.sources))
     views = _load_sources(args.sources, board, args.every, not args.no_cache, names)
     report, bar = _progress_bar()
     try:
         result = calibrate_extrinsics(views, board, intrinsics, model=args.model, origin=args.origin,
-                                      refine_intrinsics=args.refine_intrinsics, progress=report)
+                                      refine_intrinsics=args.refine_intrinsics, progress=report, lens=args.lens)
     finally:
         if bar:
             bar.close()

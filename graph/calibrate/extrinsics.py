@@ -120,9 +120,10 @@ def spanning_tree(n: int, weights: dict[tuple[int, int], int], root: int = 0) ->
 def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list[Camera] | None = None,
                          model: str = FISHEYE, origin: str = "camera1", refine_intrinsics: bool = False,
                          intrinsic_results: list[IntrinsicsResult] | None = None,
-                         progress=None) -> RigResult:
+                         progress=None, lens: str = "full") -> RigResult:
     """The rig (see the module). ``intrinsics``: one camera each (from ``--intrinsics`` files); when
-    None, each camera's intrinsics are calibrated from its own views first."""
+    None, each camera's intrinsics are calibrated from its own views first, fitting ``lens``
+    (:data:`graph.calibrate.model.LENSES`)."""
     n = len(views)
     if n < 2:
         raise InputError("extrinsic calibration needs at least two cameras")
@@ -140,7 +141,7 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
             for i, v in enumerate(views):
                 if progress:
                     progress(f"intrinsics {names[i]}", i / (n + 1))
-                intrinsic_results.append(calibrate_intrinsics(v, board, model))
+                intrinsic_results.append(calibrate_intrinsics(v, board, model, lens))
         intrinsics = [r.camera for r in intrinsic_results]
     if len(intrinsics) != n:
         raise InputError(f"{len(intrinsics)} intrinsics files for {n} cameras")
@@ -203,7 +204,7 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
             if prior_cov is None:
                 raise InputError(f"{names[i]}: refining intrinsics needs their uncertainty (calibrate them "
                                  "here, or leave them fixed)")
-            priors[i] = (intrinsics_of(cam), np.linalg.cholesky(np.linalg.inv(prior_cov)).T)
+            priors[i] = (intrinsics_of(cam), information_root(prior_cov))
     # 3. the bundle adjustment, dropping outlier views
     obs = observations(views, board, which, list(range(n)), boards)
     view_cam = obs.cam.copy()
@@ -232,7 +233,7 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
         sigma = bundle.noise_sigma(sol.residuals)
         rms = bundle.view_rms(sol.residuals, cur)
         bad = worst_per_frame(outliers_within_cameras(rms, cur.cam), rms, [view_frame[g] for g in np.flatnonzero(keep)])
-        if not bad.any():
+        if not bad.any() or round_ == MAX_ROUNDS - 1:  # a view dropped after the last solve would not be solved
             break
         idx = np.flatnonzero(keep)
         for worst_view in np.flatnonzero(bad):
@@ -288,6 +289,15 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
         "error": float(np.sqrt((e * e).sum(axis=1).mean())), "units": "m", "origin": origin, "board": board.spec})
     return RigResult(calibration, float(np.sqrt((e * e).sum(axis=1).mean())), sigma, reports, overlap, baselines,
                      frames, board_poses, residuals, corners_used, total_it, total_s, origin, notes)
+
+
+def information_root(cov: np.ndarray) -> np.ndarray:
+    """``L`` with ``L^T L = cov^-1``, by the eigenvectors: ``L = diag(w^-1/2) V^T`` for ``cov = V diag(w)
+    V^T``. Cholesky's factor of the inverse fails on a held lens's covariance (variances of 1e-12 beside
+    ones of order 1), which the eigenvalues take in their stride."""
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    w = np.maximum(w, w.max() * 1e-30)
+    return (V / np.sqrt(w)).T
 
 
 def board_start(frame: str, cam_pose: dict, pnp: list[dict], cams, scale: float) -> tuple:

@@ -7,7 +7,10 @@
 2. The bundle adjustment of :mod:`graph.calibrate.bundle` with the camera fixed at the origin, its
    intrinsics free (the board's known geometry anchors them, focal length included) and one pose per
    view, under Huber's loss; views whose error stands out (:func:`outlier_views`) are dropped and
-   named, and the rest solved again; last, one least-squares solve of the views kept.
+   named, and the rest solved again; last, one least-squares solve of the views kept. With the lens
+   ``"k1"`` (Anipose's: one focal length, the principal point at the image's centre, radial k1 alone)
+   OpenCV's whole-model calibration is the start and the rest of theta is held by a stiff prior
+   (:func:`graph.calibrate.model.held_lens`).
 
 The per-view error, the share of the image the views cover and the intrinsics' covariance (the prior
 the extrinsic calibration may refine them under) come with the result.
@@ -21,7 +24,7 @@ import numpy as np
 
 from graph.calibrate import bundle
 from graph.calibrate.board import CHARUCO, Board
-from graph.calibrate.model import camera_with
+from graph.calibrate.model import LENSES, camera_with, held_lens
 from graph.calibrate.poses import board_in_camera
 from graph.calibrate.views import BoardViews
 from graph.camera import CAMERA_MODELS, FISHEYE, Camera, IllConditionedView, camera_model, model_names
@@ -163,13 +166,19 @@ def coverage(views: BoardViews, keep: list[int]) -> tuple[float, np.ndarray]:
     return float((grid > 0).mean()), grid
 
 
-def calibrate_intrinsics(views: BoardViews, board: Board, model: str = FISHEYE) -> IntrinsicsResult:
-    """Intrinsics of one camera from its board views (see the module)."""
+def calibrate_intrinsics(views: BoardViews, board: Board, model: str = FISHEYE, lens: str = "full") -> IntrinsicsResult:
+    """Intrinsics of one camera from its board views (see the module); ``lens`` what of the lens is fitted
+    (:data:`graph.calibrate.model.LENSES`)."""
     if model not in CAMERA_MODELS:
         raise InputError(f"unknown camera model {model!r} ({model_names()})")
+    if lens not in LENSES:
+        raise InputError(f"unknown lens {lens!r} ({', '.join(LENSES)})")
     keep, dropped = usable_views(views, board)
     theta, keep, more = opencv_start(views, board, model, keep)
     dropped.update(more)
+    held = held_lens(theta, views.image_size, lens)
+    if held is not None:
+        theta = held[0]
     camera = camera_with(theta, model, views.image_size, views.name)
     poses, kept = [], []
     for i in keep:
@@ -188,7 +197,7 @@ def calibrate_intrinsics(views: BoardViews, board: Board, model: str = FISHEYE) 
                              views.source or views.name)
         obs = observations([views], board, [keep], [0], [list(range(len(keep)))])
         sigma = bundle.noise_sigma(bundle.residuals(rig, obs, jacobians=False))
-        settings = bundle.Settings(fixed_cams=frozenset({0}), free_intrinsics={0: None},
+        settings = bundle.Settings(fixed_cams=frozenset({0}), free_intrinsics={0: held},
                                    huber_px=bundle.HUBER_SIGMAS * sigma)
         sol = bundle.solve(rig, obs, settings)
         sigma = bundle.noise_sigma(sol.residuals)
@@ -204,12 +213,14 @@ def calibrate_intrinsics(views: BoardViews, board: Board, model: str = FISHEYE) 
         rig = bundle.Rig(rig.models, rig.intrinsics, rig.R_cam, rig.t_cam, rig.R_board[good], rig.t_board[good])
     # the kept views, polished by least squares: the estimate OpenCV's calibration makes, on views the
     # robust rounds have cleared (Huber's loss leaves the RMS a hair above its least-squares minimum)
-    sol = bundle.solve(rig, obs, bundle.Settings(fixed_cams=frozenset({0}), free_intrinsics={0: None}))
+    final = bundle.Settings(fixed_cams=frozenset({0}), free_intrinsics={0: held})
+    sol = bundle.solve(rig, obs, final)
     rig = sol.rig
     sigma = bundle.noise_sigma(sol.residuals)
     rms = bundle.view_rms(sol.residuals, obs)
     theta = rig.intrinsics[0]
-    cov = bundle.covariances(sol, [bundle.intrinsics_key(0)], sigma)[bundle.intrinsics_key(0)]
+    # the boards' poses marginalised in numpy: GTSAM's marginals refuse the stiff rows of a held lens
+    cov = bundle.camera_covariance(rig, obs, final, sigma)[0]
     cover, grid = coverage(views, keep)
     e = sol.residuals
     return IntrinsicsResult(

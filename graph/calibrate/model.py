@@ -25,6 +25,35 @@ from graph.camera import CAMERA_MODELS, Camera, camera_model
 # the length of theta per model, and the longest
 N_INTRINSICS = {name: 4 + m.n_coefficients for name, m in CAMERA_MODELS.items()}
 MAX_INTRINSICS = max(N_INTRINSICS.values())
+HELD = 1e-6  # the prior sd of an intrinsic held (relative for the focal lengths, else in its units)
+# What of a lens a board calibration fits: "full", every entry of theta; "k1", Anipose's lens: one focal
+# length, the principal point at the image's centre and the first radial coefficient alone
+LENSES = ("full", "k1")
+
+
+def held_lens(theta: np.ndarray, size: tuple[int, int], lens: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """The lens ``lens`` (:data:`LENSES`) as a start ``theta0`` and a stiff prior ``(theta0, L)`` on
+    ``theta`` (:class:`graph.calibrate.bundle.Settings`), or None for ``"full"`` (nothing held).
+
+    For ``"k1"``, from a calibration ``theta`` of the whole model: ``theta0`` has ``fx = fy = f``, their
+    mean, the principal point ``((w - 1) / 2, (h - 1) / 2)`` (the image's centre in OpenCV's pixel
+    convention), ``k1`` as calibrated and every other coefficient 0; the whitened rows of ``L (theta -
+    theta0)`` are ``(fx - fy) / (f HELD)``, ``(cx - cx0) / HELD``, ``(cy - cy0) / HELD`` and ``d_j / HELD``
+    for each coefficient after ``k1``; ``f`` and ``k1`` are free (rows of zeros)."""
+    if lens == "full":
+        return None
+    if lens != "k1":
+        raise ValueError(f"unknown lens {lens!r} ({', '.join(LENSES)})")
+    n = len(theta)
+    f = 0.5 * (theta[0] + theta[1])
+    theta0 = np.zeros(n)
+    theta0[:5] = f, f, (size[0] - 1) / 2.0, (size[1] - 1) / 2.0, theta[4]
+    L = np.zeros((n, n))
+    L[0, :2] = np.array([1.0, -1.0]) / (f * HELD)
+    L[2, 2] = L[3, 3] = 1.0 / HELD
+    for j in range(5, n):
+        L[j, j] = 1.0 / HELD
+    return theta0, L
 
 
 def intrinsics_of(camera: Camera) -> np.ndarray:

@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from graph.calibrate import bundle
-from graph.calibrate.model import camera_with, intrinsics_of
+from graph.calibrate.model import HELD, camera_with, intrinsics_of
 from graph.calibrate.poses import rotation_angle
 from graph.calibrate.resection import errors, repose_off_cameras
 from graph.camera import CALIBRATION_UNITS, Calibration, Camera
@@ -75,7 +75,6 @@ TOLERANCE = 1e-5  # a solve stops when a step lowers the cost by less than this 
 POSE_SD_DEG = 1.0  # the poses' prior sd: a bumped camera (turned 0.3-1 degree) is within one sd
 LENS_INSIST = 0.5  # a lens is refined only where the data at least halve its prior's sd (3x its information)
 MOVE_WARN_SD = 3.0  # a camera moved further than this many prior sd from where it was is reported
-HELD = 1e-6  # the prior sd of an intrinsic held (relative for the focal lengths, else in its units)
 POINT_VIEWS = 3  # cameras a point needs to enter the adjustment: with two, one confident mistake
 # is indistinguishable from a good view, and the point slides along the other camera's ray
 

@@ -67,7 +67,9 @@ def submit_calibration(
     intrinsics: Annotated[list[UploadFile], File(
         description="optional: each camera's intrinsics (AcinoSet camera JSON: camera_resolution, k, d), in camera "
                     "order; calibrated from the views if not given")] = None,  # type: ignore[assignment]
-    options: Annotated[str, Form(description='JSON object: {"model": "fisheye" (default) or "pinhole", "origin": '
+    options: Annotated[str, Form(description='JSON object: {"model": "fisheye" (default) or "pinhole", "lens": '
+                                             '"full" (default: every coefficient) or "k1" (Anipose\'s: one focal '
+                                             'length, the principal point at the centre, radial k1 alone), "origin": '
                                              '"camera1" (default) or "board:FRAME", "every": N (videos: every N-th '
                                              'frame, default 1), "label": "..."}')] = "{}",
 ) -> CalibrationOut:

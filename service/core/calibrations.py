@@ -46,7 +46,7 @@ DETECTIONS_DIR = "detections"
 VIDEOS_DIR = "videos"
 INTRINSICS_DIR = "intrinsics"
 MODELS = tuple(CAMERA_MODELS)  # the camera models a calibration may fit
-OPTION_NAMES = ("model", "origin", "every", "label")
+OPTION_NAMES = ("model", "lens", "origin", "every", "label")
 REFINE_OPTION_NAMES = ("likelihood", "refine_intrinsics", "focal_sd", "k1_sd", "pose_sd", "label")
 
 
@@ -66,10 +66,11 @@ def options_object(text: str | None, known: tuple[str, ...], example: str) -> di
 
 
 def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
-    """The board spec and the ``options`` JSON object (``model``: fisheye|pinhole, ``origin``:
-    camera1|board:FRAME, ``every``: use every N-th frame of videos, ``label``) as the job's options,
-    and its label. Refusals are one line."""
+    """The board spec and the ``options`` JSON object (``model``: fisheye|pinhole, ``lens``: what of it is
+    fitted, :data:`graph.calibrate.model.LENSES`, ``origin``: camera1|board:FRAME, ``every``: use every
+    N-th frame of videos, ``label``) as the job's options, and its label. Refusals are one line."""
     from graph.calibrate import parse_board
+    from graph.calibrate.model import LENSES
 
     try:
         board = parse_board(board_spec)
@@ -80,13 +81,17 @@ def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
     model = data.get("model", "fisheye")
     if model not in MODELS:
         raise Unprocessable(f"options: model must be one of {', '.join(MODELS)}, not {model!r}")
+    lens = data.get("lens", "full")
+    if lens not in LENSES:
+        raise Unprocessable(f"options: lens must be one of {', '.join(LENSES)}, not {lens!r}")
     origin = data.get("origin", "camera1")
     if not isinstance(origin, str) or not (origin == "camera1" or (origin.startswith("board:") and origin[6:])):
         raise Unprocessable(f"options: origin must be camera1 or board:FRAME, not {origin!r}")
     every = data.get("every", 1)
     if not isinstance(every, int) or isinstance(every, bool) or every < 1:
         raise Unprocessable(f"options: every must be a whole number of frames, at least 1, not {every!r}")
-    return {"kind": CALIBRATION_KIND, "board": board.spec, "model": model, "origin": origin, "every": every}, label
+    return {"kind": CALIBRATION_KIND, "board": board.spec, "model": model, "lens": lens, "origin": origin,
+            "every": every}, label
 
 
 def parse_refine_options(text: str | None) -> tuple[dict, str | None]:
@@ -141,6 +146,9 @@ class CalibrationService:
             raise Unprocessable(f"intrinsics: {len(intrinsics)} files for {len(detections)} cameras; upload one "
                                 "per camera, in the same order, or none")
         options, label = parse_options(board_spec, options_text)
+        if intrinsics and options["lens"] != "full":
+            raise Unprocessable("options: lens is what the intrinsics calibrated here fit; with intrinsics "
+                                "uploaded leave it out")
         self.jobs.check_quota(user)
         self.jobs.check_storage(user, sum(stream_size(u.file) for u in [*detections, *intrinsics]))
         return self._queue(user, lambda: self._store_upload(detections, intrinsics, options, videos=bool(videos)),

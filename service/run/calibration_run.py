@@ -43,7 +43,8 @@ def run_calibration(input_dir: Path, out_dir: Path, progress) -> dict:
                  for i, rel in enumerate(m["detections"])]
     intrinsics = [load_camera_json(str(inside(input_dir, rel))) for rel in m.get("intrinsics", [])] or None
     result = calibrate_extrinsics(views, board, intrinsics, model=opts["model"], origin=opts["origin"],
-                                  progress=lambda stage, fraction: progress(Progress(stage, fraction)))
+                                  progress=lambda stage, fraction: progress(Progress(stage, fraction)),
+                                  lens=opts.get("lens", "full"))  # calibrations queued before lenses: full
     progress.report(WRITING, 1.0, result.iterations)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_anipose_toml(out_dir / "calibration.toml", result.calibration)

@@ -65,7 +65,8 @@
       return showError(`Give intrinsics for every camera or none: ${intrinsics.length} files for ${files.length} cameras.`,
         $("intrinsics"));
     }
-    const options = { model: $("model").value, origin: $("origin").value.trim() || "camera1" };
+    const options = { model: $("model").value, lens: $("lens").value,
+                      origin: $("origin").value.trim() || "camera1" };
     if (source() === "videos") options.every = Math.max(1, Math.round(Number($("every").value) || 1));
     const label = $("label").value.trim();
     if (label) options.label = label;

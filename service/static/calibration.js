@@ -58,6 +58,7 @@
     }
     fact("Board", o.board);
     fact("Camera model", o.model);
+    fact("Lens fitted", o.lens || "full");
     fact("World frame", o.origin === "camera1" ? "camera 1 at the origin" : `the board of view ${String(o.origin).slice(6)}`);
     const sources = (i.videos || []).length ? i.videos : (i.detections || []);
     fact((i.videos || []).length ? "Videos" : "Detections", el("ul", { class: "plain" }, sources.map((d, k) =>

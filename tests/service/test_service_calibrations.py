@@ -12,6 +12,8 @@ import pytest
 from servers import Redis, Server, add_user, have_redis, server_with_users, wait_finished, worker
 from shared_data import ACINOSET_CALIB, SLEAP_MINIMAL
 
+from graph.io.calibration import load_calibration
+
 DATA = ACINOSET_CALIB
 EX1 = [DATA / "Ex1_static" / f"points_cam{n}.json" for n in (3, 4)]
 INTRINSICS = [DATA / "intrinsic_calib_2021" / f"camera_{n}.json" for n in (3, 4)]
@@ -157,6 +159,8 @@ def test_other_users_get_404(ex1, bob, alice):
     ("not json", 422, "points_cam4.json: not valid JSON"),
     ("intrinsics", 422, "2 cameras"),
     ("model", 422, "model must be one of fisheye, pinhole"),
+    ("lens", 422, "lens must be one of full, k1"),
+    ("lens with intrinsics", 422, "lens is what the intrinsics calibrated here fit"),
 ])
 def test_bad_uploads_are_one_line_4xx(alice, tmp_path, case, status, fragment):
     kwargs = {}
@@ -174,6 +178,10 @@ def test_bad_uploads_are_one_line_4xx(alice, tmp_path, case, status, fragment):
         kwargs["intrinsics"] = INTRINSICS[:1]
     elif case == "model":
         kwargs["options"] = {"model": "orthographic"}
+    elif case == "lens":
+        kwargs["options"] = {"lens": "k2"}
+    elif case == "lens with intrinsics":
+        kwargs["options"] = {"lens": "k1"}
     r = post_calibration(alice, **kwargs)
     assert r.status_code == status, r.text
     detail = r.json()["detail"]
@@ -273,6 +281,18 @@ def test_a_calibration_from_videos(alice, tmp_path):
     assert rep["rms_px"] < 1.0 and rep["frames_used"] >= 10
     assert "scene.json" not in cal["links"]  # AcinoSet's scene holds fisheye cameras only
     assert alice.get(cal["links"]["calibration.toml"]).status_code == 200
+    # Anipose's lens asked for: the rig's cameras have one focal length, centred, and k1 alone
+    r = alice.post("/v1/calibrations", files=files, data={"board": "checkerboard:9x6:0.05",
+                                                          "options": json.dumps({"model": "pinhole", "lens": "k1"})})
+    cal = wait_calibration(alice, r.json()["id"])
+    assert cal["status"] == "succeeded" and cal["options"]["lens"] == "k1", cal
+    toml = tmp_path / "k1.toml"
+    toml.write_bytes(alice.get(cal["links"]["calibration.toml"]).content)
+    for cam in load_calibration(toml).cameras:
+        w, h = cam.size
+        assert cam.K[0, 0] == pytest.approx(cam.K[1, 1], rel=1e-5) and np.allclose(cam.dist[1:], 0, atol=1e-5)
+        assert np.allclose(cam.K[:2, 2], [(w - 1) / 2, (h - 1) / 2], atol=1e-3), cam.K
+    assert abs(cal["report"]["baselines_m"]["cam1-cam2"] - baseline) < 0.02 * baseline
     # a file that is not a video, and videos with detections: one-line 422s
     bad = tmp_path / "cam2.avi"
     bad.write_bytes(b"not a video at all")
