@@ -432,6 +432,7 @@ def test_cli_intrinsics_then_extrinsics(tmp_path):
     ("resolution", "mismatched resolutions"),
     ("board", "board_shape [9, 6] does not match"),
     ("few", "too few board views"),
+    ("lens with intrinsics", "--lens is what the intrinsics calibrated here fit"),
 ])
 def test_cli_bad_input_is_one_line(tmp_path, case, fragment):
     src = [EX1 / "points_cam3.json", EX1 / "points_cam4.json"]
@@ -444,6 +445,10 @@ def test_cli_bad_input_is_one_line(tmp_path, case, fragment):
         cam = tmp_path / "c.json"
         cam.write_text(json.dumps({"camera_resolution": [2704, 1520], "k": np.eye(3).tolist(), "d": [0, 0, 0, 0]}))
         extra = ["--intrinsics", cam, cam]
+    elif case == "lens with intrinsics":
+        cam = tmp_path / "c.json"
+        cam.write_text(json.dumps({"camera_resolution": [2704, 1520], "k": np.eye(3).tolist(), "d": [0, 0, 0, 0]}))
+        extra = ["--intrinsics", cam, cam, "--lens", "k1"]
     elif case == "board":
         board = "checkerboard:8x6:0.031"
     elif case == "few":
