@@ -42,3 +42,22 @@ def test_a_stretch_one_camera_sees_is_answered_the_same_under_tiny_jitters(rig, 
     assert max(alone) - min(alone) < 0.001, alone  # the same answer there, to a millimetre
     assert max(whole) <= 1.5 * float(np.nanmean(err(fte))), whole
     assert all(any("no two cameras saw" in w for w in r.report.warnings) for r in ekf)
+
+
+def test_the_batch_takes_over_where_the_stream_went_astray_in_a_margin(rig):
+    """The seams between the stream and the batch through a stretch without depth: in each margin, the
+    frame where the two agree best. A stream astray on its way into the stretch (50 frames 0.3 m off)
+    and slow to come back after it (40 frames) gives way to the batch over those frames; the frames the
+    stream started from are never given up."""
+    from graph.skeleton import load_skeleton
+    from graph.solve.online import _seams
+
+    run = simulate_run(rig, frames=480, fps=120.0, noise=1.0, seed=3)
+    batch = run.params[:480]
+    stream = batch + np.random.default_rng(0).normal(0.0, 1e-4, batch.shape)  # agree to a tenth of a mm
+    stream[150:200, 0] += 0.3
+    stream[300:340, 0] += 0.3
+    skeleton = load_skeleton(run.skeleton)
+    first, last = _seams(skeleton, stream, batch, 20, 200, 300)
+    assert 20 <= first < 150 and 340 <= last <= 480, (first, last)
+    assert _seams(skeleton, stream, batch, 200, 200, 300)[0] == 200  # no frame before `free` is taken

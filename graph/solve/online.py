@@ -38,7 +38,9 @@ Per frame n:
    again, or a convex loss on them, did not steady it (bench/RESULTS.md, section 28). So each such
    stretch is solved after the stream as one ``fte`` batch over it and :data:`BATCH_MARGIN_SECONDS`
    either side, with the stream's body and motion model; the smoothed trajectory takes the batch's
-   poses there, the causal estimates stay the stream's, and the report says so.
+   poses over the stretch and into each margin up to the frame where the two agree best (the stream
+   can go astray on the way into the stretch or come back slowly after it), the causal estimates stay
+   the stream's, and the report says so.
 
 The first few frames are solved as a small batch (:mod:`graph.solve.fte`) to start from a good pose: a
 per-frame start from nothing diverges. With ``motion_scale="auto"`` the batch is the first
@@ -57,6 +59,7 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
+from graph.skeleton import Skeleton
 from graph.solve import kernels
 from graph.solve.fte import PRIOR_SIGMA, TrajectoryProblem, bone_lengths, optimise, refit_motion, trajectory_result
 from graph.solve.initial import initial_poses
@@ -378,14 +381,11 @@ def _depthless_stretches(valid: np.ndarray, shortest: int) -> list[tuple[int, in
     return out
 
 
-def _batch_through(prob: Problem, tp: TrajectoryProblem, a: int, b: int, margin: int) -> tuple[np.ndarray, int]:
-    """Frames ``[a, b)`` (a stretch without depth) solved by ``fte`` over ``[a - margin, b + margin)``
-    with the stream's body and motion model (scales and orders held). Returns its poses of ``[a, b)``
-    and its iterations."""
-    from graph.solve.joint import solve_fte_joint
+def _batch_through(prob: Problem, tp: TrajectoryProblem, lo: int, hi: int) -> tuple[np.ndarray, int]:
+    """Frames ``[lo, hi)`` (a stretch without depth and its margins) solved by ``fte`` with the stream's
+    body and motion model (scales and orders held). Returns the poses and the iterations."""
     from graph.solve.windows import frames_of
 
-    lo, hi = max(0, a - margin), min(prob.frames, b + margin)
     names = tp.group_names()
     held = replace(prob.options, method="fte", window_frames=0, uncertainty=False,  # the run's sds: from Q after
                    motion_scale={g: float(v) for g, v in zip(names, tp.motion_scales)},
@@ -394,7 +394,21 @@ def _batch_through(prob: Problem, tp: TrajectoryProblem, a: int, b: int, margin:
         warnings.simplefilter("ignore")  # the run's warnings are the stream's; the report names the batch
         res = solve_fte_joint(replace(frames_of(prob, lo, hi, held), start_poses=None))
     assert res.params is not None
-    return res.params[a - lo:b - lo], res.report.iterations
+    return res.params, res.report.iterations
+
+
+def _seams(skeleton: Skeleton, stream: np.ndarray, batch: np.ndarray, free: int, a: int, b: int) -> tuple[int, int]:
+    """Where the poses ``batch`` (``stream``'s frames, ``[lo, hi)`` of the run) take over from the
+    stream around the stretch ``[a, b)`` (frames of ``batch``): in each margin, the frame where the two
+    trajectories' markers are nearest (their mean distance), so that the seam jumps least; not before
+    frame ``free`` (the stream's start frames are not the stream's to give up). The stream may have
+    gone astray in a margin too, into the stretch or slow to come back after it (on bench_dropout's
+    seed 2, 31-126 mm over the 300 frames before it, about 5 mm from the batch); the batch, which saw
+    the whole margin, is the reference there."""
+    d = np.linalg.norm(skeleton.positions(stream) - skeleton.positions(batch), axis=-1).mean(axis=-1)
+    first = free + int(np.argmin(d[free:a])) if a > free else a
+    last = b + int(np.argmin(d[b:])) if len(d) > b else b
+    return first, last
 
 
 def _through_depthless(prob: Problem, tp: TrajectoryProblem, Q: np.ndarray, S: int, lag: int,
@@ -406,13 +420,16 @@ def _through_depthless(prob: Problem, tp: TrajectoryProblem, Q: np.ndarray, S: i
     depthless = [(max(a, S), b) for a, b in _depthless_stretches(prob.valid, lag) if b > S]
     iterations = 0
     for a, b in depthless:
-        Q[a:b], more = _batch_through(prob, tp, a, b, margin)
+        lo, hi = max(0, a - margin), min(prob.frames, b + margin)
+        batch, more = _batch_through(prob, tp, lo, hi)
+        first, last = _seams(prob.skeleton, Q[lo:hi], batch, max(S - lo, 0), a - lo, b - lo)
+        Q[lo + first:lo + last] = batch[first:last]
         iterations += more
     if depthless:
         notes.append(f"{len(depthless)} stretch(es) no two cameras saw ({sum(b - a for a, b in depthless)} frames, "
                      f"the longest {max(b - a for a, b in depthless)}) are fte's: each solved as one batch with "
-                     f"{margin} frames either side (the stream has no depth there; its causal estimates are the "
-                     "stream's)")
+                     f"{margin} frames either side, whose poses are taken up to where they and the stream's agree "
+                     "best (the stream has no depth there; its causal estimates are the stream's)")
     return iterations
 
 
