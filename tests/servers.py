@@ -16,6 +16,8 @@ from pathlib import Path
 
 import httpx
 
+from graph.app.processes import pid_alive
+
 ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
 
@@ -455,17 +457,6 @@ def wait_solving(client: httpx.Client, job_id: str, timeout: float = 180) -> dic
     """Until the job's run is inside the solver (past reading its files)."""
     return wait_for(client, job_id, lambda j: j["status"] == "running" and j["progress"] is not None
                     and j["progress"]["stage"] not in (None, "starting", "reading"), timeout, "solving")
-
-
-def pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    try:  # a zombie is dead
-        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return False
 
 
 def wait_dead(pid: int, timeout: float = 10) -> bool:

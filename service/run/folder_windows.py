@@ -32,21 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from graph.app.processes import pid_alive
 from service.run.shared_windows import BEAT_TTL_S, read_window, write_window
-
-
-def _pid_alive(pid: int) -> bool:
-    """Whether process ``pid`` runs on this machine (a zombie, killed and not yet reaped, does not)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's: it exists
-        return True
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):  # no /proc: it exists
-        return True
 
 
 class FolderBoard:
@@ -179,7 +166,7 @@ class FolderBoard:
         path = self.folder / "alive" / who
         try:
             fresh = time.time() - path.stat().st_mtime < BEAT_TTL_S
-            return fresh and _pid_alive(int(path.read_text()))
+            return fresh and pid_alive(int(path.read_text()))
         except (OSError, ValueError):
             return False
 
@@ -195,7 +182,7 @@ class FolderBoard:
 
     def parent_running(self) -> bool:
         text = self._read("parent")
-        return text is not None and text.isdigit() and _pid_alive(int(text))
+        return text is not None and text.isdigit() and pid_alive(int(text))
 
     def clear(self, windows: int) -> None:
         for sub in ("claims", "done", "staging"):

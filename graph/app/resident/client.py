@@ -14,6 +14,7 @@ import sys
 import time
 from collections.abc import Callable
 
+from graph.app.processes import pid_alive
 from graph.app.resident import protocol
 from graph.app.resident.protocol import (
     ANSWER_TIMEOUT_S,
@@ -156,7 +157,7 @@ def _hand_over(place: Place, argv: list[str], commands, env: dict[str, str], ent
         os.kill(os.getpid(), signum)
         return 128 + signum
     # the resident itself was killed: its child's end is not known; wait for it, say so
-    while _alive(pid):
+    while pid_alive(pid):
         time.sleep(0.05)
     print("acinoset: error: the resident process serving this solve was stopped; run it again "
           f"(or with {SWITCH}=0)", file=sys.stderr)
@@ -239,16 +240,6 @@ def forward_signal(pid: int, signum: int) -> None:
         os.kill(pid, signum)
     except OSError:
         pass
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def start(place: Place, env: dict[str, str]) -> bool:
