@@ -84,7 +84,7 @@ class SolveOptions:
     # multi-animal files: how many individuals to assign the detections to by geometry and motion
     # (graph.solve.identity; api.solve_group); None: found
     individuals: int | None = None
-    lag_seconds: float = 0.25  # "ekf": the fixed-lag window
+    lag_seconds: float = 0.5  # "ekf": the fixed-lag window (0.25 s had given 1.2-1.4x fte at 10 px; RESULTS 31)
     uncertainty: bool = True  # per-marker 3D std from the marginals ("fte": about a third of the time)
     calibration_units: str = "auto"  # "m", "cm", "mm", or "auto" (a rig measured in mm is recognised)
     # the body's proportions: the skeleton's ("model"), estimated with the trajectory ("estimate"), or

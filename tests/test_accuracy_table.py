@@ -161,12 +161,14 @@ def test_iterations_do_not_grow_with_length(table):
     assert max(table["long and slow"].iterations) <= max(table["exact model"].iterations) + 1, text(table)
 
 
-EKF_OVER_FTE = 1.84  # measured on the drop-outs (ekf 10.98 mm, fte 5.97 mm); the target is 1.5
+EKF_OVER_FTE = 1.03  # measured on the drop-outs (ekf 6.14 mm, fte 5.97 mm); the target is 1.5
 
 
 def test_ekf_on_the_drop_outs_does_not_fall_further_behind_fte(table):
-    """ekf, a fixed-lag smoother, carries a blind stretch longer than its lag from one side; held to its
-    measured ratio to fte (the smoother, both sides), which misses the 1.5x aimed at."""
+    """ekf, a fixed-lag smoother, carries a stretch in which markers lose their second camera from one
+    side for as long as its lag: with a lag of 0.25 s it was 1.84x fte here (10.98 mm: four cameras blind
+    together for 65 frames), with the default 0.5 s 1.03x. Held to that ratio to fte (the smoother, both
+    sides)."""
     run, cal = run_of("camera drop-outs")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
