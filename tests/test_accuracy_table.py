@@ -7,7 +7,7 @@ code reached (the floors below; the machine and date in :data:`MEASURED`), and m
 :data:`REGRESSION` above it fails. The spread between jitters is held too: an answer that moves with
 0.001 px of jitter lands in a different basin depending on rounding, the instability the hard regime
 once showed (13-48 mm over five draws). Beside the table, its oracles: the same solver given the true
-body (proportions off), and ``ekf`` against ``fte`` on the drop-outs.
+body (proportions off), and ``ekf`` against ``fte`` on the drop-outs and with clocks off.
 
 The table is printed (``pytest -s``) and is in every failure's message.
 """
@@ -175,3 +175,19 @@ def test_ekf_on_the_drop_outs_does_not_fall_further_behind_fte(table):
         ekf = error_mm(solve(run.keypoints, cal, SolveOptions(fps=120.0, method="ekf")), run)
     fte = table["camera drop-outs"].errors_mm[0]
     assert ekf <= EKF_OVER_FTE * (1 + REGRESSION) * fte, f"ekf {ekf:.2f} mm, fte {fte:.2f} mm"
+
+
+EKF_CLOCKS_OVER_FTE = 1.11  # measured with clocks off (ekf 5.57 mm, fte 5.03 mm); 1.64x on the nearest frames
+
+
+def test_ekf_with_clocks_off_stays_near_fte(table):
+    """ekf's stream takes each camera's detections interpolated to the reference clock's frames; on the
+    nearest frame instead (the offsets' sub-frame part, 0.2-0.4 of a frame here, dropped) it was 8.25 mm.
+    Held to its measured ratio to fte."""
+    run, cal = run_of("clocks off")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        opts = SolveOptions(fps=120.0, method="ekf", **REGIMES["clocks off"].options)
+        ekf = error_mm(solve(run.keypoints, cal, opts), run)
+    fte = table["clocks off"].errors_mm[0]
+    assert ekf <= EKF_CLOCKS_OVER_FTE * (1 + REGRESSION) * fte, f"ekf {ekf:.2f} mm, fte {fte:.2f} mm"

@@ -271,3 +271,26 @@ def test_a_bone_measured_between_noisy_points_is_not_longer_than_the_bone(length
     assert np.median(d) > L * 1.001
     assert unbiased_length(float(np.median(d)), tau) == pytest.approx(L, rel=0.02, abs=0.002)
     assert np.isnan(unbiased_length(0.9 * tau, tau))
+
+
+def test_between_frames_on_the_reference_clock():
+    """Camera c's detections at the reference frames ``n - tau_c``: exact for a marker moving at constant
+    speed, the nearer frame where one of the two is missing, none where the nearer one is."""
+    from graph.solve.sync import between_frames_on_reference_clock
+
+    N, C, M = 10, 2, 1
+    n = np.arange(N, dtype=float)
+    meas = np.zeros((N, C, M, 2))
+    meas[:, :, 0, 0] = 3.0 * n[:, None]  # x moves 3 px a frame in both cameras
+    meas[:, :, 0, 1] = 7.0
+    valid = np.ones((N, C, M), bool)
+    valid[5, 1] = False
+    out, ok = between_frames_on_reference_clock(meas, valid, np.array([0.0, 1.25]))
+    assert np.allclose(out[:, 0, 0, 0], 3.0 * n) and ok[:, 0].all()
+    # camera 2, reference frame n is its time n - 1.25: frames n - 2 and n - 1 at w = 0.75
+    inside = [k for k in range(2, N) if k - 2 != 5 and k - 1 != 5]
+    assert np.allclose(out[inside, 1, 0, 0], 3.0 * (n[inside] - 1.25)) and ok[inside, 1].all()
+    assert not ok[0, 1].any() and np.isnan(out[0, 1]).all()  # time -1.25: before its first frame
+    assert ok[1, 1, 0] and out[1, 1, 0, 0] == 0.0  # time -0.25: its frame 0, the nearer, alone
+    # frame 5 missing: at k = 6 (frames 4 and 5, w = 0.75) the nearer is missing, at k = 7 (5 and 6) it is 6
+    assert not ok[6, 1, 0] and ok[7, 1, 0] and out[7, 1, 0, 0] == 18.0

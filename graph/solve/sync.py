@@ -136,6 +136,39 @@ def on_reference_clock(meas: np.ndarray, valid: np.ndarray, tau: np.ndarray) -> 
     return out, ok
 
 
+def between_frames_on_reference_clock(meas: np.ndarray, valid: np.ndarray,
+                                      tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The detections (N, C, M, 2) at the reference clock's frames, each camera's interpolated between
+    its own frames: reference frame n is camera c's time ``t = n - tau_c``, between its frames
+    ``f = floor(t)`` and ``f + 1``, and with ``w = t - f``
+
+        x_n = (1 - w) x_f + w x_(f+1)          (both valid)
+        x_n = x_f  if w <= 1/2,  x_(f+1) if w > 1/2   (one of them valid: the nearer, or none)
+
+    A marker moving smoothly is off by its acceleration times ``w (1 - w) / 2`` frames squared, far
+    below a pixel; the nearest frame (:func:`on_reference_clock`) leaves it off by its speed times up
+    to half a frame (on the simulated cheetah at 4 m/s and 120 fps, up to 17 mm). For ``ekf``'s
+    stream, which takes one frame of every camera at a time."""
+    N, C = meas.shape[:2]
+    out = np.full_like(meas, np.nan)
+    ok = np.zeros_like(valid)
+    t = np.arange(N)[:, None] - np.asarray(tau, dtype=np.float64)[None, :]  # (N, C) camera times
+    f = np.floor(t).astype(np.int64)
+    w = t - f
+    cams = np.arange(C)[None, :]
+    a_in, b_in = (f >= 0) & (f < N), (f + 1 >= 0) & (f + 1 < N)
+    fa, fb = np.clip(f, 0, N - 1), np.clip(f + 1, 0, N - 1)
+    va = valid[fa, cams] & a_in[..., None]
+    vb = valid[fb, cams] & b_in[..., None]
+    W = w[..., None]
+    both, only_a, only_b = va & vb, va & ~vb & (W <= 0.5), vb & ~va & (W > 0.5)
+    xa, xb = meas[fa, cams], meas[fb, cams]
+    out[both] = ((1 - W[..., None]) * xa + W[..., None] * xb)[both]
+    out[only_a], out[only_b] = xa[only_a], xb[only_b]
+    ok[:] = both | only_a | only_b
+    return out, ok
+
+
 def off_reference_clock(a: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """The inverse of :func:`on_reference_clock` for per-camera arrays (C, N, ...): what stands at
     reference frame n goes back to camera frame ``n - round(tau_c)`` (NaN or False where none)."""
