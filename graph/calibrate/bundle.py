@@ -35,9 +35,11 @@ forms the normal equations with Marquardt's damping ``lambda diag(J^T W J)`` and
 Schur complement of the boards' blocks (:func:`_step`): every board (or point) is a 6x6 (3x3) block
 that only cameras share, so the system reduces to the cameras' and intrinsics' few dozen unknowns.
 Building one GTSAM factor per view and per key for every damping trial cost 70 ms a step on 1500
-points (``calibrate refine`` on the fly, 100 steps a round); this is 11 ms. Uncertainty: GTSAM's
-marginals of the final linear system (one ``JacobianFactor`` per view over its 1-3 keys,
-:func:`linearize`), scaled by the measured noise ``sigma^2``.
+points (``calibrate refine`` on the fly, 100 steps a round); this is 11 ms. Uncertainty: the
+cameras' and intrinsics' covariance by the same Schur complement (:func:`camera_covariance`), scaled
+by the measured noise ``sigma^2``; it equals GTSAM's marginals of the final linear system (one
+``JacobianFactor`` per view over its 1-3 keys, :func:`linearize`, :func:`covariances`) where GTSAM
+takes them, and also holds where the stiff rows of a held lens make GTSAM refuse the system.
 """
 
 from __future__ import annotations
@@ -154,7 +156,6 @@ class Solution:
     iterations: int
     cost: float
     seconds: float
-    graph: gtsam.GaussianFactorGraph | None = None  # the final linear system (undamped)
 
 
 def cam_key(i: int) -> int:
@@ -497,11 +498,9 @@ def solve(rig: Rig, obs: Observations, settings: Settings) -> Solution:
         rig, cost = trial, new_cost
         if rel < settings.tolerance:
             break
-    factors, e, w = linearize(rig, obs, settings)
-    g = gtsam.GaussianFactorGraph()
-    for f in factors:
-        g.push_back(f)
-    return Solution(rig, e, w, it, cost, time.perf_counter() - start, g)
+    e = residuals(rig, obs, jacobians=False)
+    w, _ = _robust(e, settings.huber_px)
+    return Solution(rig, e, w, it, cost, time.perf_counter() - start)
 
 
 def noise_sigma(e: np.ndarray) -> float:
@@ -526,22 +525,28 @@ def camera_covariance(rig: Rig, obs: Observations, settings: Settings,
     """The covariance of the camera-side unknowns (:class:`NormalEquations`' columns), the points or
     boards marginalised: ``sigma^2 S^+``, ``S = H_cc - sum_j W_j H_j^-1 W_j^T`` the Schur complement
     of the undamped system at ``rig`` (a pseudo-inverse: a direction no data or prior sees has no
-    finite variance, and GTSAM's marginals refuse such a system outright). With its equations, for
-    the slots."""
+    finite variance, and GTSAM's marginals refuse such a system outright). The pseudo-inverse is
+    taken of ``D^-1 S D^-1``, ``D = diag(S)^(1/2)``: a held lens's stiff rows (``1 / HELD^2``, some
+    1e12 times the data's) otherwise swamp the poses' eigenvalues in rounding (sds of 0.01 mm where
+    the poses are known to millimetres, and negative variances). With its equations, for the slots."""
     eq = normal_equations(rig, obs, settings)
     Hb = eq.H_bb.copy()
     unseen = np.diagonal(Hb, axis1=1, axis2=2).max(axis=1) <= 0
     Hb[unseen] = np.eye(Hb.shape[-1])
     Hinv = np.linalg.inv(Hb)
     S, _ = _schur(eq.H_cc, eq.W, Hinv)
-    return sigma * sigma * np.linalg.pinv(0.5 * (S + S.T)), eq
+    S = 0.5 * (S + S.T)
+    d = np.sqrt(np.clip(np.diagonal(S), 1e-300, None))
+    return sigma * sigma * np.linalg.pinv(S / np.outer(d, d)) / np.outer(d, d), eq
 
 
-def covariances(solution: Solution, keys: list[int], sigma: float) -> dict[int, np.ndarray]:
-    """Marginal covariances of ``keys`` from GTSAM's marginals of the final linear system, scaled by
-    the detection noise ``sigma^2`` (the factors are whitened to 1 px)."""
-    if solution.graph is None:
-        raise ValueError("the solution keeps no linear system to take marginals of")
-    zero = gtsam.VectorValues()
-    marginals = gtsam.Marginals(solution.graph, zero)
+def covariances(rig: Rig, obs: Observations, settings: Settings, keys: list[int],
+                sigma: float) -> dict[int, np.ndarray]:
+    """Marginal covariances of ``keys`` from GTSAM's marginals of the linear system at ``rig``
+    (:func:`linearize`), scaled by the detection noise ``sigma^2`` (the factors are whitened to 1 px):
+    the check of :func:`camera_covariance`, which the calibrations use."""
+    g = gtsam.GaussianFactorGraph()
+    for f in linearize(rig, obs, settings)[0]:
+        g.push_back(f)
+    marginals = gtsam.Marginals(g, gtsam.VectorValues())
     return {k: marginals.marginalCovariance(k) * sigma * sigma for k in keys}

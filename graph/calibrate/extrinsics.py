@@ -28,7 +28,7 @@ import numpy as np
 from graph.calibrate import bundle
 from graph.calibrate.board import Board
 from graph.calibrate.intrinsics import MIN_CORNERS, IntrinsicsResult, calibrate_intrinsics, observations, outlier_views
-from graph.calibrate.model import camera_with, intrinsics_of
+from graph.calibrate.model import LENSES, camera_with, intrinsics_of
 from graph.calibrate.poses import board_in_camera, compose, inverse, medoid
 from graph.calibrate.views import BoardViews, frame_key
 from graph.camera import FISHEYE, Calibration, Camera
@@ -131,6 +131,10 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
     if len(set(names)) < n:
         names = [f"cam{i + 1}" for i in range(n)]
     notes: list[str] = []
+    if lens not in LENSES:
+        raise InputError(f"unknown lens {lens!r} ({', '.join(LENSES)})")
+    if lens != "full" and (intrinsics is not None or intrinsic_results):
+        raise InputError("lens is what the intrinsics calibrated here fit: with intrinsics given, leave it out")
     if board.looks_like_mm():
         notes.append(f"the board's square is {board.square:g} m: is it given in millimetres? "
                      "Board lengths are in metres")
@@ -233,7 +237,13 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
         sigma = bundle.noise_sigma(sol.residuals)
         rms = bundle.view_rms(sol.residuals, cur)
         bad = worst_per_frame(outliers_within_cameras(rms, cur.cam), rms, [view_frame[g] for g in np.flatnonzero(keep)])
-        if not bad.any() or round_ == MAX_ROUNDS - 1:  # a view dropped after the last solve would not be solved
+        if not bad.any():
+            break
+        if round_ == MAX_ROUNDS - 1:  # a view dropped after the last solve would not be solved: kept, and said
+            notes.append(f"{int(bad.sum())} view(s) still stand out after {MAX_ROUNDS} rounds of dropping outliers "
+                         "and are kept: " + ", ".join(f"{names[view_cam[g]]} {view_frame[g]}"
+                                                     for g in np.flatnonzero(keep)[bad]))
+            warnings.warn(notes[-1])
             break
         idx = np.flatnonzero(keep)
         for worst_view in np.flatnonzero(bad):
@@ -249,9 +259,8 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
     cur = obs.keep_views(keep)
     e = sol.residuals
     # 4. uncertainty and the world frame
-    keys = [bundle.cam_key(i) for i in range(1, n)]
-    keys += [bundle.intrinsics_key(i) for i in priors]
-    cov = bundle.covariances(sol, keys, sigma)
+    full, eq = bundle.camera_covariance(rig, cur, settings, sigma)
+    cov = {i: full[a:z, a:z] for i, (a, z) in eq.cam_slots.items()}
     to_world = _origin_transform(origin, frames, rig, views)
     cams, reports, residuals, corners_used = [], [], [], []
     c_of = cur.cam[cur.view]
@@ -265,7 +274,7 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
         if i == 0:
             pos, rot = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
         else:
-            C = cov[bundle.cam_key(i)]
+            C = cov[i]
             Rc = to_world[0] @ rig.R_cam[i]
             pos = (np.sqrt(np.diag(Rc @ C[3:, 3:] @ Rc.T)) * 1000).tolist()
             rot = np.degrees(np.sqrt(np.diag(C[:3, :3]))).tolist()

@@ -69,7 +69,7 @@ from graph.solve.robust import A as RA
 from graph.solve.robust import B as RB
 from graph.solve.robust import C as RC
 from graph.solve.smoothing import GTSAM_MAX_STIFFNESS
-from graph.solve.sync import between_frames_on_reference_clock, off_reference_clock, on_reference_clock
+from graph.solve.sync import between_frames_on_reference_clock, off_reference_clock
 from graph.solve.triangulate import robust_points
 from graph.types import Progress, ProgressCallback, Result
 
@@ -332,7 +332,7 @@ def _ekf_with_shared(prob: Problem, progress: ProgressCallback | None) -> Result
     if rep.body_lengths and sk.kind != "points":
         sk = sk.scaled(sk.scales_for({g: v["length_m"] for g, v in rep.body_lengths.items()}))
     meas, valid = between_frames_on_reference_clock(prob.meas, prob.valid, tau)
-    lik, _ = on_reference_clock(prob.likelihood[..., None], prob.valid, tau)
+    lik, _ = between_frames_on_reference_clock(prob.likelihood[..., None], prob.valid, tau)
     stream = replace(prob, skeleton=sk, meas=meas, valid=valid, likelihood=np.nan_to_num(lik[..., 0]),
                      options=replace(o, body="model", sync="given", time_offsets=None))
     result = _ekf(stream, progress)

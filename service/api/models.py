@@ -382,7 +382,7 @@ class CalibrationOut(BaseModel):
     max_attempts: int
     progress: Progress | None = None
     timings: Timings
-    options: dict[str, Any] = Field(description="board (its spec), model, origin")
+    options: dict[str, Any] = Field(description="board (its spec), model, lens, origin, every")
     inputs: CalibrationInputs
     error: str | None = Field(None, description="why it failed (e.g. the cameras share no board view)")
     error_kind: ErrorKind | None = None
