@@ -1,6 +1,7 @@
 """The solvers' own guarantees: gradients of the compiled cost, joint bounds at the solution,
 degenerate data reported rather than crashing, and the report's fields."""
 
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -294,3 +295,14 @@ def test_between_frames_on_the_reference_clock():
     assert ok[1, 1, 0] and out[1, 1, 0, 0] == 0.0  # time -0.25: its frame 0, the nearer, alone
     # frame 5 missing: at k = 6 (frames 4 and 5, w = 0.75) the nearer is missing, at k = 7 (5 and 6) it is 6
     assert not ok[6, 1, 0] and ok[7, 1, 0] and out[7, 1, 0, 0] == 18.0
+
+
+def test_ekf_with_clocks_off_gives_back_the_detections_as_given(rig):
+    """The stream takes detections interpolated to the reference clock; the result's detections (drawn
+    over each camera's video) are still each camera's own, frame for frame."""
+    run = simulate_run(rig, frames=120, fps=120.0, seed=5, time_offsets=[0, 0.4, -0.7, 1.3, 0.2, -0.3])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = solve(run.keypoints, rig, SolveOptions(fps=120.0, method="ekf", sync="estimate"))
+    for c, k in enumerate(run.keypoints):
+        assert np.array_equal(r.detections[c], k.xy, equal_nan=True) and np.array_equal(r.likelihood[c], k.likelihood)

@@ -340,6 +340,7 @@ def _ekf_with_shared(prob: Problem, progress: ProgressCallback | None) -> Result
     result.reprojections = off_reference_clock(result.reprojections, tau)
     result.residuals = off_reference_clock(result.residuals, tau)
     result.outlier = off_reference_clock(result.outlier, tau)
+    result.detections, result.likelihood = prob.meas.transpose(1, 0, 2, 3), prob.likelihood.transpose(1, 0, 2)
     result.options = o
     for field_name in ("body_lengths", "time_offsets_frames", "time_offsets_std_frames", "offsets_not_identified"):
         setattr(result.report, field_name, getattr(rep, field_name))
