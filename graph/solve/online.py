@@ -64,7 +64,7 @@ from graph.solve import kernels
 from graph.solve.fte import PRIOR_SIGMA, TrajectoryProblem, bone_lengths, optimise, refit_motion, trajectory_result
 from graph.solve.initial import initial_poses
 from graph.solve.joint import shares_unknowns, solve_fte_joint
-from graph.solve.problem import Problem
+from graph.solve.problem import Problem, frames_of
 from graph.solve.robust import A as RA
 from graph.solve.robust import B as RB
 from graph.solve.robust import C as RC
@@ -385,8 +385,6 @@ def _depthless_stretches(valid: np.ndarray, shortest: int) -> list[tuple[int, in
 def _batch_through(prob: Problem, tp: TrajectoryProblem, lo: int, hi: int) -> tuple[np.ndarray, int]:
     """Frames ``[lo, hi)`` (a stretch without depth and its margins) solved by ``fte`` with the stream's
     body and motion model (scales and orders held). Returns the poses and the iterations."""
-    from graph.solve.windows import frames_of
-
     names = tp.group_names()
     held = replace(prob.options, method="fte", window_frames=0, uncertainty=False,  # the run's sds: from Q after
                    motion_scale={g: float(v) for g, v in zip(names, tp.motion_scales)},

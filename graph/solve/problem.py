@@ -177,6 +177,15 @@ def confident(keypoints: list[Keypoints], skeleton: Skeleton, threshold: float) 
     return (np.isfinite(meas).all(axis=-1) & (lik >= threshold)).sum(axis=(1, 2))
 
 
+def frames_of(prob: Problem, a: int, b: int, options: SolveOptions | None = None,
+              sigma_px: float | None = None) -> Problem:
+    """The frames ``[a, b)`` of ``prob`` as a problem of their own, with ``options`` (default the
+    problem's) and detection noise ``sigma_px`` (default the problem's)."""
+    return replace(prob, meas=prob.meas[a:b], likelihood=prob.likelihood[a:b], valid=prob.valid[a:b],
+                   options=options or prob.options, sigma_px=prob.sigma_px if sigma_px is None else sigma_px,
+                   warnings=[], window=(a, b))
+
+
 def window_of(template: Problem, keypoints: list[Keypoints], window: tuple[int, int]) -> Problem:
     """The frames ``window = [a, b)`` of a long run as a problem, from their ``keypoints`` (the run's
     cameras, sliced): ``template`` (a problem :func:`build` made of another stretch of the same run)

@@ -68,7 +68,7 @@ from graph.errors import InputError, WorkerLost
 from graph.io.staged import StagedRun
 from graph.solve import problem
 from graph.solve.joint import solve_fte_joint
-from graph.solve.problem import Problem
+from graph.solve.problem import Problem, frames_of
 from graph.solve.result import build_result
 from graph.types import (
     FRAME_AXIS,
@@ -122,15 +122,6 @@ def solve_whole(prob: Problem, progress: ProgressCallback | None = None) -> Resu
     if prob.options.method not in WINDOWED_METHODS:
         raise ValueError(f"a run is solved in windows by {' or '.join(WINDOWED_METHODS)}, not {prob.options.method!r}")
     return solve_fte_joint(prob, progress)
-
-
-def frames_of(prob: Problem, a: int, b: int, options: SolveOptions | None = None,
-              sigma_px: float | None = None) -> Problem:
-    """The frames ``[a, b)`` of ``prob`` as a problem of their own, with ``options`` (default the
-    problem's) and detection noise ``sigma_px`` (default the problem's)."""
-    return replace(prob, meas=prob.meas[a:b], likelihood=prob.likelihood[a:b], valid=prob.valid[a:b],
-                   options=options or prob.options, sigma_px=prob.sigma_px if sigma_px is None else sigma_px,
-                   warnings=[], window=(a, b))
 
 
 class Frames(Protocol):
