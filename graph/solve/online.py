@@ -69,7 +69,7 @@ from graph.solve.robust import A as RA
 from graph.solve.robust import B as RB
 from graph.solve.robust import C as RC
 from graph.solve.smoothing import GTSAM_MAX_STIFFNESS
-from graph.solve.sync import between_frames_on_reference_clock, off_reference_clock
+from graph.solve.sync import between_frames_on_reference_clock, off_reference_clock, on_camera_clocks
 from graph.solve.triangulate import robust_points
 from graph.types import Progress, ProgressCallback, Result
 
@@ -336,11 +336,14 @@ def _ekf_with_shared(prob: Problem, progress: ProgressCallback | None) -> Result
     stream = replace(prob, skeleton=sk, meas=meas, valid=valid, likelihood=np.nan_to_num(lik[..., 0]),
                      options=replace(o, body="model", sync="given", time_offsets=None))
     result = _ekf(stream, progress)
-    # back on each camera's own clock: what was drawn at reference frame n is camera frame n - round(tau)
-    result.reprojections = off_reference_clock(result.reprojections, tau)
-    result.residuals = off_reference_clock(result.residuals, tau)
-    result.outlier = off_reference_clock(result.outlier, tau)
+    # back on each camera's own clock: the trajectory where each camera's frames were taken, projected
+    # and set against its detections as given; the outlier flags from the nearest reference frame
+    X = on_camera_clocks(result.positions, tau)
+    result.reprojections = np.stack([cam.project(X[c]) for c, cam in enumerate(prob.calibration.cameras)])
     result.detections, result.likelihood = prob.meas.transpose(1, 0, 2, 3), prob.likelihood.transpose(1, 0, 2)
+    result.residuals = np.where(prob.valid.transpose(1, 0, 2),
+                                np.linalg.norm(result.reprojections - result.detections, axis=-1), np.nan)
+    result.outlier = off_reference_clock(result.outlier, tau)
     result.options = o
     for field_name in ("body_lengths", "time_offsets_frames", "time_offsets_std_frames", "offsets_not_identified"):
         setattr(result.report, field_name, getattr(rep, field_name))

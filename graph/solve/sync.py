@@ -169,6 +169,23 @@ def between_frames_on_reference_clock(meas: np.ndarray, valid: np.ndarray,
     return out, ok
 
 
+def on_camera_clocks(positions: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """Positions (N, M, 3) on the reference clock at each camera's own frames (C, N, M, 3): camera c's
+    frame j is reference time ``t = j + tau_c``, and with ``f = floor(t)``, ``w = t - f``,
+    ``X = (1 - w) X_f + w X_(f+1)`` (NaN where ``t`` is outside the run). The inverse of
+    :func:`between_frames_on_reference_clock`, for what is drawn over each camera's frames."""
+    N = positions.shape[0]
+    out = np.full((len(tau),) + positions.shape, np.nan)
+    for c, tc in enumerate(np.asarray(tau, dtype=np.float64)):
+        t = np.arange(N) + tc
+        f = np.floor(t).astype(np.int64)
+        w = (t - f)[:, None, None]
+        inside = (f >= 0) & (f + 1 <= N - 1) | ((f == N - 1) & (w[:, 0, 0] == 0))
+        fa, fb = np.clip(f, 0, N - 1), np.clip(f + 1, 0, N - 1)
+        out[c, inside] = ((1 - w) * positions[fa] + w * positions[fb])[inside]
+    return out
+
+
 def off_reference_clock(a: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """The inverse of :func:`on_reference_clock` for per-camera arrays (C, N, ...): what stands at
     reference frame n goes back to camera frame ``n - round(tau_c)`` (NaN or False where none)."""
