@@ -336,14 +336,15 @@ def _ekf_with_shared(prob: Problem, progress: ProgressCallback | None) -> Result
     stream = replace(prob, skeleton=sk, meas=meas, valid=valid, likelihood=np.nan_to_num(lik[..., 0]),
                      options=replace(o, body="model", sync="given", time_offsets=None))
     result = _ekf(stream, progress)
-    # back on each camera's own clock: the trajectory where each camera's frames were taken, projected
-    # and set against its detections as given; the outlier flags from the nearest reference frame
-    X = on_camera_clocks(result.positions, tau)
-    result.reprojections = np.stack([cam.project(X[c]) for c, cam in enumerate(prob.calibration.cameras)])
-    result.detections, result.likelihood = prob.meas.transpose(1, 0, 2, 3), prob.likelihood.transpose(1, 0, 2)
-    result.residuals = np.where(prob.valid.transpose(1, 0, 2),
-                                np.linalg.norm(result.reprojections - result.detections, axis=-1), np.nan)
-    result.outlier = off_reference_clock(result.outlier, tau)
+    if np.any(tau != 0):  # back on each camera's own clock (none: the stream's were the cameras' own)
+        # the trajectory where each camera's frames were taken, projected and set against its detections
+        # as given; the outlier flags from the nearest reference frame
+        X = on_camera_clocks(result.positions, tau)
+        result.reprojections = np.stack([cam.project(X[c]) for c, cam in enumerate(prob.calibration.cameras)])
+        result.detections, result.likelihood = prob.meas.transpose(1, 0, 2, 3), prob.likelihood.transpose(1, 0, 2)
+        result.residuals = np.where(prob.valid.transpose(1, 0, 2),
+                                    np.linalg.norm(result.reprojections - result.detections, axis=-1), np.nan)
+        result.outlier = off_reference_clock(result.outlier, tau)
     result.options = o
     for field_name in ("body_lengths", "time_offsets_frames", "time_offsets_std_frames", "offsets_not_identified"):
         setattr(result.report, field_name, getattr(rep, field_name))
