@@ -256,8 +256,7 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
             left = [int(view_cam[h]) for h in np.flatnonzero(keep) if view_frame[h] == view_frame[g]]
             poses = {i: (rig.R_cam[i], rig.t_cam[i]) for i in range(n)}
             rig.R_board[b], rig.t_board[b] = board_start(view_frame[g], poses, pnp, left, scale)
-    cur = obs.keep_views(keep)
-    e = sol.residuals
+    e = sol.residuals  # the last round dropped nothing: its views ``cur`` are the ones kept
     # 4. uncertainty and the world frame
     full, eq = bundle.camera_covariance(rig, cur, settings, sigma)
     cov = {i: full[a:z, a:z] for i, (a, z) in eq.cam_slots.items()}

@@ -180,7 +180,7 @@ def on_camera_clocks(positions: np.ndarray, tau: np.ndarray) -> np.ndarray:
         t = np.arange(N) + tc
         f = np.floor(t).astype(np.int64)
         w = (t - f)[:, None, None]
-        inside = (f >= 0) & (f + 1 <= N - 1) | ((f == N - 1) & (w[:, 0, 0] == 0))
+        inside = (t >= 0) & (t <= N - 1)
         fa, fb = np.clip(f, 0, N - 1), np.clip(f + 1, 0, N - 1)
         out[c, inside] = ((1 - w) * positions[fa] + w * positions[fb])[inside]
     return out
