@@ -19,6 +19,7 @@ import h5py
 import numpy as np
 import pytest
 
+from graph.app.processes import pid_alive
 from graph.app.resident import client, protocol, status
 from graph.camera import Calibration
 from graph.io.calibration import default_rig_path, load_calibration, write_anipose_toml
@@ -187,7 +188,7 @@ def resident_children(pid: int) -> list[int]:
 
 def gone(pid: int) -> bool:
     """Exited (a zombie counts: here PID 1 may not reap a dead resident's orphans)."""
-    return state(pid) in ("", "Z", "X")
+    return not pid_alive(pid)
 
 
 def test_the_next_solve_runs_in_a_child_forked_ahead(env, warm, run_dir, tmp_path):
