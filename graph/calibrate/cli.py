@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graph.calibrate.model import LENSES
+from graph.calibrate.model import LENSES, lens_with_intrinsics
 from graph.camera import CAMERA_MODELS, FISHEYE
 from graph.errors import InputError
 
@@ -191,8 +191,8 @@ def run_extrinsics(args: argparse.Namespace) -> int:
         if args.refine_intrinsics:
             raise InputError("--refine-intrinsics needs the intrinsics calibrated here (their uncertainty is "
                              "the prior): leave out --intrinsics")
-        if args.lens != "full":
-            raise InputError("--lens is what the intrinsics calibrated here fit: leave out --intrinsics")
+        if why := lens_with_intrinsics(args.lens):
+            raise InputError(f"--{why}")
     names = _camera_names(args.names, len(args.sources))
     views = _load_sources(args.sources, board, args.every, not args.no_cache, names)
     report, bar = _progress_bar()

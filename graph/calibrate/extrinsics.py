@@ -28,7 +28,7 @@ import numpy as np
 from graph.calibrate import bundle
 from graph.calibrate.board import Board
 from graph.calibrate.intrinsics import MIN_CORNERS, IntrinsicsResult, calibrate_intrinsics, observations, outlier_views
-from graph.calibrate.model import LENSES, camera_with, intrinsics_of
+from graph.calibrate.model import LENSES, camera_with, intrinsics_of, lens_with_intrinsics
 from graph.calibrate.poses import board_in_camera, compose, inverse, medoid
 from graph.calibrate.views import BoardViews, frame_key
 from graph.camera import FISHEYE, Calibration, Camera
@@ -133,8 +133,8 @@ def calibrate_extrinsics(views: list[BoardViews], board: Board, intrinsics: list
     notes: list[str] = []
     if lens not in LENSES:
         raise InputError(f"unknown lens {lens!r} ({', '.join(LENSES)})")
-    if lens != "full" and (intrinsics is not None or intrinsic_results):
-        raise InputError("lens is what the intrinsics calibrated here fit: with intrinsics given, leave it out")
+    if (intrinsics is not None or intrinsic_results) and (why := lens_with_intrinsics(lens)):
+        raise InputError(why)
     if board.looks_like_mm():
         notes.append(f"the board's square is {board.square:g} m: is it given in millimetres? "
                      "Board lengths are in metres")

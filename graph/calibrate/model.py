@@ -31,6 +31,14 @@ HELD = 1e-6  # the prior sd of an intrinsic held (relative for the focal lengths
 LENSES = ("full", "k1")
 
 
+def lens_with_intrinsics(lens: str) -> str | None:
+    """Why ``lens`` cannot go with intrinsics given rather than calibrated here (the lens is what those
+    fit), or None for ``"full"``: the refusal of the library, the command line and the service."""
+    if lens == "full":
+        return None
+    return "lens is what the intrinsics calibrated here fit: with intrinsics given, leave it out"
+
+
 def held_lens(theta: np.ndarray, size: tuple[int, int], lens: str) -> tuple[np.ndarray, np.ndarray] | None:
     """The lens ``lens`` (:data:`LENSES`) as a start ``theta0`` and a stiff prior ``(theta0, L)`` on
     ``theta`` (:class:`graph.calibrate.bundle.Settings`), or None for ``"full"`` (nothing held).

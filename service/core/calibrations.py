@@ -35,6 +35,7 @@ import shutil
 from pathlib import Path
 from typing import Callable, Iterator
 
+from graph.calibrate.model import LENSES, lens_with_intrinsics
 from graph.camera import CAMERA_MODELS
 from graph.errors import InputError
 from service.core.jobs import JobService, Upload, parse_label, safe_name, stream_size
@@ -61,7 +62,7 @@ def options_object(text: str | None, known: tuple[str, ...], example: str) -> di
         raise Unprocessable(f"options: must be a JSON object such as {example}")
     unknown = sorted(set(data) - set(known))
     if unknown:
-        raise Unprocessable(f"options: unknown option {unknown[0]!r}; known: {', '.join(known)}")
+        raise Unprocessable(f"options: unknown option {repr(unknown[0]):.80}; known: {', '.join(known)}")
     return data
 
 
@@ -70,7 +71,6 @@ def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
     fitted, :data:`graph.calibrate.model.LENSES`, ``origin``: camera1|board:FRAME, ``every``: use every
     N-th frame of videos, ``label``) as the job's options, and its label. Refusals are one line."""
     from graph.calibrate import parse_board
-    from graph.calibrate.model import LENSES
 
     try:
         board = parse_board(board_spec)
@@ -80,16 +80,16 @@ def parse_options(board_spec: str, text: str | None) -> tuple[dict, str | None]:
     label = parse_label(data.get("label"))
     model = data.get("model", "fisheye")
     if model not in MODELS:
-        raise Unprocessable(f"options: model must be one of {', '.join(MODELS)}, not {model!r}")
+        raise Unprocessable(f"options: model must be one of {', '.join(MODELS)}, not {repr(model):.80}")
     lens = data.get("lens", "full")
     if lens not in LENSES:
-        raise Unprocessable(f"options: lens must be one of {', '.join(LENSES)}, not {lens!r}")
+        raise Unprocessable(f"options: lens must be one of {', '.join(LENSES)}, not {repr(lens):.80}")
     origin = data.get("origin", "camera1")
     if not isinstance(origin, str) or not (origin == "camera1" or (origin.startswith("board:") and origin[6:])):
-        raise Unprocessable(f"options: origin must be camera1 or board:FRAME, not {origin!r}")
+        raise Unprocessable(f"options: origin must be camera1 or board:FRAME, not {repr(origin):.80}")
     every = data.get("every", 1)
     if not isinstance(every, int) or isinstance(every, bool) or every < 1:
-        raise Unprocessable(f"options: every must be a whole number of frames, at least 1, not {every!r}")
+        raise Unprocessable(f"options: every must be a whole number of frames, at least 1, not {repr(every):.80}")
     return {"kind": CALIBRATION_KIND, "board": board.spec, "model": model, "lens": lens, "origin": origin,
             "every": every}, label
 
@@ -146,9 +146,8 @@ class CalibrationService:
             raise Unprocessable(f"intrinsics: {len(intrinsics)} files for {len(detections)} cameras; upload one "
                                 "per camera, in the same order, or none")
         options, label = parse_options(board_spec, options_text)
-        if intrinsics and options["lens"] != "full":
-            raise Unprocessable("options: lens is what the intrinsics calibrated here fit; with intrinsics "
-                                "uploaded leave it out")
+        if intrinsics and (why := lens_with_intrinsics(options["lens"])):
+            raise Unprocessable(f"options: {why}")
         self.jobs.check_quota(user)
         self.jobs.check_storage(user, sum(stream_size(u.file) for u in [*detections, *intrinsics]))
         return self._queue(user, lambda: self._store_upload(detections, intrinsics, options, videos=bool(videos)),

@@ -188,6 +188,13 @@ def test_bad_uploads_are_one_line_4xx(alice, tmp_path, case, status, fragment):
     assert fragment in detail and "\n" not in detail and "/" not in detail.split(":", 1)[0], detail
 
 
+def test_a_huge_option_value_is_refused_in_a_short_line(alice):
+    """A 100 kB value of an option is named, not echoed whole, in the refusal."""
+    for name in ("lens", "model", "origin", "every"):
+        r = post_calibration(alice, options={name: "k1" * 50_000})
+        assert r.status_code == 422 and name in r.json()["detail"] and len(r.json()["detail"]) < 300, r.text[:300]
+
+
 def test_cameras_with_no_shared_view_fail_with_the_reason(alice, tmp_path):
     """Accepted (each file is fine on its own), then failed by the solve with its one-line reason."""
     doc = json.loads(EX1[1].read_text())
